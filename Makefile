@@ -1,0 +1,41 @@
+# Everything a fresh machine needs, from python3 alone. Each target creates .venv if missing.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test lint format bench soak clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+## The main job on the embedded default: emulated cell, zenoh peer on loopback, local MCAP.
+demo: $(STAMP)
+	$(BIN)/python -m calibration.demo
+
+## The test suite (what CI runs): lint, then pytest without the slow soak/accuracy sweeps.
+test: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/python -m pytest -q -m "not slow"
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+format: $(STAMP)
+	$(BIN)/ruff format .
+	$(BIN)/ruff check --fix .
+
+## Speed benchmarks (ratios against reference implementations measured in the same run).
+bench: $(STAMP)
+	$(BIN)/python -m benchmarks
+
+## Slow soak and accuracy sweeps over many seeds.
+soak: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

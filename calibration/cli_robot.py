@@ -1,0 +1,32 @@
+"""``twin robot``: list presets, check a description file, print its home TCP."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from calibration.description import load_robot, preset_names
+from calibration.kinematics import KinematicModel, tcp_positions
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("robot", help="list presets or check a robot description file")
+    p.add_argument("robot", nargs="?", help="preset name or path to a robot .toml")
+    p.add_argument("--out", help="write the description back (normalized) to this file")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.robot is None:
+        print("\n".join(preset_names()))
+        return 0
+    desc = load_robot(args.robot)
+    model = KinematicModel.from_description(desc)
+    home_tcp = tcp_positions(model, np.radians(desc.home))
+    print(f"{desc.name}: {desc.n_joints} joints, Home {list(desc.home)} deg")
+    print(f"Home TCP in the instrument frame: {np.round(home_tcp, 3).tolist()} mm")
+    if args.out:
+        desc.save(args.out)
+        print(f"wrote {args.out}")
+    return 0
