@@ -1,8 +1,8 @@
 """``twin``: the twin's command line. Each subcommand lives in its own module.
 
 A subcommand module exposes ``register(subparsers) -> None`` that adds its parser and sets
-``func`` (``args -> int`` exit code) as the parser default. Modules are imported lazily so a
-broken optional piece fails only its own command.
+``func`` (``args -> int`` exit code) as the parser default. Only the chosen command's module
+is imported, so a broken or slow piece fails or slows only its own command.
 """
 
 from __future__ import annotations
@@ -13,22 +13,37 @@ import sys
 
 from calibration.errors import CalibrationError
 
-# subcommand name -> module providing register()
-SUBCOMMANDS: dict[str, str] = {
-    "robot": "calibration.cli_robot",
+# subcommand name -> (module providing register(), one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "robot": ("calibration.cli_robot", "list presets or check a robot description file"),
+    "scale": ("calibration.cli_scale", "grating-scale calibration from home.csv and sweep.csv"),
+    "scale-apply": ("calibration.cli_scale", "turn grating counts into joint angles"),
+    "identify": ("calibration.cli_identify", "identify kinematic parameters from a campaign"),
+    "predict": ("calibration.cli_identify", "predict tracker points from joint angles"),
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="twin", description=__doc__.splitlines()[0])
+def build_parser(command: str | None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="twin",
+        description="The robot's digital twin: calibration and identification.",
+        epilog="commands:\n"
+        + "\n".join(f"  {name:<12} {text}" for name, (_, text) in SUBCOMMANDS.items()),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module_name in dict.fromkeys(SUBCOMMANDS.values()):
-        importlib.import_module(module_name).register(sub)
+    if command in SUBCOMMANDS:
+        importlib.import_module(SUBCOMMANDS[command][0]).register(sub)
+    for name, (_, text) in SUBCOMMANDS.items():
+        if name not in sub.choices:  # listed for usage messages, not imported
+            sub.add_parser(name, help=text)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    command = next((a for a in argv if not a.startswith("-")), None)
+    args = build_parser(command).parse_args(argv)
     try:
         return int(args.func(args))
     except CalibrationError as exc:

@@ -158,6 +158,25 @@ class KinematicModel:
             tool_mm=x[5 * n + 6 :].copy(),
         )
 
+    def truncated(self, n_joints: int, tool_mm: ArrayLike = (0.0, 0.0, 0.0)) -> KinematicModel:
+        """The first ``n_joints`` links with a point ``tool_mm`` fixed in the last one's frame.
+
+        Used for targets mounted on an intermediate link (scale calibration sweeps).
+        """
+        if not 1 <= n_joints <= self.n_joints:
+            raise KinematicsError(f"n_joints must be in 1..{self.n_joints}, got {n_joints}")
+        k = slice(0, n_joints)
+        return KinematicModel(
+            a_mm=self.a_mm[k].copy(),
+            alpha_rad=self.alpha_rad[k].copy(),
+            d_mm=self.d_mm[k].copy(),
+            theta_offset_rad=self.theta_offset_rad[k].copy(),
+            beta_rad=self.beta_rad[k].copy(),
+            base_mm=self.base_mm.copy(),
+            base_rad=self.base_rad.copy(),
+            tool_mm=np.asarray(tool_mm, dtype=float).copy(),
+        )
+
     def base_rotation(self) -> FloatArray:
         return rotation_from_fixed_xyz(*self.base_rad)
 
@@ -297,3 +316,15 @@ def identification_jacobian(
     ).transpose(0, 2, 1)
     jac[:, :, off + 6 :] = rot
     return (p[0], jac[0]) if single else (p, jac)
+
+
+def nearly_parallel_joints(model: KinematicModel, tol_deg: float = 5.0) -> NDArray[np.bool_]:
+    """Joints whose axis is nearly parallel to the previous one, shape ``(n,)``.
+
+    These carry the Hayati ``beta``; their ``d`` is then redundant and held at its value.
+    Joint 1 is never flagged (its predecessor is the base, which has its own parameters).
+    """
+    alpha = np.abs(np.degrees(np.asarray(model.alpha_rad)) % 180.0)
+    flags = np.minimum(alpha, 180.0 - alpha) < tol_deg
+    flags[0] = False
+    return flags
