@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 
 ## The main job on the embedded default: emulated cell, zenoh peer on loopback, local MCAP.
 demo: $(STAMP)
-	$(BIN)/python -m calibration.demo
+	$(BIN)/python -m daq.demo
 
 ## The test suite (what CI runs): lint, then pytest without the slow soak/accuracy sweeps.
 test: $(STAMP)
