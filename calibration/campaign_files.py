@@ -1,0 +1,360 @@
+"""Measurement files of the identification: campaign.csv, joints.csv, points.csv.
+
+``campaign.csv``: ``pose,set,t_s,q1_deg..qN_deg,x_mm,y_mm,z_mm`` and optionally
+``e1_deg..eN_deg`` (motor-encoder angles). ``set`` is ``identify`` or ``validate``; ``t_s``
+is seconds since the start of the campaign; q are the grating joint angles (degrees); x, y, z
+the tracker TCP target in the tracker frame (mm). Other columns are ignored.
+
+``joints.csv`` (input of ``twin predict``): ``pose,t_s,q1_deg..qN_deg``; other columns
+ignored. ``points.csv`` (its output): ``pose,x_mm,y_mm,z_mm``.
+
+A bad row (a value that is not a finite number, a joint outside its limits, a duplicated
+pose id, too few fields, an unknown set) raises :class:`DataFileError` naming the file, the
+line and the column, or with ``skip_bad=True`` is left out and recorded in ``skipped``. A
+missing column is always an error: no row could be read without it.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from calibration.errors import DataFileError
+
+FloatArray = NDArray[np.float64]
+
+#: Valid values of the ``set`` column.
+SETS = ("identify", "validate")
+
+JointLimits = Sequence[tuple[float, float]]  # per joint (lower_deg, upper_deg)
+
+
+@dataclass(frozen=True)
+class SkippedRow:
+    """A row left out under ``skip_bad``: its line number, pose id (if readable), reason."""
+
+    line: int
+    pose: str | None
+    reason: str
+
+    def __str__(self) -> str:
+        pose = f" (pose {self.pose!r})" if self.pose else ""
+        return f"line {self.line}{pose}: {self.reason}"
+
+
+@dataclass(frozen=True)
+class Campaign:
+    """The rows of a campaign.csv, arrays of length m (degrees, mm, seconds)."""
+
+    source: str
+    pose: tuple[str, ...]
+    set: tuple[str, ...]
+    t_s: FloatArray  # (m,)
+    q_deg: FloatArray  # (m, n) grating joint angles
+    xyz_mm: FloatArray  # (m, 3) tracker points
+    encoder_deg: FloatArray | None = None  # (m, n) motor-encoder joint angles
+    skipped: tuple[SkippedRow, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.pose)
+
+    @property
+    def q_rad(self) -> FloatArray:
+        return np.radians(self.q_deg)
+
+    def mask(self, set_name: str) -> NDArray[np.bool_]:
+        if set_name not in SETS:
+            raise DataFileError(f"unknown set {set_name!r} (valid: {', '.join(SETS)})")
+        return np.array([s == set_name for s in self.set], dtype=bool)
+
+    def subset(self, mask: ArrayLike) -> Campaign:
+        """The rows where ``mask`` ``(m,)`` is True (``skipped`` is kept)."""
+        m = np.asarray(mask, dtype=bool)
+        idx = np.flatnonzero(m)
+        return replace(
+            self,
+            pose=tuple(self.pose[i] for i in idx),
+            set=tuple(self.set[i] for i in idx),
+            t_s=self.t_s[m],
+            q_deg=self.q_deg[m],
+            xyz_mm=self.xyz_mm[m],
+            encoder_deg=None if self.encoder_deg is None else self.encoder_deg[m],
+        )
+
+
+@dataclass(frozen=True)
+class JointReadings:
+    """The rows of a joints.csv: pose ids, times (s) and joint angles ``(m, n)`` degrees."""
+
+    source: str
+    pose: tuple[str, ...]
+    t_s: FloatArray
+    q_deg: FloatArray
+    skipped: tuple[SkippedRow, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.pose)
+
+
+def joint_columns(n_joints: int, prefix: str = "q") -> list[str]:
+    return [f"{prefix}{i + 1}_deg" for i in range(n_joints)]
+
+
+def campaign_columns(n_joints: int, *, encoders: bool = False) -> list[str]:
+    cols = ["pose", "set", "t_s", *joint_columns(n_joints), "x_mm", "y_mm", "z_mm"]
+    return cols + (joint_columns(n_joints, "e") if encoders else [])
+
+
+# -- reading ----------------------------------------------------------------------------
+class _RowError(Exception):
+    def __init__(self, column: str | None, message: str) -> None:
+        super().__init__(message)
+        self.column = column
+        self.message = message
+
+
+def _read_table(path: str | Path) -> tuple[str, list[str], list[tuple[int, list[str]]]]:
+    """Header and (line number, fields) of every non-blank row of a CSV file."""
+    source = str(path)
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as exc:
+        raise DataFileError(f"{source}: cannot read: {exc}") from exc
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise DataFileError(f"{source}: not UTF-8 text: {exc}") from exc
+    if "\x00" in text:
+        raise DataFileError(f"{source}: contains NUL bytes: not a CSV text file")
+    reader = csv.reader(io.StringIO(text, newline=""), strict=True)
+    rows: list[tuple[int, list[str]]] = []
+    header: list[str] | None = None
+    try:
+        for fields in reader:
+            if not fields or all(not f.strip() for f in fields):
+                continue
+            if header is None:
+                header = [f.strip() for f in fields]
+                continue
+            rows.append((reader.line_num, fields))
+    except csv.Error as exc:
+        raise DataFileError(f"{source}: line {reader.line_num}: not valid CSV: {exc}") from exc
+    if header is None:
+        raise DataFileError(f"{source}: empty file: expected a header line")
+    seen: set[str] = set()
+    for name in header:
+        if name in seen:
+            raise DataFileError(f"{source}: header: column {name!r} appears twice")
+        seen.add(name)
+    return source, header, rows
+
+
+def _check_columns(source: str, header: list[str], required: list[str], n_joints: int) -> None:
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise DataFileError(
+            f"{source}: header: missing column(s) {', '.join(missing)} "
+            f"(expected {', '.join(required)})"
+        )
+    extra_joint = f"q{n_joints + 1}_deg"
+    if extra_joint in header:
+        raise DataFileError(
+            f"{source}: header: column {extra_joint!r} but the robot has {n_joints} joints"
+        )
+
+
+def _number(fields: dict[str, str], column: str) -> float:
+    text = fields[column].strip()
+    try:
+        value = float(text)
+    except ValueError:
+        raise _RowError(column, f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise _RowError(column, f"{text!r} is not a finite number")
+    return value
+
+
+def _joint_angles(
+    fields: dict[str, str], columns: list[str], limits: JointLimits | None
+) -> list[float]:
+    values = [_number(fields, c) for c in columns]
+    if limits is not None:
+        for c, v, (lo, hi) in zip(columns, values, limits, strict=True):
+            if not lo - 1e-9 <= v <= hi + 1e-9:
+                raise _RowError(c, f"{v} deg outside the joint limits [{lo}, {hi}]")
+    return values
+
+
+def _parse_rows(
+    source: str,
+    header: list[str],
+    rows: list[tuple[int, list[str]]],
+    parse: Callable[[dict[str, str]], tuple[float | str | list[float], ...]],
+    skip_bad: bool,
+) -> tuple[list[str], list[tuple[float | str | list[float], ...]], list[SkippedRow]]:
+    poses: list[str] = []
+    values: list[tuple[float | str | list[float], ...]] = []
+    skipped: list[SkippedRow] = []
+    first_line: dict[str, int] = {}
+    pose_col = header.index("pose")
+    for line, raw in rows:
+        pose: str | None = raw[pose_col].strip() if len(raw) > pose_col else None
+        try:
+            if len(raw) < len(header):
+                raise _RowError(None, f"{len(raw)} fields, the header has {len(header)}")
+            fields = dict(zip(header, raw, strict=False))
+            pose = fields["pose"].strip()
+            if not pose:
+                raise _RowError("pose", "empty pose id")
+            if pose in first_line:
+                raise _RowError("pose", f"duplicated pose id (first on line {first_line[pose]})")
+            parsed = parse(fields)
+        except _RowError as exc:
+            where = f"column '{exc.column}': " if exc.column else ""
+            reason = f"{where}{exc.message}"
+            if not skip_bad:
+                label = f" (pose {pose!r})" if pose else ""
+                raise DataFileError(f"{source}: line {line}{label}: {reason}") from None
+            skipped.append(SkippedRow(line, pose or None, reason))
+            continue
+        first_line[pose] = line
+        poses.append(pose)
+        values.append(parsed)
+    if not poses:
+        detail = f" ({len(skipped)} bad row(s) skipped)" if skipped else ""
+        raise DataFileError(f"{source}: no valid data rows{detail}")
+    return poses, values, skipped
+
+
+def read_campaign(
+    path: str | Path,
+    n_joints: int,
+    *,
+    limits_deg: JointLimits | None = None,
+    skip_bad: bool = False,
+) -> Campaign:
+    """Read a campaign.csv for an ``n_joints`` robot (joint limits checked when given)."""
+    source, header, rows = _read_table(path)
+    qcols = joint_columns(n_joints)
+    _check_columns(source, header, campaign_columns(n_joints), n_joints)
+    ecols = joint_columns(n_joints, "e")
+    present = [c for c in ecols if c in header]
+    if present and len(present) != len(ecols):
+        missing = [c for c in ecols if c not in header]
+        raise DataFileError(
+            f"{source}: header: encoder columns are incomplete, missing {', '.join(missing)}"
+        )
+    encoders = bool(present)
+
+    def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
+        set_name = f["set"].strip()
+        if set_name not in SETS:
+            raise _RowError("set", f"{set_name!r} is not one of {', '.join(SETS)}")
+        t = _number(f, "t_s")
+        q = _joint_angles(f, qcols, limits_deg)
+        xyz = [_number(f, c) for c in ("x_mm", "y_mm", "z_mm")]
+        enc = [_number(f, c) for c in ecols] if encoders else []
+        return set_name, t, q, xyz, enc
+
+    poses, values, skipped = _parse_rows(source, header, rows, parse, skip_bad)
+    return Campaign(
+        source=source,
+        pose=tuple(poses),
+        set=tuple(str(v[0]) for v in values),
+        t_s=np.array([v[1] for v in values], dtype=float),
+        q_deg=np.array([v[2] for v in values], dtype=float).reshape(len(poses), n_joints),
+        xyz_mm=np.array([v[3] for v in values], dtype=float).reshape(len(poses), 3),
+        encoder_deg=(
+            np.array([v[4] for v in values], dtype=float).reshape(len(poses), n_joints)
+            if encoders
+            else None
+        ),
+        skipped=tuple(skipped),
+    )
+
+
+def read_joint_readings(
+    path: str | Path,
+    n_joints: int,
+    *,
+    limits_deg: JointLimits | None = None,
+    skip_bad: bool = False,
+) -> JointReadings:
+    """Read a joints.csv (``pose,t_s,q1_deg..qN_deg``; other columns ignored)."""
+    source, header, rows = _read_table(path)
+    qcols = joint_columns(n_joints)
+    _check_columns(source, header, ["pose", "t_s", *qcols], n_joints)
+
+    def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
+        return _number(f, "t_s"), _joint_angles(f, qcols, limits_deg)
+
+    poses, values, skipped = _parse_rows(source, header, rows, parse, skip_bad)
+    return JointReadings(
+        source=source,
+        pose=tuple(poses),
+        t_s=np.array([v[0] for v in values], dtype=float),
+        q_deg=np.array([v[1] for v in values], dtype=float).reshape(len(poses), n_joints),
+        skipped=tuple(skipped),
+    )
+
+
+def read_points(path: str | Path) -> tuple[tuple[str, ...], FloatArray]:
+    """Read a points.csv: pose ids and ``(m, 3)`` mm."""
+    source, header, rows = _read_table(path)
+    cols = ["pose", "x_mm", "y_mm", "z_mm"]
+    missing = [c for c in cols if c not in header]
+    if missing:
+        raise DataFileError(f"{source}: header: missing column(s) {', '.join(missing)}")
+
+    def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
+        return ([_number(f, c) for c in cols[1:]],)
+
+    poses, values, _ = _parse_rows(source, header, rows, parse, False)
+    return tuple(poses), np.array([v[0] for v in values], dtype=float).reshape(-1, 3)
+
+
+# -- writing ----------------------------------------------------------------------------
+def _fmt(v: float, digits: int) -> str:
+    return f"{v:.{digits}f}" if math.isfinite(v) else "nan"
+
+
+def write_campaign(path: str | Path, campaign: Campaign) -> None:
+    """Write a campaign.csv (degrees to 1e-9, mm to 1 nm, seconds to 1 ms)."""
+    n = campaign.q_deg.shape[1]
+    encoders = campaign.encoder_deg is not None
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(campaign_columns(n, encoders=encoders))
+        for i, pose in enumerate(campaign.pose):
+            row = [pose, campaign.set[i], _fmt(campaign.t_s[i], 3)]
+            row += [_fmt(v, 9) for v in campaign.q_deg[i]]
+            row += [_fmt(v, 6) for v in campaign.xyz_mm[i]]
+            if campaign.encoder_deg is not None:
+                row += [_fmt(v, 9) for v in campaign.encoder_deg[i]]
+            w.writerow(row)
+
+
+def write_joint_readings(path: str | Path, readings: JointReadings) -> None:
+    n = readings.q_deg.shape[1]
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(["pose", "t_s", *joint_columns(n)])
+        for i, pose in enumerate(readings.pose):
+            w.writerow([pose, _fmt(readings.t_s[i], 3), *(_fmt(v, 9) for v in readings.q_deg[i])])
+
+
+def write_points(path: str | Path, pose: Sequence[str], xyz_mm: ArrayLike) -> None:
+    """Write a points.csv: ``pose,x_mm,y_mm,z_mm`` (mm to 1 nm)."""
+    xyz = np.asarray(xyz_mm, dtype=float).reshape(-1, 3)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(["pose", "x_mm", "y_mm", "z_mm"])
+        for p, row in zip(pose, xyz, strict=True):
+            w.writerow([p, *(_fmt(v, 6) for v in row)])

@@ -1,0 +1,223 @@
+"""Which kinematic parameters the data can identify: column scaling, QR/SVD, dropped set.
+
+The stacked identification Jacobian ``(3m, 5n + 9)`` is scaled column by column (each
+column divided by its RMS, so parameters in mm and rad compare), reduced to its triangular
+factor R by a QR decomposition, and the columns are then taken in a fixed *priority order*:
+a column is kept if the part of it not explained by the columns already kept is larger than
+``rtol`` (relative), else the parameter is dropped as unidentifiable (its column is zero) or
+redundant (it is a combination of kept ones, which are named). The order only decides
+*which* member of a redundant group is kept (the base pose before joint 1, the tool before
+the last joint's offsets, the Hayati beta before the d of a nearly parallel joint, ...); how
+many parameters are dropped is decided by the data. The condition number is that of the
+scaled Jacobian restricted to the kept columns (ratio of its extreme singular values).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from calibration.errors import CalibrationError
+from calibration.kinematics import (
+    PARAMETERS_PER_JOINT,
+    KinematicModel,
+    identification_jacobian,
+    nearly_parallel_joints,
+)
+
+FloatArray = NDArray[np.float64]
+
+#: Default relative tolerance below which a scaled column counts as dependent.
+DEFAULT_RTOL = 1e-8
+
+
+class IdentifiabilityError(CalibrationError, ValueError):
+    """The data identifies nothing, or the arguments have the wrong shape."""
+
+
+@dataclass(frozen=True)
+class DroppedParameter:
+    """A parameter held at its start value, and why."""
+
+    name: str
+    index: int  # position in the full parameter vector
+    reason: str  # "no effect on the measured positions" or "redundant with ..."
+    redundant_with: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class IdentifiabilityAnalysis:
+    """Result of :func:`analyze_identifiability` over a full parameter vector of size p."""
+
+    parameter_names: tuple[str, ...]
+    free: NDArray[np.bool_]  # (p,) True for identified parameters
+    column_scale: FloatArray  # (p,) RMS of each Jacobian column (1 for zero columns)
+    singular_values: FloatArray  # (k,) of the scaled Jacobian on the kept columns
+    dropped: tuple[DroppedParameter, ...]
+    rtol: float
+
+    @property
+    def rank(self) -> int:
+        return int(np.count_nonzero(self.free))
+
+    @property
+    def free_indices(self) -> NDArray[np.intp]:
+        return np.flatnonzero(self.free)
+
+    @property
+    def condition_number(self) -> float:
+        """σ_max / σ_min of the column-scaled Jacobian restricted to the kept parameters."""
+        s = self.singular_values
+        return float(s[0] / s[-1]) if s.size and s[-1] > 0 else float("inf")
+
+    @property
+    def dropped_names(self) -> list[str]:
+        return [d.name for d in self.dropped]
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "n_parameters": len(self.parameter_names),
+            "n_identified": self.rank,
+            "condition_number": self.condition_number,
+            "relative_tolerance": self.rtol,
+            "scaled_singular_values": [float(s) for s in self.singular_values],
+            "dropped": [
+                {"name": d.name, "reason": d.reason, "redundant_with": list(d.redundant_with)}
+                for d in self.dropped
+            ],
+        }
+
+
+def column_scales(jac: ArrayLike) -> FloatArray:
+    """RMS of each column of a stacked Jacobian ``(M, p)``; zero columns get scale 1."""
+    a = np.asarray(jac, dtype=float)
+    scale = np.sqrt(np.mean(a * a, axis=0))
+    scale[scale == 0.0] = 1.0
+    return scale
+
+
+def default_priority(model: KinematicModel) -> list[int]:
+    """Parameter indices in the order they are offered to the rank test.
+
+    Base pose, tool, then joints 2..n with (a, alpha, theta_offset, and d or, on a nearly
+    parallel joint, beta); then the usual suspects: d of nearly parallel joints, beta of the
+    others; joint 1 last (it is fully coupled with the base pose).
+    """
+    n = model.n_joints
+    per = len(PARAMETERS_PER_JOINT)
+    ia, ial, i_d, ith, ibe = (PARAMETERS_PER_JOINT.index(k) for k in PARAMETERS_PER_JOINT)
+    parallel = nearly_parallel_joints(model)
+    order = list(range(per * n, per * n + 9))
+    suspects: list[int] = []
+    for j in range(1, n):
+        base = per * j
+        order += [base + ia, base + ial, base + ith]
+        if parallel[j]:
+            order.append(base + ibe)
+            suspects.append(base + i_d)
+        else:
+            order.append(base + i_d)
+            suspects.append(base + ibe)
+    order += suspects
+    order += [ia, ial, ith, i_d, ibe]
+    return order
+
+
+def analyze_identifiability(
+    jac: ArrayLike,
+    parameter_names: Sequence[str],
+    *,
+    priority: Sequence[int] | None = None,
+    rtol: float = DEFAULT_RTOL,
+    fixed: Sequence[int] = (),
+) -> IdentifiabilityAnalysis:
+    """Decide the identifiable parameters from a Jacobian ``(m, 3, p)`` or ``(M, p)``.
+
+    ``priority`` lists parameter indices in the order they should be kept (default: index
+    order); ``fixed`` are indices the caller holds fixed whatever the data says.
+    """
+    a = np.asarray(jac, dtype=float)
+    if a.ndim == 3:
+        a = a.reshape(-1, a.shape[-1])
+    p = len(parameter_names)
+    if a.ndim != 2 or a.shape[1] != p:
+        raise IdentifiabilityError(f"Jacobian must have {p} columns, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise IdentifiabilityError("Jacobian contains NaN or infinite values")
+    order = list(range(p)) if priority is None else [int(i) for i in priority]
+    if sorted(order) != list(range(p)):
+        raise IdentifiabilityError("priority must be a permutation of the parameter indices")
+    scale = column_scales(a)
+    scaled = a / scale
+    # R has the Gram matrix of the scaled Jacobian: column residuals are computed on it.
+    r = np.linalg.qr(scaled, mode="r") if a.shape[0] >= p else scaled
+    norms = np.linalg.norm(r, axis=0)
+    ref = max(float(norms.max(initial=0.0)), 1e-300)
+    fixed_set = {int(i) for i in fixed}
+
+    basis = np.zeros((r.shape[0], 0))
+    kept: list[int] = []
+    dropped: list[DroppedParameter] = []
+    for j in order:
+        col = r[:, j]
+        if j in fixed_set:
+            dropped.append(DroppedParameter(parameter_names[j], j, "held fixed by the caller"))
+            continue
+        if norms[j] <= rtol * ref:
+            dropped.append(
+                DroppedParameter(parameter_names[j], j, "no effect on the measured positions")
+            )
+            continue
+        resid = col - basis @ (basis.T @ col)
+        resid = resid - basis @ (basis.T @ resid)  # re-orthogonalize
+        if np.linalg.norm(resid) <= rtol * norms[j]:
+            partners = _partners(r, kept, j, parameter_names)
+            dropped.append(
+                DroppedParameter(
+                    parameter_names[j],
+                    j,
+                    "redundant with " + ", ".join(partners),
+                    tuple(partners),
+                )
+            )
+            continue
+        basis = np.column_stack([basis, resid / np.linalg.norm(resid)])
+        kept.append(j)
+    if not kept:
+        raise IdentifiabilityError("the data identifies no parameter at all")
+    free = np.zeros(p, dtype=bool)
+    free[kept] = True
+    sv = np.linalg.svd(r[:, free], compute_uv=False)
+    dropped.sort(key=lambda d: d.index)
+    return IdentifiabilityAnalysis(
+        parameter_names=tuple(parameter_names),
+        free=free,
+        column_scale=scale,
+        singular_values=sv / np.sqrt(a.shape[0]),
+        dropped=tuple(dropped),
+        rtol=rtol,
+    )
+
+
+def _partners(r: FloatArray, kept: list[int], j: int, names: Sequence[str]) -> list[str]:
+    """The kept parameters that column ``j`` is (mostly) a combination of, largest first."""
+    if not kept:
+        return []
+    coef, *_ = np.linalg.lstsq(r[:, kept], r[:, j], rcond=None)
+    contrib = np.abs(coef) * np.linalg.norm(r[:, kept], axis=0)
+    top = np.argsort(contrib)[::-1]
+    big = [kept[i] for i in top if contrib[i] >= 0.05 * contrib[top[0]]][:4]
+    return [names[i] for i in big]
+
+
+def analyze_model(
+    model: KinematicModel, q_rad: ArrayLike, *, rtol: float = DEFAULT_RTOL
+) -> IdentifiabilityAnalysis:
+    """Identifiability of ``model``'s parameters from TCP positions at joint vectors ``q``."""
+    _, jac = identification_jacobian(model, np.atleast_2d(np.asarray(q_rad, dtype=float)))
+    return analyze_identifiability(
+        jac, model.parameter_names(), priority=default_priority(model), rtol=rtol
+    )

@@ -1,0 +1,237 @@
+"""Emulated identification campaign: random reachable poses measured by the tracker.
+
+From a :class:`~sim_devices.truth.TrueCell`: sample reachable joint vectors within limits and
+away from singularities, choose the identification poses by an observability index, measure
+the true TCP with the tracker model, read the joints with the (scale-calibrated) gratings and
+the motor encoders, and write ``campaign.csv`` (see :mod:`calibration.campaign_files`).
+
+    python -m sim_devices.pose_campaign --robot kr500 --seed 1 --out campaign.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration.campaign_files import Campaign, write_campaign
+from calibration.description import RobotDescription, load_robot
+from calibration.kinematics import KinematicModel, flange_poses, tcp_positions
+from calibration.pose_selection import OBSERVABILITY_INDICES, select_poses_for_model
+from sim_devices.truth import TrueCell
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """Where measurement poses may be: away from singularities, in the tracker's range."""
+
+    wrist_min_deg: float = 10.0  # angle between axes 4 and 6 (|q5| on these arms)
+    elbow_margin_deg: float = 10.0  # elbow angle at least this far from stretched
+    elbow_min_deg: float = 35.0  # ... and from folded
+    shoulder_min_mm: float = 200.0  # wrist centre distance from the joint-1 axis
+    floor_mm: float = 100.0  # TCP height above the base plane (robot base frame)
+    tracker_min_mm: float = 1000.0  # tracker range (FARO Vantage E class: 25 m)
+    tracker_max_mm: float = 25000.0
+
+
+def _limits_rad(description: RobotDescription) -> tuple[FloatArray, FloatArray]:
+    lo = np.radians([j.lower_deg for j in description.joints])
+    hi = np.radians([j.upper_deg for j in description.joints])
+    return lo, hi
+
+
+def reachable_mask(
+    description: RobotDescription, q_rad: FloatArray, workspace: Workspace = Workspace()
+) -> NDArray[np.bool_]:
+    """Which joint vectors ``(N, n)`` rad are good measurement poses, shape ``(N,)``."""
+    model = KinematicModel.from_description(description)
+    q = np.atleast_2d(q_rad)
+    lo, hi = _limits_rad(description)
+    ok = np.all((q >= lo) & (q <= hi), axis=1)
+    tcp_base = tcp_positions(model, q, world=False)
+    ok &= tcp_base[:, 2] > workspace.floor_mm
+    dist = np.linalg.norm(tcp_positions(model, q), axis=1)
+    ok &= (dist >= workspace.tracker_min_mm) & (dist <= workspace.tracker_max_mm)
+    if model.n_joints == 6:
+        frames = [flange_poses(model.truncated(k), q[:, :k], world=False) for k in range(1, 7)]
+        shoulder, elbow, wrist = (frames[i][:, :3, 3] for i in (1, 2, 4))
+        u, v = shoulder - elbow, wrist - elbow
+        cos_el = np.sum(u * v, axis=1) / (np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1))
+        elbow_deg = np.degrees(np.arccos(np.clip(cos_el, -1.0, 1.0)))
+        ok &= elbow_deg <= 180.0 - workspace.elbow_margin_deg
+        ok &= elbow_deg >= workspace.elbow_min_deg
+        z1 = frames[0][:, :3, 2]
+        o1 = frames[0][:, :3, 3]
+        rel = wrist - o1
+        radial = rel - np.sum(rel * z1, axis=1)[:, None] * z1
+        ok &= np.linalg.norm(radial, axis=1) >= workspace.shoulder_min_mm
+        z4, z6 = frames[3][:, :3, 2], frames[5][:, :3, 2]
+        wrist_deg = np.degrees(np.arccos(np.clip(np.abs(np.sum(z4 * z6, axis=1)), 0.0, 1.0)))
+        ok &= wrist_deg >= workspace.wrist_min_deg
+    return ok
+
+
+def sample_reachable_poses(
+    description: RobotDescription,
+    n: int,
+    rng: np.random.Generator,
+    *,
+    workspace: Workspace = Workspace(),
+) -> FloatArray:
+    """``n`` random joint vectors ``(n, n_joints)`` rad, uniform within limits, kept if
+    :func:`reachable_mask` accepts them (rejection sampling)."""
+    lo, hi = _limits_rad(description)
+    out: list[FloatArray] = []
+    have = 0
+    for _ in range(1000):
+        batch = rng.uniform(lo, hi, size=(max(4 * (n - have), 64), len(lo)))
+        good = batch[reachable_mask(description, batch, workspace)]
+        out.append(good[: n - have])
+        have += len(out[-1])
+        if have >= n:
+            return np.concatenate(out)
+    raise RuntimeError(f"could not find {n} reachable poses (workspace too tight?)")
+
+
+def plan_identification_poses(
+    description: RobotDescription,
+    n: int,
+    rng: np.random.Generator,
+    *,
+    index: str | None = "O1",
+    candidates_per_pose: int = 5,
+    workspace: Workspace = Workspace(),
+) -> FloatArray:
+    """``n`` identification poses ``(n, n_joints)`` rad: the best ``n`` of
+    ``candidates_per_pose · n`` random reachable ones by ``index`` (None: just random)."""
+    if index is None:
+        return sample_reachable_poses(description, n, rng, workspace=workspace)
+    cand = sample_reachable_poses(description, candidates_per_pose * n, rng, workspace=workspace)
+    model = KinematicModel.from_description(description)
+    sel = select_poses_for_model(model, cand, n, index=index)
+    return cand[sel.indices]
+
+
+@dataclass(frozen=True)
+class CampaignSettings:
+    """How the emulated campaign is run and read."""
+
+    n_identify: int = 100
+    n_validate: int = 150
+    selection: str | None = "O1"  # observability index for the identification poses
+    grating_noise_deg: float = 5e-5  # read noise of a scale-calibrated grating (1 σ)
+    grating_scale_error_ppm: float = 0.0  # residual scale error after scale calibration
+    encoder_backlash_deg: float = 0.01  # full backlash seen by the motor encoders
+    encoder_noise_deg: float = 0.002
+    pose_time_s: tuple[float, float] = (8.0, 20.0)  # move, settle and measure, per pose
+    encoders: bool = True
+
+
+@dataclass(frozen=True)
+class CampaignData:
+    """An emulated campaign and its hidden truth."""
+
+    campaign: Campaign
+    q_true_rad: FloatArray  # (m, n) true joint angles
+    tcp_true_mm: FloatArray  # (m, 3) true TCP in the tracker frame
+    cell: TrueCell
+
+    @property
+    def true_model(self) -> KinematicModel:
+        return self.cell.model
+
+
+def generate_campaign(
+    cell: TrueCell,
+    rng: np.random.Generator,
+    settings: CampaignSettings = CampaignSettings(),
+) -> CampaignData:
+    """Run an emulated campaign on ``cell``: identification poses then validation poses."""
+    nominal = cell.nominal
+    q_id = plan_identification_poses(nominal, settings.n_identify, rng, index=settings.selection)
+    q_val = sample_reachable_poses(nominal, settings.n_validate, rng)
+    q_true = np.vstack([q_id, q_val])
+    m, n = q_true.shape
+    tcp = cell.tcp_mm(q_true)
+    measured, ok = cell.tracker.measure(tcp, rng)
+    for _ in range(100):  # a broken beam is measured again
+        if ok.all():
+            break
+        again, ok_again = cell.tracker.measure(tcp[~ok], rng)
+        measured[~ok] = again
+        ok[~ok] = ok_again
+    grating = q_true * (1.0 + 1e-6 * settings.grating_scale_error_ppm)
+    grating = grating + np.radians(rng.normal(0.0, settings.grating_noise_deg, q_true.shape))
+    dt = rng.uniform(*settings.pose_time_s, size=m)
+    t_s = np.cumsum(dt)
+    encoder = None
+    if settings.encoders:
+        direction = np.sign(np.diff(np.vstack([np.zeros(n), q_true]), axis=0))
+        encoder = q_true + np.radians(
+            0.5 * settings.encoder_backlash_deg * direction
+            + rng.normal(0.0, settings.encoder_noise_deg, q_true.shape)
+        )
+    sets = ("identify",) * settings.n_identify + ("validate",) * settings.n_validate
+    campaign = Campaign(
+        source="<emulated>",
+        pose=tuple(str(i + 1) for i in range(m)),
+        set=sets,
+        t_s=t_s,
+        q_deg=np.degrees(grating),
+        xyz_mm=measured,
+        encoder_deg=None if encoder is None else np.degrees(encoder),
+    )
+    return CampaignData(campaign=campaign, q_true_rad=q_true, tcp_true_mm=tcp, cell=cell)
+
+
+def emulated_campaign(
+    robot: str | RobotDescription,
+    seed: int,
+    settings: CampaignSettings = CampaignSettings(),
+) -> CampaignData:
+    """A reproducible campaign on a true cell drawn around ``robot`` from ``seed``."""
+    nominal = load_robot(robot) if isinstance(robot, str) else robot
+    cell = TrueCell.create(nominal, seed)
+    return generate_campaign(cell, np.random.default_rng([seed, 6]), settings)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m sim_devices.pose_campaign",
+        description="Write an emulated identification campaign (campaign.csv).",
+    )
+    parser.add_argument("--robot", default="kr500", help="preset name or robot .toml")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--out", required=True, help="campaign.csv to write")
+    parser.add_argument("--identify", type=int, default=100, help="identification poses")
+    parser.add_argument("--validate", type=int, default=150, help="validation poses")
+    parser.add_argument(
+        "--selection",
+        default="O1",
+        choices=[*OBSERVABILITY_INDICES, "none"],
+        help="observability index choosing the identification poses (none: random)",
+    )
+    parser.add_argument("--no-encoders", action="store_true", help="omit e1_deg..eN_deg")
+    parser.add_argument("--truth", help="also write the hidden truth (TOML) here, for tests")
+    args = parser.parse_args(argv)
+    settings = CampaignSettings(
+        n_identify=args.identify,
+        n_validate=args.validate,
+        selection=None if args.selection == "none" else args.selection,
+        encoders=not args.no_encoders,
+    )
+    data = emulated_campaign(args.robot, args.seed, settings)
+    write_campaign(args.out, data.campaign)
+    if args.truth:
+        data.cell.write_truth(args.truth)
+    print(f"wrote {args.out}: {len(data.campaign)} poses", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
