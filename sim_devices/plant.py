@@ -1,0 +1,333 @@
+"""The emulated physical robot: truth, robot program, joint/motor/target states over time.
+
+The :class:`Plant` owns the truth (:class:`sim_devices.truth.TrueCell`), a robot program
+(:class:`sim_devices.motion.Trajectory`) and the effects of the cell's configuration. The
+controller servos the *motors* to the commanded joint vector ``q_cmd``; the joint
+*outputs*, which the gratings, the TCP and the tracker see, differ from it by torsion
+under gravity and payload (``tau / K``) and by gear backlash. Motor encoders read
+``gear_ratio · q_cmd``. All evaluations are vectorized over arrays of simulated times.
+
+Clocks: :class:`SimClock` maps the host's ``time.monotonic()`` to wall seconds since the
+emulator started and to simulated robot-program seconds (``speed`` times faster); each
+device has its own :class:`DeviceClock` (drift in ppm, restarts).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from calibration.description import RobotDescription, load_robot
+from calibration.kinematics import KinematicModel, tcp_positions
+from calibration.statics import MassModel, gravity_torques_nmm
+from sim_devices.config import CellConfig
+from sim_devices.motion import Move, Trajectory
+from sim_devices.truth import TrueCell
+
+FloatArray = NDArray[np.float64]
+
+#: Default joint speed/acceleration limits of a KR500-class arm (deg/s, deg/s²).
+DEFAULT_VMAX_DEG_S = (105.0, 94.0, 94.0, 120.0, 120.0, 180.0)
+DEFAULT_AMAX_DEG_S2 = (200.0, 200.0, 200.0, 300.0, 300.0, 400.0)
+
+
+class SimClock:
+    """Wall seconds since start, and simulated program seconds (``speed`` × wall)."""
+
+    def __init__(self, speed: float = 1.0, t0_monotonic: float | None = None) -> None:
+        self.speed = speed
+        self.t0 = time.monotonic() if t0_monotonic is None else t0_monotonic
+
+    def wall_s(self) -> float:
+        return time.monotonic() - self.t0
+
+    def sim_s(self, wall_s: ArrayLike | None = None) -> FloatArray:
+        w = self.wall_s() if wall_s is None else wall_s
+        return np.asarray(w, dtype=float) * self.speed
+
+
+@dataclass
+class DeviceClock:
+    """A device's free-running µs clock: drifts by ``ppm`` and restarts when rebooted.
+
+    ``device_us(wall)`` is the clock at wall time ``wall`` (s since emulator start);
+    ``wall_of(device_us)`` inverts it within the current boot. The device counter is
+    ``bits`` wide (the wire value wraps).
+    """
+
+    ppm: float = 0.0
+    start_us: int = 0
+    boot_wall_s: float = 0.0
+    boot_count: int = 0
+
+    @property
+    def rate(self) -> float:
+        return 1.0 + 1e-6 * self.ppm
+
+    def device_us(self, wall_s: ArrayLike) -> FloatArray:
+        return (
+            self.start_us + (np.asarray(wall_s, dtype=float) - self.boot_wall_s) * 1e6 * self.rate
+        )
+
+    def wall_of(self, device_us: ArrayLike) -> FloatArray:
+        return self.boot_wall_s + (np.asarray(device_us, dtype=float) - self.start_us) / (
+            1e6 * self.rate
+        )
+
+    def reboot(self, wall_s: float) -> None:
+        self.boot_wall_s = wall_s
+        self.start_us = 0
+        self.boot_count += 1
+
+
+@dataclass(frozen=True, eq=False)
+class JointState:
+    """Joint states at N instants: commanded, output (true), motor angles; all ``(N, n)``."""
+
+    q_cmd_rad: FloatArray
+    q_out_rad: FloatArray
+    motor_rad: FloatArray
+
+
+class Plant:
+    """The robot cell's physics as seen by the devices."""
+
+    def __init__(
+        self, cell: TrueCell, trajectory: Trajectory, config: CellConfig, clock: SimClock
+    ) -> None:
+        self.cell = cell
+        self.trajectory = trajectory
+        self.config = config
+        self.clock = clock
+        self.truth_model: KinematicModel = cell.model
+        self.masses = MassModel.from_description(cell.truth)
+        n = cell.truth.n_joints
+        gears = [j.gear_ratio if j.gear_ratio else 100.0 for j in cell.truth.joints]
+        self.gear_ratio = np.array(gears, dtype=float)
+        eff = config.effects
+        self.stiffness = np.resize(np.asarray(eff.stiffness_nmm_per_rad, float), n)
+        self.backlash_rad = np.radians(np.resize(np.asarray(eff.backlash_deg, float), n))
+        self.link_joint: int | None = None
+        self._target_model = self.truth_model
+        target = config.tracker.target
+        if target.startswith("link"):
+            self.link_joint = int(target[4:]) - 1
+            if not 0 <= self.link_joint < n:
+                raise ValueError(f"tracker target {target}: robot has {n} joints")
+            self._target_model = self.truth_model.truncated(
+                self.link_joint + 1, tool_mm=cell.link_targets_mm[self.link_joint]
+            )
+        self._blocks: dict[int, FloatArray] = {}
+
+    @classmethod
+    def from_config(cls, config: CellConfig, clock: SimClock | None = None) -> Plant:
+        nominal = load_robot(config.cell.robot)
+        cell = TrueCell.create(
+            nominal, config.cell.seed, eccentricity_mm=config.cell.eccentricity_mm
+        )
+        rng = np.random.default_rng(config.cell.seed + 1)
+        trajectory = build_program(config.cell.program, nominal, rng)
+        return cls(cell, trajectory, config, clock or SimClock(config.cell.speed))
+
+    @property
+    def n_joints(self) -> int:
+        return self.cell.truth.n_joints
+
+    def joint_state(self, sim_s: ArrayLike) -> JointState:
+        """States at simulated times ``(N,)``.
+
+        The trajectory is evaluated exactly; the slowly varying output correction (torsion,
+        backlash) is interpolated from a grid of :attr:`CORRECTION_STEP_S` computed in
+        blocks, which keeps a call for a handful of samples cheap.
+        """
+        t = np.atleast_1d(np.asarray(sim_s, dtype=float))
+        q_cmd, _qd, _direction = self.trajectory.evaluate(t)
+        q_out = q_cmd + self._correction(t) if self._has_correction else q_cmd.copy()
+        return JointState(q_cmd, q_out, q_cmd * self.gear_ratio)
+
+    CORRECTION_STEP_S = 0.005
+    CORRECTION_BLOCK = 400  # grid points per cached block (2 s of program time)
+
+    @property
+    def _has_correction(self) -> bool:
+        eff = self.config.effects
+        return eff.torsion or eff.backlash
+
+    def output_correction_exact(self, sim_s: ArrayLike) -> FloatArray:
+        """``q_out - q_cmd`` ``(N, n)`` rad: torsion under gravity plus backlash."""
+        q_cmd, _qd, direction = self.trajectory.evaluate(sim_s)
+        corr = np.zeros_like(q_cmd)
+        eff = self.config.effects
+        tau = gravity_torques_nmm(self.truth_model, self.masses, q_cmd)
+        if eff.torsion:
+            corr += tau / self.stiffness
+        if eff.backlash:
+            # the loaded gear flank: by the load torque's sign, by motion when unloaded
+            w = np.clip(np.abs(tau) / eff.backlash_torque_nmm, 0.0, 1.0)
+            side = w * np.sign(tau) + (1.0 - w) * direction
+            corr += 0.5 * self.backlash_rad * side
+        return corr
+
+    def _correction(self, t: FloatArray) -> FloatArray:
+        h = self.CORRECTION_STEP_S
+        pos = np.maximum(t, 0.0) / h
+        i0 = np.floor(pos).astype(np.int64)
+        frac = (pos - i0)[:, None]
+        out = np.empty((t.shape[0], self.n_joints))
+        blocks = i0 // self.CORRECTION_BLOCK
+        for b in np.unique(blocks).tolist():
+            grid = self._correction_block(b)
+            sel = blocks == b
+            j = i0[sel] - b * self.CORRECTION_BLOCK
+            out[sel] = grid[j] * (1.0 - frac[sel]) + grid[j + 1] * frac[sel]
+        return out
+
+    def _correction_block(self, b: int) -> FloatArray:
+        grid = self._blocks.get(b)
+        if grid is None:
+            n = self.CORRECTION_BLOCK
+            times = (b * n + np.arange(n + 1)) * self.CORRECTION_STEP_S
+            grid = self.output_correction_exact(times)
+            if len(self._blocks) > 8:
+                self._blocks.pop(next(iter(self._blocks)))
+            self._blocks[b] = grid
+        return grid
+
+    def target_mm(self, q_out_rad: FloatArray, wall_s: ArrayLike | None = None) -> FloatArray:
+        """True target positions ``(N, 3)`` in the tracker frame for joint outputs."""
+        q = np.atleast_2d(q_out_rad)
+        if self.link_joint is not None:
+            q = q[:, : self.link_joint + 1]
+        pts = tcp_positions(self._target_model, q)
+        if self.config.effects.sag:
+            base = self.truth_model.base_mm
+            reach_m = np.linalg.norm((pts - base)[:, :2], axis=1) / 1000.0
+            pts = pts.copy()
+            pts[:, 2] -= self.config.effects.sag_mm_per_m2 * reach_m**2
+        return pts
+
+    def grating_counts(
+        self, q_out_rad: FloatArray, rng: np.random.Generator, noise_counts: float
+    ) -> NDArray[np.int64]:
+        """Unwrapped noisy integer counts ``(N, n)`` of every strip (wrap is the reader's)."""
+        out = np.empty(q_out_rad.shape, dtype=np.int64)
+        for j, strip in enumerate(self.cell.strips):
+            ideal = strip.ideal_counts(q_out_rad[:, j])
+            out[:, j] = np.rint(ideal + rng.normal(0.0, noise_counts, ideal.shape)).astype(np.int64)
+        return out
+
+    def truth_document(self) -> dict:
+        doc = self.cell.truth_document()
+        doc["plant"] = {
+            "gear_ratio": self.gear_ratio.tolist(),
+            "stiffness_nmm_per_rad": self.stiffness.tolist(),
+            "backlash_deg": np.degrees(self.backlash_rad).tolist(),
+            "speed": self.clock.speed,
+        }
+        doc["program"] = self.trajectory.schedule()
+        doc["config"] = self.config.to_document()
+        return doc
+
+
+# -- robot programs ------------------------------------------------------------------------
+
+
+def _limits_rad(desc: RobotDescription, margin_deg: float = 1.0) -> tuple[FloatArray, FloatArray]:
+    lo = np.radians([j.lower_deg + margin_deg for j in desc.joints])
+    hi = np.radians([j.upper_deg - margin_deg for j in desc.joints])
+    return lo, hi
+
+
+def _random_poses(desc: RobotDescription, n: int, rng: np.random.Generator) -> FloatArray:
+    """Joint vectors ``(n, 6)`` rad for random reachable poses.
+
+    Uses ``sim_devices.pose_campaign.sample_reachable_poses`` (IK-based) when present;
+    otherwise a simple fallback: uniform joint samples within ±60 % of each range around
+    Home whose TCP stays above the robot's base plane.
+    """
+    try:
+        from sim_devices.pose_campaign import sample_reachable_poses  # type: ignore
+
+        q = np.asarray(sample_reachable_poses(desc, n, rng), dtype=float)
+        if q.shape == (n, desc.n_joints) and np.all(np.isfinite(q)):
+            return q
+    except Exception:  # helper absent or different API: fall back (noted in docs)
+        pass
+    model = KinematicModel.from_description(desc)
+    lo, hi = _limits_rad(desc, 5.0)
+    home = np.radians(desc.home)
+    out: list[FloatArray] = []
+    for _ in range(100):
+        cand = home + 0.6 * rng.uniform(lo - home, hi - home, (4 * n, desc.n_joints))
+        z = tcp_positions(model, cand, world=False)[:, 2]
+        out.extend(cand[z > 200.0])
+        if len(out) >= n:
+            break
+    return np.array(out[:n])
+
+
+def campaign_moves(
+    desc: RobotDescription,
+    rng: np.random.Generator,
+    *,
+    home_returns: int = 10,
+    sweep_step_deg: float = 2.0,
+    slow_speed: float = 0.03,
+    n_identification: int = 100,
+    n_validation: int = 150,
+    dwell_s: float = 1.0,
+    joints: tuple[int, ...] | None = None,
+) -> list[Move]:
+    """The calibration campaign as moves (method.md §2-3).
+
+    Per joint: ``home_returns`` returns to Home at ``slow_speed`` from random angles, then
+    a sweep limit to limit stopping every ``sweep_step_deg`` and back; then the
+    identification and validation poses. Each stop dwells ``dwell_s`` (for the tracker).
+    """
+    home = np.radians(desc.home)
+    lo, hi = _limits_rad(desc)
+    moves: list[Move] = []
+    for j in joints if joints is not None else range(desc.n_joints):
+        for r in range(home_returns):
+            away = home.copy()
+            away[j] = rng.uniform(lo[j], hi[j])
+            moves.append(Move(tuple(away), 0.3, 0.2, f"joint{j + 1} home-return {r + 1} away"))
+            moves.append(Move(tuple(home), slow_speed, dwell_s, f"joint{j + 1} home {r + 1}"))
+        step = math.radians(sweep_step_deg)
+        n_steps = math.floor((hi[j] - lo[j]) / step)
+        stops = hi[j] - step * np.arange(n_steps + 1)
+        for direction, seq in (("down", stops), ("up", stops[::-1])):
+            for k, a in enumerate(seq):
+                q = home.copy()
+                q[j] = a
+                moves.append(
+                    Move(tuple(q), slow_speed, dwell_s, f"joint{j + 1} sweep {direction} {k}")
+                )
+        moves.append(Move(tuple(home), 0.3, 0.5, f"joint{j + 1} done"))
+    for name, count in (("identification", n_identification), ("validation", n_validation)):
+        for k, q in enumerate(_random_poses(desc, count, rng)):
+            moves.append(Move(tuple(q), 0.3, dwell_s, f"{name} {k}"))
+    moves.append(Move(tuple(home), 0.3, 1.0, "end"))
+    return moves
+
+
+def build_program(name: str, desc: RobotDescription, rng: np.random.Generator) -> Trajectory:
+    """A built-in program by name (``campaign``, ``random``, ``hold``)."""
+    vmax = np.radians(DEFAULT_VMAX_DEG_S[: desc.n_joints])
+    amax = np.radians(DEFAULT_AMAX_DEG_S2[: desc.n_joints])
+    home = np.radians(desc.home)
+    if name == "campaign":
+        moves = campaign_moves(desc, rng)
+        return Trajectory.build(home, moves, vmax, amax)
+    if name == "random":
+        poses = _random_poses(desc, 50, rng)
+        moves = [Move(tuple(q), 0.5, 0.2, f"free {k}") for k, q in enumerate(poses)]
+        moves.append(Move(tuple(home), 0.5, 0.2, "home"))
+        return Trajectory.build(home, moves, vmax, amax, repeat=True)
+    if name == "hold":
+        return Trajectory.build(home, [Move(tuple(home), 1.0, 1.0, "hold")], vmax, amax)
+    raise ValueError(f"unknown program {name!r}")
