@@ -1,0 +1,260 @@
+"""zenoh plumbing: session from the config, columnar publishers, schema queryable, receiver.
+
+Key layout (docs/topics.md)::
+
+    cell/<cell>/robot/<robot>/<device>/<channel>          columnar sample batches
+    cell/<cell>/robot/<robot>/<device>/<channel>/@schema  the channel's JSON schema
+    cell/<cell>/robot/<robot>/<device>/health             JSON health, once a second
+    cell/<cell>/robot/<robot>/<device>                    liveliness token (device up)
+
+``@schema`` is a zenoh *verbatim* chunk: ``*`` and ``**`` never match it, so a subscriber
+to ``cell/**`` sees data and health only, and ``get("cell/**/@schema")`` asks for every
+schema at once.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zenoh
+from numpy.typing import NDArray
+
+from daq.columnar import ENCODING_NAME, Header, StreamSchema, decode, encode, read_header
+from daq.config import ZenohConfig
+from daq.errors import SchemaError, TransportError
+
+log = logging.getLogger(__name__)
+
+SCHEMA_SUFFIX = "@schema"
+HEALTH_CHANNEL = "health"
+DATA_ENCODING = zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema(ENCODING_NAME)
+JSON_ENCODING = zenoh.Encoding.APPLICATION_JSON
+CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
+
+
+def device_key(cell: str, robot: str, device: str) -> str:
+    return f"cell/{cell}/robot/{robot}/{device}"
+
+
+def channel_key(cell: str, robot: str, device: str, channel: str) -> str:
+    return f"{device_key(cell, robot, device)}/{channel}"
+
+
+def schema_key(key: str) -> str:
+    return f"{key}/{SCHEMA_SUFFIX}"
+
+
+def health_key(cell: str, robot: str, device: str) -> str:
+    return f"{device_key(cell, robot, device)}/{HEALTH_CHANNEL}"
+
+
+def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
+    """A zenoh ``Config`` from ours: explicit endpoints, scouting off unless asked."""
+    conf = zenoh.Config()
+    entries: dict[str, Any] = {
+        "mode": zc.mode,
+        "scouting/multicast/enabled": zc.multicast_scouting,
+        "scouting/gossip/enabled": zc.gossip_scouting,
+        "listen/endpoints": list(zc.listen),
+        "connect/endpoints": list(zc.connect),
+        "transport/shared_memory/enabled": zc.shared_memory,
+    }
+    entries.update(zc.extra)
+    for path, value in entries.items():
+        try:
+            conf.insert_json5(path, json.dumps(value))
+        except Exception as exc:  # zenoh raises ZError
+            raise TransportError(f"zenoh config {path} = {value!r}: {exc}") from exc
+    return conf
+
+
+def open_session(zc: ZenohConfig) -> zenoh.Session:
+    try:
+        return zenoh.open(zenoh_config(zc))
+    except TransportError:
+        raise
+    except Exception as exc:
+        raise TransportError(f"cannot open zenoh session ({zc.mode}, {zc.listen}): {exc}") from exc
+
+
+class SchemaServer:
+    """One queryable on ``cell/<cell>/**/@schema`` answering for every registered key."""
+
+    def __init__(self, session: zenoh.Session, prefix: str) -> None:
+        self._schemas: dict[str, bytes] = {}
+        self._lock = threading.Lock()
+        self._session = session
+        self._queryable = session.declare_queryable(f"{prefix}/**/{SCHEMA_SUFFIX}", self._on_query)
+
+    def register(self, key: str, schema_json: bytes, *, announce: bool = True) -> None:
+        with self._lock:
+            self._schemas[key] = schema_json
+        if announce:  # once per key, for subscribers already listening
+            self._session.put(schema_key(key), schema_json, encoding=JSON_ENCODING)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        with self._lock:
+            items = list(self._schemas.items())
+        for key, data in items:
+            skey = schema_key(key)
+            if zenoh.KeyExpr(skey).intersects(query.key_expr):
+                query.reply(skey, data, encoding=JSON_ENCODING)
+
+    def close(self) -> None:
+        q, self._queryable = self._queryable, None
+        if q is not None:
+            q.undeclare()
+
+
+class ChannelPublisher:
+    """Publishes columnar batches on one key, numbering them (``batch_seq``)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        schema: StreamSchema,
+        *,
+        congestion: str = "block",
+        schemas: SchemaServer | None = None,
+    ) -> None:
+        self.schema = schema
+        self.key = schema.key
+        self.batch_seq = 0
+        self.messages = 0
+        self.bytes = 0
+        self._pub: zenoh.Publisher | None = session.declare_publisher(
+            self.key, encoding=DATA_ENCODING, congestion_control=CONGESTION[congestion]
+        )
+        if schemas is not None:
+            schemas.register(self.key, schema.dumps())
+
+    def publish(self, columns: dict[str, Any]) -> bytes:
+        """Encode and put one batch; returns the payload (for the recorder)."""
+        payload = encode(self.schema, columns, self.batch_seq)
+        self.put(payload)
+        self.batch_seq += 1
+        return payload
+
+    def put(self, payload: bytes) -> None:
+        if self._pub is None:
+            raise TransportError(f"publisher {self.key} is closed")
+        self._pub.put(payload)
+        self.messages += 1
+        self.bytes += len(payload)
+
+    def close(self) -> None:
+        pub, self._pub = self._pub, None
+        if pub is not None:
+            pub.undeclare()
+
+
+def fetch_schema(session: zenoh.Session, key: str, timeout_s: float = 2.0) -> StreamSchema:
+    """Ask the network for the schema of ``key`` (``get(<key>/@schema)``)."""
+    for reply in session.get(schema_key(key), timeout=timeout_s):
+        if reply.ok is not None:
+            return StreamSchema.loads(reply.ok.payload.to_bytes())
+    raise SchemaError(f"no schema answered for {key!r} within {timeout_s}s")
+
+
+@dataclass(frozen=True)
+class Received:
+    """One decoded batch: its key, header, columns and host UTC ns at reception."""
+
+    key: str
+    header: Header
+    columns: dict[str, NDArray[Any]]
+    t_recv_ns: int
+    schema: StreamSchema
+
+
+class Receiver:
+    """Subscribes to a key expression and decodes columnar batches (schemas fetched once).
+
+    Samples go into a zenoh ``FifoChannel`` drained by the caller's thread (faster than a
+    callback). Non-columnar samples on the key expression (health JSON) are passed to
+    ``on_other`` if given, else skipped.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        *,
+        capacity: int = 65536,
+        on_other: Callable[[zenoh.Sample], None] | None = None,
+    ) -> None:
+        self._session = session
+        self._sub = session.declare_subscriber(key_expr, zenoh.handlers.FifoChannel(capacity))
+        self._schemas: dict[str, StreamSchema] = {}
+        self._on_other = on_other
+        self.undecodable = 0
+
+    def schema(self, key: str) -> StreamSchema:
+        s = self._schemas.get(key)
+        if s is None:
+            s = self._schemas[key] = fetch_schema(self._session, key)
+        return s
+
+    def _decode(self, sample: zenoh.Sample) -> Received | None:
+        t_recv = time.time_ns()
+        enc = str(sample.encoding)
+        if not enc.endswith(ENCODING_NAME):
+            if self._on_other is not None:
+                self._on_other(sample)
+            return None
+        key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
+        try:
+            schema = self.schema(key)
+            if read_header(payload).schema_id != schema.schema_id:  # schema changed: refetch
+                self._schemas.pop(key, None)
+                schema = self.schema(key)
+            header, cols = decode(schema, payload)
+        except SchemaError as exc:
+            self.undecodable += 1
+            log.warning("cannot decode %s: %s", key, exc)
+            return None
+        return Received(key, header, cols, t_recv, schema)
+
+    def receive(self, timeout_s: float) -> Received | None:
+        """The next decoded batch, or None after ``timeout_s`` without one."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            sample = self._sub.try_recv() if self._sub is not None else None
+            if sample is not None:
+                got = self._decode(sample)
+                if got is not None:
+                    return got
+                continue
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(0.0002)
+
+    def __iter__(self) -> Iterator[Received]:
+        while self._sub is not None:
+            got = self.receive(0.1)
+            if got is not None:
+                yield got
+
+    def close(self) -> None:
+        sub, self._sub = self._sub, None
+        if sub is not None:
+            sub.undeclare()
+
+
+def utc_offset_ns() -> int:
+    """``time.time_ns() - time.monotonic_ns()`` now (median of a few reads)."""
+    reads = []
+    for _ in range(5):
+        a = time.monotonic_ns()
+        u = time.time_ns()
+        b = time.monotonic_ns()
+        reads.append(u - (a + b) // 2)
+    return int(np.median(reads))

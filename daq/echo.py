@@ -1,0 +1,211 @@
+"""``daq echo``: subscribe to a key expression, print batches, and/or summarise them.
+
+For people (one line per batch) and for tests and benchmarks (``--jsonl`` writes every
+sample's columns; ``--stats`` prints one JSON summary at the end: counts, lost batches,
+sequence gaps, order violations and latency percentiles per key).
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import IO, Any
+
+import numpy as np
+
+from daq.bus import Receiver, open_session
+from daq.config import ZenohConfig
+
+LATENCY_KEEP = 2_000_000  # latency values kept per key for the percentiles (bounded memory)
+
+
+@dataclass
+class KeyStats:
+    batches: int = 0
+    samples: int = 0
+    lost_batches: int = 0  # batch_seq jumps
+    seq_gaps: int = 0  # samples missing by the device sequence number
+    seq_breaks: int = 0  # sequence number went back (device restart) or repeated
+    out_of_order: int = 0  # mapped time went back within an epoch
+    first_seq: int | None = None
+    last_seq: int | None = None
+    last_batch: int | None = None
+    last_t_mapped: int | None = None
+    last_epoch: int | None = None
+    lat_mapped_ns: list[np.ndarray] = field(default_factory=list)
+    lat_rx_ns: list[np.ndarray] = field(default_factory=list)
+    kept: int = 0
+
+    def add(self, header: Any, cols: dict[str, np.ndarray], t_recv_ns: int) -> None:
+        self.batches += 1
+        n = header.n_samples
+        self.samples += n
+        if self.last_batch is not None and header.batch_seq != self.last_batch + 1:
+            self.lost_batches += max(0, header.batch_seq - self.last_batch - 1)
+        self.last_batch = header.batch_seq
+        if n == 0 or "seq" not in cols:
+            return
+        seq = cols["seq"].astype(np.int64)
+        epoch = cols["epoch"].astype(np.int64) if "epoch" in cols else np.zeros(n, np.int64)
+        prev_seq = seq[0] - 1 if self.last_seq is None else self.last_seq
+        prev_ep = epoch[0] if self.last_epoch is None else self.last_epoch
+        d = np.diff(np.concatenate([[prev_seq], seq]))
+        same = np.diff(np.concatenate([[prev_ep], epoch])) == 0
+        self.seq_gaps += int(np.sum(np.where(same & (d > 1), d - 1, 0)))
+        self.seq_breaks += int(np.sum(same & (d < 1)) + np.sum(~same))
+        if self.first_seq is None:
+            self.first_seq = int(seq[0])
+        self.last_seq = int(seq[-1])
+        self.last_epoch = int(epoch[-1])
+        if "t_mapped_ns" in cols:
+            tm = cols["t_mapped_ns"].astype(np.int64)
+            prev_t = tm[0] if self.last_t_mapped is None else self.last_t_mapped
+            dt = np.diff(np.concatenate([[prev_t], tm]))
+            self.out_of_order += int(np.sum(same & (dt < 0)))
+            self.last_t_mapped = int(tm[-1])
+            if self.kept < LATENCY_KEEP:
+                self.lat_mapped_ns.append(t_recv_ns - tm)
+                if "t_host_rx_ns" in cols:
+                    self.lat_rx_ns.append(t_recv_ns - cols["t_host_rx_ns"].astype(np.int64))
+                self.kept += n
+
+    def summary(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            k: getattr(self, k)
+            for k in (
+                "batches",
+                "samples",
+                "lost_batches",
+                "seq_gaps",
+                "seq_breaks",
+                "out_of_order",
+                "first_seq",
+                "last_seq",
+            )
+        }
+        lat = (("latency_mapped_ms", self.lat_mapped_ns), ("latency_rx_ms", self.lat_rx_ns))
+        for name, parts in lat:
+            if parts:
+                v = np.concatenate(parts) / 1e6
+                out[name] = {
+                    "p50": float(np.percentile(v, 50)),
+                    "p99": float(np.percentile(v, 99)),
+                    "max": float(v.max()),
+                    "n": int(v.size),
+                }
+        return out
+
+
+def _jsonable(cols: dict[str, np.ndarray]) -> dict[str, Any]:
+    return {k: v.tolist() for k, v in cols.items()}
+
+
+def run_echo(
+    key_expr: str,
+    zc: ZenohConfig,
+    *,
+    duration_s: float | None = None,
+    count: int | None = None,
+    idle_s: float | None = None,
+    jsonl: IO[str] | None = None,
+    quiet: bool = False,
+    stats_out: IO[str] | None = None,
+    ready_out: IO[str] | None = None,
+) -> dict[str, Any]:
+    """Receive until duration, batch count, idle time or SIGINT/SIGTERM; return stats."""
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    stats: dict[str, KeyStats] = {}
+    health: dict[str, Any] = {}
+
+    def on_other(sample: Any) -> None:
+        key = str(sample.key_expr)
+        try:
+            doc = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        health[key] = doc
+        if jsonl is not None:
+            jsonl.write(json.dumps({"key": key, "json": doc}) + "\n")
+        elif not quiet:
+            print(f"{key} {json.dumps(doc)}", flush=True)
+
+    session = open_session(zc)
+    t0 = time.monotonic()
+    last_rx = t0
+    n_batches = 0
+    try:
+        recv = Receiver(session, key_expr, on_other=on_other)
+        if ready_out is not None:
+            ready_out.write(json.dumps({"ready": key_expr}) + "\n")
+            ready_out.flush()
+        while not stop.is_set():
+            now = time.monotonic()
+            if duration_s is not None and now - t0 >= duration_s:
+                break
+            if idle_s is not None and n_batches and now - last_rx >= idle_s:
+                break
+            got = recv.receive(0.05)
+            if got is None:
+                continue
+            last_rx = time.monotonic()
+            n_batches += 1
+            st = stats.setdefault(got.key, KeyStats())
+            st.add(got.header, got.columns, got.t_recv_ns)
+            if jsonl is not None:
+                rec = {
+                    "key": got.key,
+                    "batch_seq": got.header.batch_seq,
+                    "t_recv_ns": got.t_recv_ns,
+                    "columns": _jsonable(got.columns),
+                }
+                jsonl.write(json.dumps(rec) + "\n")
+            elif not quiet:
+                c = got.columns
+                seq = c.get("seq")
+                span = f"seq {int(seq[0])}..{int(seq[-1])}" if seq is not None and len(seq) else ""
+                h = got.header
+                print(f"{got.key} #{h.batch_seq} n={h.n_samples} {span}", flush=True)
+            if count is not None and n_batches >= count:
+                break
+        recv.close()
+    finally:
+        session.close()
+    result = {
+        "keys": {k: s.summary() for k, s in sorted(stats.items())},
+        "health": health,
+        "undecodable": recv.undecodable if "recv" in locals() else 0,
+        "elapsed_s": time.monotonic() - t0,
+    }
+    if stats_out is not None:
+        stats_out.write(json.dumps(result) + "\n")
+        stats_out.flush()
+    return result
+
+
+def main_echo(args: Any, zc: ZenohConfig) -> int:
+    jsonl = None
+    if args.jsonl:
+        jsonl = sys.stdout if args.jsonl == "-" else open(args.jsonl, "w", encoding="utf-8")  # noqa: SIM115
+    try:
+        run_echo(
+            args.key,
+            zc,
+            duration_s=args.duration,
+            count=args.count,
+            idle_s=args.idle,
+            jsonl=jsonl,
+            quiet=args.quiet or args.stats,
+            stats_out=sys.stdout if args.stats else None,
+            ready_out=sys.stderr if args.ready else None,
+        )
+    finally:
+        if jsonl is not None and jsonl is not sys.stdout:
+            jsonl.close()
+    return 0

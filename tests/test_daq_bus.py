@@ -1,0 +1,110 @@
+"""zenoh publishing: a separate subscriber process gets every batch, in order, decodes it
+from the schema it fetched with a query; the schema query answers globs."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from daq.bus import (
+    ChannelPublisher,
+    Receiver,
+    SchemaServer,
+    fetch_schema,
+    open_session,
+    schema_key,
+    zenoh_config,
+)
+from daq.columnar import Column, StreamSchema
+from daq.testing import free_port, loopback_sink, loopback_source
+
+KEY = "cell/t/robot/r/dev/ch"
+SCHEMA = StreamSchema(
+    KEY,
+    (
+        Column("seq", "uint64"),
+        Column("t_mapped_ns", "int64", unit="ns", clock="host_utc"),
+        Column("v", "float64", (2,), unit="mm"),
+    ),
+)
+
+
+def test_config_is_loopback_only():
+    conf = zenoh_config(loopback_source(7447))
+
+    def get(path):
+        return json.loads(conf.get_json(path))
+
+    assert get("scouting/multicast/enabled") is False
+    assert get("scouting/gossip/enabled") is False
+    assert get("listen/endpoints") == ["tcp/127.0.0.1:7447"]
+    assert get("transport/shared_memory/enabled") is False
+
+
+@pytest.mark.timeout(60)
+def test_subscriber_process_gets_every_batch_in_order():
+    port = free_port()
+    session = open_session(loopback_source(port))
+    try:
+        schemas = SchemaServer(session, "cell/t")
+        pub = ChannelPublisher(session, SCHEMA, schemas=schemas)
+        sub = subprocess.Popen(
+            [
+                sys.executable, "-m", "daq.cli", "echo", "cell/t/**", "--stats", "--ready",
+                "--idle", "2", "--duration", "30", "--connect", f"tcp/127.0.0.1:{port}",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
+        assert "ready" in sub.stderr.readline()
+        deadline = time.monotonic() + 10
+        while not pub._pub.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        n_batches, per = 2000, 10
+        for i in range(n_batches):
+            seq = np.arange(i * per, (i + 1) * per, dtype=np.uint64)
+            pub.publish({"seq": seq, "t_mapped_ns": np.full(per, time.time_ns()),
+                         "v": np.zeros((per, 2))})  # fmt: skip
+        out, err = sub.communicate(timeout=40)
+        assert sub.returncode == 0, err
+        stats = json.loads(out.strip().splitlines()[-1])["keys"][KEY]
+        assert stats["samples"] == n_batches * per
+        assert stats["lost_batches"] == 0 and stats["seq_gaps"] == 0
+        assert stats["seq_breaks"] == 0 and stats["out_of_order"] == 0
+        assert stats["first_seq"] == 0 and stats["last_seq"] == n_batches * per - 1
+    finally:
+        session.close()
+
+
+@pytest.mark.timeout(30)
+def test_schema_query_and_in_process_receiver():
+    port = free_port()
+    src = open_session(loopback_source(port))
+    dst = open_session(loopback_sink(port))
+    try:
+        schemas = SchemaServer(src, "cell/t")
+        pub = ChannelPublisher(src, SCHEMA, schemas=schemas)
+        other = StreamSchema("cell/t/robot/r/dev2/ch", SCHEMA.columns[:1])
+        ChannelPublisher(src, other, schemas=schemas)
+        time.sleep(0.3)
+        assert fetch_schema(dst, KEY) == SCHEMA
+        replies = [r.ok for r in dst.get("cell/t/**/@schema", timeout=2) if r.ok]
+        assert sorted(str(r.key_expr) for r in replies) == sorted(
+            [schema_key(KEY), schema_key(other.key)]
+        )
+        recv = Receiver(dst, "cell/t/**")
+        time.sleep(0.3)
+        pub.publish({"seq": np.arange(3), "t_mapped_ns": np.arange(3), "v": np.ones((3, 2))})
+        got = recv.receive(5)
+        assert got is not None and got.key == KEY and got.header.n_samples == 3
+        np.testing.assert_array_equal(got.columns["v"], np.ones((3, 2)))
+        recv.close()
+    finally:
+        dst.close()
+        src.close()
