@@ -1,0 +1,154 @@
+"""``twin identify`` and ``twin predict``: identification from a campaign, and prediction.
+
+twin identify --robot robot.toml --data campaign.csv --out calibrated.toml [--report DIR]
+twin predict --model calibrated.toml --data joints.csv --out points.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from calibration.campaign_files import read_campaign, read_joint_readings, write_points
+from calibration.description import RobotDescription, load_robot
+from calibration.errors import DataFileError
+from calibration.identification import LOSSES, START_METHODS, identify
+from calibration.kinematics import KinematicModel
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "identify",
+        help="identify kinematic parameters from a campaign",
+        description="Identify the geometry, base pose and tool from campaign.csv (LM) and "
+        "write the calibrated robot description.",
+    )
+    p.add_argument("--robot", required=True, help="nominal robot: preset name or .toml path")
+    p.add_argument("--data", required=True, help="campaign.csv")
+    p.add_argument("--out", required=True, help="calibrated robot description (.toml)")
+    p.add_argument("--report", metavar="DIR", help="write report.json, report.md and PNGs here")
+    p.add_argument("--skip-bad", action="store_true", help="skip bad rows (counted in the report)")
+    p.add_argument("--loss", default="linear", choices=list(LOSSES), help="robust loss")
+    p.add_argument(
+        "--f-scale-mm",
+        type=float,
+        help="robust loss scale (default: 3 σ estimated from the residuals)",
+    )
+    p.add_argument(
+        "--start",
+        default="auto",
+        choices=["auto", *START_METHODS],
+        help="base start: the description's guess, or a rigid registration "
+        "(auto: the guess when the description has a [base] table)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=run_identify)
+
+    q = sub.add_parser(
+        "predict",
+        help="predict tracker points from joint angles",
+        description="Predict TCP points in the tracker frame from joints.csv with a "
+        "calibrated model (geometry, base, tool and every modelled effect).",
+    )
+    q.add_argument("--model", required=True, help="calibrated robot description (.toml)")
+    q.add_argument("--data", required=True, help="joints.csv: pose,t_s,q1_deg..qN_deg")
+    q.add_argument("--out", required=True, help="points.csv to write")
+    q.add_argument("--skip-bad", action="store_true", help="skip bad rows (counted on stderr)")
+    q.set_defaults(func=run_predict)
+
+
+def _limits(desc: RobotDescription) -> list[tuple[float, float]]:
+    return [(j.lower_deg, j.upper_deg) for j in desc.joints]
+
+
+def run_identify(args: argparse.Namespace) -> int:
+    def say(text: str) -> None:
+        if not args.quiet:
+            print(f"twin identify: {text}", file=sys.stderr, flush=True)
+
+    desc = load_robot(args.robot)
+    campaign = read_campaign(
+        args.data, desc.n_joints, limits_deg=_limits(desc), skip_bad=args.skip_bad
+    )
+    if campaign.skipped:
+        say(f"skipped {len(campaign.skipped)} bad row(s)")
+        for s in campaign.skipped[:10]:
+            say(f"  {s}")
+    idm = campaign.mask("identify")
+    if not idm.any():
+        raise DataFileError(f"{args.data}: no rows with set 'identify'")
+    start = args.start
+    if start == "auto":
+        start = "description" if desc.base is not None else "registration"
+    say(
+        f"{int(idm.sum())} identification and {int(campaign.mask('validate').sum())} "
+        f"validation poses; base start: {start}"
+    )
+    nominal = KinematicModel.from_description(desc)
+
+    def progress(it: int, norm: float, mu: float) -> None:
+        say(f"LM iteration {it}: error norm {norm:.6f} mm, damping {mu:.1e}")
+
+    result = identify(
+        nominal,
+        campaign.q_rad[idm],
+        campaign.xyz_mm[idm],
+        start=start,
+        loss=args.loss,
+        f_scale_mm=args.f_scale_mm,
+        progress=progress,
+    )
+    ana = result.identifiability
+    say(
+        f"identified {ana.rank} of {len(ana.parameter_names)} parameters "
+        f"({len(ana.dropped)} dropped), condition number {ana.condition_number:.1f}; "
+        f"{result.optimize_result.message}"
+    )
+    calibrated = result.model.to_description(desc)
+    calibrated.save(args.out)
+
+    from calibration.identification_report import build_report, write_report
+
+    doc, errors = build_report(
+        result, desc, campaign, robot_source=str(args.robot), calibrated_path=str(args.out)
+    )
+    for name, s in doc["sets"].items():
+        b, a = s["before"]["AP"], s["after"]["AP"]
+        print(
+            f"{name}: mean AP {b['mean']:.4f} -> {a['mean']:.4f} mm, "
+            f"max {b['max']:.4f} -> {a['max']:.4f} mm ({s['n_poses']} poses)"
+        )
+    if doc["outlier_poses"]:
+        print(f"outlier poses: {', '.join(doc['outlier_poses'])}")
+    if campaign.skipped:
+        print(f"skipped {len(campaign.skipped)} bad row(s)")
+    print(f"wrote {args.out}")
+    if args.report:
+        started = time.perf_counter()
+        paths = write_report(args.report, doc, errors)
+        say(f"report written in {time.perf_counter() - started:.1f} s")
+        print(f"wrote report to {args.report} ({len(paths)} files)")
+    if not result.success:
+        print(f"warning: {result.optimize_result.message}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def run_predict(args: argparse.Namespace) -> int:
+    from calibration.model_effects import predict_tcp
+
+    desc = load_robot(args.model)
+    readings = read_joint_readings(
+        args.data, desc.n_joints, limits_deg=_limits(desc), skip_bad=args.skip_bad
+    )
+    points = predict_tcp(desc, np.radians(readings.q_deg), readings.t_s)
+    write_points(args.out, readings.pose, points)
+    if readings.skipped:
+        print(f"twin predict: skipped {len(readings.skipped)} bad row(s)", file=sys.stderr)
+        for s in readings.skipped[:10]:
+            print(f"twin predict:   {s}", file=sys.stderr)
+    print(f"wrote {args.out}: {len(readings)} points")
+    return 0

@@ -1,0 +1,341 @@
+"""The identification report: the source's Table 3 and more, as JSON, Markdown and PNG.
+
+Errors are ``tracker − twin`` per pose. For the 3-D distance AP and for each axis (AP_X,
+AP_Y, AP_Z, absolute values) the report gives max, min, mean, standard deviation and
+``mean + 3·std`` (the source's "accuracy ±" figure), for the identification and the
+validation set, before and after calibration. *Before* is the nominal geometry and tool
+with the base pose from a rigid registration on the identification points (the best the
+uncalibrated robot can do in the tracker frame); *after* is the identified model.
+
+Improvement factors are given twice: ``before / after`` and the source's definition
+``(before − after) / after`` (its "4.97× better" for a mean of 0.8672 → 0.1452 mm).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from calibration.campaign_files import Campaign
+from calibration.description import RobotDescription
+from calibration.identification import IdentificationResult, base_start_from_registration
+from calibration.kinematics import KinematicModel, tcp_positions
+
+FloatArray = NDArray[np.float64]
+
+STATISTICS = ("max", "min", "mean", "std", "mean_plus_3std")
+COMPONENTS = ("AP", "AP_X", "AP_Y", "AP_Z")
+REPORT_FILES = (
+    "report.json",
+    "report.md",
+    "errors_identify.png",
+    "errors_validate.png",
+    "error_histogram.png",
+)
+
+
+def accuracy_statistics(errors_mm: ArrayLike) -> dict[str, dict[str, float]]:
+    """Table-3 statistics of per-pose errors ``(m, 3)`` mm: AP (3-D) and |AP_X|, |AP_Y|, |AP_Z|."""
+    e = np.atleast_2d(np.asarray(errors_mm, dtype=float))
+    comps = {
+        "AP": np.linalg.norm(e, axis=1),
+        "AP_X": np.abs(e[:, 0]),
+        "AP_Y": np.abs(e[:, 1]),
+        "AP_Z": np.abs(e[:, 2]),
+    }
+    out = {}
+    for name, v in comps.items():
+        std = float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
+        out[name] = {
+            "max": float(v.max()),
+            "min": float(v.min()),
+            "mean": float(v.mean()),
+            "std": std,
+            "mean_plus_3std": float(v.mean() + 3.0 * std),
+        }
+    return out
+
+
+def improvement_factors(
+    before: Mapping[str, Mapping[str, float]], after: Mapping[str, Mapping[str, float]]
+) -> dict[str, dict[str, dict[str, float | None]]]:
+    """Per component and statistic: ``ratio`` (before/after) and ``source`` ((b − a)/a)."""
+    out: dict[str, dict[str, dict[str, float | None]]] = {}
+    for comp in COMPONENTS:
+        out[comp] = {}
+        for stat in STATISTICS:
+            b, a = before[comp][stat], after[comp][stat]
+            ratio = b / a if a > 0 else None
+            out[comp][stat] = {
+                "ratio": ratio,
+                "source": (b - a) / a if a > 0 else None,
+            }
+    return out
+
+
+@dataclass(frozen=True)
+class SetErrors:
+    """Per-pose errors ``(m, 3)`` mm of one set, before and after calibration."""
+
+    name: str
+    pose: tuple[str, ...]
+    before_mm: FloatArray
+    after_mm: FloatArray
+
+
+def before_model(nominal: KinematicModel, q_rad: ArrayLike, points_mm: ArrayLike) -> KinematicModel:
+    """The uncalibrated reference: nominal geometry and tool, base registered on the points."""
+    return base_start_from_registration(nominal, q_rad, points_mm)
+
+
+def set_errors(
+    campaign: Campaign, reference: KinematicModel, identified: KinematicModel
+) -> list[SetErrors]:
+    """Errors of the identify and validate sets (sets with no rows are left out)."""
+    out = []
+    for name in ("identify", "validate"):
+        mask = campaign.mask(name)
+        if not mask.any():
+            continue
+        q = campaign.q_rad[mask]
+        pts = campaign.xyz_mm[mask]
+        out.append(
+            SetErrors(
+                name=name,
+                pose=tuple(p for p, m in zip(campaign.pose, mask, strict=True) if m),
+                before_mm=pts - tcp_positions(reference, q),
+                after_mm=pts - tcp_positions(identified, q),
+            )
+        )
+    return out
+
+
+def build_report(
+    result: IdentificationResult,
+    description: RobotDescription,
+    campaign: Campaign,
+    *,
+    robot_source: str,
+    calibrated_path: str | None = None,
+) -> tuple[dict[str, Any], list[SetErrors]]:
+    """The JSON document of the report and the per-set errors it was made from."""
+    nominal = KinematicModel.from_description(description)
+    idm = campaign.mask("identify")
+    reference = before_model(nominal, campaign.q_rad[idm], campaign.xyz_mm[idm])
+    errors = set_errors(campaign, reference, result.model)
+    sets: dict[str, Any] = {}
+    for se in errors:
+        before = accuracy_statistics(se.before_mm)
+        after = accuracy_statistics(se.after_mm)
+        sets[se.name] = {
+            "n_poses": len(se.pose),
+            "before": before,
+            "after": after,
+            "improvement": improvement_factors(before, after),
+        }
+    opt = result.optimize_result
+    id_poses = [p for p, m in zip(campaign.pose, idm, strict=True) if m]
+    doc: dict[str, Any] = {
+        "robot": {"name": description.name, "source": robot_source},
+        "data": {
+            "source": campaign.source,
+            "n_rows": len(campaign),
+            "n_identify": int(idm.sum()),
+            "n_validate": int(campaign.mask("validate").sum()),
+            "skipped_rows": len(campaign.skipped),
+            "skipped": [
+                {"line": s.line, "pose": s.pose, "reason": s.reason} for s in campaign.skipped
+            ],
+        },
+        "calibrated_model": calibrated_path,
+        "before_definition": (
+            "nominal geometry and tool, base pose from a rigid registration of the nominal "
+            "TCPs onto the identification points"
+        ),
+        "start": result.start_method,
+        "solver": {
+            "method": "Levenberg-Marquardt (analytic Jacobian, column-scaled damping)",
+            "iterations": int(opt.nit),
+            "function_evaluations": int(opt.nfev),
+            "jacobian_evaluations": int(opt.njev),
+            "status": int(opt.status),
+            "message": opt.message,
+            "success": bool(opt.success),
+            "final_cost_mm2": float(opt.cost),
+            "final_damping": float(opt.mu),
+            "loss": result.loss,
+            "f_scale_mm": result.f_scale_mm,
+            "irls_iterations": result.irls_iterations,
+            "elapsed_s": result.elapsed_s,
+            "history": [
+                {"iteration": i, "error_norm_mm": n, "damping": m} for i, n, m in result.history
+            ],
+        },
+        "noise_sigma_mm": result.sigma_mm,
+        "identifiability": result.identifiability.as_dict(),
+        "parameters": result.parameter_table(),
+        "outlier_poses": [id_poses[i] for i in np.flatnonzero(result.outliers)],
+        "sets": sets,
+    }
+    return doc, errors
+
+
+# -- writers ----------------------------------------------------------------------------
+def _f(v: float | None, digits: int = 4) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    return f"{v:.{digits}f}"
+
+
+def markdown_report(doc: Mapping[str, Any]) -> str:
+    """The report for people: summary, Table 3 per set, parameters, dropped parameters."""
+    lines = [f"# Identification report: {doc['robot']['name']}", ""]
+    data = doc["data"]
+    solver = doc["solver"]
+    ident = doc["identifiability"]
+    lines += [
+        f"- Robot description: `{doc['robot']['source']}`",
+        f"- Data: `{data['source']}`: {data['n_identify']} identification poses, "
+        f"{data['n_validate']} validation poses, {data['skipped_rows']} bad row(s) skipped",
+        f"- Start of the base pose: {doc['start']}",
+        f"- Solver: {solver['method']}, {solver['iterations']} iterations, "
+        f"{solver['function_evaluations']} evaluations, {solver['elapsed_s']:.3f} s: "
+        f"{solver['message']}; loss {solver['loss']}",
+        f"- Identified {ident['n_identified']} of {ident['n_parameters']} parameters, "
+        f"condition number of the scaled Jacobian {ident['condition_number']:.1f}",
+        f"- Residual noise σ (per axis): {doc['noise_sigma_mm'] * 1000:.1f} µm",
+        f"- Outlier poses: {', '.join(doc['outlier_poses']) or 'none'}",
+        f"- Before = {doc['before_definition']}",
+        "",
+    ]
+    for set_name, s in doc["sets"].items():
+        lines += [
+            f"## {set_name.capitalize()} set ({s['n_poses']} poses), errors in mm",
+            "",
+            "| | max | min | mean | std | mean+3std |",
+            "|---|---|---|---|---|---|",
+        ]
+        for comp in COMPONENTS:
+            for when in ("before", "after"):
+                st = s[when][comp]
+                lines.append(
+                    f"| {comp} {when} | " + " | ".join(_f(st[k]) for k in STATISTICS) + " |"
+                )
+            imp = s["improvement"][comp]
+            lines.append(
+                f"| {comp} improvement (before/after) | "
+                + " | ".join(_f(imp[k]["ratio"], 2) for k in STATISTICS)
+                + " |"
+            )
+        lines.append("")
+        ap = s["improvement"]["AP"]["mean"]
+        lines += [
+            f"Mean AP improved {_f(ap['ratio'], 2)}× (before/after), "
+            f"{_f(ap['source'], 2)}× by the source's (before − after)/after.",
+            "",
+        ]
+    lines += [
+        "## Identified parameters",
+        "",
+        "| parameter | start | identified | deviation | standard error |",
+        "|---|---|---|---|---|",
+    ]
+    for p in doc["parameters"]:
+        if not p["identified_from_data"]:
+            continue
+        lines.append(
+            f"| {p['name']} | {_f(p['start'], 5)} | {_f(p['identified'], 5)} | "
+            f"{_f(p['deviation'], 5)} | {_f(p['standard_error'], 5)} |"
+        )
+    lines += ["", "## Dropped parameters (held at their start values)", ""]
+    lines += [f"- `{d['name']}`: {d['reason']}" for d in ident["dropped"]] or ["- none"]
+    if data["skipped"]:
+        lines += ["", "## Skipped rows", ""]
+        lines += [
+            f"- line {s['line']}"
+            + (f" (pose {s['pose']})" if s["pose"] else "")
+            + f": {s['reason']}"
+            for s in data["skipped"]
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def _error_figure(se: SetErrors, path: Path) -> None:
+    """Per-pose errors X, Y, Z and 3-D; before (left) and after (right), each on its own
+    scale (after a good calibration the errors are far too small to see on the other)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(4, 2, figsize=(13, 10), sharex=True)
+    x = np.arange(len(se.pose))
+    rows = [
+        ("X", se.before_mm[:, 0], se.after_mm[:, 0]),
+        ("Y", se.before_mm[:, 1], se.after_mm[:, 1]),
+        ("Z", se.before_mm[:, 2], se.after_mm[:, 2]),
+        ("3-D", np.linalg.norm(se.before_mm, axis=1), np.linalg.norm(se.after_mm, axis=1)),
+    ]
+    for r, (label, before, after) in enumerate(rows):
+        for c, (values, color) in enumerate(((before, "#d08770"), (after, "#2e5c8a"))):
+            ax = axes[r, c]
+            # bars as a line collection: one Rectangle patch per bar is slow for 1000s
+            ax.vlines(x, 0.0, values, color=color, linewidth=2.0)
+            ax.axhline(0.0, color="black", linewidth=0.5)
+            ax.grid(axis="y", alpha=0.3)
+        axes[r, 0].set_ylabel(f"{label} error (mm)")
+    axes[0, 0].set_title(f"before calibration ({se.name} set)")
+    axes[0, 1].set_title(f"after calibration ({se.name} set)")
+    for c in range(2):
+        axes[-1, c].set_xlabel("pose (order in the campaign)")
+    fig.suptitle("Per-pose position error, tracker − twin")
+    fig.subplots_adjust(left=0.07, right=0.98, top=0.92, bottom=0.06, hspace=0.12, wspace=0.18)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def _histogram(errors: list[SetErrors], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(errors), figsize=(5.5 * len(errors), 6.5), squeeze=False)
+    for c, se in enumerate(errors):
+        for r, (when, err, color) in enumerate(
+            (("before", se.before_mm, "#d08770"), ("after", se.after_mm, "#2e5c8a"))
+        ):
+            ax = axes[r, c]
+            ax.hist(np.linalg.norm(err, axis=1), bins=25, color=color)
+            ax.set_xlabel("3-D error AP (mm)")
+            ax.set_ylabel("poses")
+            ax.set_title(f"{se.name} set, {when} calibration")
+    fig.subplots_adjust(left=0.08, right=0.98, top=0.94, bottom=0.09, hspace=0.45, wspace=0.25)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def write_report(
+    directory: str | Path, doc: Mapping[str, Any], errors: list[SetErrors]
+) -> list[Path]:
+    """Write report.json, report.md and the PNG figures into ``directory``; their paths."""
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / "report.json", out / "report.md"]
+    written[0].write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    written[1].write_text(markdown_report(doc), encoding="utf-8")
+    for se in errors:
+        path = out / f"errors_{se.name}.png"
+        _error_figure(se, path)
+        written.append(path)
+    path = out / "error_histogram.png"
+    _histogram(errors, path)
+    written.append(path)
+    return written
