@@ -8,9 +8,11 @@ frame or in the *world* (tracker) frame through the model's base pose.
 Every call returns all eight branches of the arm, one row per branch, in the order of
 :data:`BRANCHES` (shoulder, elbow, wrist signs; index ``4·s + 2·e + w`` with 0 = "+"):
 
-* shoulder: the wrist centre is in front of (+) or behind (−) axis 1;
-* elbow: the two solutions of the triangle upper arm / forearm;
-* wrist: q5 and its flip (q4 + π, −q5, q6 + π).
+* shoulder: the wrist centre in front of (+) or behind (−) axis 1, i.e. the sign of its
+  distance from axis 1 along the arm plane's x axis (``a2`` side);
+* elbow: the sign of sin(psi), psi the angle from the upper arm to the forearm
+  (0 = stretched, ±π = folded);
+* wrist: the sign of sin(q5 + offset5); the flip is q4 + π, −q5, q6 + π.
 
 The closed form needs a *Pieper* geometry (:func:`is_spherical_wrist`): joints 2 and 3
 parallel (alpha3 = 0), alpha 2, 4, 5, 6 = ±90°, a5 = a6 = d5 = 0 (the wrist axes meet in
@@ -375,7 +377,8 @@ def _closed_form(
     e = _turn_z(e, t2 + t3)
     e = _turn_x(e, geo.alpha[3])
     e02, e12 = e[..., 0, 2], e[..., 1, 2]
-    t4 = np.arctan2(wr * e12, wr * e02)
+    flip = -geo.sigma4 * wr  # sign of B = -sigma4·t5 that makes sign(sin t5) = wr
+    t4 = np.arctan2(flip * e12, flip * e02)
     t4 = np.where(np.hypot(e02, e12) < _WRIST_DEGENERATE, q_ref[:, 3:4] + off[3], t4)
     f = _turn_z(e, t4)  # = Ry(B)·Rz(G), exact for any t4
     b = np.arctan2(f[..., 0, 2], f[..., 2, 2])
