@@ -182,13 +182,14 @@ class DeviceClock:
         prev = np.empty(n, np.int64)
         prev[1:] = raw[:-1]
         prev[0] = raw[0] if self.last_raw is None else self.last_raw
-        step = (raw - prev) % self.modulus
+        wide = self.modulus > (1 << 62)  # a 63/64-bit clock never wraps in practice
+        step = raw - prev if wide else (raw - prev) % self.modulus
         events = np.flatnonzero((step >= self.max_gap_us) | (raw < prev))
         start = 0
         for i in events.tolist():
             out[start:i] = raw[start:i] + self.offset
             epochs[start:i] = self.epoch
-            if step[i] < self.max_gap_us:  # raw fell but moved forward: a wrap
+            if not wide and 0 <= step[i] < self.max_gap_us:  # fell but moved on: a wrap
                 self.wraps += 1
                 self.offset += self.modulus
             else:
