@@ -99,6 +99,9 @@ class FakeDriver(Driver):  # type: ignore[misc,valid-type]
             raise DeviceIOError("fake device unplugged")
         if not self.t0_ns:
             self.t0_ns = time.monotonic_ns()
+        else:  # samples latched while the device was away are lost for good
+            now = time.monotonic_ns()
+            self.k = max(self.k, int((now - self.t0_ns) * self.rate_hz / 1e9))
 
     def _disconnect(self) -> None:
         pass
@@ -109,8 +112,6 @@ class FakeDriver(Driver):  # type: ignore[misc,valid-type]
         while True:
             now = time.monotonic_ns()
             if self._is_away(now):
-                # samples latched while away are lost for good
-                self.k = int((now - self.t0_ns) * self.rate_hz / 1e9) + 1
                 raise DeviceIOError("fake device unplugged")
             k_end = int((now - self.t0_ns) * self.rate_hz / 1e9) + 1
             if k_end > self.k or now >= deadline_ns:

@@ -1,0 +1,299 @@
+"""``daq run``: the acquisition daemon.
+
+Opens one zenoh session, one :class:`~daq.pipeline.DeviceStream` thread per enabled
+device, an optional MCAP recorder, and publishes each device's health once a period. It
+stops on SIGINT/SIGTERM or after ``--duration``: device threads flush what they hold and
+close their drivers, the recorder drains and writes the summary, and it exits 0.
+
+On start it prints one JSON line to stdout: ``{"daq": "running", "cell": ..., "keys":
+[...], "listen": [...], "recording": PATH or null}``; on exit one ``{"daq": "stopped",
+...}`` line with the final counters.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from daq.bus import JSON_ENCODING, SchemaServer, health_key, open_session, utc_offset_ns
+from daq.config import DaqConfig, DeviceConfig
+from daq.errors import ConfigError, DaqError
+from daq.pipeline import DeviceStream
+from daq.recording import (
+    HEALTH_SCHEMA,
+    HEALTH_SCHEMA_NAME,
+    KIND_HEALTH,
+    BackgroundRecorder,
+    McapRecorder,
+)
+
+log = logging.getLogger(__name__)
+
+
+def make_driver(dev: DeviceConfig) -> Any:
+    """The driver of ``dev`` (not opened): a registry name, or ``module:Class``."""
+    if ":" in dev.driver:
+        module, _, cls_name = dev.driver.partition(":")
+        try:
+            cls = getattr(importlib.import_module(module), cls_name)
+        except (ImportError, AttributeError) as exc:
+            raise ConfigError(f"[[device]] {dev.name!r}: key 'driver': {exc}") from exc
+    else:
+        from drivers.errors import DriverError
+        from drivers.registry import driver_class
+
+        try:
+            cls = driver_class(dev.driver)
+        except DriverError as exc:
+            raise ConfigError(f"[[device]] {dev.name!r}: key 'driver': {exc}") from exc
+    from drivers.errors import DriverError
+
+    try:
+        return cls(dev.url, **dict(dev.options))
+    except DriverError as exc:
+        raise ConfigError(f"[[device]] {dev.name!r}: key 'options': {exc}") from exc
+
+
+def recording_path(cfg: DaqConfig, path: str | None = None) -> Path:
+    start = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    template = path or cfg.recording.path
+    return Path(template.format(cell=cfg.cell.name, start=start))
+
+
+class Daemon:
+    """The running daemon; ``run()`` blocks until ``stop`` is set or ``duration_s`` passed."""
+
+    def __init__(
+        self,
+        cfg: DaqConfig,
+        *,
+        record_path: str | Path | None = None,
+        driver_factory: Any = make_driver,
+    ) -> None:
+        self.cfg = cfg
+        self.stop = threading.Event()
+        self.utc_offset_ns = utc_offset_ns()
+        self.session = open_session(cfg.zenoh)
+        self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")
+        self.recorder: BackgroundRecorder | None = None
+        self.streams: list[DeviceStream] = []
+        self._health_pubs: dict[str, Any] = {}
+        self._health_rec: dict[str, int] = {}
+        self._closed = False
+        try:
+            if record_path is not None:
+                meta = {
+                    "daq": {
+                        "cell": cfg.cell.name,
+                        "config": cfg.source,
+                        "host_utc_minus_monotonic_ns": str(self.utc_offset_ns),
+                        "started_utc": datetime.now(UTC).isoformat(),
+                    }
+                }
+                self.recorder = BackgroundRecorder(
+                    McapRecorder(
+                        record_path,
+                        compression=cfg.recording.compression,
+                        chunk_size_bytes=cfg.recording.chunk_size_bytes,
+                        chunk_interval_s=cfg.recording.chunk_interval_s,
+                        metadata=meta,
+                    )
+                )
+            for dev in cfg.devices:
+                if not dev.enabled:
+                    continue
+                stream = DeviceStream(
+                    cfg,
+                    dev,
+                    driver_factory(dev),
+                    self.session,
+                    self.schemas,
+                    recorder=self.recorder,
+                    utc_offset_ns=self.utc_offset_ns,
+                    stop=self.stop,
+                )
+                self.streams.append(stream)
+                hk = health_key(cfg.cell.name, dev.robot, dev.name)
+                self._health_pubs[dev.name] = self.session.declare_publisher(
+                    hk, encoding=JSON_ENCODING
+                )
+                if self.recorder is not None:
+                    self._health_rec[dev.name] = self.recorder.add_json(
+                        hk, HEALTH_SCHEMA_NAME, HEALTH_SCHEMA, {"daq.kind": KIND_HEALTH}
+                    )
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def keys(self) -> list[str]:
+        return [p.key for s in self.streams for p in s.publishers]
+
+    def publish_health(self, period_s: float) -> list[dict[str, Any]]:
+        docs = []
+        for s in self.streams:
+            doc = s.health(period_s)
+            data = json.dumps(doc).encode()
+            try:
+                self._health_pubs[s.dev.name].put(data)
+            except Exception:
+                log.exception("health publish failed for %s", s.dev.name)
+            if self.recorder is not None:
+                t = time.time_ns()
+                self.recorder.write(self._health_rec[s.dev.name], data, t, t)
+            docs.append(doc)
+        return docs
+
+    def run(self, duration_s: float | None = None) -> list[dict[str, Any]]:
+        """Acquire until stopped; returns the last health documents."""
+        for s in self.streams:
+            s.start()
+        t0 = time.monotonic()
+        period = self.cfg.publish.health_period_s
+        next_health = t0 + period
+        last = t0
+        docs: list[dict[str, Any]] = []
+        while not self.stop.is_set():
+            now = time.monotonic()
+            if duration_s is not None and now - t0 >= duration_s:
+                break
+            wait = next_health - now
+            if duration_s is not None:
+                wait = min(wait, t0 + duration_s - now)
+            if self.stop.wait(max(0.0, wait)):
+                break
+            now = time.monotonic()
+            if now >= next_health:
+                docs = self.publish_health(now - last)
+                last = now
+                next_health += period
+                if next_health < now:
+                    next_health = now + period
+        self.stop.set()
+        for s in self.streams:
+            s.join(timeout=10.0)
+        docs = self.publish_health(max(1e-3, time.monotonic() - last))
+        return docs
+
+    def close(self) -> None:
+        """Stop threads, close drivers, flush the recording, close zenoh; safe twice."""
+        if self._closed:
+            return
+        self._closed = True
+        self.stop.set()
+        for s in self.streams:
+            s.join(timeout=10.0)
+            s.close()
+        for p in self._health_pubs.values():
+            try:
+                p.undeclare()
+            except Exception:
+                log.debug("health undeclare failed", exc_info=True)
+        if self.recorder is not None:
+            self.recorder.close()
+        self.schemas.close()
+        self.session.close()
+
+    def __enter__(self) -> Daemon:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def main_run(args: Any) -> int:
+    from daq.cli import resolve
+
+    extra: dict[str, dict[str, Any]] = {}
+    if getattr(args, "cell", None):
+        extra["cell"] = {"name": args.cell}
+    emulated = None
+    if args.config is None and not _env_config():
+        from daq.emulated import EmulatedCell
+
+        emulated = EmulatedCell(sim_config=args.sim_config)
+        base = emulated.start()
+        from daq.config import load
+
+        cfg = load(None, overrides=_with_zenoh(args, extra), base=base)
+        record = not args.no_record
+    else:
+        cfg = resolve(args, extra)
+        record = cfg.recording.enabled or args.record is not None
+    path = None
+    if record:
+        path = recording_path(cfg, args.record or None)
+    stopping = threading.Event()
+    try:
+        daemon = Daemon(cfg, record_path=path)
+    except BaseException:
+        if emulated is not None:
+            emulated.close()
+        raise
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        stopping.set()
+        daemon.stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+    try:
+        print(
+            json.dumps(
+                {
+                    "daq": "running",
+                    "cell": cfg.cell.name,
+                    "keys": daemon.keys,
+                    "listen": list(cfg.zenoh.listen),
+                    "connect": list(cfg.zenoh.connect),
+                    "recording": str(path) if path is not None else None,
+                    "emulated": emulated.devices if emulated is not None else None,
+                }
+            ),
+            flush=True,
+        )
+        docs = daemon.run(args.duration)
+    finally:
+        daemon.close()
+        if emulated is not None:
+            emulated.close()
+    summary = {
+        "daq": "stopped",
+        "signal": stopping.is_set(),
+        "recording": str(path) if path is not None else None,
+        "devices": {
+            d["device"]: {k: d[k] for k in ("samples", "gaps", "samples_missing", "reconnects")}
+            for d in docs
+        },
+    }
+    print(json.dumps(summary), flush=True)
+    if path is not None:
+        print(f"recorded to {path}", file=sys.stderr)
+    return 0
+
+
+def _env_config() -> bool:
+    import os
+
+    return bool(os.environ.get("DAQ_CONFIG"))
+
+
+def _with_zenoh(args: Any, extra: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    from daq.cli import _zenoh_overrides
+
+    out = dict(extra)
+    z = _zenoh_overrides(args)
+    if z:
+        out["zenoh"] = z
+    return out
+
+
+__all__ = ["Daemon", "DaqError", "main_run", "make_driver"]

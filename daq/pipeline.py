@@ -1,0 +1,451 @@
+"""One device's path: driver batches → clock map → columnar batches on zenoh (+ MCAP).
+
+:class:`DeviceStream` runs in its own thread. It reads the driver (which owns timeouts,
+host receive stamps and reconnects), maps device time to host time with
+:class:`daq.clock_sync.DeviceClockMap`, counts gaps and sequence breaks, coalesces reads
+into batches of at most ``max_batch_samples`` or ``max_batch_age_s``, and publishes one
+message per channel group. It keeps a liveliness token while the device is connected and
+reports its health once a period (:meth:`DeviceStream.health`).
+
+Published clocks: ``host_utc`` is CLOCK_REALTIME ns since the Unix epoch, obtained from
+the driver's ``time.monotonic_ns`` stamps plus one offset taken when the daemon started
+(so an NTP step during a run does not break the stream's monotonicity); ``device`` is the
+device's own µs clock, unwrapped by the driver, valid within one ``epoch``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import zenoh
+from numpy.typing import NDArray
+
+from daq import foxglove
+from daq.bus import ChannelPublisher, SchemaServer, channel_key, device_key
+from daq.clock_sync import DeviceClockMap
+from daq.columnar import Column, StreamSchema
+from daq.config import ChannelGroup, DaqConfig, DeviceConfig
+from daq.errors import ConfigError
+from daq.recording import KIND_FOXGLOVE, BackgroundRecorder
+
+log = logging.getLogger(__name__)
+
+HOST_CLOCK = "host_utc"
+DEFAULT_CHANNEL = "samples"
+#: status bit the daemon sets on a sample that follows a sequence gap (driver bits below)
+TIME_COLUMNS = ("seq", "epoch", "t_device_us", "t_host_rx_ns", "t_mapped_ns")
+
+
+def build_schemas(
+    cfg: DaqConfig, dev: DeviceConfig, driver_schema: Any, utc_offset_ns: int
+) -> list[tuple[StreamSchema, NDArray[np.intp]]]:
+    """The columnar schema of every channel group of ``dev`` and its driver columns."""
+    names = [c.name for c in driver_schema.channels]
+    groups = dev.channels or (ChannelGroup(DEFAULT_CHANNEL, ()),)
+    out = []
+    for g in groups:
+        members = list(g.channels) or names
+        missing = [m for m in members if m not in names]
+        if missing:
+            raise ConfigError(
+                f"{cfg.source}: [[device]] {dev.name!r}: [channels] {g.name!r}: driver "
+                f"{dev.driver!r} has no channel {missing[0]!r} (it has: {', '.join(names)})"
+            )
+        idx = np.array([names.index(m) for m in members], dtype=np.intp)
+        cols = [
+            Column("seq", "uint64", description="sample sequence number (device's, unwrapped)"),
+            Column("epoch", "int32", description="device restarts seen before this sample"),
+            Column(
+                "t_device_us",
+                "int64",
+                unit="us",
+                clock=f"device:{dev.name}",
+                description="device clock at the latch, unwrapped, valid within one epoch",
+            ),
+            Column(
+                "t_host_rx_ns",
+                "int64",
+                unit="ns",
+                clock=HOST_CLOCK,
+                description="host time when the frame carrying the sample was received",
+            ),
+            Column(
+                "t_mapped_ns",
+                "int64",
+                unit="ns",
+                clock=HOST_CLOCK,
+                description="device time mapped to the host clock (online offset+drift fit)",
+            ),
+        ]
+        chans = [driver_schema.channels[i] for i in idx]
+        for c in chans:
+            cols.append(Column(c.name, c.dtype, unit=c.unit, description=c.description))
+        cols.append(
+            Column(
+                "status",
+                "uint16",
+                (len(chans),),
+                description="per-channel status bits, in the order of status_channels",
+            )
+        )
+        joints = None
+        if dev.joints is not None:
+            joints = [dev.joints[i] if i < len(dev.joints) else None for i in idx.tolist()]
+        meta = {
+            "cell": cfg.cell.name,
+            "robot": dev.robot,
+            "device": dev.name,
+            "channel": g.name,
+            "driver": dev.driver,
+            "driver_kind": driver_schema.kind,
+            "url": dev.url,
+            "source": driver_schema.source,
+            "device_clock": driver_schema.device_clock,
+            "host_clock": "host_utc: CLOCK_REALTIME ns since 1970 (monotonic + offset at start)",
+            "host_utc_minus_monotonic_ns": utc_offset_ns,
+            "status_channels": [c.name for c in chans],
+            "status_bits": {str(k): v for k, v in driver_schema.status_bits.items()},
+            "joints": joints,
+            "rate_hz": dev.rate_hz,
+        }
+        key = channel_key(cfg.cell.name, dev.robot, dev.name, g.name)
+        out.append((StreamSchema(key, tuple(cols), meta), idx))
+    return out
+
+
+@dataclass
+class Counters:
+    samples: int = 0
+    batches: int = 0
+    bytes: int = 0
+    gaps: int = 0  # sequence jumps within an epoch
+    samples_missing: int = 0  # samples those jumps skipped
+    seq_breaks: int = 0  # sequence went back or repeated within an epoch
+    epochs: int = 0  # device restarts seen (epoch changes)
+    publish_errors: int = 0
+    away_s: float = 0.0  # time not connected (after the first connection)
+    window_samples: int = 0
+    window_rx_delay_ns: list[NDArray[np.int64]] = field(default_factory=list)
+
+
+class DeviceStream:
+    """Reads one driver and publishes its samples; see the module docstring."""
+
+    def __init__(
+        self,
+        cfg: DaqConfig,
+        dev: DeviceConfig,
+        driver: Any,
+        session: zenoh.Session,
+        schemas: SchemaServer,
+        *,
+        recorder: BackgroundRecorder | None = None,
+        utc_offset_ns: int,
+        stop: threading.Event,
+    ) -> None:
+        self.cfg = cfg
+        self.dev = dev
+        self.driver = driver
+        self.session = session
+        self.recorder = recorder
+        self.utc_offset_ns = utc_offset_ns
+        self.stop = stop
+        self.counters = Counters()
+        self.groups = build_schemas(cfg, dev, driver.schema, utc_offset_ns)
+        cc = cfg.zenoh.congestion_control
+        self.publishers = [
+            ChannelPublisher(session, s, congestion=cc, schemas=schemas) for s, _ in self.groups
+        ]
+        self.rec_ids: list[int] = []
+        self.fox: list[tuple[int, str, tuple[str, str, str]]] = []
+        if recorder is not None:
+            for s, _ in self.groups:
+                meta = {k: str(v) for k, v in s.meta.items() if not isinstance(v, dict | list)}
+                self.rec_ids.append(recorder.add_columnar(s, meta))
+                self._add_foxglove(recorder, s)
+        self.clock = self._new_clock()
+        self._epoch: int | None = None
+        self._last_seq: int | None = None
+        self._token: Any = None
+        self._lock = threading.Lock()
+        self._connected_once = False
+        self._state = "opening"
+        self._away_since: float | None = None
+        self._thread = threading.Thread(target=self._run, name=f"dev-{dev.name}", daemon=True)
+        self.error: BaseException | None = None
+
+    def _add_foxglove(self, recorder: BackgroundRecorder, s: StreamSchema) -> None:
+        kind = self.dev.foxglove
+        xyz = foxglove.xyz_columns(list(s.names))
+        if kind == "none" or xyz is None:
+            if kind in ("points", "poses"):
+                log.warning("%s: foxglove=%s but no x_mm/y_mm/z_mm columns", s.key, kind)
+            return
+        name = foxglove.POSES_IN_FRAME if kind == "poses" else foxglove.POINT_CLOUD
+        suffix = "poses" if kind == "poses" else "points"
+        cid = recorder.add_json(
+            f"{s.key}/{suffix}",
+            name,
+            foxglove.schema_bytes(name),
+            {"daq.kind": KIND_FOXGLOVE, "derived_from": s.key, "frame_id": self.dev.frame_id},
+        )
+        self.fox.append((cid, name, xyz))
+
+    def _new_clock(self) -> DeviceClockMap:
+        # restarts are the driver's to detect (epoch); a backlog read after a reconnect is
+        # late, not a restart, so the map must not start a new segment on disagreement
+        return DeviceClockMap(
+            tick_s=1e-6,
+            window_s=self.dev.clock_window_s,
+            restart_tolerance_s=1e9,
+            latency_ns=int(self.dev.clock_latency_us * 1000),
+        )
+
+    # -- lifecycle --------------------------------------------------------------------------
+    def start(self) -> None:
+        self._thread.start()
+
+    def join(self, timeout: float | None = None) -> None:
+        self._thread.join(timeout)
+
+    @property
+    def state(self) -> str:
+        return self._state
+
+    def _set_alive(self, alive: bool) -> None:
+        if alive and self._token is None:
+            self._token = self.session.liveliness().declare_token(
+                device_key(self.cfg.cell.name, self.dev.robot, self.dev.name)
+            )
+        elif not alive and self._token is not None:
+            token, self._token = self._token, None
+            try:
+                token.undeclare()
+            except Exception:  # session already closed
+                log.debug("liveliness undeclare failed", exc_info=True)
+
+    def _track_state(self) -> None:
+        state = getattr(self.driver, "_state", None) or self.driver.health().state
+        now = time.monotonic()
+        connected = state == "connected"
+        if connected:
+            self._connected_once = True
+            if self._away_since is not None:
+                self.counters.away_s += now - self._away_since
+                self._away_since = None
+        elif self._connected_once and self._away_since is None:
+            self._away_since = now
+        self._state = state
+        self._set_alive(connected)
+
+    def _open(self) -> bool:
+        from drivers.errors import DriverError
+
+        while not self.stop.is_set():
+            try:
+                self.driver.open(timeout_s=min(self.dev.open_timeout_s, 1.0))
+                return True
+            except DriverError as exc:
+                self._state = "reconnecting"
+                log.warning("%s: %s (retrying)", self.dev.name, exc)
+                self.stop.wait(0.2)
+        return False
+
+    def _run(self) -> None:
+        pub = self.cfg.publish
+        pending: list[Any] = []
+        n_pending = 0
+        first_ns = 0
+        try:
+            if not self._open():
+                return
+            last_state_check = 0.0
+            while True:
+                stopping = self.stop.is_set()
+                now = time.monotonic()
+                if now - last_state_check > 0.02:
+                    self._track_state()
+                    last_state_check = now
+                if not stopping:
+                    timeout = pub.read_timeout_s
+                    if pending:
+                        age_left = pub.max_batch_age_s - (time.monotonic_ns() - first_ns) / 1e9
+                        timeout = max(0.0, min(timeout, age_left))
+                    batch = self.driver.read(timeout_s=timeout)
+                    if len(batch):
+                        if not pending:
+                            first_ns = int(batch.t_host_ns[0])
+                        pending.append(batch)
+                        n_pending += len(batch)
+                due = pending and (
+                    stopping
+                    or n_pending >= pub.max_batch_samples
+                    or time.monotonic_ns() - first_ns >= pub.max_batch_age_s * 1e9
+                )
+                if due:
+                    self._process(pending)
+                    pending, n_pending = [], 0
+                if stopping:
+                    break
+        except BaseException as exc:  # keep the daemon up; report in health
+            self.error = exc
+            log.exception("%s: acquisition thread failed", self.dev.name)
+        finally:
+            try:
+                self.driver.close()
+            finally:
+                self._set_alive(False)
+                self._state = "closed"
+
+    # -- one batch ------------------------------------------------------------------------
+    def _process(self, batches: list[Any]) -> None:
+        seq = np.concatenate([b.seq for b in batches])
+        t_dev = np.concatenate([b.t_device_us for b in batches])
+        epoch = np.concatenate([b.epoch for b in batches])
+        t_host = np.concatenate([b.t_host_ns for b in batches])
+        values = np.concatenate([b.values for b in batches])
+        status = np.concatenate([b.status for b in batches])
+        mapped = self._map(t_dev, epoch, t_host)
+        self._count_gaps(seq.astype(np.int64), epoch)
+        c = self.counters
+        n = len(seq)
+        c.samples += n
+        c.window_samples += n
+        c.window_rx_delay_ns.append(t_host - mapped)
+        off = self.utc_offset_ns
+        base = {
+            "seq": seq,
+            "epoch": epoch,
+            "t_device_us": t_dev,
+            "t_host_rx_ns": t_host + off,
+            "t_mapped_ns": mapped + off,
+        }
+        for gi, ((schema, idx), publisher) in enumerate(
+            zip(self.groups, self.publishers, strict=True)
+        ):
+            cols = dict(base)
+            for j, col in zip(idx.tolist(), schema.columns[len(TIME_COLUMNS) :], strict=False):
+                cols[col.name] = values[:, j]
+            cols["status"] = status[:, idx]
+            try:
+                payload = publisher.publish(cols)
+            except Exception:
+                c.publish_errors += 1
+                log.exception("%s: publish failed", schema.key)
+                continue
+            t_pub = time.time_ns()
+            c.batches += 1
+            c.bytes += len(payload)
+            if self.recorder is not None:
+                self.recorder.write(
+                    self.rec_ids[gi], payload, t_pub, t_pub, publisher.batch_seq - 1
+                )
+                for cid, name, (x, y, z) in self.fox:
+                    if gi != 0:
+                        break
+                    xyz = np.stack([cols[x], cols[y], cols[z]], axis=1).astype(float)
+                    t_last = int(cols["t_mapped_ns"][-1])
+                    msg = (
+                        foxglove.poses_in_frame(t_last, self.dev.frame_id, xyz)
+                        if name == foxglove.POSES_IN_FRAME
+                        else foxglove.point_cloud(t_last, self.dev.frame_id, xyz)
+                    )
+                    self.recorder.write(cid, msg, t_pub, t_pub)
+
+    def _map(
+        self, t_dev: NDArray[np.int64], epoch: NDArray[np.int32], t_host: NDArray[np.int64]
+    ) -> NDArray[np.int64]:
+        """Mapped monotonic ns; a new clock map per device epoch (restart)."""
+        out = np.empty_like(t_host)
+        starts = np.flatnonzero(np.diff(epoch)) + 1
+        bounds = [0, *starts.tolist(), len(epoch)]
+        for a, b in itertools.pairwise(bounds):
+            ep = int(epoch[a])
+            if self._epoch is not None and ep != self._epoch:
+                self.counters.epochs += 1
+                self.clock = self._new_clock()
+                self._last_seq = None
+            self._epoch = ep
+            out[a:b] = self.clock.update(t_dev[a:b], t_host[a:b])
+        return out
+
+    def _count_gaps(self, seq: NDArray[np.int64], epoch: NDArray[np.int32]) -> None:
+        if not len(seq):
+            return
+        c = self.counters
+        prev = np.concatenate([[seq[0] - 1 if self._last_seq is None else self._last_seq], seq])
+        same = np.concatenate([[True], np.diff(epoch) == 0])
+        d = np.diff(prev)
+        jumps = same & (d > 1)
+        c.gaps += int(np.count_nonzero(jumps))
+        c.samples_missing += int(np.sum(d[jumps] - 1))
+        c.seq_breaks += int(np.count_nonzero(same & (d < 1)))
+        self._last_seq = int(seq[-1])
+
+    # -- health ---------------------------------------------------------------------------
+    def health(self, period_s: float) -> dict[str, Any]:
+        """The health document (docs/topics.md); resets the per-period window."""
+        c = self.counters
+        h = self.driver.health()
+        dc = h.counters
+        q = self.clock.quality()
+        delays = c.window_rx_delay_ns
+        c.window_rx_delay_ns = []
+        lat: dict[str, float] | None = None
+        if delays:
+            d = np.concatenate(delays) / 1e6
+            lat = {"p50": float(np.percentile(d, 50)), "p99": float(np.percentile(d, 99))}
+        away = c.away_s + (
+            time.monotonic() - self._away_since if self._away_since is not None else 0.0
+        )
+        doc = {
+            "t_host_ns": time.time_ns(),
+            "cell": self.cfg.cell.name,
+            "robot": self.dev.robot,
+            "device": self.dev.name,
+            "driver": self.dev.driver,
+            "url": self.dev.url,
+            "state": self._state,
+            "alive": self._token is not None,
+            "rate_hz": c.window_samples / period_s if period_s > 0 else 0.0,
+            "expected_rate_hz": self.dev.rate_hz,
+            "samples": c.samples,
+            "batches": c.batches,
+            "bytes": c.bytes,
+            "gaps": c.gaps,
+            "samples_missing": c.samples_missing,
+            "seq_breaks": c.seq_breaks,
+            "lost_samples": dc.get("lost_samples", 0),
+            "crc_errors": dc.get("crc_errors", 0),
+            "timeouts": dc.get("timeouts", 0),
+            "disconnects": dc.get("disconnects", 0),
+            "reconnects": dc.get("reconnects", 0),
+            "device_restarts": c.epochs,
+            "away_s": away,
+            "publish_errors": c.publish_errors,
+            "rx_delay_ms": lat,
+            "clock": {
+                "offset_ns": q.offset_ns + self.utc_offset_ns,
+                "drift_ppm": q.drift_ppm,
+                "envelope_rms_ns": q.envelope_rms_ns,
+                "points": q.points,
+                "outliers": q.outliers,
+                "restarts": c.epochs,
+                "wraps": dc.get("clock_wraps", 0),
+            },
+            "driver_counters": dc,
+            "error": repr(self.error) if self.error is not None else None,
+        }
+        c.window_samples = 0
+        return doc
+
+    def close(self) -> None:
+        for p in self.publishers:
+            p.close()
+        self._set_alive(False)

@@ -1,0 +1,168 @@
+"""``daq replay``: republish an MCAP recording over zenoh, as recorded.
+
+Every data and health message goes out on its recorded key with its recorded payload
+bytes and encoding (so sample timestamps, sequence numbers and ``batch_seq`` are those of
+the recording), paced by the recorded ``log_time``: real time (``speed`` 1), ×N, or as
+fast as possible. Schemas are served from the recording by the same ``<key>/@schema``
+queryable as the daemon's, and a liveliness token is held per recorded device. Options:
+loop, start offset (seconds after the first message), key-expression filter. Derived
+viewer channels (Foxglove) are not republished. The file is streamed, so a truncated
+recording replays up to its last complete chunk.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from daq.bus import DATA_ENCODING, JSON_ENCODING, SchemaServer, device_key, open_session
+from daq.columnar import ENCODING_NAME
+from daq.config import ZenohConfig
+from daq.errors import RecordingError
+from daq.recording import KIND_FOXGLOVE, read_recording
+
+log = logging.getLogger(__name__)
+
+
+class _Topic:
+    def __init__(self, publisher: Any) -> None:
+        self.publisher = publisher
+        self.messages = 0
+        self.bytes = 0
+
+
+def replay(
+    path: str,
+    zc: ZenohConfig,
+    *,
+    speed: float = 1.0,
+    fast: bool = False,
+    loop: bool = False,
+    start_s: float = 0.0,
+    topics: list[str] | None = None,
+    duration_s: float | None = None,
+    wait_subscribers_s: float = 0.0,
+    stop: threading.Event | None = None,
+    congestion: str = "block",
+) -> dict[str, Any]:
+    """Replay ``path``; returns per-topic counts and the elapsed time."""
+    if speed <= 0:
+        raise RecordingError(f"speed must be > 0, got {speed}")
+    stop = stop or threading.Event()
+    filters = [zenoh.KeyExpr(t) for t in topics] if topics else None
+    session = open_session(zc)
+    schemas = SchemaServer(session, "cell")
+    out: dict[str, _Topic] = {}
+    skipped: set[str] = set()
+    tokens: dict[str, Any] = {}
+    cc = zenoh.CongestionControl.BLOCK if congestion == "block" else zenoh.CongestionControl.DROP
+    t_wall0 = time.monotonic()
+    passes = 0
+    truncated = False
+    waited = wait_subscribers_s <= 0
+    try:
+        while not stop.is_set():
+            rec = read_recording(path)
+            t_first: int | None = None
+            t_rec0: int | None = None
+            w0 = 0.0
+            for m in rec.messages_iter():
+                if stop.is_set():
+                    break
+                if duration_s is not None and time.monotonic() - t_wall0 >= duration_s:
+                    stop.set()
+                    break
+                topic = m.topic
+                if topic in skipped:
+                    continue
+                t = out.get(topic)
+                if t is None:
+                    meta = m.channel.metadata
+                    kind = meta.get("daq.kind", "")
+                    wanted = kind != KIND_FOXGLOVE and (
+                        filters is None or any(zenoh.KeyExpr(topic).intersects(f) for f in filters)
+                    )
+                    if not wanted:
+                        skipped.add(topic)
+                        continue
+                    if m.channel.message_encoding == ENCODING_NAME:
+                        enc = DATA_ENCODING
+                        if m.schema is not None:
+                            schemas.register(topic, m.schema.data)
+                    else:
+                        enc = JSON_ENCODING
+                    t = out[topic] = _Topic(
+                        session.declare_publisher(topic, encoding=enc, congestion_control=cc)
+                    )
+                    dev = (meta.get("cell"), meta.get("robot"), meta.get("device"))
+                    if all(dev) and dev not in tokens:
+                        tokens[dev] = session.liveliness().declare_token(device_key(*dev))
+                    if not waited:
+                        deadline = time.monotonic() + wait_subscribers_s
+                        while (
+                            not t.publisher.matching_status.matching
+                            and time.monotonic() < deadline
+                            and not stop.is_set()
+                        ):
+                            time.sleep(0.01)
+                        waited = True
+                if t_first is None:
+                    t_first = m.log_time
+                if m.log_time < t_first + int(start_s * 1e9):
+                    continue
+                if t_rec0 is None:
+                    t_rec0 = m.log_time
+                    w0 = time.monotonic()
+                if not fast:
+                    target = w0 + (m.log_time - t_rec0) / 1e9 / speed
+                    delay = target - time.monotonic()
+                    if delay > 0 and stop.wait(delay):
+                        break
+                t.publisher.put(m.data)
+                t.messages += 1
+                t.bytes += len(m.data)
+            truncated = truncated or rec.truncated
+            passes += 1
+            if not loop:
+                break
+    finally:
+        for t in out.values():
+            t.publisher.undeclare()
+        for tok in tokens.values():
+            tok.undeclare()
+        schemas.close()
+        session.close()
+    return {
+        "file": str(path),
+        "passes": passes,
+        "truncated": truncated,
+        "elapsed_s": time.monotonic() - t_wall0,
+        "topics": {k: {"messages": v.messages, "bytes": v.bytes} for k, v in sorted(out.items())},
+    }
+
+
+def main_replay(args: Any, zc: ZenohConfig) -> int:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    print(json.dumps({"replay": args.file, "listen": list(zc.listen)}), flush=True)
+    result = replay(
+        args.file,
+        zc,
+        speed=args.speed,
+        fast=args.fast,
+        loop=args.loop,
+        start_s=args.start,
+        topics=args.topic,
+        duration_s=args.duration,
+        wait_subscribers_s=args.wait_subscribers,
+        stop=stop,
+    )
+    print(json.dumps(result), flush=True)
+    return 0
