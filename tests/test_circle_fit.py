@@ -101,7 +101,7 @@ def test_angle_uncertainty_is_calibrated(arc_deg):
 def test_one_wild_point_is_reported_and_dropped(arc_deg, n):
     for seed in range(5):
         rng = np.random.default_rng(50 + seed)
-        pts, theta, centre, _ = circle_points(arc_deg, n, SIGMA_MM, rng)
+        pts, *_ = circle_points(arc_deg, n, SIGMA_MM, rng)
         clean = fit_circle_3d(pts, SIGMA_MM)
         wild = int(rng.integers(0, n))
         direction = rng.normal(size=3)
@@ -123,7 +123,7 @@ def test_bad_inputs_raise_a_calibration_error():
     with pytest.raises(CircleFitError, match="finite"):
         fit_circle_3d(bad)
     line = np.outer(np.linspace(0, 1, 10), [1.0, 2.0, 3.0])
-    with pytest.raises(CalibrationError, match="collinear|coincide|singular"):
+    with pytest.raises(CalibrationError, match=r"collinear|coincide|singular"):
         fit_circle_3d(line)
     with pytest.raises(CircleFitError, match="shape"):
         fit_circle_3d(pts[:, :2])
