@@ -1,0 +1,282 @@
+"""Driver of the CiA 406 motor encoders on CANopen (the ``canopen`` master, python-can).
+
+URL forms: ``socketcand://HOST:PORT/CHANNEL`` (python-can's socketcand interface, across
+processes) or ``virtual://CHANNEL`` (python-can's in-process virtual bus). Options name
+the node ids. On connect the driver reads each node's device type (0x1000 must be a CiA
+406 encoder), resolution (0x6001/0x6002) and TPDO1 COB-ID over SDO, sets the producer
+heartbeat time, starts the nodes (NMT) and produces SYNC at ``sync_hz``. Each SYNC gives
+one sample row: the six position values (0x6004, counts) from the TPDO1s.
+
+Heartbeats are watched: a node silent for ``heartbeat_timeout_factor`` × its period is
+counted in ``heartbeat_losses`` and its channel gets the ``node_lost`` status until it is
+heard again; a node that reboots (boot-up / PRE-OPERATIONAL heartbeat) is restarted with
+NMT and counted in ``node_restarts``.
+
+Device clock: the CAN interface's frame timestamp (for socketcand, the server's), µs.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import logging
+import threading
+import time
+import urllib.parse
+from typing import Any, ClassVar
+
+import canopen
+import numpy as np
+
+from drivers.base import BatchSchema, ChannelSchema, DeviceClock, Driver, Option, SampleBatch
+from drivers.cia406 import DEVICE_TYPE_CIA406_MULTITURN, object_dictionary
+from drivers.errors import DeviceIOError, DriverConfigError
+from drivers.transport import open_stream
+
+log = logging.getLogger(__name__)
+
+ST_VALID = 0x0001
+ST_MISSING = 0x0002  # no TPDO from this node in this SYNC cycle
+ST_NODE_LOST = 0x0004  # heartbeat lost
+STATUS_BITS = {ST_VALID: "valid", ST_MISSING: "missing_in_cycle", ST_NODE_LOST: "node_lost"}
+SCHEMES = ("socketcand", "virtual")
+
+
+def parse_can_url(url: str) -> dict[str, Any]:
+    """``socketcand://host:port/channel`` or ``virtual://channel`` → python-can kwargs."""
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme not in SCHEMES:
+        raise DriverConfigError(
+            f"CAN URL must start with {' or '.join(s + '://' for s in SCHEMES)}, got {url!r}"
+        )
+    if parts.scheme == "virtual":
+        channel = parts.netloc or parts.path.strip("/")
+        if not channel:
+            raise DriverConfigError(f"virtual://CHANNEL needs a channel name: {url!r}")
+        return {"interface": "virtual", "channel": channel}
+    if not parts.hostname or not parts.port or not parts.path.strip("/"):
+        raise DriverConfigError(f"expected socketcand://HOST:PORT/CHANNEL, got {url!r}")
+    return {
+        "interface": "socketcand",
+        "host": parts.hostname,
+        "port": parts.port,
+        "channel": parts.path.strip("/"),
+    }
+
+
+class EncoderCanopenDriver(Driver):
+    """SYNC-driven reading of CiA 406 encoders; see the module docstring."""
+
+    kind = "encoder_canopen"
+    OPTIONS: ClassVar[dict[str, Option]] = {
+        "node_ids": Option(tuple, (1, 2, 3, 4, 5, 6), "CANopen node ids, one per channel"),
+        "sync_hz": Option(float, 1000.0, "SYNC rate produced by the driver"),
+        "heartbeat_ms": Option(int, 100, "producer heartbeat time written to 0x1017"),
+        "heartbeat_timeout_factor": Option(float, 3.0, "node lost after this many periods"),
+        "sdo_timeout_s": Option(float, 0.5, "SDO response timeout"),
+        "batch_rows": Option(int, 10, "return from read() once this many rows are in"),
+        "quiet_python_can": Option(bool, True, "socketcand client's per-read warnings off"),
+    }
+
+    def __init__(self, url: str, **options: Any) -> None:
+        if "node_ids" in options and isinstance(options["node_ids"], list):
+            options["node_ids"] = tuple(options["node_ids"])
+        self.can_kwargs = parse_can_url(url)
+        super().__init__(url, **options)
+        ids = self.options["node_ids"]
+        if not ids or not all(isinstance(i, int) and 1 <= i <= 127 for i in ids):
+            raise DriverConfigError(f"node_ids must be CANopen ids 1..127, got {ids!r}")
+        self.node_ids: tuple[int, ...] = ids
+        self.n = len(ids)
+        self._schema = BatchSchema(
+            kind=self.kind,
+            channels=tuple(
+                ChannelSchema(
+                    f"encoder{k + 1}_counts",
+                    "count",
+                    "int64",
+                    f"node {nid} position value 0x6004 (motor counts, multi-turn)",
+                )
+                for k, nid in enumerate(ids)
+            ),
+            status_bits=STATUS_BITS,
+            device_clock="CAN interface frame timestamp, µs",
+            source="CANopen TPDO1 0x6004 on SYNC",
+        )
+        self.network: canopen.Network | None = None
+        self._cond = threading.Condition()
+        self._rows: collections.deque = collections.deque(maxlen=200_000)
+        self._cur = np.zeros(self.n, np.int64)
+        self._cur_filled = np.zeros(self.n, bool)
+        self._cur_t: float | None = None
+        self._cur_host = 0
+        self._cob_to_k: dict[int, int] = {}
+        self._hb_last = np.zeros(self.n)  # time.monotonic of the last heartbeat
+        self._lost = np.zeros(self.n, bool)
+        self._restart_pending: set[int] = set()
+        self._booted: set[int] = set()
+        self._seq = 0
+        self.clock = DeviceClock(bits=63, max_gap_us=3_600_000_000)
+        self.counters.update({"heartbeat_losses": 0, "node_restarts": 0})
+        if self.options["quiet_python_can"]:
+            lg = logging.getLogger("can.interfaces.socketcand.socketcand")
+            if lg.level == logging.NOTSET:
+                lg.setLevel(logging.ERROR)  # "incomplete message" on every split TCP read
+
+    @property
+    def schema(self) -> BatchSchema:
+        return self._schema
+
+    # -- link -----------------------------------------------------------------------------
+    def _connect(self) -> None:
+        kw = dict(self.can_kwargs)
+        if kw["interface"] == "socketcand":
+            # python-can's socketcand client retries a refused connection in a busy loop
+            # for 10 s: probe the port first through our opener (fails fast if down)
+            probe = open_stream(f"socket://{kw['host']}:{kw['port']}", timeout_s=0.2)
+            probe.close()
+        net = canopen.Network()
+        if kw["interface"] == "virtual":
+            kw["receive_own_messages"] = False
+        try:
+            net.connect(**kw)
+        except Exception as exc:
+            raise DeviceIOError(f"cannot open CAN bus {self.url}: {exc}") from exc
+        self.network = net
+        try:
+            self._configure(net)
+        except Exception as exc:
+            raise DeviceIOError(f"CANopen setup on {self.url} failed: {exc}") from exc
+
+    def _configure(self, net: canopen.Network) -> None:
+        now = time.monotonic()
+        info = {}
+        self._cob_to_k = {}
+        for k, nid in enumerate(self.node_ids):
+            node = canopen.RemoteNode(nid, object_dictionary(nid))
+            net.add_node(node)
+            node.sdo.RESPONSE_TIMEOUT = self.options["sdo_timeout_s"]
+            dev_type = node.sdo[0x1000].raw
+            if dev_type & 0xFFFF != DEVICE_TYPE_CIA406_MULTITURN & 0xFFFF:
+                raise DeviceIOError(f"node {nid}: device type {dev_type:#x} is not CiA 406")
+            cpr = node.sdo[0x6001].raw
+            total = node.sdo[0x6002].raw
+            cob = node.sdo[0x1800][1].raw & 0x7FF
+            node.sdo[0x1017].raw = self.options["heartbeat_ms"]
+            info[nid] = {
+                "device_type": dev_type,
+                "counts_per_rev": cpr,
+                "total_range": total,
+                "tpdo1_cob_id": cob,
+            }
+            self._cob_to_k[cob] = k
+            net.subscribe(cob, self._on_tpdo)
+            net.subscribe(0x700 + nid, self._on_heartbeat)
+            self._hb_last[k] = now
+        self.info["nodes"] = info
+        self._lost[:] = False
+        net.nmt.send_command(0x01)  # start all nodes (broadcast)
+        net.sync.start(1.0 / self.options["sync_hz"])
+
+    def _disconnect(self) -> None:
+        net, self.network = self.network, None
+        if net is None:
+            return
+        with contextlib.suppress(Exception):
+            net.sync.stop()
+        with contextlib.suppress(Exception):
+            net.disconnect()
+
+    # -- callbacks (canopen's notifier thread) ----------------------------------------------
+    def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        k = self._cob_to_k.get(can_id)
+        if k is None or len(data) < 4:
+            return
+        value = int.from_bytes(data[:4], "little")
+        with self._cond:
+            if self._cur_filled[k]:
+                self._close_row()
+            if self._cur_t is None:
+                self._cur_t = timestamp
+                self._cur_host = time.monotonic_ns()
+            self._cur[k] = value
+            self._cur_filled[k] = True
+            if np.all(self._cur_filled | self._lost):
+                self._close_row()
+
+    def _close_row(self) -> None:
+        status = np.where(self._cur_filled, ST_VALID, ST_MISSING).astype(np.uint16)
+        status[self._lost] |= ST_NODE_LOST
+        self._rows.append((self._seq, self._cur_t or 0.0, self._cur_host, self._cur.copy(), status))
+        self._seq += 1
+        self._cur_filled[:] = False
+        self._cur_t = None
+        self._cond.notify()
+
+    def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        nid = can_id - 0x700
+        if nid not in self.node_ids or not data:
+            return
+        k = self.node_ids.index(nid)
+        self._hb_last[k] = time.monotonic()
+        state = data[0] & 0x7F
+        if state == 0x00:  # boot-up message: the node rebooted
+            self._booted.add(nid)
+        if state in (0x00, 0x7F):  # boot-up or PRE-OPERATIONAL: (re)start it
+            self._restart_pending.add(nid)
+        if self._lost[k]:
+            self._lost[k] = False
+
+    # -- reading --------------------------------------------------------------------------
+    def _watch(self) -> None:
+        net = self.network
+        if net is None:
+            return
+        limit = self.options["heartbeat_ms"] / 1000.0 * self.options["heartbeat_timeout_factor"]
+        now = time.monotonic()
+        for k, nid in enumerate(self.node_ids):
+            if not self._lost[k] and now - self._hb_last[k] > limit:
+                self._lost[k] = True
+                self.count("heartbeat_losses", detail=f"node {nid}")
+        while self._restart_pending:
+            nid = self._restart_pending.pop()
+            try:
+                net.send_message(0x000, bytes([0x01, nid]))
+            except Exception as exc:
+                raise DeviceIOError(f"NMT start failed: {exc}") from exc
+        while self._booted:
+            self.count("node_restarts", detail=f"node {self._booted.pop()}")
+
+    def _read_batch(self, deadline_ns: int) -> SampleBatch | None:
+        net = self.network
+        if net is None:
+            raise DeviceIOError("not connected")
+        bus = net.bus
+        if bus is None:
+            raise DeviceIOError("bus gone")
+        notifier = net.notifier
+        if notifier is not None and getattr(notifier, "exception", None) is not None:
+            raise DeviceIOError(f"CAN receive failed: {notifier.exception}")
+        self._watch()
+        with self._cond:
+            while len(self._rows) < self.options["batch_rows"]:
+                left = (deadline_ns - time.monotonic_ns()) / 1e9
+                if left <= 0:
+                    break
+                self._cond.wait(min(left, 0.05))
+                if notifier is not None and getattr(notifier, "exception", None) is not None:
+                    raise DeviceIOError(f"CAN receive failed: {notifier.exception}")
+            rows = list(self._rows)
+            self._rows.clear()
+        if not rows:
+            return None
+        n = len(rows)
+        seq = np.fromiter((r[0] for r in rows), np.uint64, n)
+        t_raw = np.fromiter((round(r[1] * 1e6) for r in rows), np.int64, n)
+        host = np.fromiter((r[2] for r in rows), np.int64, n)
+        values = np.stack([r[3] for r in rows])
+        status = np.stack([r[4] for r in rows])
+        before = self.clock.restarts
+        t_us, epoch = self.clock.unwrap(t_raw)
+        self.count("device_restarts", self.clock.restarts - before, "CAN clock went back")
+        return SampleBatch(self._schema, seq, t_us, epoch, host, values, status)

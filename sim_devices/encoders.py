@@ -1,0 +1,176 @@
+"""Emulated motor encoders: CANopen CiA 406 slaves built on the ``canopen`` package.
+
+Each node is a :class:`canopen.LocalNode` (SDO server, NMT slave with heartbeat) loaded
+with the profile's EDS (:mod:`drivers.cia406`). canopen's LocalNode does not transmit
+TPDOs on SYNC by itself, so :class:`EncoderNodes` answers SYNC: for every node in
+OPERATIONAL whose TPDO1 is valid and synchronous (transmission type 1..240, every n-th
+SYNC), it sends the position value 0x6004 (u32, little endian) on the TPDO1 COB-ID.
+Positions of all nodes are computed in one vectorized plant evaluation per SYNC.
+
+Position value: ``round(motor_angle / 2π · counts_per_rev) + zero`` modulo the total
+measuring range ``counts_per_rev · turns`` (multi-turn, wraps like a real encoder).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import struct
+import threading
+from collections import Counter
+
+import can
+import canopen
+import numpy as np
+
+from drivers.cia406 import POSITION_INDEX, TPDO1_COMM, TPDO1_MAP, object_dictionary
+from sim_devices.config import EncoderSection
+from sim_devices.plant import DeviceClock, Plant
+
+log = logging.getLogger(__name__)
+
+SYNC_COB_ID = 0x080
+_U32 = struct.Struct("<I")
+
+
+class EncoderNodes:
+    """All encoder nodes of the robot on one python-can bus channel."""
+
+    def __init__(
+        self,
+        plant: Plant,
+        config: EncoderSection,
+        *,
+        interface: str = "virtual",
+        channel: str = "simcell",
+    ) -> None:
+        self.plant = plant
+        self.config = config
+        self.channel = channel
+        self.node_ids = tuple(config.node_ids[: plant.n_joints])
+        self.range = config.counts_per_rev * config.turns
+        rng = np.random.default_rng(plant.cell.seed + 31)
+        self.zero_counts = rng.integers(0, self.range, len(self.node_ids))
+        self.clock = DeviceClock(ppm=config.clock_ppm)
+        self.stats: Counter[str] = Counter()
+        self.network = canopen.Network()
+        self.network.connect(interface=interface, channel=channel, receive_own_messages=False)
+        self.nodes: list[canopen.LocalNode] = []
+        self._tpdo: dict[int, tuple[int, int] | None] = {}
+        self._sync_count = 0
+        self._muted: set[int] = set()
+        self._lock = threading.Lock()
+        for k, nid in enumerate(self.node_ids):
+            od = object_dictionary(nid, config.counts_per_rev, config.turns)
+            node = canopen.LocalNode(nid, od)
+            self.network.add_node(node)
+            node.sdo[0x1017].raw = config.heartbeat_ms
+            node.sdo[0x1018][4].raw = 0x406000 + nid
+            node.add_read_callback(self._make_read_cb(k))
+            node.add_write_callback(self._make_write_cb(nid))
+            self.nodes.append(node)
+            self._refresh_tpdo(node)
+        self.network.subscribe(SYNC_COB_ID, self._on_sync)
+        for node in self.nodes:
+            self._boot(node)
+        self._fault_thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    # -- node behaviour -------------------------------------------------------------------
+    def _boot(self, node: canopen.LocalNode) -> None:
+        node.nmt.send_command(0x81)  # reset node: INITIALISING, boot-up message
+        node.nmt.send_command(0x80)  # to PRE-OPERATIONAL: heartbeat starts
+
+    def _make_read_cb(self, k: int):
+        def cb(index: int, subindex: int, od) -> int | None:
+            if index == POSITION_INDEX:
+                return int(self.positions(self.plant.clock.wall_s())[k])
+            return None
+
+        return cb
+
+    def _make_write_cb(self, nid: int):
+        def cb(index: int, subindex: int, od, data: bytes) -> None:
+            if index in (TPDO1_COMM, TPDO1_MAP):
+                # applied after canopen stores the value: defer one tick
+                threading.Timer(0.0, self._refresh_tpdo, args=(self._node(nid),)).start()
+
+        return cb
+
+    def _node(self, nid: int) -> canopen.LocalNode:
+        return self.nodes[self.node_ids.index(nid)]
+
+    def _refresh_tpdo(self, node: canopen.LocalNode) -> None:
+        """Cache TPDO1's COB-ID and transmission type (None: disabled or unsupported map)."""
+        try:
+            cob = int.from_bytes(node.get_data(TPDO1_COMM, 1), "little")
+            ttype = node.get_data(TPDO1_COMM, 2)[0]
+            n_map = node.get_data(TPDO1_MAP, 0)[0]
+            entry = int.from_bytes(node.get_data(TPDO1_MAP, 1), "little")
+        except Exception:
+            self._tpdo[node.id] = None
+            return
+        valid = not (cob & 0x80000000) and n_map == 1 and entry == 0x60040020
+        self._tpdo[node.id] = (cob & 0x7FF, ttype) if valid and 1 <= ttype <= 240 else None
+
+    def positions(self, wall_s: float) -> np.ndarray:
+        """Position values (u32 counts) of all nodes at wall time ``wall_s``."""
+        st = self.plant.joint_state(self.plant.clock.sim_s(np.array([wall_s])))
+        motor = st.motor_rad[0, : len(self.node_ids)]
+        counts = np.rint(motor / (2 * np.pi) * self.config.counts_per_rev).astype(np.int64)
+        return np.mod(counts + self.zero_counts, self.range)
+
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._sync_count += 1
+        self.stats["syncs"] += 1
+        wall = self.plant.clock.wall_s()
+        pos = None
+        for k, node in enumerate(self.nodes):
+            if node.id in self._muted or node.nmt.state != "OPERATIONAL":
+                continue
+            tp = self._tpdo.get(node.id)
+            if tp is None or self._sync_count % tp[1] != 0:
+                continue
+            if pos is None:
+                pos = self.positions(wall).tolist()
+            self.network.send_message(tp[0], _U32.pack(pos[k]))
+            self.stats["tpdos"] += 1
+
+    # -- faults ---------------------------------------------------------------------------
+    def mute(self, nid: int) -> None:
+        """Fault: the node stops (no heartbeat, no PDOs, no SDO)."""
+        node = self._node(nid)
+        self._muted.add(nid)
+        node.nmt.stop_heartbeat()
+        self.stats["fault_mute"] += 1
+
+    def unmute(self, nid: int) -> None:
+        """The node comes back as after a power cycle: boot-up, PRE-OPERATIONAL."""
+        self._muted.discard(nid)
+        self._boot(self._node(nid))
+
+    def start_fault_schedule(self) -> None:
+        c = self.config
+        if c.stop_heartbeat_node <= 0 or c.stop_heartbeat_after_s < 0:
+            return
+
+        def run() -> None:
+            clock = self.plant.clock
+            while not self._stop.wait(0.01):
+                if clock.wall_s() >= c.stop_heartbeat_after_s:
+                    break
+            if self._stop.is_set():
+                return
+            self.mute(c.stop_heartbeat_node)
+            if c.stop_heartbeat_for_s > 0 and not self._stop.wait(c.stop_heartbeat_for_s):
+                self.unmute(c.stop_heartbeat_node)
+
+        self._fault_thread = threading.Thread(target=run, name="encoder-faults", daemon=True)
+        self._fault_thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        for node in self.nodes:
+            node.nmt.stop_heartbeat()
+        with contextlib.suppress(can.CanError, OSError):
+            self.network.disconnect()
