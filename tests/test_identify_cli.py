@@ -1,0 +1,163 @@
+"""``twin identify`` and ``twin predict`` as a user runs them (subprocesses)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from calibration.campaign_files import read_campaign, read_points, write_campaign
+from calibration.cli import main
+from calibration.description import EffectDescription, load_robot
+from calibration.identification_report import COMPONENTS, REPORT_FILES, STATISTICS
+from calibration.model_effects import ModelEffectError, predict_tcp
+from sim_devices.pose_campaign import CampaignSettings, emulated_campaign
+
+
+def twin(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "calibration.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("cli")
+    data = emulated_campaign("kr500", 21, CampaignSettings(n_identify=60, n_validate=40))
+    path = tmp / "campaign.csv"
+    write_campaign(path, data.campaign)
+    return tmp, path, data
+
+
+@pytest.fixture(scope="module")
+def identified(campaign):
+    tmp, path, _ = campaign
+    out = tmp / "calibrated.toml"
+    rep = tmp / "report"
+    proc = twin("identify", "--robot", "kr500", "--data", str(path), "--out", str(out),
+                "--report", str(rep))  # fmt: skip
+    return proc, out, rep
+
+
+def test_identify_writes_model_and_report(campaign, identified):
+    _, _, data = campaign
+    proc, out, rep = identified
+    assert proc.returncode == 0, proc.stderr
+    assert "LM iteration" in proc.stderr  # progress
+    assert "validate: mean AP" in proc.stdout
+    for name in REPORT_FILES:
+        assert (rep / name).stat().st_size > 0, name
+    doc = json.loads((rep / "report.json").read_text())
+    for set_name in ("identify", "validate"):
+        s = doc["sets"][set_name]
+        for when in ("before", "after"):
+            for comp in COMPONENTS:
+                assert set(s[when][comp]) == set(STATISTICS)
+        assert s["improvement"]["AP"]["mean"]["ratio"] > 10.0
+    assert doc["data"]["skipped_rows"] == 0
+    assert doc["identifiability"]["n_identified"] == 27
+    assert "joint3.d_mm" in [d["name"] for d in doc["identifiability"]["dropped"]]
+    assert doc["identifiability"]["condition_number"] > 1.0
+    params = {p["name"]: p for p in doc["parameters"]}
+    assert params["joint2.a_mm"]["standard_error"] > 0
+    assert params["joint2.alpha_deg"]["unit"] == "deg"
+    assert params["joint1.d_mm"]["standard_error"] is None
+    md = (rep / "report.md").read_text()
+    assert "| AP after |" in md and "Dropped parameters" in md
+
+    # the calibrated description keeps name, limits and masses, and any command reads it
+    calibrated = load_robot(out)
+    nominal = load_robot("kr500")
+    assert calibrated.name == nominal.name
+    for a, b in zip(calibrated.joints, nominal.joints, strict=True):
+        assert (a.lower_deg, a.upper_deg, a.mass_kg) == (b.lower_deg, b.upper_deg, b.mass_kg)
+    vm = data.campaign.mask("validate")
+    pred = predict_tcp(calibrated, data.campaign.q_rad[vm])
+    after = np.linalg.norm(pred - data.campaign.xyz_mm[vm], axis=1).mean()
+    true = np.linalg.norm(data.tcp_true_mm[vm] - data.campaign.xyz_mm[vm], axis=1).mean()
+    assert after < 1.2 * true
+
+
+def test_predict(campaign, identified):
+    tmp, path, data = campaign
+    _, model, _ = identified
+    joints = tmp / "joints.csv"
+    # a campaign file is a valid joints file: extra columns are ignored
+    points = tmp / "points.csv"
+    proc = twin("predict", "--model", str(model), "--data", str(path), "--out", str(points))
+    assert proc.returncode == 0, proc.stderr
+    poses, xyz = read_points(points)
+    assert poses == data.campaign.pose
+    err = np.linalg.norm(xyz - data.tcp_true_mm, axis=1)
+    assert err.max() < 0.1
+    # bad row in joints.csv: named, or skipped and counted
+    lines = path.read_text().splitlines()
+    fields = lines[3].split(",")
+    fields[5] = "999"  # q3 out of limits
+    lines[3] = ",".join(fields)
+    joints.write_text("\n".join(lines) + "\n")
+    proc = twin("predict", "--model", str(model), "--data", str(joints), "--out", str(points))
+    assert proc.returncode == 2
+    assert "line 4" in proc.stderr and "q3_deg" in proc.stderr
+    proc = twin("predict", "--model", str(model), "--data", str(joints), "--out", str(points),
+                "--skip-bad")  # fmt: skip
+    assert proc.returncode == 0 and "skipped 1 bad row" in proc.stderr
+    assert len(read_points(points)[0]) == len(data.campaign) - 1
+
+
+def test_identify_bad_rows_named_or_counted(campaign, tmp_path, capsys):
+    _, path, _ = campaign
+    lines = path.read_text().splitlines()
+    lines[5] = lines[5].replace(",identify,", ",identify,nan,", 1).rsplit(",", 1)[0]
+    lines.append(lines[2])  # duplicated pose id
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "cal.toml"
+    rc = main(["identify", "--robot", "kr500", "--data", str(bad), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "line 6" in err and "t_s" in err
+    rep = tmp_path / "rep"
+    rc = main(["identify", "--robot", "kr500", "--data", str(bad), "--out", str(out),
+               "--quiet", "--skip-bad", "--report", str(rep)])  # fmt: skip
+    assert rc == 0
+    assert "skipped 2 bad row(s)" in capsys.readouterr().out
+    doc = json.loads((rep / "report.json").read_text())
+    assert doc["data"]["skipped_rows"] == 2
+    reasons = " ".join(s["reason"] for s in doc["data"]["skipped"])
+    assert "duplicated pose id" in reasons
+    assert len(read_campaign(bad, 6, skip_bad=True)) == len(lines) - 1 - 2
+
+
+def test_missing_column_and_no_identify_rows(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("pose,set,t_s,q1_deg\n1,identify,0,0\n")
+    rc = main(["identify", "--robot", "kr500", "--data", str(bad), "--out", "x.toml"])
+    assert rc == 2 and "missing column" in capsys.readouterr().err
+    header = "pose,set,t_s," + ",".join(f"q{i}_deg" for i in range(1, 7)) + ",x_mm,y_mm,z_mm"
+    bad.write_text(header + "\n1,validate,0,0,0,0,0,30,0,1,2,3\n")
+    rc = main(["identify", "--robot", "kr500", "--data", str(bad), "--out", "x.toml"])
+    assert rc == 2 and "no rows with set 'identify'" in capsys.readouterr().err
+
+
+def test_unknown_effect_kind_is_a_clear_error(tmp_path, capsys):
+    desc = load_robot("kr500")
+    with_effect = replace(desc, effects=(EffectDescription("joint_compliance", {"k": 1.0}),))
+    with pytest.raises(ModelEffectError, match="joint_compliance"):
+        predict_tcp(with_effect, np.zeros((1, 6)))
+    model = tmp_path / "m.toml"
+    with_effect.save(model)
+    joints = tmp_path / "j.csv"
+    joints.write_text(
+        "pose,t_s," + ",".join(f"q{i}_deg" for i in range(1, 7)) + "\n1,0,0,0,0,0,30,0\n"
+    )
+    rc = main(
+        ["predict", "--model", str(model), "--data", str(joints), "--out", str(tmp_path / "p.csv")]
+    )
+    assert rc == 2 and "unknown effect kind 'joint_compliance'" in capsys.readouterr().err
