@@ -188,6 +188,7 @@ class TrackerSession:
             self.inst.stats["sessions_closed"] += 1
 
     def _error(self, code: int, detail: str = "") -> str:
+        detail = "".join(c if c.isprintable() and c != "," else "?" for c in detail)[:40]
         text = ERRORS.get(code, "Error") + (f"; {detail}" if detail else "")
         self.last_error = (code, text)
         self.inst.stats["command_errors"] += 1
