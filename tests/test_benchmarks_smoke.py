@@ -1,0 +1,95 @@
+"""The benchmarks keep running: quick mode on tiny sizes, and the generic runner.
+
+No timing assertions: the numbers of a quick run mean nothing.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import sys
+import types
+from pathlib import Path
+
+import pytest
+
+# `benchmarks` is not an installed package: `python -m pytest` (make test) finds it through
+# the working directory, a bare `pytest` through this.
+ROOT = str(Path(__file__).resolve().parents[1])
+if ROOT not in sys.path:
+    sys.path.insert(0, ROOT)
+benchmarks = importlib.import_module("benchmarks")
+runner = importlib.import_module("benchmarks.__main__")
+bench_kinematics = importlib.import_module("benchmarks.bench_kinematics")
+
+
+def test_kinematics_benchmark_quick_rows():
+    pytest.importorskip("roboticstoolbox")
+    rows = bench_kinematics.run(quick=True)
+    assert [r["benchmark"].split(",")[0] for r in rows] == [
+        "forward kinematics",
+        "identification Jacobian 3x39 (TCP",
+        "geometric Jacobian 6x6 (TCP",
+        "inverse kinematics",
+        "inverse kinematics",
+    ]
+    for row in rows:
+        for key in ("ours_s", "loop_s", "rtb_s", "speedup_vs_loop", "speedup_vs_rtb"):
+            assert math.isfinite(row[key]) and row[key] > 0, (row["benchmark"], key)
+        assert row["n"] > 0 and row["loop_measured_n"] <= row["n"]
+        json.dumps(row)  # JSON-ready: plain numbers and strings
+    fk, _, geometric, *ik = rows
+    assert fk["max_diff_vs_rtb"] < 1e-9 and geometric["max_diff_vs_rtb"] < 1e-9
+    for row in ik:
+        assert row["ours_found"] > 0.5 and row["ours_max_residual_mm"] <= 1e-9
+
+
+def test_discovery_finds_the_kinematics_module():
+    assert "benchmarks.bench_kinematics" in benchmarks.module_names()
+    assert all(n.split(".")[-1].startswith("bench_") for n in benchmarks.module_names())
+
+
+@pytest.fixture
+def fake_modules(monkeypatch):
+    """Two stand-in benchmark modules: one good, one that raises."""
+    good = types.ModuleType("benchmarks.bench_fake_good")
+    good.run = lambda quick: [  # type: ignore[attr-defined]
+        {"benchmark": "a", "n": 3, "ours_s": 0.5, "note": "free text"},
+        {"benchmark": "b", "n": 4, "extra": 1e-9},
+    ]
+    bad = types.ModuleType("benchmarks.bench_fake_bad")
+
+    def broken(quick: bool) -> list[dict]:
+        raise RuntimeError("boom")
+
+    bad.run = broken  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, good.__name__, good)
+    monkeypatch.setitem(sys.modules, bad.__name__, bad)
+    return [good.__name__, bad.__name__]
+
+
+def test_runner_keeps_going_past_a_broken_module(fake_modules):
+    rows, errors = benchmarks.run_modules(fake_modules, quick=True)
+    assert [r["module"] for r in rows] == ["bench_fake_good"] * 2
+    assert errors == ["bench_fake_bad: RuntimeError: boom"]
+
+
+def test_table_has_every_column_and_note_last():
+    table = benchmarks.format_table(
+        [{"benchmark": "a", "note": "x", "t": 0.5}, {"benchmark": "b", "u": 1e-9}]
+    )
+    header = table.splitlines()[0].split()
+    assert header == ["benchmark", "t", "u", "note"]
+    assert "1.000e-09" in table and "0.5" in table
+
+
+def test_main_writes_json_and_reports_failures(fake_modules, monkeypatch, tmp_path, capsys):
+    monkeypatch.setattr(runner, "module_names", lambda: fake_modules)
+    out = tmp_path / "bench.json"
+    assert runner.main(["--quick", "--json", str(out)]) == 1  # the broken module fails it
+    doc = json.loads(out.read_text())
+    assert doc["quick"] is True and len(doc["rows"]) == 2 and len(doc["errors"]) == 1
+    assert "== bench_fake_good (quick)" in capsys.readouterr().out
+    assert runner.main(["--only", "good"]) == 0
+    assert runner.main(["--only", "nothing-matches"]) == 2
