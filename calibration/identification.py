@@ -370,6 +370,7 @@ def identify(
             progress(it, norm, mu)
 
     x = x_full[free_idx]
+    sw_last = np.ones(len(q))
     result: OptimizeResult | None = None
     scale_used = f_scale_mm
     irls = 0
@@ -387,6 +388,7 @@ def identify(
             progress=record,
         )
         x = result.x
+        sw_last = sw
         if loss == "linear":
             break
         dist = np.linalg.norm(result.fun.reshape(-1, 3) / np.maximum(sw, 1e-12)[:, None], axis=1)
@@ -403,7 +405,8 @@ def identify(
     model = nominal.with_parameters(_full_vector(x, x_full, free_idx))
     sw = np.sqrt(weights)
     resid = (tcp_positions(model, q) - meas).reshape(-1, 3)
-    jw = position_residual_jacobian(x, x_full, free_idx, nominal, q, meas, sw)
+    # the solver's last Jacobian is at x, weighted with the weights of its last run
+    jw = result.jac * np.sqrt(weights / np.maximum(sw_last**2, 1e-300)).repeat(3)[:, None]
     dof = max(3 * len(q) - k, 1)
     wsum = float(np.sum((resid * sw[:, None]) ** 2))
     sigma2 = wsum / dof * len(q) / max(float(np.sum(weights)), 1e-300)
