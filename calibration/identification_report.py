@@ -117,6 +117,26 @@ def set_errors(
     return out
 
 
+def encoder_statistics(campaign: Campaign) -> list[dict[str, float]] | None:
+    """Per joint: mean, standard deviation and max |·| of encoder − grating angle (deg).
+
+    What the gratings correct: backlash, torsion and lost counts seen by the motor encoders.
+    None when the campaign has no encoder columns.
+    """
+    if campaign.encoder_deg is None:
+        return None
+    diff = campaign.encoder_deg - campaign.q_deg
+    return [
+        {
+            "joint": i + 1,
+            "mean": float(d.mean()),
+            "std": float(d.std(ddof=1)) if len(d) > 1 else 0.0,
+            "max_abs": float(np.abs(d).max()),
+        }
+        for i, d in enumerate(diff.T)
+    ]
+
+
 def build_report(
     result: IdentificationResult,
     description: RobotDescription,
@@ -154,6 +174,7 @@ def build_report(
                 {"line": s.line, "pose": s.pose, "reason": s.reason} for s in campaign.skipped
             ],
         },
+        "encoder_minus_grating_deg": encoder_statistics(campaign),
         "calibrated_model": calibrated_path,
         "before_definition": (
             "nominal geometry and tool, base pose from a rigid registration of the nominal "
@@ -254,6 +275,18 @@ def markdown_report(doc: Mapping[str, Any]) -> str:
             f"| {p['name']} | {_f(p['start'], 5)} | {_f(p['identified'], 5)} | "
             f"{_f(p['deviation'], 5)} | {_f(p['standard_error'], 5)} |"
         )
+    if doc.get("encoder_minus_grating_deg"):
+        lines += [
+            "",
+            "## Motor encoders minus gratings (deg)",
+            "",
+            "| joint | mean | std | max abs |",
+            "|---|---|---|---|",
+        ]
+        lines += [
+            f"| {e['joint']} | {_f(e['mean'], 5)} | {_f(e['std'], 5)} | {_f(e['max_abs'], 5)} |"
+            for e in doc["encoder_minus_grating_deg"]
+        ]
     lines += ["", "## Dropped parameters (held at their start values)", ""]
     lines += [f"- `{d['name']}`: {d['reason']}" for d in ident["dropped"]] or ["- none"]
     if data["skipped"]:

@@ -15,6 +15,7 @@ from calibration.cli import main
 from calibration.description import EffectDescription, load_robot
 from calibration.identification_report import COMPONENTS, REPORT_FILES, STATISTICS
 from calibration.model_effects import ModelEffectError, predict_tcp
+from sim_devices import pose_campaign
 from sim_devices.pose_campaign import CampaignSettings, emulated_campaign
 
 
@@ -69,6 +70,8 @@ def test_identify_writes_model_and_report(campaign, identified):
     assert params["joint2.a_mm"]["standard_error"] > 0
     assert params["joint2.alpha_deg"]["unit"] == "deg"
     assert params["joint1.d_mm"]["standard_error"] is None
+    enc = doc["encoder_minus_grating_deg"]
+    assert len(enc) == 6 and all(0.0 < e["max_abs"] < 0.05 for e in enc)
     md = (rep / "report.md").read_text()
     assert "| AP after |" in md and "Dropped parameters" in md
 
@@ -161,3 +164,17 @@ def test_unknown_effect_kind_is_a_clear_error(tmp_path, capsys):
         ["predict", "--model", str(model), "--data", str(joints), "--out", str(tmp_path / "p.csv")]
     )
     assert rc == 2 and "unknown effect kind 'joint_compliance'" in capsys.readouterr().err
+
+
+def test_campaign_generator_command(tmp_path):
+    out = tmp_path / "campaign.csv"
+    truth = tmp_path / "truth.toml"
+    args = ["--robot", "hp20d", "--seed", "3", "--out", str(out), "--truth", str(truth)]
+    rc = pose_campaign.main([*args, "--identify", "30", "--validate", "10"])
+    assert rc == 0 and truth.exists()
+    camp = read_campaign(
+        out, 6, limits_deg=[(j.lower_deg, j.upper_deg) for j in load_robot("hp20d").joints]
+    )
+    assert len(camp) == 40 and camp.mask("identify").sum() == 30
+    assert np.all(np.diff(camp.t_s) > 0) and camp.encoder_deg is not None
+    assert len(set(camp.pose)) == 40
