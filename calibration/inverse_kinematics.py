@@ -165,7 +165,8 @@ class IKResult:
       :class:`SingularityMargins` (False where not reachable);
     * ``residual_mm``, ``residual_rad`` ``(N, B)``: flange position and orientation error
       of each solution, by forward kinematics of the model (NaN where not reachable);
-    * ``iterations`` ``(N, B)``: Newton steps taken (0 for an exact closed form);
+    * ``iterations`` ``(N, B)``: Levenberg-Marquardt steps taken (0 for an exact closed
+      form);
     * ``selection``: the shortest-travel choice (:func:`select_solution`).
     """
 
@@ -570,6 +571,19 @@ def _stacked_error(
     return np.concatenate([dp, dr], axis=1)
 
 
+def _flange_in_base(
+    model: KinematicModel, poses: FloatArray, frame: str, target: str
+) -> tuple[FloatArray, FloatArray]:
+    """Flange rotations ``(N, 3, 3)`` and origins ``(N, 3)`` (mm) in the base frame."""
+    rot, pos = poses[:, :3, :3], poses[:, :3, 3]
+    if frame == "world":
+        rb = model.base_rotation()
+        rot, pos = rb.T @ rot, (pos - model.base_mm) @ rb
+    if target == "tcp":  # the tool is a pure offset in the flange frame
+        pos = pos - rot @ model.tool_mm
+    return rot, pos
+
+
 def solve_ik(
     model: KinematicModel,
     poses: ArrayLike,
@@ -598,9 +612,9 @@ def solve_ik(
 
     If ``model`` is a Pieper geometry the closed form is used as is. Otherwise the closed
     form of ``nominal`` (default :func:`spherical_approximation` of ``model``) seeds up to
-    ``max_iterations`` Newton steps on ``model``; a branch that does not reach
-    ``tol_mm``/``tol_rad`` is reported unreachable. Singularity flags are evaluated on the
-    Pieper geometry used for the closed form.
+    ``max_iterations`` Levenberg-Marquardt steps on ``model``; a branch that does not reach
+    ``tol_mm`` (flange position) and ``tol_rad`` (flange orientation) is reported
+    unreachable. Singularity flags are evaluated on the Pieper geometry of the closed form.
     """
     t = _as_poses(poses)
     if model.n_joints != 6:
@@ -618,16 +632,12 @@ def solve_ik(
             raise KinematicsError(f"q_current_rad must be (6,) or ({n_pose}, 6), got {cur.shape}")
         ref = np.broadcast_to(cur, (n_pose, 6)).copy()
 
-    rot, pos = t[:, :3, :3], t[:, :3, 3]
-    if frame == "world":
-        rb = model.base_rotation()
-        rot, pos = rb.T @ rot, (pos - model.base_mm) @ rb
-    if target == "tcp":
-        pos = pos - rot @ model.tool_mm
-
+    rot, pos = _flange_in_base(model, t, frame, target)
     exact = nominal is None and is_spherical_wrist(model)
-    seed_model = model if exact else (nominal or spherical_approximation(model))
-    geo = _Pieper.of(seed_model)
+    if exact:
+        geo = _Pieper.of(model)
+    else:
+        geo = _Pieper.of(nominal if nominal is not None else spherical_approximation(model))
     q, reachable = _closed_form(geo, rot, pos, ref, seed=not exact)
 
     flat_rot = np.repeat(rot, N_BRANCHES, axis=0)
@@ -647,6 +657,7 @@ def solve_ik(
         reachable = reachable & converged.reshape(n_pose, N_BRANCHES)
         flat_q = np.where(reachable.reshape(-1, 1), _wrap(flat_q), np.nan)
 
+    # Every reported solution is checked by the model's own forward kinematics.
     residual_mm = np.full(n_pose * N_BRANCHES, np.nan)
     residual_rad = np.full(n_pose * N_BRANCHES, np.nan)
     ok = np.flatnonzero(reachable.ravel())
