@@ -125,6 +125,7 @@ class GratingModbusDriver(Driver):
         self.last_counts: np.ndarray | None = None
         self.count_offset = np.zeros(N_CHANNELS, np.int64)
         self._rx = b""
+        self.counters["stale_responses"] = 0
 
     @property
     def schema(self) -> BatchSchema:
@@ -293,7 +294,10 @@ class GratingModbusDriver(Driver):
                 if first < self.next_seq:
                     self.seq_offset += U32  # the wire sequence wrapped inside the gap
             else:
-                self.count("protocol_errors", detail="sequence went back")
+                # a late answer to an earlier request (RTU has no transaction id): the
+                # samples were delivered already; drop it and ask again
+                self.count("stale_responses", detail="sequence went back")
+                return 1
         block = regs[FIFO_HEADER : FIFO_HEADER + n * SAMPLE_REGS].reshape(n, SAMPLE_REGS)
         blocks.append(block)
         hosts.append(np.full(n, t_host, np.int64))
