@@ -1,0 +1,210 @@
+"""Grating-scale calibration: accuracy against the truth and the Cramér-Rao bound, and time.
+
+Data: emulated campaigns (:mod:`sim_devices.scale_campaign`) on true cells from
+:mod:`sim_devices.truth`, all noise on (tracker MPE 15 µm + 6 µm/m at 2σ, grating read
+noise 0.5 count, whole counts, 32-bit wrap, stop jitter 0.005°).
+
+Rows:
+
+* ``accuracy`` per preset, eccentricity and joint, over ``seeds`` campaigns:
+  ``err_rms_arcsec`` the RMS over stops and seeds of (recovered − true) angle relative to
+  Home at the stops' counts; ``crb_rms_arcsec`` the Cramér-Rao bound of the same
+  quantity at the true geometry and noise, for the true model (zero and scale, plus the
+  cyclic term when the strip has one) plus the Home zero's read noise;
+  ``ratio_vs_crb = err / crb`` (1.0 is efficient; the goal is ≤ 1.2); ``z_rms`` the RMS of
+  error / reported standard uncertainty (≤ 1: the uncertainty covers the error);
+  ``cyclic_kept`` and ``other_terms_kept`` the fraction of seeds that kept the cyclic term
+  and any other term.
+* ``calibrate_6_joints``: wall time of one full 6-joint calibration (library, from
+  arrays), best of a few; ``generate_campaign`` the time of the emulated campaign.
+
+    python -m benchmarks.bench_scale [--quick] [--seeds N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from calibration.circle_fit import fit_circle_3d
+from calibration.description import RobotDescription, load_robot
+from calibration.grating_scale import (
+    ARCSEC_PER_DEG,
+    JointScaleResult,
+    JointSweep,
+    RelationBasis,
+    calibrate_joint,
+    crb_covariance,
+)
+from sim_devices.scale_campaign import CampaignOptions, ScaleCampaign, run_campaign
+from sim_devices.truth import TrueCell
+
+Row = dict[str, Any]
+
+
+def calibrate_campaign(
+    camp: ScaleCampaign, desc: RobotDescription, joints: tuple[int, ...] | None = None
+) -> dict[int, JointScaleResult]:
+    """Calibrate every joint of an emulated campaign with the library (default options)."""
+    out = {}
+    for j in joints or tuple(sorted(set(camp.sweep_joint.tolist()))):
+        m = camp.sweep_joint == j
+        sweep = JointSweep(
+            j, camp.sweep_pass[m], camp.sweep_step[m], camp.sweep_counts[m], camp.sweep_points_mm[m]
+        )
+        jd = desc.joints[j - 1]
+        out[j] = calibrate_joint(
+            sweep,
+            camp.home_counts[camp.home_joint == j],
+            home_deg=desc.home[j - 1],
+            limits_deg=(jd.lower_deg, jd.upper_deg),
+        )
+    return out
+
+
+def crb_angle_var_deg2(camp: ScaleCampaign, joint: int) -> np.ndarray:
+    """CRB variance (deg²) of the angle relative to Home at every stop of ``joint``.
+
+    The 3-D model's bound at the true circle and noise for the true relation (zero and
+    scale, plus the cyclic term and the hysteresis offset when the truth has them), plus
+    the Home zero's read noise (Gaussian noise and rounding) over the Home returns.
+    """
+    truth = camp.truth(joint)
+    m = camp.sweep_joint == joint
+    true_pts = camp.sweep_true_points_mm[m]
+    q = camp.sweep_true_rad[m]
+    order = np.argsort(q, kind="stable")
+    circle = fit_circle_3d(true_pts[order])  # noise-free: the exact circle
+    if circle.normal @ np.cross(true_pts[order][1] - circle.centre_mm, true_pts[order][-1]) < 0:
+        circle = circle.flipped()
+    theta = np.empty(q.size)
+    theta[order] = circle.unwrapped_angle_rad()
+    g = 1.0 / truth.counts_per_rad  # rad per count
+    u = truth.strip.ideal_counts(q) - truth.home_counts
+    s = np.where(camp.sweep_pass[m] == "backward", 0.5, -0.5)
+    terms = []
+    if truth.strip.eccentricity_mm > 0:
+        terms.append("cyclic")
+    if truth.hysteresis_counts != 0:
+        terms.append("hysteresis")
+    basis = RelationBasis(phase_rad_per_count=g)
+    _, x = basis.columns(u, s, terms)
+    design = np.column_stack([np.ones_like(u), x])
+    sigma = camp.cell.tracker.sigma_mm(true_pts)
+    cov = crb_covariance(circle, theta, design, sigma)[1:, 1:]
+    _, x0 = basis.columns(u, np.zeros_like(u), terms)
+    var = np.einsum("ij,jk,ik->i", x0, cov, x0)
+    n_home = int(np.sum(camp.home_joint == joint)) or 1
+    read_var = truth.strip.noise_counts**2 + 1.0 / 12.0
+    return np.degrees(np.sqrt(var + g * g * read_var / n_home)) ** 2
+
+
+@dataclass
+class JointStats:
+    err2: list[float]
+    crb2: list[float]
+    z2: list[float]
+    cyclic: int = 0
+    other: int = 0
+    runs: int = 0
+
+
+def accuracy_trials(
+    preset: str, eccentricity_mm: float, seeds: range, hysteresis_counts: float = 0.0
+) -> dict[int, JointStats]:
+    """Per joint: squared errors, CRB variances and z² over stops and seeds; terms kept."""
+    desc = load_robot(preset)
+    stats: dict[int, JointStats] = {}
+    for seed in seeds:
+        cell = TrueCell.create(desc, seed, eccentricity_mm=eccentricity_mm)
+        camp = run_campaign(cell, CampaignOptions(hysteresis_counts=hysteresis_counts))
+        for j, r in calibrate_campaign(camp, desc).items():
+            st = stats.setdefault(j, JointStats([], [], []))
+            c = camp.sweep_counts[camp.sweep_joint == j]
+            err = r.scale.counts_to_angle_deg(c) - camp.truth(j).angle_deg(c)
+            std = r.scale.angle_std_deg(c)
+            st.err2 += list(err**2)
+            st.crb2 += list(crb_angle_var_deg2(camp, j))
+            st.z2 += list((err / std) ** 2)
+            st.cyclic += "cyclic" in r.kept_terms
+            st.other += any(t != "cyclic" for t in r.kept_terms)
+            st.runs += 1
+    return stats
+
+
+def run(quick: bool, seeds: int | None = None) -> list[Row]:
+    n_seeds = seeds or (2 if quick else 40)
+    cases = [("kr500", 0.0), ("kr500", 0.03), ("hp20d", 0.0), ("hp20d", 0.03)]
+    if quick:
+        cases = cases[:2]
+    rows: list[Row] = []
+    for preset, ecc in cases:
+        stats = accuracy_trials(preset, ecc, range(n_seeds))
+        for j, st in stats.items():
+            err = math.sqrt(np.mean(st.err2)) * ARCSEC_PER_DEG
+            crb = math.sqrt(np.mean(st.crb2)) * ARCSEC_PER_DEG
+            rows.append(
+                {
+                    "benchmark": "accuracy",
+                    "preset": preset,
+                    "eccentricity_mm": ecc,
+                    "joint": j,
+                    "seeds": st.runs,
+                    "err_rms_arcsec": err,
+                    "crb_rms_arcsec": crb,
+                    "ratio_vs_crb": err / crb,
+                    "z_rms": math.sqrt(np.mean(st.z2)),
+                    "cyclic_kept": st.cyclic / st.runs,
+                    "other_terms_kept": st.other / st.runs,
+                }
+            )
+    desc = load_robot("kr500")
+    cell = TrueCell.create(desc, 1, eccentricity_mm=0.03)
+    t0 = time.perf_counter()
+    camp = run_campaign(cell)
+    t_gen = time.perf_counter() - t0
+    repeat = 1 if quick else 5
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        calibrate_campaign(camp, desc)
+        best = min(best, time.perf_counter() - t0)
+    rows.append(
+        {
+            "benchmark": "calibrate_6_joints",
+            "preset": "kr500",
+            "n": int(camp.sweep_joint.size),
+            "ours_s": best,
+            "note": "stops in both sweeps of all joints; best of repeats",
+        }
+    )
+    rows.append(
+        {
+            "benchmark": "generate_campaign",
+            "preset": "kr500",
+            "n": int(camp.sweep_joint.size),
+            "ours_s": t_gen,
+        }
+    )
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_scale")
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--seeds", type=int, default=None)
+    args = parser.parse_args(argv)
+    from benchmarks import format_table
+
+    print(format_table(run(args.quick, args.seeds)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

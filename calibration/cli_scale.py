@@ -1,0 +1,234 @@
+"""``twin scale`` and ``twin scale-apply``: grating-scale calibration from files, and its use.
+
+``twin scale --sweep sweep.csv --home home.csv --out scale.toml [--report DIR]``
+``twin scale-apply --scale scale.toml --data counts.csv --out angles.csv``
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from calibration.description import RobotDescription, load_robot
+from calibration.errors import DataFileError
+from calibration.grating_scale import (
+    TERMS,
+    JointScaleResult,
+    ScaleError,
+    ScaleOptions,
+    TrackerSpec,
+    calibrate_joint,
+    check_terms,
+)
+from calibration.scale_files import (
+    read_counts_csv,
+    read_home_csv,
+    read_scale_toml,
+    read_sweep_csv,
+    scale_document,
+    write_csv,
+    write_scale_toml,
+)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "scale",
+        help="grating-scale calibration from home.csv and sweep.csv",
+        description="Per joint: Home zero, 3-D circle fits of the sweeps, counts → angle "
+        "relation with statistically selected terms. See docs/scale-calibration.md.",
+    )
+    p.add_argument(
+        "--sweep", required=True, help="sweep.csv: joint,pass,step,counts,x_mm,y_mm,z_mm"
+    )
+    p.add_argument("--home", help="home.csv: joint,trial,counts (joints without rows: see docs)")
+    p.add_argument("--out", required=True, help="scale.toml to write")
+    p.add_argument("--report", help="directory for report.md, report.json and residual plots")
+    p.add_argument(
+        "--robot",
+        help="preset name or description file: joint count, Home vector and limits "
+        "(needed for a joint without Home rows)",
+    )
+    p.add_argument("--alpha", type=float, default=0.01, help="false-term rate per joint")
+    p.add_argument(
+        "--terms",
+        default=",".join(TERMS),
+        help=f"candidate terms, comma-separated, from: {', '.join(TERMS)} (empty: none)",
+    )
+    p.add_argument("--counts-per-mm", type=float, default=1000.0, help="strip resolution")
+    p.add_argument("--step-deg", type=float, default=2.0, help="commanded sweep step")
+    p.add_argument("--tracker-mpe-um", type=float, default=15.0)
+    p.add_argument("--tracker-mpe-um-per-m", type=float, default=6.0)
+    p.set_defaults(func=run_scale)
+
+    a = sub.add_parser(
+        "scale-apply",
+        help="turn grating counts into joint angles",
+        description="Add angle_deg (relative to Home) to a CSV of joint,counts rows; an "
+        "optional 'direction' column (positive/negative/unknown) applies a kept hysteresis.",
+    )
+    a.add_argument("--scale", required=True, help="scale.toml from `twin scale`")
+    a.add_argument("--data", required=True, help="counts.csv: joint,counts[,direction,...]")
+    a.add_argument("--out", required=True, help="CSV to write (input columns + angle_deg)")
+    a.add_argument("--joint-angle", action="store_true", help="also add q_deg = home_deg + angle")
+    a.add_argument("--std", action="store_true", help="also add angle_std_deg")
+    a.set_defaults(func=run_apply)
+
+
+def _options(args: argparse.Namespace) -> ScaleOptions:
+    if not 0 < args.alpha < 1:
+        raise ScaleError(f"--alpha must be in (0, 1), got {args.alpha}")
+    terms = check_terms([t.strip() for t in args.terms.split(",") if t.strip()])
+    return ScaleOptions(
+        alpha=args.alpha,
+        candidate_terms=terms,
+        tracker=TrackerSpec(args.tracker_mpe_um, args.tracker_mpe_um_per_m),
+        counts_per_mm=args.counts_per_mm,
+        step_deg=args.step_deg,
+    )
+
+
+def calibrate_files(
+    sweep_path: str | Path,
+    home_path: str | Path | None,
+    robot: RobotDescription | None,
+    options: ScaleOptions,
+) -> list[JointScaleResult]:
+    """Read the campaign files and calibrate every joint in the sweep."""
+    n_joints = robot.n_joints if robot is not None else None
+    sweep = read_sweep_csv(
+        sweep_path, n_joints=n_joints, min_stops_per_pass=options.min_stops_per_pass
+    )
+    home = read_home_csv(home_path, n_joints=n_joints) if home_path else None
+    if home is not None:
+        for j, rows in home.rows.items():
+            if j not in sweep.joints:
+                raise DataFileError(
+                    f"{home.path}: row {rows.min()}, column 'joint': joint {j} has Home rows "
+                    f"but no sweep in {sweep.path}"
+                )
+    results = []
+    for j, js in sweep.joints.items():
+        jd = robot.joints[j - 1] if robot is not None else None
+        try:
+            results.append(
+                calibrate_joint(
+                    js,
+                    home.counts.get(j) if home is not None else None,
+                    home_deg=robot.home[j - 1] if robot is not None else None,
+                    limits_deg=(jd.lower_deg, jd.upper_deg) if jd is not None else None,
+                    options=options,
+                )
+            )
+        except ScaleError as exc:
+            raise ScaleError(f"{sweep.path}: {exc}") from exc
+    return results
+
+
+def run_scale(args: argparse.Namespace) -> int:
+    options = _options(args)
+    robot = load_robot(args.robot) if args.robot else None
+    t0 = time.perf_counter()
+    results = calibrate_files(args.sweep, args.home, robot, options)
+    elapsed = time.perf_counter() - t0
+    meta = {
+        "sweep_file": Path(args.sweep).name,
+        "home_file": Path(args.home).name if args.home else "",
+        "alpha": options.alpha,
+        "candidate_terms": list(options.candidate_terms),
+        "tracker_mpe_um": options.tracker.mpe_um,
+        "tracker_mpe_um_per_m": options.tracker.mpe_um_per_m,
+        "step_deg": options.step_deg,
+    }
+    doc = scale_document(
+        results,
+        robot=robot.name if robot is not None else None,
+        metadata=meta,
+        counts_per_mm=options.counts_per_mm,
+    )
+    write_scale_toml(args.out, doc)
+    print(_summary(results, options.counts_per_mm))
+    for r in results:
+        for note in r.notes:
+            print(f"joint {r.joint}: {note}")
+    print(f"wrote {args.out} ({len(results)} joints, {elapsed:.2f} s)")
+    if args.report:
+        from calibration.scale_report import write_report
+
+        paths = write_report(
+            results,
+            args.report,
+            robot=doc.get("robot"),
+            metadata=meta,
+            counts_per_mm=options.counts_per_mm,
+        )
+        print(f"wrote report: {', '.join(str(p) for p in paths.values())}")
+    return 0
+
+
+def _summary(results: list[JointScaleResult], counts_per_mm: float) -> str:
+    lines = [
+        f"{'joint':>5} {'zero counts':>14} {'counts/deg':>13} {'R_eff mm':>10} "
+        f"{'terms':<20} {'rms arcsec':>10} {'circle R mm':>12}"
+    ]
+    for r in results:
+        s = r.scale
+        lines.append(
+            f"{r.joint:>5} {s.zero_counts:>14.1f} {s.counts_per_deg:>13.3f} "
+            f"{s.effective_radius_mm(counts_per_mm):>10.4f} {','.join(s.terms) or '-':<20} "
+            f"{r.residual_rms_arcsec:>10.2f} {r.circle.radius_mm:>12.4f}"
+        )
+    return "\n".join(lines)
+
+
+def run_apply(args: argparse.Namespace) -> int:
+    cal = read_scale_toml(args.scale)
+    data = read_counts_csv(args.data)
+    for k, j in enumerate(data.joint):
+        if int(j) not in cal.joints:
+            known = ", ".join(str(x) for x in sorted(cal.joints))
+            raise DataFileError(
+                f"{data.path}: row {data.lines[k]}, column 'joint': joint {j} is not in "
+                f"{args.scale} (calibrated joints: {known})"
+            )
+    added = (
+        ["angle_deg"]
+        + (["q_deg"] if args.joint_angle else [])
+        + (["angle_std_deg"] if args.std else [])
+    )
+    for name in added:
+        if name in data.header:
+            raise DataFileError(f"{data.path}: row 1, column '{name}': already present")
+    angle = cal.angles_deg(data.joint, data.counts, data.direction)
+    columns = [angle]
+    if args.joint_angle:
+        home = np.empty(angle.shape)
+        for k, j in enumerate(data.joint):
+            h = cal.joints[int(j)].home_deg
+            if h is None:
+                raise ScaleError(
+                    f"{args.scale}: joint {j} has no home_deg (calibrated without --robot); "
+                    "drop --joint-angle or recalibrate with --robot"
+                )
+            home[k] = h
+        columns.append(home + angle)
+    if args.std:
+        std = np.empty(angle.shape)
+        for j in np.unique(data.joint):
+            m = data.joint == j
+            d = None if data.direction is None else data.direction[m]
+            std[m] = cal.joints[int(j)].angle_std_deg(data.counts[m], d)
+        columns.append(std)
+    rows = ([*fields, *(_fmt(c[k]) for c in columns)] for k, fields in enumerate(data.rows))
+    write_csv(args.out, [*data.header, *added], rows)
+    rms = math.sqrt(float(np.mean(angle**2))) if angle.size else 0.0
+    print(f"wrote {args.out} ({angle.size} rows; rms angle {rms:.3f} deg)")
+    return 0
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.9f}"

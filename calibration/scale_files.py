@@ -1,0 +1,593 @@
+"""Files of the grating-scale calibration: the campaign's CSVs and ``scale.toml``.
+
+CSV files have a header row; rows are numbered as lines in the file (the header is row 1)
+and every error names the file, the row and the column:
+
+* ``sweep.csv``: ``joint,pass,step,counts,x_mm,y_mm,z_mm``. ``joint`` 1..n, ``pass``
+  ``forward`` (positive limit → negative limit) or ``backward``, ``step`` the stop index
+  from the start of the pass (0, 1, ...), ``counts`` the raw grating reading (integer,
+  32-bit counter; negative values are taken as signed 32-bit), x, y, z the tracker target
+  (mm, tracker frame).
+* ``home.csv``: ``joint,trial,counts``.
+* ``counts.csv`` (for ``twin scale-apply``): ``joint,counts`` and optionally
+  ``direction`` (``positive``/``negative``/``unknown``, or ``backward``/``forward`` as in
+  the sweep); other columns pass through.
+
+``scale.toml`` holds, per joint, everything :class:`~calibration.grating_scale.GratingScale`
+needs (units in key names); see docs/scale-calibration.md.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+import tomllib
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tomli_w
+from numpy.typing import NDArray
+
+from calibration.errors import CalibrationError, DataFileError
+from calibration.grating_scale import (
+    COUNTER_MODULUS,
+    DIRECTIONS,
+    MIN_STOPS_PER_PASS,
+    PASSES,
+    SCALE_NAME,
+    TERMS,
+    GratingScale,
+    JointScaleResult,
+    JointSweep,
+    RelationBasis,
+    UnmodelledTerm,
+    check_terms,
+)
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+SWEEP_COLUMNS: tuple[str, ...] = ("joint", "pass", "step", "counts", "x_mm", "y_mm", "z_mm")
+HOME_COLUMNS: tuple[str, ...] = ("joint", "trial", "counts")
+COUNTS_COLUMNS: tuple[str, ...] = ("joint", "counts")
+SCALE_FORMAT = "twin-grating-scale/1"
+ANGLE_CONVENTION = (
+    "angle_deg is the joint rotation from Home (where the joint sits at zero_counts), "
+    "positive in the joint's positive direction; the robot description's joint angle is "
+    "q_deg = home_deg + angle_deg"
+)
+
+_INTEGER = re.compile(r"^[+-]?[0-9]+$")
+
+
+class ScaleFileError(CalibrationError, ValueError):
+    """``scale.toml`` is malformed: the message names the file, table and key."""
+
+
+# -- CSV ----------------------------------------------------------------------------------
+@dataclass
+class _Csv:
+    """A parsed CSV with its header; every error names file, row and column."""
+
+    path: str
+    header: list[str]
+    rows: list[tuple[int, list[str]]]  # (line number, fields)
+    index: dict[str, int] = field(default_factory=dict)
+
+    def fail(self, row: int | str, column: str | None, message: str) -> DataFileError:
+        plural = isinstance(row, str) and "-" in row
+        where = f"{self.path}: {'rows' if plural else 'row'} {row}"
+        if column is not None:
+            where += f", column '{column}'"
+            if column in self.index:
+                where += f" ({self.index[column] + 1})"
+        return DataFileError(f"{where}: {message}")
+
+    def value(self, line: int, fields: list[str], column: str) -> str:
+        return fields[self.index[column]].strip()
+
+    def integer(self, line: int, fields: list[str], column: str, *, minimum=None) -> int:
+        text = self.value(line, fields, column)
+        if not _INTEGER.match(text):
+            kind = "NaN" if text.lower() in {"nan", "+nan", "-nan"} else repr(text)
+            raise self.fail(line, column, f"expected an integer, got {kind}")
+        number = int(text)
+        if minimum is not None and number < minimum:
+            raise self.fail(line, column, f"must be ≥ {minimum}, got {number}")
+        return number
+
+    def counts(self, line: int, fields: list[str], column: str = "counts") -> int:
+        number = self.integer(line, fields, column)
+        if not -(2**31) <= number < COUNTER_MODULUS:
+            raise self.fail(line, column, f"{number} is not a 32-bit counter value")
+        return number % COUNTER_MODULUS
+
+    def real(self, line: int, fields: list[str], column: str) -> float:
+        text = self.value(line, fields, column)
+        try:
+            number = float(text)
+        except ValueError:
+            raise self.fail(line, column, f"expected a number, got {text!r}") from None
+        if not math.isfinite(number):
+            raise self.fail(line, column, f"must be finite, got {text!r}")
+        return number
+
+    def joint(self, line: int, fields: list[str], n_joints: int | None) -> int:
+        j = self.integer(line, fields, "joint")
+        if j < 1 or (n_joints is not None and j > n_joints):
+            known = f"joints 1..{n_joints}" if n_joints is not None else "joints from 1"
+            raise self.fail(line, "joint", f"unknown joint {j} (the robot has {known})")
+        return j
+
+
+def _read_csv(
+    path: str | Path,
+    required: Sequence[str],
+    *,
+    optional: Sequence[str] = (),
+    extra_allowed: bool = False,
+) -> _Csv:
+    name = str(path)
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as exc:
+        raise DataFileError(f"{name}: cannot read: {exc.strerror or exc}") from exc
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise DataFileError(f"{name}: not UTF-8 text (byte {exc.start})") from exc
+    return parse_csv_text(text, name, required, optional=optional, extra_allowed=extra_allowed)
+
+
+def parse_csv_text(
+    text: str,
+    name: str,
+    required: Sequence[str],
+    *,
+    optional: Sequence[str] = (),
+    extra_allowed: bool = False,
+) -> _Csv:
+    """Parse CSV text and check its header (the readers' common part)."""
+    expected = ",".join(required)
+    reader = csv.reader(io.StringIO(text, newline=""), strict=True)
+    rows: list[tuple[int, list[str]]] = []
+    header: list[str] | None = None
+    header_line = 1
+    try:
+        for fields in reader:
+            if not fields or all(not f.strip() for f in fields):
+                continue
+            if header is None:
+                header, header_line = [f.strip() for f in fields], reader.line_num
+            else:
+                rows.append((reader.line_num, fields))
+    except csv.Error as exc:
+        raise DataFileError(f"{name}: row {reader.line_num}: not valid CSV: {exc}") from exc
+    if header is None:
+        raise DataFileError(f"{name}: row 1: empty file, expected the header '{expected}'")
+    table = _Csv(name, header, rows, {h: i for i, h in enumerate(header)})
+    seen: dict[str, int] = {}
+    for i, h in enumerate(header):
+        if not h:
+            raise table.fail(header_line, f"#{i + 1}", f"empty column name (expected '{expected}')")
+        if h in seen:
+            raise table.fail(header_line, h, f"column given twice (columns {seen[h] + 1}, {i + 1})")
+        seen[h] = i
+    for col in required:
+        if col not in table.index:
+            raise table.fail(
+                header_line,
+                col,
+                f"missing from the header '{','.join(header)}' (expected '{expected}')",
+            )
+    if not extra_allowed:
+        allowed = set(required) | set(optional)
+        for h in header:
+            if h not in allowed:
+                raise table.fail(header_line, h, f"unknown column (expected '{expected}')")
+    for line, fields in rows:
+        if len(fields) != len(header):
+            raise table.fail(line, None, f"expected {len(header)} fields, got {len(fields)}")
+    return table
+
+
+@dataclass(frozen=True, eq=False)
+class HomeTable:
+    """Home returns per joint: raw counts ``(H,)`` and their file rows."""
+
+    path: str
+    counts: Mapping[int, IntArray]
+    rows: Mapping[int, IntArray]
+
+
+@dataclass(frozen=True, eq=False)
+class SweepTable:
+    """Sweep stops per joint, and the file they came from."""
+
+    path: str
+    joints: Mapping[int, JointSweep]
+
+
+def read_sweep_csv(
+    path: str | Path,
+    *,
+    n_joints: int | None = None,
+    min_stops_per_pass: int = MIN_STOPS_PER_PASS,
+) -> SweepTable:
+    """Read ``sweep.csv``; raises :class:`DataFileError` naming file, row and column."""
+    t = _read_csv(path, SWEEP_COLUMNS)
+    if not t.rows:
+        raise DataFileError(f"{t.path}: row 2: no data rows after the header")
+    n = len(t.rows)
+    joint = np.empty(n, dtype=np.int64)
+    step = np.empty(n, dtype=np.int64)
+    counts = np.empty(n, dtype=np.int64)
+    xyz = np.empty((n, 3))
+    pass_name = np.empty(n, dtype=object)
+    lines = np.empty(n, dtype=np.int64)
+    first: dict[tuple[int, str, int], int] = {}
+    for k, (line, f) in enumerate(t.rows):
+        lines[k] = line
+        joint[k] = t.joint(line, f, n_joints)
+        p = t.value(line, f, "pass")
+        if p not in PASSES:
+            raise t.fail(line, "pass", f"expected one of {', '.join(PASSES)}, got {p!r}")
+        pass_name[k] = p
+        step[k] = t.integer(line, f, "step", minimum=0)
+        counts[k] = t.counts(line, f)
+        xyz[k] = [t.real(line, f, c) for c in ("x_mm", "y_mm", "z_mm")]
+        key = (int(joint[k]), p, int(step[k]))
+        if key in first:
+            raise t.fail(
+                line, "step", f"joint {key[0]} {p} step {key[2]} already given in row {first[key]}"
+            )
+        first[key] = line
+    pass_name = pass_name.astype(str)
+    joints = {}
+    for j in sorted(set(joint.tolist())):
+        m = joint == j
+        for p in PASSES:
+            mp = m & (pass_name == p)
+            if 0 < mp.sum() < min_stops_per_pass:
+                rows = lines[mp]
+                raise t.fail(
+                    _row_span(rows),
+                    "step",
+                    f"joint {j} {p} sweep has {mp.sum()} stops; a circle fit and the "
+                    f"relation need at least {min_stops_per_pass}",
+                )
+        joints[j] = JointSweep(
+            joint=j,
+            pass_name=pass_name[m],
+            step=step[m],
+            counts=counts[m],
+            points_mm=xyz[m],
+            rows=lines[m],
+        )
+    return SweepTable(t.path, joints)
+
+
+def _row_span(rows: NDArray[np.int64]) -> str:
+    return f"{rows.min()}" if rows.min() == rows.max() else f"{rows.min()}-{rows.max()}"
+
+
+def read_home_csv(path: str | Path, *, n_joints: int | None = None) -> HomeTable:
+    """Read ``home.csv`` (may have no data rows); errors name file, row and column."""
+    t = _read_csv(path, HOME_COLUMNS)
+    per_joint: dict[int, list[tuple[int, int]]] = {}
+    seen: dict[tuple[int, int], int] = {}
+    for line, f in t.rows:
+        j = t.joint(line, f, n_joints)
+        trial = t.integer(line, f, "trial")
+        if (j, trial) in seen:
+            raise t.fail(
+                line, "trial", f"joint {j} trial {trial} already given in row {seen[j, trial]}"
+            )
+        seen[j, trial] = line
+        per_joint.setdefault(j, []).append((t.counts(line, f), line))
+    return HomeTable(
+        t.path,
+        {j: np.array([c for c, _ in v], dtype=np.int64) for j, v in per_joint.items()},
+        {j: np.array([r for _, r in v], dtype=np.int64) for j, v in per_joint.items()},
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class CountsTable:
+    """``counts.csv`` for ``scale-apply``: rows kept as text for pass-through."""
+
+    path: str
+    header: list[str]
+    rows: list[list[str]]
+    lines: IntArray  # (N,) file rows
+    joint: IntArray  # (N,)
+    counts: IntArray  # (N,) raw, wrapped to [0, 2³²)
+    direction: FloatArray | None  # (N,) +1 / −1 / 0, or None without the column
+
+
+def read_counts_csv(path: str | Path) -> CountsTable:
+    """Read ``counts.csv``: ``joint,counts`` [``direction``] plus any pass-through columns."""
+    t = _read_csv(path, COUNTS_COLUMNS, extra_allowed=True)
+    n = len(t.rows)
+    joint = np.empty(n, dtype=np.int64)
+    counts = np.empty(n, dtype=np.int64)
+    has_direction = "direction" in t.index
+    direction = np.zeros(n) if has_direction else None
+    for k, (line, f) in enumerate(t.rows):
+        joint[k] = t.joint(line, f, None)
+        counts[k] = t.counts(line, f)
+        if direction is not None:
+            d = t.value(line, f, "direction").lower()
+            if d not in DIRECTIONS:
+                known = ", ".join(k for k in DIRECTIONS if k)
+                raise t.fail(line, "direction", f"expected one of {known} or empty, got {d!r}")
+            direction[k] = DIRECTIONS[d]
+    return CountsTable(
+        t.path,
+        t.header,
+        [f for _, f in t.rows],
+        np.array([line for line, _ in t.rows], dtype=np.int64),
+        joint,
+        counts,
+        direction,
+    )
+
+
+def write_csv(path: str | Path, header: Sequence[str], rows: Iterator[Sequence[Any]]) -> None:
+    with Path(path).open("w", encoding="utf-8", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(header)
+        w.writerows(rows)
+
+
+# -- scale.toml ------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class ScaleCalibration:
+    """All calibrated joints of one robot: what ``scale.toml`` holds."""
+
+    joints: Mapping[int, GratingScale]
+    robot: str | None = None
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+
+    def scale(self, joint: int) -> GratingScale:
+        if joint not in self.joints:
+            raise ScaleFileError(
+                f"joint {joint} is not calibrated (calibrated: {_joint_list(self.joints)})"
+            )
+        return self.joints[joint]
+
+    def angles_deg(self, joint: NDArray[np.int64], counts, direction=None) -> FloatArray:
+        """Angles relative to Home (deg) for rows of (joint, counts[, direction]), ``(N,)``."""
+        joint = np.asarray(joint)
+        out = np.empty(joint.shape)
+        for j in np.unique(joint):
+            m = joint == j
+            d = None if direction is None else np.asarray(direction)[m]
+            out[m] = self.scale(int(j)).counts_to_angle_deg(np.asarray(counts)[m], d)
+        return out
+
+
+def _joint_list(joints: Mapping[int, Any]) -> str:
+    return ", ".join(str(j) for j in sorted(joints)) or "none"
+
+
+def _matrix(a: FloatArray) -> list[list[float]]:
+    return [[float(v) for v in row] for row in np.atleast_2d(a)]
+
+
+def scale_document(
+    results: Sequence[JointScaleResult],
+    *,
+    robot: str | None = None,
+    metadata: Mapping[str, Any] | None = None,
+    counts_per_mm: float = 1000.0,
+) -> dict[str, Any]:
+    """The ``scale.toml`` document of calibrated joints (plain TOML types)."""
+    doc: dict[str, Any] = {"format": SCALE_FORMAT, "angle_convention": ANGLE_CONVENTION}
+    if robot:
+        doc["robot"] = robot
+    doc["counter_modulus"] = COUNTER_MODULUS
+    doc["counts_per_mm"] = counts_per_mm
+    if metadata:
+        doc["calibration"] = dict(metadata)
+    doc["joint"] = [_joint_table(r, counts_per_mm) for r in results]
+    return doc
+
+
+def _joint_table(r: JointScaleResult, counts_per_mm: float) -> dict[str, Any]:
+    s = r.scale
+    table: dict[str, Any] = {"joint": r.joint}
+    if s.home_deg is not None:
+        table["home_deg"] = s.home_deg
+    table.update(
+        zero_counts=s.zero_counts,
+        zero_std_counts=s.zero_std_counts,
+        terms=list(s.terms),
+        phase_rad_per_count=s.basis.phase_rad_per_count,
+        nonlinear_centre_counts=s.basis.nonlinear_centre_counts,
+        nonlinear_half_span_counts=s.basis.nonlinear_half_span_counts,
+        coefficients=dict(s.coefficients),
+        covariance={"names": list(s.coefficients), "deg2": _matrix(s.covariance_deg2)},
+        summary={  # for people: not read back
+            "zero_source": r.home.source,
+            "zero_spread_counts": r.home.spread_counts,
+            "zero_readings": r.home.n,
+            "counts_per_deg": s.counts_per_deg,
+            "effective_radius_mm": s.effective_radius_mm(counts_per_mm),
+            "strip_direction": r.strip_direction,
+            "hysteresis_counts": s.hysteresis_counts,
+            "residual_rms_arcsec": r.residual_rms_arcsec,
+            "stops_used": int(r.used.sum()),
+            "stops_dropped": len(r.dropped),
+        },
+    )
+    if s.unmodelled:
+        table["unmodelled"] = {
+            term: {
+                "p_value": un.p_value,
+                "delta": dict(un.delta),
+                "delta_covariance_deg2": _matrix(un.delta_covariance_deg2),
+            }
+            for term, un in s.unmodelled.items()
+        }
+    return table
+
+
+def write_scale_toml(path: str | Path, document: Mapping[str, Any]) -> None:
+    header = (
+        "# Grating-scale calibration written by `twin scale` (docs/scale-calibration.md).\n"
+        "# angle_deg(counts) relative to Home; joint angle q_deg = home_deg + angle_deg.\n"
+    )
+    Path(path).write_text(header + tomli_w.dumps(dict(document)), encoding="utf-8")
+
+
+class _Toml:
+    """Typed access to one TOML table, errors naming file, table and key."""
+
+    def __init__(self, data: Any, source: str, where: str) -> None:
+        self.source, self.where = source, where
+        if not isinstance(data, dict):
+            raise self.fail(None, f"expected a table, got {type(data).__name__}")
+        self.data: dict[str, Any] = data
+
+    def fail(self, key: str | None, message: str) -> ScaleFileError:
+        loc = f"{self.source}: {self.where}" + (f": key '{key}'" if key else "")
+        return ScaleFileError(f"{loc}: {message}")
+
+    def get(self, key: str) -> Any:
+        if key not in self.data:
+            raise self.fail(key, "missing")
+        return self.data[key]
+
+    def number(self, key: str, default: float | None = None) -> float:
+        if key not in self.data and default is not None:
+            return default
+        value = self.get(key)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self.fail(key, f"expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise self.fail(key, f"must be finite, got {value!r}")
+        return float(value)
+
+    def numbers(self, key: str, value: Any = None) -> dict[str, float]:
+        value = self.get(key) if value is None else value
+        sub = _Toml(value, self.source, f"{self.where}.{key}")
+        return {k: sub.number(k) for k in sub.data}
+
+    def matrix(self, key: str, value: Any, size: int) -> FloatArray:
+        ok = isinstance(value, list) and len(value) == size
+        ok = ok and all(isinstance(r, list) and len(r) == size for r in value)
+        if not ok:
+            raise self.fail(key, f"expected a {size}×{size} array of numbers")
+        try:
+            m = np.array(value, dtype=float)
+        except (TypeError, ValueError):
+            raise self.fail(key, "expected numbers") from None
+        if not np.all(np.isfinite(m)):
+            raise self.fail(key, "must be finite")
+        return m
+
+
+def read_scale_toml(path: str | Path) -> ScaleCalibration:
+    """Read ``scale.toml``; raises :class:`ScaleFileError` naming file, table and key."""
+    source = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScaleFileError(f"{source}: cannot read: {exc}") from exc
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScaleFileError(f"{source}: not valid TOML: {exc}") from exc
+    top = _Toml(doc, source, "top level")
+    if top.get("format") != SCALE_FORMAT:
+        raise top.fail("format", f"expected {SCALE_FORMAT!r}, got {doc.get('format')!r}")
+    if top.number("counter_modulus") != COUNTER_MODULUS:
+        raise top.fail("counter_modulus", f"only {COUNTER_MODULUS} (32-bit) is supported")
+    raw = top.get("joint")
+    if not isinstance(raw, list) or not raw:
+        raise top.fail("joint", "expected one or more [[joint]] tables")
+    joints: dict[int, GratingScale] = {}
+    for i, data in enumerate(raw):
+        scale = _parse_joint(_Toml(data, source, f"[[joint]] #{i + 1}"))
+        if scale.joint in joints:
+            raise ScaleFileError(f"{source}: [[joint]] #{i + 1}: joint {scale.joint} given twice")
+        joints[scale.joint] = scale
+    robot = doc.get("robot") if isinstance(doc.get("robot"), str) else None
+    meta = doc.get("calibration", {}) if isinstance(doc.get("calibration"), dict) else {}
+    return ScaleCalibration(joints, robot, meta)
+
+
+def _parse_joint(t: _Toml) -> GratingScale:
+    joint = t.get("joint")
+    if isinstance(joint, bool) or not isinstance(joint, int) or joint < 1:
+        raise t.fail("joint", f"expected a joint number ≥ 1, got {joint!r}")
+    terms_raw = t.get("terms")
+    if not isinstance(terms_raw, list) or not all(isinstance(x, str) for x in terms_raw):
+        raise t.fail("terms", "expected an array of term names")
+    try:
+        terms = check_terms(terms_raw)
+    except CalibrationError as exc:
+        raise t.fail("terms", str(exc)) from None
+    names = [SCALE_NAME] + [n for term in terms for n in TERMS[term][0]]
+    coefficients = t.numbers("coefficients")
+    for n in names:
+        if n not in coefficients:
+            raise t.fail("coefficients", f"missing coefficient '{n}' for terms {terms}")
+    coefficients = {n: coefficients[n] for n in names}
+    if coefficients[SCALE_NAME] == 0:
+        raise t.fail("coefficients", f"'{SCALE_NAME}' must not be zero")
+    cov_table = _Toml(t.get("covariance"), t.source, f"{t.where}.covariance")
+    if cov_table.get("names") != names:
+        raise cov_table.fail("names", f"expected {names}")
+    covariance = cov_table.matrix("deg2", cov_table.get("deg2"), len(names))
+    zero = t.number("zero_counts")
+    if not 0 <= zero < COUNTER_MODULUS:
+        raise t.fail("zero_counts", f"must be in [0, {COUNTER_MODULUS}), got {zero}")
+    half_span = t.number("nonlinear_half_span_counts", 1.0)
+    if half_span <= 0:
+        raise t.fail("nonlinear_half_span_counts", "must be positive")
+    unmodelled = {}
+    raw_un = t.data.get("unmodelled", {})
+    un_table = _Toml(raw_un, t.source, f"{t.where}.unmodelled")
+    for term, data in un_table.data.items():
+        if term not in TERMS or term in terms:
+            raise un_table.fail(term, "not a candidate term left out of the relation")
+        sub = _Toml(data, t.source, f"{t.where}.unmodelled.{term}")
+        wide = [*names, *TERMS[term][0]]
+        delta = sub.numbers("delta")
+        if set(delta) != set(wide):
+            raise sub.fail("delta", f"expected the coefficients {wide}")
+        unmodelled[term] = UnmodelledTerm(
+            p_value=sub.number("p_value"),
+            delta={n: delta[n] for n in _canonical(terms, term)},
+            delta_covariance_deg2=sub.matrix(
+                "delta_covariance_deg2", sub.get("delta_covariance_deg2"), len(wide)
+            ),
+        )
+    home = t.data.get("home_deg")
+    return GratingScale(
+        joint=joint,
+        zero_counts=zero,
+        zero_std_counts=t.number("zero_std_counts", 0.0),
+        terms=terms,
+        coefficients=coefficients,
+        basis=RelationBasis(
+            phase_rad_per_count=t.number("phase_rad_per_count", 0.0),
+            nonlinear_centre_counts=t.number("nonlinear_centre_counts", 0.0),
+            nonlinear_half_span_counts=half_span,
+        ),
+        covariance_deg2=covariance,
+        unmodelled=unmodelled,
+        home_deg=None if home is None else t.number("home_deg"),
+    )
+
+
+def _canonical(terms: Sequence[str], extra: str) -> list[str]:
+    """Coefficient names of ``terms`` plus ``extra``, in the order the basis builds them."""
+    return [SCALE_NAME] + [n for term in (*terms, extra) for n in TERMS[term][0]]
