@@ -257,7 +257,7 @@ def run(quick: bool) -> list[Row]:
         return rows
     rows = [identify_row(100, 5, True)]
     rows += [identify_row(n, 3 if n <= 10_000 else 1, n <= 10_000) for n in (1000, 10_000)]
-    rows.append(identify_row(100_000, 1, False))
+    rows.append(identify_row(100_000, 2, False))
     rows.append(pybotics_row(100, 150))
     return rows
 

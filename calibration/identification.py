@@ -92,6 +92,11 @@ def _full_vector(x_free: FloatArray, x_full: FloatArray, free_idx: NDArray[np.in
     return x
 
 
+#: Poses per block when evaluating residuals and Jacobians: keeps temporaries small so the
+#: cost stays linear in the number of poses.
+CHUNK_POSES = 8192
+
+
 def position_residuals(
     x_free: ArrayLike,
     x_full: FloatArray,
@@ -106,8 +111,11 @@ def position_residuals(
     ``x_free`` replaces the entries ``free_idx`` of the full parameter vector ``x_full``.
     """
     model = template.with_parameters(_full_vector(np.asarray(x_free), x_full, free_idx))
-    resid = (tcp_positions(model, q_rad) - measured_mm) * sqrt_weights[:, None]
-    return resid.ravel()
+    out = np.empty((len(q_rad), 3))
+    for s in range(0, len(q_rad), CHUNK_POSES):
+        e = slice(s, s + CHUNK_POSES)
+        out[e] = (tcp_positions(model, q_rad[e]) - measured_mm[e]) * sqrt_weights[e, None]
+    return out.ravel()
 
 
 def position_residual_jacobian(
@@ -121,9 +129,21 @@ def position_residual_jacobian(
 ) -> FloatArray:
     """Jacobian ``(3m, k)`` of :func:`position_residuals` with respect to ``x_free``."""
     model = template.with_parameters(_full_vector(np.asarray(x_free), x_full, free_idx))
-    _, jac = identification_jacobian(model, q_rad)
-    jac = jac[:, :, free_idx] * sqrt_weights[:, None, None]
-    return jac.reshape(-1, len(free_idx))
+    out = np.empty((len(q_rad), 3, len(free_idx)))
+    for s in range(0, len(q_rad), CHUNK_POSES):
+        e = slice(s, s + CHUNK_POSES)
+        _, jac = identification_jacobian(model, q_rad[e])
+        out[e] = jac[:, :, free_idx] * sqrt_weights[e, None, None]
+    return out.reshape(-1, len(free_idx))
+
+
+def full_identification_jacobian(model: KinematicModel, q_rad: FloatArray) -> FloatArray:
+    """:func:`~calibration.kinematics.identification_jacobian` ``(m, 3, p)``, in blocks."""
+    out = np.empty((len(q_rad), 3, model.n_parameters))
+    for s in range(0, len(q_rad), CHUNK_POSES):
+        e = slice(s, s + CHUNK_POSES)
+        out[e] = identification_jacobian(model, q_rad[e])[1]
+    return out
 
 
 # -- the solver ------------------------------------------------------------------------
@@ -344,7 +364,7 @@ def identify(
     start_model = (
         base_start_from_registration(nominal, q, meas) if start == "registration" else nominal
     )
-    _, jac0 = identification_jacobian(start_model, q)
+    jac0 = full_identification_jacobian(start_model, q)
     analysis = analyze_identifiability(
         jac0,
         names,
