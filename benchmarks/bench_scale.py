@@ -15,6 +15,9 @@ Rows:
   error / reported standard uncertainty (≤ 1: the uncertainty covers the error);
   ``cyclic_kept`` and ``other_terms_kept`` the fraction of seeds that kept the cyclic term
   and any other term.
+* ``accuracy_pooled`` per case: the RMS over joints of ``ratio_vs_crb`` and ``z_rms``.
+* ``cyclic_detection`` (full run only): fraction of 20 seeds keeping the cyclic term, per
+  joint, for a range of strip eccentricities (kr500): the detection limit per joint.
 * ``calibrate_6_joints``: wall time of one full 6-joint calibration (library, from
   arrays), best of a few; ``generate_campaign`` the time of the emulated campaign.
 
@@ -138,32 +141,76 @@ def accuracy_trials(
     return stats
 
 
+def _accuracy_rows(preset: str, ecc: float, hysteresis: float, seeds: range) -> list[Row]:
+    stats = accuracy_trials(preset, ecc, seeds, hysteresis)
+    rows: list[Row] = []
+    ratios2, z2 = [], []
+    case = {"preset": preset, "eccentricity_mm": ecc, "hysteresis_counts": hysteresis}
+    for j, st in stats.items():
+        err = math.sqrt(np.mean(st.err2)) * ARCSEC_PER_DEG
+        crb = math.sqrt(np.mean(st.crb2)) * ARCSEC_PER_DEG
+        ratios2.append((err / crb) ** 2)
+        z2.append(np.mean(st.z2))
+        rows.append(
+            {
+                "benchmark": "accuracy",
+                **case,
+                "joint": j,
+                "seeds": st.runs,
+                "err_rms_arcsec": err,
+                "crb_rms_arcsec": crb,
+                "ratio_vs_crb": err / crb,
+                "z_rms": math.sqrt(np.mean(st.z2)),
+                "cyclic_kept": st.cyclic / st.runs,
+                "other_terms_kept": st.other / st.runs,
+            }
+        )
+    rows.append(
+        {
+            "benchmark": "accuracy_pooled",
+            **case,
+            "joint": "all",
+            "seeds": len(seeds),
+            "ratio_vs_crb": math.sqrt(np.mean(ratios2)),
+            "z_rms": math.sqrt(np.mean(z2)),
+            "note": "RMS over joints of err/CRB and of z",
+        }
+    )
+    return rows
+
+
+def detection_rows(preset: str, eccentricities: tuple[float, ...], seeds: range) -> list[Row]:
+    """Fraction of seeds that keep the cyclic term, per joint and eccentricity."""
+    desc = load_robot(preset)
+    rows: list[Row] = []
+    for ecc in eccentricities:
+        kept: dict[int, int] = {}
+        for seed in seeds:
+            camp = run_campaign(TrueCell.create(desc, seed, eccentricity_mm=ecc))
+            for j, r in calibrate_campaign(camp, desc).items():
+                kept[j] = kept.get(j, 0) + ("cyclic" in r.kept_terms)
+        row: Row = {"benchmark": "cyclic_detection", "preset": preset, "eccentricity_mm": ecc}
+        row.update({f"joint{j}": k / len(seeds) for j, k in sorted(kept.items())})
+        rows.append(row)
+    return rows
+
+
 def run(quick: bool, seeds: int | None = None) -> list[Row]:
     n_seeds = seeds or (2 if quick else 40)
-    cases = [("kr500", 0.0), ("kr500", 0.03), ("hp20d", 0.0), ("hp20d", 0.03)]
+    cases = [
+        ("kr500", 0.0, 0.0),
+        ("kr500", 0.03, 0.0),
+        ("kr500", 0.03, 8.0),
+        ("hp20d", 0.0, 0.0),
+        ("hp20d", 0.03, 0.0),
+    ]
     if quick:
-        cases = cases[:2]
+        cases = cases[:1]
     rows: list[Row] = []
-    for preset, ecc in cases:
-        stats = accuracy_trials(preset, ecc, range(n_seeds))
-        for j, st in stats.items():
-            err = math.sqrt(np.mean(st.err2)) * ARCSEC_PER_DEG
-            crb = math.sqrt(np.mean(st.crb2)) * ARCSEC_PER_DEG
-            rows.append(
-                {
-                    "benchmark": "accuracy",
-                    "preset": preset,
-                    "eccentricity_mm": ecc,
-                    "joint": j,
-                    "seeds": st.runs,
-                    "err_rms_arcsec": err,
-                    "crb_rms_arcsec": crb,
-                    "ratio_vs_crb": err / crb,
-                    "z_rms": math.sqrt(np.mean(st.z2)),
-                    "cyclic_kept": st.cyclic / st.runs,
-                    "other_terms_kept": st.other / st.runs,
-                }
-            )
+    for preset, ecc, hyst in cases:
+        rows += _accuracy_rows(preset, ecc, hyst, range(n_seeds))
+    if not quick:
+        rows += detection_rows("kr500", (0.005, 0.01, 0.02, 0.05), range(20))
     desc = load_robot("kr500")
     cell = TrueCell.create(desc, 1, eccentricity_mm=0.03)
     t0 = time.perf_counter()
@@ -175,23 +222,17 @@ def run(quick: bool, seeds: int | None = None) -> list[Row]:
         t0 = time.perf_counter()
         calibrate_campaign(camp, desc)
         best = min(best, time.perf_counter() - t0)
+    n = int(camp.sweep_joint.size)
     rows.append(
         {
             "benchmark": "calibrate_6_joints",
             "preset": "kr500",
-            "n": int(camp.sweep_joint.size),
+            "n": n,
             "ours_s": best,
-            "note": "stops in both sweeps of all joints; best of repeats",
+            "note": "n = stops of both sweeps, all joints; best of repeats",
         }
     )
-    rows.append(
-        {
-            "benchmark": "generate_campaign",
-            "preset": "kr500",
-            "n": int(camp.sweep_joint.size),
-            "ours_s": t_gen,
-        }
-    )
+    rows.append({"benchmark": "generate_campaign", "preset": "kr500", "n": n, "ours_s": t_gen})
     return rows
 
 

@@ -64,6 +64,7 @@ COUNTER_MODULUS = 2**32
 ARCSEC_PER_DEG = 3600.0
 PASSES: tuple[str, str] = ("forward", "backward")
 MIN_STOPS_PER_PASS = 6
+RESOLUTION_STD_COUNTS = 1.0 / math.sqrt(12.0)  # whole counts: rectangular ±½ count
 
 # candidate term -> (coefficient names, meaning); the order is the selection order
 TERMS: dict[str, tuple[tuple[str, ...], str]] = {
@@ -322,8 +323,12 @@ class HomeZero:
 
     @property
     def std_counts(self) -> float:
-        """Standard deviation of the zero (the mean)."""
-        return self.spread_counts / math.sqrt(max(self.n, 1))
+        """Standard deviation of the zero (the mean).
+
+        The spread is floored at the counter's resolution (1/√12 count): identical whole
+        readings do not make the zero exact.
+        """
+        return max(self.spread_counts, RESOLUTION_STD_COUNTS) / math.sqrt(max(self.n, 1))
 
 
 @dataclass(frozen=True)
