@@ -14,8 +14,8 @@ import numpy as np
 
 from calibration.campaign_files import read_campaign, read_joint_readings, write_points
 from calibration.description import RobotDescription, load_robot
-from calibration.errors import DataFileError
-from calibration.identification import LOSSES, START_METHODS, identify
+from calibration.errors import CalibrationError, DataFileError
+from calibration.identification import LOSSES, START_METHODS, identify, tracker_sigma_mm
 from calibration.kinematics import KinematicModel
 
 
@@ -44,6 +44,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="base start: the description's guess, or a rigid registration "
         "(auto: the guess when the description has a [base] table)",
     )
+    p.add_argument(
+        "--tracker-mpe-um",
+        metavar="A,B",
+        help="weight each point by the tracker's data-sheet MPE ±(A µm + B µm/m · distance), "
+        "taken as 2σ (e.g. 15,6); default: all points weigh the same",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=run_identify)
 
@@ -62,6 +68,20 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _limits(desc: RobotDescription) -> list[tuple[float, float]]:
     return [(j.lower_deg, j.upper_deg) for j in desc.joints]
+
+
+class OptionError(CalibrationError, ValueError):
+    """A command-line option has a malformed value."""
+
+
+def _mpe(text: str) -> tuple[float, float]:
+    try:
+        a, b = (float(v) for v in text.split(","))
+    except ValueError:
+        raise OptionError(f"--tracker-mpe-um: expected 'A,B' (µm, µm/m), got {text!r}") from None
+    if not (np.isfinite(a) and np.isfinite(b) and a > 0 and b >= 0):
+        raise OptionError(f"--tracker-mpe-um: need A > 0 and B >= 0, got {text!r}")
+    return a, b
 
 
 def run_identify(args: argparse.Namespace) -> int:
@@ -88,6 +108,10 @@ def run_identify(args: argparse.Namespace) -> int:
         f"validation poses; base start: {start}"
     )
     nominal = KinematicModel.from_description(desc)
+    point_sigma = None
+    if args.tracker_mpe_um:
+        mpe_um, mpe_um_per_m = _mpe(args.tracker_mpe_um)
+        point_sigma = tracker_sigma_mm(campaign.xyz_mm[idm], mpe_um, mpe_um_per_m)
 
     def progress(it: int, norm: float, mu: float) -> None:
         say(f"LM iteration {it}: error norm {norm:.6f} mm, damping {mu:.1e}")
@@ -99,6 +123,7 @@ def run_identify(args: argparse.Namespace) -> int:
         start=start,
         loss=args.loss,
         f_scale_mm=args.f_scale_mm,
+        point_sigma_mm=point_sigma,
         progress=progress,
     )
     ana = result.identifiability
@@ -114,6 +139,11 @@ def run_identify(args: argparse.Namespace) -> int:
 
     doc, errors = build_report(
         result, desc, campaign, robot_source=str(args.robot), calibrated_path=str(args.out)
+    )
+    doc["solver"]["point_weights"] = (
+        f"tracker MPE ±({args.tracker_mpe_um.replace(',', ' µm + ')} µm/m) as 2σ"
+        if args.tracker_mpe_um
+        else "none (all points weigh the same)"
     )
     for name, s in doc["sets"].items():
         b, a = s["before"]["AP"], s["after"]["AP"]

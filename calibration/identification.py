@@ -227,6 +227,19 @@ def levenberg_marquardt(
     )
 
 
+def tracker_sigma_mm(
+    points_mm: ArrayLike,
+    mpe_um: float = 15.0,
+    mpe_um_per_m: float = 6.0,
+    mpe_sigmas: float = 2.0,
+    tracker_mm: ArrayLike = (0.0, 0.0, 0.0),
+) -> FloatArray:
+    """Per-axis σ ``(m,)`` mm of tracker points from a data-sheet MPE ±(A µm + B µm/m · d),
+    taken as ``mpe_sigmas`` σ, d the distance from the tracker (the frame origin)."""
+    d_m = np.linalg.norm(np.atleast_2d(points_mm) - np.asarray(tracker_mm), axis=1) / 1000.0
+    return 1e-3 * (mpe_um + mpe_um_per_m * d_m) / mpe_sigmas
+
+
 # -- the problem and its result ----------------------------------------------------------
 @dataclass(frozen=True)
 class IdentificationResult:
@@ -237,7 +250,7 @@ class IdentificationResult:
     start_method: str  # one of START_METHODS
     identifiability: IdentifiabilityAnalysis
     covariance: FloatArray  # (k, k) of the identified parameters, model units (mm, rad)
-    sigma_mm: float  # per-axis noise estimated from the weighted residuals
+    sigma_mm: float  # per-axis noise estimated from the residuals (of a reference pose)
     pose_weights: FloatArray  # (m,) final robust-loss weights (1 with the linear loss)
     outliers: NDArray[np.bool_]  # (m,) poses whose residual is improbably large
     loss: str
@@ -246,6 +259,9 @@ class IdentificationResult:
     elapsed_s: float
     irls_iterations: int = 1
     history: list[tuple[int, float, float]] = field(default_factory=list)
+    #: with per-point σ: the σ the weights are relative to (their harmonic RMS); sigma_mm
+    #: over it is how the data compare with the stated σ (1: as stated). None: unweighted.
+    reference_sigma_mm: float | None = None
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -330,6 +346,7 @@ def identify(
     rtol: float = DEFAULT_RTOL,
     fixed: tuple[str, ...] = (),
     max_irls: int = 10,
+    point_sigma_mm: ArrayLike | None = None,
     progress: ProgressCallback | None = None,
 ) -> IdentificationResult:
     """Identify the kinematic parameters from joint vectors ``q`` ``(m, n)`` rad and tracker
@@ -338,7 +355,9 @@ def identify(
     ``nominal`` carries the nominal geometry and tool. Its base pose is the start value when
     ``start="description"``; with ``start="registration"`` the base pose comes from a rigid
     registration of the nominal TCPs onto the points. ``fixed`` names parameters held at
-    their nominal value whatever the data says.
+    their nominal value whatever the data says. ``point_sigma_mm`` ``(m,)`` gives each
+    point's per-axis measurement σ (e.g. :func:`tracker_sigma_mm`): the poses are then
+    weighted by 1/σ² (without it, all poses weigh the same).
     """
     started = time.perf_counter()
     q = np.atleast_2d(np.asarray(q_rad, dtype=float))
@@ -360,6 +379,14 @@ def identify(
         raise IdentificationError(f"unknown parameter(s) to fix: {', '.join(unknown)}")
     if len(q) < 4:
         raise IdentificationError(f"need at least 4 poses, got {len(q)}")
+    prior = np.ones(len(q))
+    reference_sigma = None
+    if point_sigma_mm is not None:
+        ps = np.broadcast_to(np.asarray(point_sigma_mm, dtype=float), (len(q),))
+        if not np.all(np.isfinite(ps) & (ps > 0)):
+            raise IdentificationError("point sigmas must be finite and positive")
+        reference_sigma = float(1.0 / np.sqrt(np.mean(1.0 / ps**2)))
+        prior = (reference_sigma / ps) ** 2  # mean 1
 
     start_model = (
         base_start_from_registration(nominal, q, meas) if start == "registration" else nominal
@@ -396,7 +423,7 @@ def identify(
     irls = 0
     while irls < (max_irls if loss != "linear" else 1):
         irls += 1
-        sw = np.sqrt(weights)
+        sw = np.sqrt(prior * weights)
         args = (x_full, free_idx, nominal, q, meas, sw)
         result = levenberg_marquardt(
             position_residuals,
@@ -411,7 +438,10 @@ def identify(
         sw_last = sw
         if loss == "linear":
             break
-        dist = np.linalg.norm(result.fun.reshape(-1, 3) / np.maximum(sw, 1e-12)[:, None], axis=1)
+        # 3-D residuals in units of the reference σ's pose (prior-weighted, not robust)
+        dist = np.linalg.norm(result.fun.reshape(-1, 3), axis=1) / np.sqrt(
+            np.maximum(weights, 1e-300)
+        )
         if f_scale_mm is None:
             # 3 σ per axis, σ from the median 3-D distance (median of Maxwell = 1.538 σ)
             scale_used = 3.0 * float(np.median(dist)) / 1.538
@@ -423,10 +453,10 @@ def identify(
     assert result is not None
 
     model = nominal.with_parameters(_full_vector(x, x_full, free_idx))
-    sw = np.sqrt(weights)
+    sw = np.sqrt(prior * weights)
     resid = (tcp_positions(model, q) - meas).reshape(-1, 3)
     # the solver's last Jacobian is at x, weighted with the weights of its last run
-    jw = result.jac * np.sqrt(weights / np.maximum(sw_last**2, 1e-300)).repeat(3)[:, None]
+    jw = result.jac * (sw / np.maximum(sw_last, 1e-300)).repeat(3)[:, None]
     dof = max(3 * len(q) - k, 1)
     wsum = float(np.sum((resid * sw[:, None]) ** 2))
     sigma2 = wsum / dof * len(q) / max(float(np.sum(weights)), 1e-300)
@@ -435,9 +465,10 @@ def identify(
     d = 1.0 / analysis.column_scale[free_idx]
     covariance = sigma2 * cov_s * np.outer(d, d)
     sigma = math.sqrt(sigma2)
-    dist = np.linalg.norm(resid, axis=1)
-    # robust per-axis σ for the outlier test: the median of a Maxwell distance is 1.538 σ
-    robust_sigma = float(np.median(dist)) / 1.538
+    dist = np.linalg.norm(resid, axis=1) * np.sqrt(prior)
+    # robust per-axis σ for the outlier test: the median of a Maxwell distance is 1.538 σ,
+    # and fitted residuals are smaller than the noise by √(1 − k/3m) on average
+    robust_sigma = float(np.median(dist)) / 1.538 / math.sqrt(max(1.0 - k / (3 * len(q)), 0.1))
     threshold = robust_sigma * math.sqrt(chi2.ppf(1.0 - OUTLIER_PROBABILITY, 3))
     return IdentificationResult(
         model=model,
@@ -454,4 +485,5 @@ def identify(
         elapsed_s=time.perf_counter() - started,
         irls_iterations=irls,
         history=history,
+        reference_sigma_mm=reference_sigma,
     )

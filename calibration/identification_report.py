@@ -200,6 +200,7 @@ def build_report(
             ],
         },
         "noise_sigma_mm": result.sigma_mm,
+        "reference_sigma_mm": result.reference_sigma_mm,
         "identifiability": result.identifiability.as_dict(),
         "parameters": result.parameter_table(),
         "outlier_poses": [id_poses[i] for i in np.flatnonzero(result.outliers)],
@@ -231,7 +232,13 @@ def markdown_report(doc: Mapping[str, Any]) -> str:
         f"{solver['message']}; loss {solver['loss']}",
         f"- Identified {ident['n_identified']} of {ident['n_parameters']} parameters, "
         f"condition number of the scaled Jacobian {ident['condition_number']:.1f}",
-        f"- Residual noise σ (per axis): {doc['noise_sigma_mm'] * 1000:.1f} µm",
+        f"- Residual noise σ (per axis): {doc['noise_sigma_mm'] * 1000:.1f} µm"
+        + (
+            f" (stated by the point weights: {doc['reference_sigma_mm'] * 1000:.1f} µm)"
+            if doc.get("reference_sigma_mm")
+            else ""
+        ),
+        f"- Point weights: {solver.get('point_weights', 'none')}",
         f"- Outlier poses: {', '.join(doc['outlier_poses']) or 'none'}",
         f"- Before = {doc['before_definition']}",
         "",

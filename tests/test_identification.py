@@ -17,6 +17,7 @@ from calibration.identification import (
     identify,
     position_residual_jacobian,
     position_residuals,
+    tracker_sigma_mm,
 )
 from calibration.identification_report import before_model
 from calibration.kinematics import KinematicModel, rotation_from_fixed_xyz, tcp_positions
@@ -245,6 +246,23 @@ def test_robust_loss_reports_and_resists_outliers():
     clean = identify(nominal, c.q_rad[idm], c.xyz_mm[idm])
     assert val(robust) <= 1.05 * val(clean)
     assert val(plain) > 1.2 * val(clean)
+
+
+def test_tracker_weights(case):
+    data, plain = case
+    c = data.campaign
+    idm, vm = c.mask("identify"), c.mask("validate")
+    nominal = KinematicModel.from_description(data.cell.nominal)
+    sigma = tracker_sigma_mm(c.xyz_mm[idm])
+    assert np.allclose(sigma, data.cell.tracker.sigma_mm(c.xyz_mm[idm]))
+    weighted = identify(nominal, c.q_rad[idm], c.xyz_mm[idm], point_sigma_mm=sigma)
+    assert 0.75 < weighted.sigma_mm / weighted.reference_sigma_mm < 1.25
+    assert plain.reference_sigma_mm is None
+    after = np.linalg.norm(c.xyz_mm[vm] - tcp_positions(weighted.model, c.q_rad[vm]), axis=1)
+    true = np.linalg.norm(c.xyz_mm[vm] - data.tcp_true_mm[vm], axis=1)
+    assert after.mean() <= 1.1 * true.mean()
+    with pytest.raises(IdentificationError, match="sigmas"):
+        identify(nominal, c.q_rad[idm], c.xyz_mm[idm], point_sigma_mm=-sigma)
 
 
 def test_bad_arguments_raise_calibration_errors():

@@ -43,7 +43,7 @@ def identified(campaign):
     out = tmp / "calibrated.toml"
     rep = tmp / "report"
     proc = twin("identify", "--robot", "kr500", "--data", str(path), "--out", str(out),
-                "--report", str(rep))  # fmt: skip
+                "--report", str(rep), "--tracker-mpe-um", "15,6")  # fmt: skip
     return proc, out, rep
 
 
@@ -63,6 +63,9 @@ def test_identify_writes_model_and_report(campaign, identified):
                 assert set(s[when][comp]) == set(STATISTICS)
         assert s["improvement"]["AP"]["mean"]["ratio"] > 10.0
     assert doc["data"]["skipped_rows"] == 0
+    # weighted by the data sheet: the residual noise matches the stated one
+    assert 0.7 < doc["noise_sigma_mm"] / doc["reference_sigma_mm"] < 1.3
+    assert doc["solver"]["point_weights"].startswith("tracker MPE")
     assert doc["identifiability"]["n_identified"] == 27
     assert "joint3.d_mm" in [d["name"] for d in doc["identifiability"]["dropped"]]
     assert doc["identifiability"]["condition_number"] > 1.0
