@@ -33,6 +33,7 @@ def test_kinematics_benchmark_quick_rows():
         "geometric Jacobian 6x6 (TCP",
         "inverse kinematics",
         "inverse kinematics",
+        "inverse kinematics",
     ]
     for row in rows:
         for key in ("ours_s", "loop_s", "rtb_s", "speedup_vs_loop", "speedup_vs_rtb"):

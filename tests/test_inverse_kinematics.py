@@ -181,6 +181,27 @@ def test_numeric_refinement_on_calibrated_model(name):
     np.testing.assert_allclose(explicit.solutions_rad[ok], res.solutions_rad[:20][ok], atol=1e-8)
 
 
+def test_chosen_branch_only_refinement_matches_the_full_solve():
+    nominal, limits = robot("kr210_r3100")
+    model = perturbed(nominal, seed=4)
+    rng = np.random.default_rng(8)
+    q = rng.uniform(limits.lower_rad, limits.upper_rad, (300, 6))
+    q_now = q + rng.normal(0.0, 0.05, q.shape)
+    poses = flange_poses(model, q)
+    args = {"frame": "world", "limits": limits, "q_current_rad": q_now}
+    full = solve_ik(model, poses, **args)
+    chosen = solve_ik(model, poses, branches="chosen", **args)
+    assert chosen.iterations.sum() < full.iterations.sum() / 2
+    assert np.all(chosen.residual_mm[chosen.reachable] <= 1e-9)
+    # At most three candidates solved per pose, more only where all of them failed.
+    assert np.mean(chosen.reachable.sum(axis=1) <= 3) > 0.95
+    # Away from singularities both pick the same solution.
+    margins = SingularityMargins(shoulder_mm=20.0, elbow_rad=0.05, wrist_rad=0.05)
+    clear = ~np.any(singularity_flags(nominal, q, margins), axis=0)
+    assert clear.mean() > 0.8
+    np.testing.assert_allclose(chosen.chosen_rad[clear], full.chosen_rad[clear], atol=1e-9)
+
+
 def test_spherical_approximation_restores_the_nominal_structure():
     nominal, _ = robot("kr500")
     approx = spherical_approximation(perturbed(nominal, seed=2))
@@ -340,6 +361,8 @@ def test_bad_arguments_raise():
         solve_ik(model, np.eye(4), q_current_rad=np.zeros(5))
     with pytest.raises(KinematicsError, match="frame"):
         solve_ik(model, np.eye(4), frame="tracker")  # type: ignore[arg-type]
+    with pytest.raises(KinematicsError, match="branches"):
+        solve_ik(model, np.eye(4), branches="some")  # type: ignore[arg-type]
     with pytest.raises(KinematicsError, match="weights"):
         select_solution(np.zeros((1, 8, 6)), np.zeros(6), weights=np.ones(5))
     with pytest.raises(KinematicsError, match="shape"):
