@@ -353,3 +353,31 @@ def test_random_poses_for_comparison():
     print(f"\nkr500 random poses, 10 seeds: after/true max {max(ratios):.3f} "
           f"mean {np.mean(ratios):.3f}")  # fmt: skip
     assert max(ratios) <= 1.2
+
+
+@pytest.mark.slow
+def test_tracker_weights_many_seeds():
+    """Unweighted against data-sheet weighted: z statistics and flagged (false) outliers."""
+    stats = {}
+    for weighted in (False, True):
+        zs, flagged, noise = [], 0, []
+        for robot in ("kr500", "hp20d"):
+            for seed in range(30, 38):
+                data = emulated_campaign(robot, seed)
+                c = data.campaign
+                idm = c.mask("identify")
+                nominal = KinematicModel.from_description(data.cell.nominal)
+                sigma = tracker_sigma_mm(c.xyz_mm[idm]) if weighted else None
+                result = identify(nominal, c.q_rad[idm], c.xyz_mm[idm], point_sigma_mm=sigma)
+                zs.append(z_scores(data, result)[0])
+                flagged += int(result.outliers.sum())
+                if weighted:
+                    noise.append(result.sigma_mm / result.reference_sigma_mm)
+        z = np.concatenate(zs)
+        stats[weighted] = (np.sqrt(np.mean(z**2)), flagged)
+        extra = f", noise/stated {np.mean(noise):.3f}" if weighted else ""
+        label = "weighted" if weighted else "unweighted"
+        rms = stats[weighted][0]
+        print(f"\n{label}, 16 campaigns: rms z {rms:.3f}, flagged {flagged} of 1600 poses{extra}")
+    assert stats[True][1] <= stats[False][1]
+    assert 0.85 < stats[True][0] < 1.2
