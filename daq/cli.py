@@ -96,6 +96,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--no-record", action="store_true", help="do not record (emulated cell)")
     p.add_argument("--sim-config", help="emulated cell TOML for sim-cell (no --config only)")
+    p.add_argument(
+        "--rate", type=float, default=1000.0, help="emulated tracker/encoder rate, Hz (1000)"
+    )
     p.add_argument("--cell", help="cell name (key chunk)")
     _zenoh_args(p)
 

@@ -26,6 +26,7 @@ import struct
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -42,6 +43,7 @@ SCHEMA_ENCODING = "daq.columnar.schema.v1"
 MAGIC = b"DQC1"
 HEADER = struct.Struct("<4sHHIIQ")
 ALIGN = 8
+_ZEROS = bytes(ALIGN)
 
 #: Column dtypes allowed in a schema (numpy names; always little-endian on the wire).
 DTYPES: tuple[str, ...] = (
@@ -148,9 +150,17 @@ class StreamSchema:
         cols = [[c.name, c.dtype, list(c.shape)] for c in self.columns]
         return json.dumps({"format": FORMAT, "version": VERSION, "columns": cols}, sort_keys=True)
 
-    @property
+    @cached_property
     def schema_id(self) -> int:
         return zlib.crc32(self.layout_json().encode())
+
+    @cached_property
+    def plan(self) -> tuple[tuple[str, np.dtype, tuple[int, ...], int, int], ...]:
+        """Per column: name, little-endian dtype, shape, values per sample, bytes per value."""
+        return tuple(
+            (c.name, _le(c.dtype), c.shape, c.per_sample, np.dtype(c.dtype).itemsize)
+            for c in self.columns
+        )
 
     def column(self, name: str) -> Column:
         for c in self.columns:
@@ -221,37 +231,36 @@ def _padded(nbytes: int) -> int:
 
 
 def payload_size(schema: StreamSchema, n: int) -> int:
-    return HEADER.size + sum(
-        _padded(n * c.per_sample * np.dtype(c.dtype).itemsize) for c in schema.columns
-    )
+    return HEADER.size + sum(_padded(n * per * size) for _, _, _, per, size in schema.plan)
 
 
 def encode(schema: StreamSchema, columns: Mapping[str, ArrayLike], batch_seq: int) -> bytes:
     """One payload from column arrays (each ``(N, *shape)``; every schema column needed)."""
-    first = schema.columns[0].name
-    if first not in columns:
-        raise SchemaError(f"encode {schema.key!r}: missing column {first!r}")
-    n = int(np.shape(columns[first])[0]) if np.ndim(columns[first]) else 1
-    buf = bytearray(payload_size(schema, n))
-    HEADER.pack_into(buf, 0, MAGIC, VERSION, 0, schema.schema_id, n, batch_seq)
-    offset = HEADER.size
-    for col in schema.columns:
+    plan = schema.plan
+    try:
+        n = len(columns[plan[0][0]])  # type: ignore[arg-type]
+    except KeyError:
+        raise SchemaError(f"encode {schema.key!r}: missing column {plan[0][0]!r}") from None
+    parts = [HEADER.pack(MAGIC, VERSION, 0, schema.schema_id, n, batch_seq)]
+    for name, dt, shape, per, size in plan:
         try:
-            values = columns[col.name]
+            arr = columns[name]
         except KeyError:
-            raise SchemaError(f"encode {schema.key!r}: missing column {col.name!r}") from None
-        arr = np.asarray(values)
-        if arr.shape != (n, *col.shape):
+            raise SchemaError(f"encode {schema.key!r}: missing column {name!r}") from None
+        if not isinstance(arr, np.ndarray):
+            arr = np.asarray(arr)
+        if arr.shape != (n, *shape):
             raise SchemaError(
-                f"encode {schema.key!r}: column {col.name!r} has shape {arr.shape}, "
-                f"expected {(n, *col.shape)}"
+                f"encode {schema.key!r}: column {name!r} has shape {arr.shape}, "
+                f"expected {(n, *shape)}"
             )
-        count = n * col.per_sample
-        if count:
-            dst = np.frombuffer(buf, dtype=_le(col.dtype), count=count, offset=offset)
-            dst[:] = arr.reshape(-1)
-        offset += _padded(count * np.dtype(col.dtype).itemsize)
-    return bytes(buf)
+        if arr.dtype != dt:
+            arr = arr.astype(dt)
+        parts.append(arr.tobytes())
+        pad = -(n * per * size) % ALIGN
+        if pad:
+            parts.append(_ZEROS[:pad])
+    return b"".join(parts)
 
 
 def read_header(payload: bytes | bytearray | memoryview) -> Header:
@@ -284,9 +293,9 @@ def decode(
         )
     out: dict[str, NDArray[Any]] = {}
     offset = HEADER.size
-    for col in schema.columns:
-        count = n * col.per_sample
-        arr = np.frombuffer(payload, dtype=_le(col.dtype), count=count, offset=offset)
-        out[col.name] = arr.reshape((n, *col.shape))
-        offset += _padded(count * np.dtype(col.dtype).itemsize)
+    for name, dt, shape, per, size in schema.plan:
+        count = n * per
+        arr = np.frombuffer(payload, dtype=dt, count=count, offset=offset)
+        out[name] = arr.reshape((n, *shape))
+        offset += _padded(count * size)
     return header, out

@@ -56,8 +56,10 @@ def make_driver(dev: DeviceConfig) -> Any:
             raise ConfigError(f"[[device]] {dev.name!r}: key 'driver': {exc}") from exc
     from drivers.errors import DriverError
 
+    # TOML has no tuples: drivers declare sequence options as tuple
+    options = {k: tuple(v) if isinstance(v, list) else v for k, v in dev.options.items()}
     try:
-        return cls(dev.url, **dict(dev.options))
+        return cls(dev.url, **options)
     except DriverError as exc:
         raise ConfigError(f"[[device]] {dev.name!r}: key 'options': {exc}") from exc
 
@@ -219,7 +221,7 @@ def main_run(args: Any) -> int:
     if args.config is None and not _env_config():
         from daq.emulated import EmulatedCell
 
-        emulated = EmulatedCell(sim_config=args.sim_config)
+        emulated = EmulatedCell(sim_config=args.sim_config, rate_hz=args.rate)
         base = emulated.start()
         from daq.config import load
 

@@ -31,7 +31,7 @@ from daq.bus import ChannelPublisher, SchemaServer, channel_key, device_key
 from daq.clock_sync import DeviceClockMap
 from daq.columnar import Column, StreamSchema
 from daq.config import ChannelGroup, DaqConfig, DeviceConfig
-from daq.errors import ConfigError
+from daq.errors import ConfigError, TransportError
 from daq.recording import KIND_FOXGLOVE, BackgroundRecorder
 
 log = logging.getLogger(__name__)
@@ -39,7 +39,12 @@ log = logging.getLogger(__name__)
 HOST_CLOCK = "host_utc"
 DEFAULT_CHANNEL = "samples"
 #: status bit the daemon sets on a sample that follows a sequence gap (driver bits below)
-TIME_COLUMNS = ("seq", "epoch", "t_device_us", "t_host_rx_ns", "t_mapped_ns")
+TIME_COLUMNS = ("seq", "epoch", "t_device_us", "t_host_rx_ns", "t_mapped_ns", "t_mapped_ok")
+#: the clock fit is trusted once it has this many bucket minima (0.25 s each) ...
+SETTLED_POINTS = 8
+#: ... a plausible drift, and a tight lower envelope
+SETTLED_MAX_DRIFT_PPM = 1000.0
+SETTLED_MAX_RMS_NS = 2_000_000.0
 
 
 def build_schemas(
@@ -81,6 +86,12 @@ def build_schemas(
                 unit="ns",
                 clock=HOST_CLOCK,
                 description="device time mapped to the host clock (online offset+drift fit)",
+            ),
+            Column(
+                "t_mapped_ok",
+                "uint8",
+                description="1: the clock fit had settled when this sample was mapped; 0: "
+                "provisional (first seconds after a start or restart, backlog catch-up)",
             ),
         ]
         chans = [driver_schema.channels[i] for i in idx]
@@ -128,6 +139,8 @@ class Counters:
     samples_missing: int = 0  # samples those jumps skipped
     seq_breaks: int = 0  # sequence went back or repeated within an epoch
     epochs: int = 0  # device restarts seen (epoch changes)
+    time_gaps: int = 0  # device-clock steps > 1.5 periods within an epoch (needs rate_hz)
+    time_missing_s: float = 0.0  # device time those steps skipped beyond one period
     publish_errors: int = 0
     away_s: float = 0.0  # time not connected (after the first connection)
     window_samples: int = 0
@@ -172,6 +185,7 @@ class DeviceStream:
         self.clock = self._new_clock()
         self._epoch: int | None = None
         self._last_seq: int | None = None
+        self._last_t_dev: tuple[int, int] | None = None
         self._token: Any = None
         self._lock = threading.Lock()
         self._connected_once = False
@@ -305,27 +319,45 @@ class DeviceStream:
 
     # -- one batch ------------------------------------------------------------------------
     def _process(self, batches: list[Any]) -> None:
-        seq = np.concatenate([b.seq for b in batches])
-        t_dev = np.concatenate([b.t_device_us for b in batches])
-        epoch = np.concatenate([b.epoch for b in batches])
-        t_host = np.concatenate([b.t_host_ns for b in batches])
-        values = np.concatenate([b.values for b in batches])
-        status = np.concatenate([b.status for b in batches])
-        mapped = self._map(t_dev, epoch, t_host)
+        if len(batches) == 1:
+            b0 = batches[0]
+            seq, t_dev, epoch = b0.seq, b0.t_device_us, b0.epoch
+            t_host, values, status = b0.t_host_ns, b0.values, b0.status
+        else:
+            seq = np.concatenate([b.seq for b in batches])
+            t_dev = np.concatenate([b.t_device_us for b in batches])
+            epoch = np.concatenate([b.epoch for b in batches])
+            t_host = np.concatenate([b.t_host_ns for b in batches])
+            values = np.concatenate([b.values for b in batches])
+            status = np.concatenate([b.status for b in batches])
+        mapped, mapped_ok = self._map(t_dev, epoch, t_host)
         self._count_gaps(seq.astype(np.int64), epoch)
+        self._count_time_gaps(t_dev, epoch)
         c = self.counters
         n = len(seq)
         c.samples += n
         c.window_samples += n
         c.window_rx_delay_ns.append(t_host - mapped)
         off = self.utc_offset_ns
-        base = {
-            "seq": seq,
-            "epoch": epoch,
-            "t_device_us": t_dev,
-            "t_host_rx_ns": t_host + off,
-            "t_mapped_ns": mapped + off,
-        }
+        t_rx_utc = t_host + off
+        t_mapped_utc = mapped + off
+        step = self.cfg.publish.max_batch_samples
+        for a in range(0, n, step):
+            b = min(n, a + step)
+            base = {
+                "seq": seq[a:b],
+                "epoch": epoch[a:b],
+                "t_device_us": t_dev[a:b],
+                "t_host_rx_ns": t_rx_utc[a:b],
+                "t_mapped_ns": t_mapped_utc[a:b],
+                "t_mapped_ok": mapped_ok[a:b],
+            }
+            self._publish(base, values[a:b], status[a:b])
+
+    def _publish(
+        self, base: dict[str, NDArray[Any]], values: NDArray[Any], status: NDArray[Any]
+    ) -> None:
+        c = self.counters
         for gi, ((schema, idx), publisher) in enumerate(
             zip(self.groups, self.publishers, strict=True)
         ):
@@ -335,34 +367,38 @@ class DeviceStream:
             cols["status"] = status[:, idx]
             try:
                 payload = publisher.publish(cols)
+            except TransportError:  # closed under us while stopping
+                c.publish_errors += 1
+                continue
             except Exception:
                 c.publish_errors += 1
-                log.exception("%s: publish failed", schema.key)
+                if c.publish_errors & (c.publish_errors - 1) == 0:  # 1st, 2nd, 4th, ...
+                    log.exception("%s: publish failed", schema.key)
                 continue
             t_pub = time.time_ns()
             c.batches += 1
             c.bytes += len(payload)
-            if self.recorder is not None:
-                self.recorder.write(
-                    self.rec_ids[gi], payload, t_pub, t_pub, publisher.batch_seq - 1
+            if self.recorder is None:
+                continue
+            self.recorder.write(self.rec_ids[gi], payload, t_pub, t_pub, publisher.batch_seq - 1)
+            if gi != 0:
+                continue
+            for cid, name, (x, y, z) in self.fox:
+                xyz = np.stack([cols[x], cols[y], cols[z]], axis=1).astype(float)
+                t_last = int(cols["t_mapped_ns"][-1])
+                msg = (
+                    foxglove.poses_in_frame(t_last, self.dev.frame_id, xyz)
+                    if name == foxglove.POSES_IN_FRAME
+                    else foxglove.point_cloud(t_last, self.dev.frame_id, xyz)
                 )
-                for cid, name, (x, y, z) in self.fox:
-                    if gi != 0:
-                        break
-                    xyz = np.stack([cols[x], cols[y], cols[z]], axis=1).astype(float)
-                    t_last = int(cols["t_mapped_ns"][-1])
-                    msg = (
-                        foxglove.poses_in_frame(t_last, self.dev.frame_id, xyz)
-                        if name == foxglove.POSES_IN_FRAME
-                        else foxglove.point_cloud(t_last, self.dev.frame_id, xyz)
-                    )
-                    self.recorder.write(cid, msg, t_pub, t_pub)
+                self.recorder.write(cid, msg, t_pub, t_pub)
 
     def _map(
         self, t_dev: NDArray[np.int64], epoch: NDArray[np.int32], t_host: NDArray[np.int64]
-    ) -> NDArray[np.int64]:
-        """Mapped monotonic ns; a new clock map per device epoch (restart)."""
+    ) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
+        """Mapped monotonic ns and settled flags; a new clock map per device epoch."""
         out = np.empty_like(t_host)
+        ok = np.zeros(len(t_host), np.uint8)
         starts = np.flatnonzero(np.diff(epoch)) + 1
         bounds = [0, *starts.tolist(), len(epoch)]
         for a, b in itertools.pairwise(bounds):
@@ -372,14 +408,34 @@ class DeviceStream:
                 self.clock = self._new_clock()
                 self._last_seq = None
             self._epoch = ep
-            out[a:b] = self.clock.update(t_dev[a:b], t_host[a:b])
-        return out
+            td, th = t_dev[a:b], t_host[a:b]
+            # only the lowest apparent delay of a read matters to the lower-envelope fit:
+            # feed that one point, then map the whole run with the updated fit
+            k = int(np.argmin(th - td * 1000)) if b - a > 1 else 0
+            self.clock.update(td[k : k + 1], th[k : k + 1])
+            out[a:b] = self.clock.map(td)
+            q = self.clock.quality()
+            ok[a:b] = (
+                q.points >= SETTLED_POINTS
+                and abs(q.drift_ppm) < SETTLED_MAX_DRIFT_PPM
+                and q.envelope_rms_ns < SETTLED_MAX_RMS_NS
+            )
+        return out, ok
 
     def _count_gaps(self, seq: NDArray[np.int64], epoch: NDArray[np.int32]) -> None:
         if not len(seq):
             return
         c = self.counters
-        prev = np.concatenate([[seq[0] - 1 if self._last_seq is None else self._last_seq], seq])
+        last = self._last_seq
+        if (
+            last is not None
+            and int(seq[-1]) - last == len(seq)
+            and epoch[0] == epoch[-1]
+            and np.all(np.diff(seq) == 1)
+        ):
+            self._last_seq = int(seq[-1])
+            return  # contiguous: the common case
+        prev = np.concatenate([[seq[0] - 1 if last is None else last], seq])
         same = np.concatenate([[True], np.diff(epoch) == 0])
         d = np.diff(prev)
         jumps = same & (d > 1)
@@ -387,6 +443,21 @@ class DeviceStream:
         c.samples_missing += int(np.sum(d[jumps] - 1))
         c.seq_breaks += int(np.count_nonzero(same & (d < 1)))
         self._last_seq = int(seq[-1])
+
+    def _count_time_gaps(self, t_dev: NDArray[np.int64], epoch: NDArray[np.int32]) -> None:
+        """Gaps in device time: a driver may renumber its sequence across a reconnect."""
+        if self.dev.rate_hz is None or not len(t_dev):
+            return
+        period_us = 1e6 / self.dev.rate_hz
+        last = self._last_t_dev
+        prev = t_dev[0] if last is None or last[1] != int(epoch[0]) else last[0]
+        dt = np.diff(np.concatenate([[prev], t_dev]))
+        same = np.concatenate([[True], np.diff(epoch) == 0])
+        big = same & (dt > 1.5 * period_us)
+        if big.any():
+            self.counters.time_gaps += int(np.count_nonzero(big))
+            self.counters.time_missing_s += float(np.sum(dt[big] - period_us)) / 1e6
+        self._last_t_dev = (int(t_dev[-1]), int(epoch[-1]))
 
     # -- health ---------------------------------------------------------------------------
     def health(self, period_s: float) -> dict[str, Any]:
@@ -421,6 +492,8 @@ class DeviceStream:
             "gaps": c.gaps,
             "samples_missing": c.samples_missing,
             "seq_breaks": c.seq_breaks,
+            "time_gaps": c.time_gaps,
+            "time_missing_s": c.time_missing_s,
             "lost_samples": dc.get("lost_samples", 0),
             "crc_errors": dc.get("crc_errors", 0),
             "timeouts": dc.get("timeouts", 0),

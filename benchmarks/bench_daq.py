@@ -1,0 +1,323 @@
+"""Acquisition daemon benchmarks: throughput vs raw zenoh, full cell CPU/latency/loss, soak.
+
+Every figure comes from separate processes on loopback, measured in the same run:
+
+* ``throughput``: the daemon (``daq run``, a device source producing as fast as it can,
+  batches of ``B`` samples) → a subscriber process, in messages/s, against raw
+  eclipse-zenoh pub/sub of the *same payload bytes* (a publisher in this process, BLOCK
+  congestion control, the same subscriber code). Ratio = daemon / raw.
+* ``cell``: the full cell at 1 kHz per device (three devices), ``daq run`` → ``daq echo
+  --stats``: the daemon's CPU (its own process, from /proc), latency device → subscriber
+  p50/p99 (subscriber receive time − mapped device latch time, same host clock), and
+  sample loss (sequence gaps + lost batches seen by the subscriber).
+* ``--soak S``: the cell benchmark for S seconds (the 10-minute soak: ``--soak 600``).
+
+Devices: the emulated cell (``sim-cell``) when ``--emulated`` is given, else in-process
+fake devices (``daq.testing.FakeDriver``: a drifting µs clock, 1 kHz, no wire).
+
+    python -m benchmarks.bench_daq            # quick (~1 min)
+    python -m benchmarks.bench_daq --full     # longer windows
+    python -m benchmarks.bench_daq --soak 600 # 10-minute soak of the cell at 1 kHz/device
+
+``run(quick) -> list[dict]`` is the entry point for the generic runner.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+PY = sys.executable
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` (Linux /proc)."""
+    with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def _free_port() -> int:
+    from daq.testing import free_port
+
+    return free_port()
+
+
+def _sample_payload(batch: int) -> bytes:
+    """A daemon payload of ``batch`` samples of the fake 3-channel device (same layout)."""
+    from daq.columnar import encode
+    from daq.config import DaqConfig, DeviceConfig
+    from daq.pipeline import build_schemas
+    from daq.testing import FAKE_SCHEMA
+
+    cfg = DaqConfig()
+    dev = DeviceConfig(name="fake", driver="fake", url="fake://", robot="r1")
+    schema, _ = build_schemas(cfg, dev, FAKE_SCHEMA, 0)[0]
+    n = batch
+    cols = {
+        "seq": np.arange(n, dtype=np.uint64),
+        "epoch": np.zeros(n, np.int32),
+        "t_device_us": np.arange(n),
+        "t_host_rx_ns": np.full(n, time.time_ns()),
+        "t_mapped_ns": np.full(n, time.time_ns()),
+        "status": np.ones((n, 3), np.uint16),
+    }
+    for i in range(3):
+        cols[f"grating{i + 1}_counts"] = np.arange(n)
+    return encode(schema, cols, 0)
+
+
+# -- raw zenoh sink (a separate process) ----------------------------------------------------
+
+
+def _sink_main(port: int, key: str, seconds: float, idle_s: float) -> None:
+    import zenoh
+
+    from daq.bus import open_session
+    from daq.testing import loopback_sink
+
+    session = open_session(loopback_sink(port))
+    sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(1 << 16))
+    print(json.dumps({"ready": True}), flush=True)
+    n = nbytes = 0
+    t_first = t_last = 0.0
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        s = sub.try_recv()
+        if s is None:
+            if n and time.monotonic() - t_last > idle_s:
+                break
+            time.sleep(0.0002)
+            continue
+        t_last = time.monotonic()
+        if not n:
+            t_first = t_last
+        n += 1
+        nbytes += len(s.payload.to_bytes())
+    sub.undeclare()
+    session.close()
+    dt = max(1e-9, t_last - t_first)
+    print(json.dumps({"messages": n, "bytes": nbytes, "seconds": dt, "msg_per_s": (n - 1) / dt}))
+
+
+def _start_sink(port: int, key: str, seconds: float, idle_s: float = 1.0) -> subprocess.Popen:
+    code = (
+        "import sys; from benchmarks.bench_daq import _sink_main; "
+        f"_sink_main({port}, {key!r}, {seconds}, {idle_s})"
+    )
+    p = subprocess.Popen(
+        [PY, "-c", code], stdout=subprocess.PIPE, text=True, cwd=Path(__file__).parents[1]
+    )
+    assert p.stdout is not None
+    json.loads(p.stdout.readline())  # ready
+    return p
+
+
+def raw_zenoh_throughput(payload: bytes, seconds: float) -> dict[str, Any]:
+    """Raw pub/sub of ``payload`` over loopback: publisher here, subscriber process."""
+    import zenoh
+
+    from daq.bus import open_session
+    from daq.testing import loopback_source
+
+    port = _free_port()
+    session = open_session(loopback_source(port))
+    try:
+        sink = _start_sink(port, "bench/raw", seconds + 10)
+        pub = session.declare_publisher(
+            "bench/raw", congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        t_end = time.monotonic() + 5
+        while not pub.matching_status.matching and time.monotonic() < t_end:
+            time.sleep(0.01)
+        t_end = time.monotonic() + seconds
+        sent = 0
+        while time.monotonic() < t_end:  # bounded by time
+            for _ in range(100):
+                pub.put(payload)
+            sent += 100
+        out, _ = sink.communicate(timeout=seconds + 30)
+        res = json.loads(out.strip().splitlines()[-1])
+        res["sent"] = sent
+        pub.undeclare()
+        return res
+    finally:
+        session.close()
+
+
+def _cell_config(port: int, devices: int, rate_hz: float, batch: int, age_s: float) -> str:
+    out = [
+        '[cell]\nname = "bench"\nrobot = "r1"\n',
+        f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n',
+        f"[publish]\nmax_batch_samples = {batch}\nmax_batch_age_s = {age_s}\n",
+    ]
+    for i in range(devices):
+        out.append(
+            f'[[device]]\nname = "dev{i + 1}"\ndriver = "daq.testing:FakeDriver"\n'
+            f'url = "fake://{i}"\nrate_hz = {rate_hz}\noptions = {{ rate_hz = {rate_hz} }}\n'
+        )
+    return "\n".join(out)
+
+
+def _run_daemon_and_echo(
+    config_text: str | None, port: int, seconds: float, warmup_s: float = 2.0
+) -> dict[str, Any]:
+    """``daq run`` for ``seconds`` + ``daq echo --stats``; CPU of the daemon process."""
+    with tempfile.TemporaryDirectory() as tmp:
+        args = [PY, "-m", "daq.cli", "run", "--duration", str(seconds + warmup_s)]
+        if config_text is not None:
+            cfg = Path(tmp) / "cell.toml"
+            cfg.write_text(config_text)
+            args += ["--config", str(cfg)]
+        else:
+            args += ["--no-record", "--listen", f"tcp/127.0.0.1:{port}"]
+        d = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert d.stdout is not None
+        started = json.loads(d.stdout.readline())
+        e = subprocess.Popen(
+            [PY, "-m", "daq.cli", "echo", "cell/**", "--stats", "--idle", "3",
+             "--duration", str(seconds + warmup_s + 30), "--connect", f"tcp/127.0.0.1:{port}"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        time.sleep(warmup_s)
+        c0, t0 = _cpu_s(d.pid), time.monotonic()
+        time.sleep(max(0.0, seconds - 0.5))
+        c1, t1 = _cpu_s(d.pid), time.monotonic()
+        out, err = d.communicate(timeout=seconds + 60)
+        e_out, _ = e.communicate(timeout=60)
+        if d.returncode != 0:
+            raise RuntimeError(f"daq run failed: {err[-2000:]}")
+        stats = json.loads(e_out.strip().splitlines()[-1])
+        summary = json.loads(out.strip().splitlines()[-1])
+    return {
+        "started": started,
+        "summary": summary,
+        "echo": stats,
+        "cpu_fraction": (c1 - c0) / (t1 - t0),
+    }
+
+
+def daemon_throughput(batch: int, seconds: float) -> dict[str, Any]:
+    """``daq run`` with a source far faster than it (full batches back to back) → the same
+    counting subscriber process as the raw measurement."""
+    port = _free_port()
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = Path(tmp) / "cell.toml"
+        cfg.write_text(_cell_config(port, 1, 5e6, batch, 0.0))
+        d = subprocess.Popen(
+            [PY, "-m", "daq.cli", "run", "--config", str(cfg), "--duration", str(seconds + 1)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        assert d.stdout is not None
+        json.loads(d.stdout.readline())
+        sink = _start_sink(port, "cell/**", seconds + 30)
+        time.sleep(0.5)
+        c0, t0 = _cpu_s(d.pid), time.monotonic()
+        time.sleep(max(0.1, seconds - 1.0))
+        c1, t1 = _cpu_s(d.pid), time.monotonic()
+        _, err = d.communicate(timeout=seconds + 60)
+        out, _ = sink.communicate(timeout=60)
+        if d.returncode != 0:
+            raise RuntimeError(f"daq run failed: {err[-2000:]}")
+    res = json.loads(out.strip().splitlines()[-1])
+    res["cpu_fraction"] = (c1 - c0) / (t1 - t0)
+    return res
+
+
+def throughput(seconds: float, batch: int = 100) -> dict[str, Any]:
+    payload = _sample_payload(batch)
+    raw = raw_zenoh_throughput(payload, seconds)
+    dmn = daemon_throughput(batch, seconds)
+    return {
+        "payload_bytes": len(payload),
+        "batch_samples": batch,
+        "raw_msg_per_s": raw["msg_per_s"],
+        "daemon_msg_per_s": dmn["msg_per_s"],
+        "daemon_samples_per_s": dmn["msg_per_s"] * batch,
+        "ratio": dmn["msg_per_s"] / raw["msg_per_s"],
+        "daemon_cpu_fraction": dmn["cpu_fraction"],
+    }
+
+
+def cell(seconds: float, emulated: bool = False) -> dict[str, Any]:
+    port = _free_port()
+    text = None if emulated else _cell_config(port, 3, 1000.0, 500, 0.001)
+    res = _run_daemon_and_echo(text, port, seconds)
+    keys = res["echo"]["keys"]
+    lat_m = [v["latency_mapped_ms"] for v in keys.values() if "latency_mapped_ms" in v]
+    lat_r = [v["latency_rx_ms"] for v in keys.values() if "latency_rx_ms" in v]
+    samples = sum(v["samples"] for v in keys.values())
+    loss = sum(v["seq_gaps"] + v["lost_batches"] for v in keys.values())
+    return {
+        "devices": len(keys),
+        "seconds": seconds,
+        "samples_received": samples,
+        "loss_samples": loss,
+        "loss_fraction": loss / max(1, samples + loss),
+        "latency_p50_ms": max(x["p50"] for x in lat_m),
+        "latency_p99_ms": max(x["p99"] for x in lat_m),
+        "latency_rx_p50_ms": max(x["p50"] for x in lat_r),
+        "latency_rx_p99_ms": max(x["p99"] for x in lat_r),
+        "daemon_cpu_fraction": res["cpu_fraction"],
+        "per_key": keys,
+    }
+
+
+def run(quick: bool = True, emulated: bool = False) -> list[dict[str, Any]]:
+    """Benchmarks as a list of ``{name, value, unit, ...}`` records."""
+    out = []
+    for batch in (100, 1000):
+        t = throughput(3.0 if quick else 10.0, batch)
+        out.append(
+            {
+                "name": f"daq throughput vs raw zenoh ({batch}-sample batches)",
+                "value": t["ratio"],
+                "unit": "ratio",
+                "target": ">= 0.5",
+                "details": t,
+            }
+        )
+    c = cell(10.0 if quick else 60.0, emulated=emulated)
+    src = "emulated cell" if emulated else "fake devices"
+    return [
+        *out,
+        {"name": f"daq latency p50 device->subscriber ({src}, 1 kHz x3)",
+         "value": c["latency_p50_ms"], "unit": "ms"},
+        {"name": f"daq latency p99 device->subscriber ({src}, 1 kHz x3)",
+         "value": c["latency_p99_ms"], "unit": "ms", "target": "< 5"},
+        {"name": f"daq daemon CPU ({src}, 1 kHz x3)", "value": c["daemon_cpu_fraction"],
+         "unit": "cores"},
+        {"name": f"daq sample loss ({src}, 1 kHz x3, {c['seconds']:.0f} s)",
+         "value": c["loss_samples"], "unit": "samples", "target": "0",
+         "details": {k: v for k, v in c.items() if k != "per_key"}},
+    ]  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.bench_daq", description=__doc__)
+    ap.add_argument("--full", action="store_true", help="longer windows")
+    ap.add_argument("--soak", type=float, metavar="S", help="only the cell benchmark, S seconds")
+    ap.add_argument("--emulated", action="store_true", help="the emulated cell (sim-cell)")
+    args = ap.parse_args(argv)
+    if args.soak:
+        res = cell(args.soak, emulated=args.emulated)
+        res.pop("per_key")
+        print(json.dumps({"soak": res}, indent=1))
+        return 0 if res["loss_samples"] == 0 else 1
+    for r in run(quick=not args.full, emulated=args.emulated):
+        print(json.dumps(r))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
