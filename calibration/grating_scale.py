@@ -374,7 +374,7 @@ class JointScaleResult:
     stop_angle_std_deg: FloatArray  # (S,) its standard deviation (common offset excluded)
     residual_deg: FloatArray  # (S,) circle angle minus relation (NaN for dropped stops)
     used: NDArray[np.bool_]  # (S,) stops used in the relation
-    dropped: tuple[tuple[int, str], ...]  # (stop index, reason)
+    dropped: tuple[tuple[int, str], ...]  # (index in the JointSweep, reason with pass/step/row)
     variance_factor: float  # GLS s² (tracker noise relative to the weights)
     crb_covariance_rad2: FloatArray  # (p, p) bound on the relation coefficients (rad units)
     notes: tuple[str, ...] = ()
@@ -780,11 +780,16 @@ def calibrate_joint(
         stop_angle_std_deg=np.degrees(np.sqrt(final.s2 * np.maximum(var_stop, 0.0))),
         residual_deg=np.where(inlier, np.degrees(resid), np.nan),
         used=inlier.copy(),
-        dropped=tuple(dropped),
+        dropped=tuple((i, why + _stop_label(sweep, i)) for i, why in dropped),
         variance_factor=final.s2,
         crb_covariance_rad2=crb,
         notes=tuple(notes),
     )
+
+
+def _stop_label(sweep: JointSweep, i: int) -> str:
+    row = f", row {sweep.rows[i]}" if sweep.rows is not None else ""
+    return f" ({sweep.pass_name[i]} step {sweep.step[i]}{row})"
 
 
 def _select_terms(

@@ -183,7 +183,12 @@ def plot_residuals(results: Sequence[JointScaleResult], path: str | Path) -> Pat
             )
         order = np.argsort(r.stop_angle_deg)
         ax.fill_between(
-            r.stop_angle_deg[order], -2 * std[order], 2 * std[order], color="0.85", label="±2σ"
+            r.stop_angle_deg[order],
+            -2 * std[order],
+            2 * std[order],
+            color="0.85",
+            label="±2σ",
+            zorder=0,
         )
         ax.axhline(0.0, color="0.4", lw=0.6)
         ax.set_ylabel(f"joint {r.joint}\nresidual ″")
