@@ -181,3 +181,20 @@ def test_campaign_generator_command(tmp_path):
     assert len(camp) == 40 and camp.mask("identify").sum() == 30
     assert np.all(np.diff(camp.t_s) > 0) and camp.encoder_deg is not None
     assert len(set(camp.pose)) == 40
+
+
+def test_identify_without_base_guess_registers(campaign, tmp_path, capsys):
+    _, path, data = campaign
+    robot = tmp_path / "robot.toml"
+    replace(load_robot("kr500"), base=None).save(robot)
+    out = tmp_path / "cal.toml"
+    rc = main(["identify", "--robot", str(robot), "--data", str(path), "--out", str(out)])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    assert "base start: registration" in captured.err
+    calibrated = load_robot(out)
+    assert calibrated.base is not None
+    # the base absorbs joint 1's deviations (dropped: held nominal), a few 0.1 mm and 0.01°
+    truth_base = data.cell.truth.base
+    assert abs(calibrated.base.x_mm - truth_base.x_mm) < 2.0
+    assert abs(calibrated.base.rz_deg - truth_base.rz_deg) < 0.1
