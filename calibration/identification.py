@@ -196,9 +196,11 @@ def levenberg_marquardt(
                 accepted = True
                 mu = max(mu * settings.decrease, 1e-12)
                 break
+            if norm_new - norm <= settings.tol_mm:
+                break  # at the minimum: a step changes the error norm by <= tol_mm
             mu *= settings.increase
         if not accepted:
-            status = -1
+            status = 1 if norm_new - norm <= settings.tol_mm else -1
             break
         change = norm - norm_new
         x, f, norm = x_new, f_new, norm_new

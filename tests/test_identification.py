@@ -265,6 +265,18 @@ def test_tracker_weights(case):
         identify(nominal, c.q_rad[idm], c.xyz_mm[idm], point_sigma_mm=-sigma)
 
 
+def test_noise_free_data_converge_to_the_truth():
+    data = emulated_campaign("kr500", 12, CampaignSettings(selection=None, n_validate=0))
+    nominal = KinematicModel.from_description(data.cell.nominal)
+    result = identify(nominal, data.q_true_rad, data.tcp_true_mm)
+    assert result.success, result.optimize_result.message
+    resid = np.linalg.norm(result.residuals_mm(data.q_true_rad, data.tcp_true_mm), axis=1)
+    assert resid.max() < 1e-6
+    # started at the optimum, the solver stops at once and says it converged
+    again = identify(result.model, data.q_true_rad, data.tcp_true_mm)
+    assert again.success and again.optimize_result.nit <= 2
+
+
 def test_bad_arguments_raise_calibration_errors():
     model = KinematicModel.from_description(load_robot("kr500"))
     q = np.zeros((10, 6))
