@@ -5,6 +5,7 @@ This package never imports ``sim_devices``: the twin must not know the emulator'
 
 from calibration.description import RobotDescription, load_robot, preset_names
 from calibration.errors import CalibrationError, DataFileError, DescriptionError
+from calibration.inverse_kinematics import IKResult, JointLimits, select_solution, solve_ik
 from calibration.kinematics import (
     KinematicModel,
     flange_poses,
@@ -17,6 +18,8 @@ __all__ = [
     "CalibrationError",
     "DataFileError",
     "DescriptionError",
+    "IKResult",
+    "JointLimits",
     "KinematicModel",
     "RobotDescription",
     "flange_poses",
@@ -24,5 +27,7 @@ __all__ = [
     "identification_jacobian",
     "load_robot",
     "preset_names",
+    "select_solution",
+    "solve_ik",
     "tcp_positions",
 ]

@@ -58,7 +58,7 @@ def rotation_from_fixed_xyz(rx: float, ry: float, rz: float) -> FloatArray:
 
 def fixed_xyz_from_rotation(r: FloatArray) -> tuple[float, float, float]:
     """Inverse of :func:`rotation_from_fixed_xyz` (rad); ry in [-pi/2, pi/2]."""
-    ry = float(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0)))
+    ry = float(np.arctan2(-r[2, 0], np.hypot(r[0, 0], r[1, 0])))  # exact near ±90° too
     rx = float(np.arctan2(r[2, 1], r[2, 2]))
     rz = float(np.arctan2(r[1, 0], r[0, 0]))
     return rx, ry, rz
