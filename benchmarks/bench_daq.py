@@ -15,8 +15,8 @@ Every figure comes from separate processes on loopback, measured in the same run
 Devices: the emulated cell (``sim-cell``) when ``--emulated`` is given, else in-process
 fake devices (``daq.testing.FakeDriver``: a drifting µs clock, 1 kHz, no wire).
 
-    python -m benchmarks.bench_daq            # quick (~1 min)
-    python -m benchmarks.bench_daq --full     # longer windows
+    python -m benchmarks.bench_daq            # quick smoke run (~15 s)
+    python -m benchmarks.bench_daq --full     # 10 s throughput windows, 60 s cell
     python -m benchmarks.bench_daq --soak 600 # 10-minute soak of the cell at 1 kHz/device
 
 ``run(quick) -> list[dict]`` is the entry point for the generic runner.
@@ -70,6 +70,7 @@ def _sample_payload(batch: int) -> bytes:
         "t_device_us": np.arange(n),
         "t_host_rx_ns": np.full(n, time.time_ns()),
         "t_mapped_ns": np.full(n, time.time_ns()),
+        "t_mapped_ok": np.ones(n, np.uint8),
         "status": np.ones((n, 3), np.uint16),
     }
     for i in range(3):
@@ -194,9 +195,11 @@ def _run_daemon_and_echo(
         time.sleep(max(0.0, seconds - 0.5))
         c1, t1 = _cpu_s(d.pid), time.monotonic()
         out, err = d.communicate(timeout=seconds + 60)
-        e_out, _ = e.communicate(timeout=60)
+        e_out, e_err = e.communicate(timeout=60)
         if d.returncode != 0:
             raise RuntimeError(f"daq run failed: {err[-2000:]}")
+        if not e_out.strip():
+            raise RuntimeError(f"daq echo failed: {e_err[-2000:]}")
         stats = json.loads(e_out.strip().splitlines()[-1])
         summary = json.loads(out.strip().splitlines()[-1])
     return {
@@ -274,33 +277,38 @@ def cell(seconds: float, emulated: bool = False) -> dict[str, Any]:
 
 
 def run(quick: bool = True, emulated: bool = False) -> list[dict[str, Any]]:
-    """Benchmarks as a list of ``{name, value, unit, ...}`` records."""
-    out = []
-    for batch in (100, 1000):
-        t = throughput(3.0 if quick else 10.0, batch)
-        out.append(
+    """Flat rows for ``python -m benchmarks`` (quick: a smoke run of a few seconds)."""
+    rows: list[dict[str, Any]] = []
+    for batch in (100,) if quick else (100, 1000):
+        t = throughput(1.5 if quick else 10.0, batch)
+        rows.append(
             {
-                "name": f"daq throughput vs raw zenoh ({batch}-sample batches)",
-                "value": t["ratio"],
-                "unit": "ratio",
-                "target": ">= 0.5",
-                "details": t,
+                "benchmark": f"throughput vs raw zenoh, {batch}-sample batches",
+                "payload_bytes": t["payload_bytes"],
+                "daemon_msg_per_s": t["daemon_msg_per_s"],
+                "raw_msg_per_s": t["raw_msg_per_s"],
+                "ratio_vs_raw": t["ratio"],
+                "daemon_cpu": t["daemon_cpu_fraction"],
+                "note": "same payload bytes, same subscriber process, BLOCK",
             }
         )
-    c = cell(10.0 if quick else 60.0, emulated=emulated)
-    src = "emulated cell" if emulated else "fake devices"
-    return [
-        *out,
-        {"name": f"daq latency p50 device->subscriber ({src}, 1 kHz x3)",
-         "value": c["latency_p50_ms"], "unit": "ms"},
-        {"name": f"daq latency p99 device->subscriber ({src}, 1 kHz x3)",
-         "value": c["latency_p99_ms"], "unit": "ms", "target": "< 5"},
-        {"name": f"daq daemon CPU ({src}, 1 kHz x3)", "value": c["daemon_cpu_fraction"],
-         "unit": "cores"},
-        {"name": f"daq sample loss ({src}, 1 kHz x3, {c['seconds']:.0f} s)",
-         "value": c["loss_samples"], "unit": "samples", "target": "0",
-         "details": {k: v for k, v in c.items() if k != "per_key"}},
-    ]  # fmt: skip
+    c = cell(3.0 if quick else 60.0, emulated=emulated)
+    rows.append(
+        {
+            "benchmark": "cell 3 devices at 1 kHz, "
+            + ("emulated (sim-cell)" if emulated else "fake devices"),
+            "seconds": c["seconds"],
+            "samples": c["samples_received"],
+            "loss_samples": c["loss_samples"],
+            "latency_p50_ms": c["latency_p50_ms"],
+            "latency_p99_ms": c["latency_p99_ms"],
+            "rx_to_sub_p50_ms": c["latency_rx_p50_ms"],
+            "rx_to_sub_p99_ms": c["latency_rx_p99_ms"],
+            "daemon_cpu": c["daemon_cpu_fraction"],
+            "note": "latency: subscriber receive - mapped device latch time (worst device)",
+        }
+    )
+    return rows
 
 
 def main(argv: list[str] | None = None) -> int:

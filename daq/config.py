@@ -75,7 +75,7 @@ class ZenohConfig:
 @dataclass(frozen=True)
 class PublishConfig:
     max_batch_samples: int = 500
-    max_batch_age_s: float = 0.002
+    max_batch_age_s: float = 0.001
     health_period_s: float = 1.0
     read_timeout_s: float = 0.002
 

@@ -31,6 +31,7 @@ class KeyStats:
     seq_gaps: int = 0  # samples missing by the device sequence number
     seq_breaks: int = 0  # sequence number went back (device restart) or repeated
     out_of_order: int = 0  # mapped time went back within an epoch
+    unsettled: int = 0  # samples mapped before the clock fit settled (t_mapped_ok = 0)
     first_seq: int | None = None
     last_seq: int | None = None
     last_batch: int | None = None
@@ -68,6 +69,10 @@ class KeyStats:
             self.out_of_order += int(np.sum(same & (dt < 0)))
             self.last_t_mapped = int(tm[-1])
             if self.kept < LATENCY_KEEP:
+                if "t_mapped_ok" in cols:  # a provisional clock fit says nothing of latency
+                    ok = cols["t_mapped_ok"] == 1
+                    self.unsettled += int(n - np.count_nonzero(ok))
+                    tm = tm[ok]
                 self.lat_mapped_ns.append(t_recv_ns - tm)
                 if "t_host_rx_ns" in cols:
                     self.lat_rx_ns.append(t_recv_ns - cols["t_host_rx_ns"].astype(np.int64))
@@ -83,14 +88,15 @@ class KeyStats:
                 "seq_gaps",
                 "seq_breaks",
                 "out_of_order",
+                "unsettled",
                 "first_seq",
                 "last_seq",
             )
         }
         lat = (("latency_mapped_ms", self.lat_mapped_ns), ("latency_rx_ms", self.lat_rx_ns))
         for name, parts in lat:
-            if parts:
-                v = np.concatenate(parts) / 1e6
+            v = np.concatenate(parts) / 1e6 if parts else np.empty(0)
+            if v.size:
                 out[name] = {
                     "p50": float(np.percentile(v, 50)),
                     "p99": float(np.percentile(v, 99)),

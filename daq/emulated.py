@@ -116,7 +116,7 @@ class EmulatedCell:
                         "driver": r.get("driver", "tracker_ascii"),
                         "url": r["url"],
                         "rate_hz": self.rate_hz,
-                        "options": {"rate_hz": self.rate_hz},
+                        "options": {"rate_hz": self.rate_hz, "poll_s": 0.001},
                         "foxglove": "points",
                     }
                 )
