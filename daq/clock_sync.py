@@ -207,11 +207,7 @@ class DeviceClockMap:
 
     def quality(self) -> ClockFitQuality:
         a, b = self._fit
-        offset = (
-            self._host0
-            + round(a * 1e9)
-            - round((self._dev0 or 0) * self.tick_s * b * 1e9)
-        )
+        offset = self._host0 + round(a * 1e9) - round((self._dev0 or 0) * self.tick_s * b * 1e9)
         return ClockFitQuality(
             offset_ns=offset,
             drift_ppm=(b - 1.0) * 1e6,
