@@ -78,6 +78,7 @@ class PublishConfig:
     max_batch_age_s: float = 0.001
     health_period_s: float = 1.0
     read_timeout_s: float = 0.002
+    gil_switch_s: float = 0.0005  # sys.setswitchinterval for the daemon (0: Python's 5 ms)
 
 
 @dataclass(frozen=True)
@@ -292,6 +293,9 @@ def _parse_publish(t: Mapping[str, Any], w: _Where) -> PublishConfig:
             t.get("read_timeout_s", d.read_timeout_s),
             w("[publish]", "read_timeout_s"),
             positive=True,
+        ),
+        gil_switch_s=_number(
+            t.get("gil_switch_s", d.gil_switch_s), w("[publish]", "gil_switch_s"), minimum=0.0
         ),
     )
 

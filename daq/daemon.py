@@ -82,6 +82,11 @@ class Daemon:
     ) -> None:
         self.cfg = cfg
         self.stop = threading.Event()
+        # device threads wait for the GIL up to the switch interval (5 ms by default):
+        # a shorter one bounds the latency a busy thread adds to another device's samples
+        interval = cfg.publish.gil_switch_s
+        if interval > 0:
+            sys.setswitchinterval(min(sys.getswitchinterval(), interval))
         self.utc_offset_ns = utc_offset_ns()
         self.session = open_session(cfg.zenoh)
         self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")
