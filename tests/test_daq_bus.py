@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -21,6 +22,7 @@ from daq.bus import (
     zenoh_config,
 )
 from daq.columnar import Column, StreamSchema
+from daq.config import ZenohConfig
 from daq.testing import free_port, loopback_sink, loopback_source
 
 KEY = "cell/t/robot/r/dev/ch"
@@ -108,3 +110,58 @@ def test_schema_query_and_in_process_receiver():
     finally:
         dst.close()
         src.close()
+
+
+@pytest.mark.timeout(60)
+def test_router_mode_and_record_process(tmp_path):
+    """Daemon and subscribers as zenoh clients of a router (what zenohd does across hosts;
+    here a Python session in router mode), and ``daq record`` as a separate recorder."""
+    from daq.config import load
+    from daq.daemon import Daemon
+    from daq.recording import scan
+    from daq.testing import FakeDriver
+
+    rport = free_port()
+    router = open_session(ZenohConfig(mode="router", listen=(f"tcp/127.0.0.1:{rport}",)))
+    endpoint = f"tcp/127.0.0.1:{rport}"
+    cfg_path = tmp_path / "cell.toml"
+    cfg_path.write_text(
+        f'[cell]\nname = "rt"\n[zenoh]\nmode = "client"\nconnect = ["{endpoint}"]\n'
+        '[[device]]\nname = "fake"\ndriver = "daq.testing:FakeDriver"\nurl = "fake://"\n'
+    )
+    out = tmp_path / "rec.mcap"
+    common = ["--mode", "client", "--connect", endpoint]
+    echo = subprocess.Popen(
+        [sys.executable, "-m", "daq.cli", "echo", "cell/**", "--stats", "--ready",
+         "--duration", "30", "--idle", "2", *common],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    rec = subprocess.Popen(
+        [sys.executable, "-m", "daq.cli", "record", "cell/**", "-o", str(out),
+         "--duration", "6", *common],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert "ready" in echo.stderr.readline()
+        assert json.loads(rec.stdout.readline())["recording"] == str(out)
+        cfg = load(cfg_path, environ={})
+        with Daemon(cfg, driver_factory=lambda dev: FakeDriver(dev.url)) as daemon:
+            t = threading.Thread(target=daemon.run, args=(3.0,))
+            t.start()
+            time.sleep(1.0)
+            alive = [str(r.ok.key_expr) for r in router.liveliness().get("cell/**", timeout=2)]
+            t.join()
+            gone = [str(r.ok.key_expr) for r in router.liveliness().get("cell/**", timeout=1)]
+        assert alive == ["cell/rt/robot/robot1/fake"] and gone == []  # token per device
+        e_out, e_err = echo.communicate(timeout=30)
+        rec.communicate(timeout=30)
+    finally:
+        router.close()
+    stats = json.loads(e_out.strip().splitlines()[-1])
+    key = "cell/rt/robot/robot1/fake/samples"
+    assert stats["keys"][key]["samples"] > 1500, e_err
+    assert stats["keys"][key]["seq_gaps"] == 0
+    assert "cell/rt/robot/robot1/fake/health" in stats["health"]
+    recording, counts = scan(out)
+    assert recording.complete and counts[key] > 100
+    assert counts["cell/rt/robot/robot1/fake/health"] >= 2
