@@ -245,7 +245,7 @@ class DeviceStream:
                 log.debug("liveliness undeclare failed", exc_info=True)
 
     def _track_state(self) -> None:
-        state = getattr(self.driver, "_state", None) or self.driver.health().state
+        state = self.driver.health().state
         now = time.monotonic()
         connected = state == "connected"
         if connected:

@@ -156,3 +156,28 @@ def _channels(path: Path):
     for _ in rec.messages_iter():
         pass
     return rec.channels.values()
+
+
+def test_daq_run_without_config_records_the_emulated_cell(tmp_path):
+    port = free_port()
+    r = subprocess.run(
+        [sys.executable, "-m", "daq.cli", "run", "--duration", "3",
+         "--listen", f"tcp/127.0.0.1:{port}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    lines = [json.loads(x) for x in r.stdout.splitlines()]
+    path = tmp_path / lines[0]["recording"]
+    assert lines[0]["cell"] == "emulated" and path.name.startswith("daq-emulated-")
+    assert f"recorded to {lines[0]['recording']}" in r.stderr
+    assert {d["name"] for d in lines[0]["emulated"]} == {"grating", "tracker", "encoders"}
+    recording, counts = _scan(path)
+    assert recording.complete
+    for dev in ("grating", "tracker", "encoders"):
+        assert counts.get(f"cell/emulated/robot/robot1/{dev}/samples", 0) > 0, counts
+
+
+def _scan(path: Path):
+    from daq.recording import scan
+
+    return scan(path)
