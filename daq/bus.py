@@ -26,7 +26,15 @@ import numpy as np
 import zenoh
 from numpy.typing import NDArray
 
-from daq.columnar import ENCODING_NAME, Header, StreamSchema, decode, encode, read_header
+from daq.columnar import (
+    ENCODING_NAME,
+    Header,
+    StreamSchema,
+    decode,
+    encode,
+    encode_slices,
+    read_header,
+)
 from daq.config import ZenohConfig
 from daq.errors import SchemaError, TransportError
 
@@ -141,6 +149,14 @@ class ChannelPublisher:
         self.put(payload)
         self.batch_seq += 1
         return payload
+
+    def publish_slices(self, columns: dict[str, Any], step: int) -> list[bytes]:
+        """Encode and put consecutive batches of at most ``step`` samples."""
+        payloads = encode_slices(self.schema, columns, self.batch_seq, step)
+        for p in payloads:
+            self.put(p)
+            self.batch_seq += 1
+        return payloads
 
     def put(self, payload: bytes) -> None:
         if self._pub is None:

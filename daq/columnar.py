@@ -263,6 +263,47 @@ def encode(schema: StreamSchema, columns: Mapping[str, ArrayLike], batch_seq: in
     return b"".join(parts)
 
 
+def encode_slices(
+    schema: StreamSchema, columns: Mapping[str, ArrayLike], batch_seq: int, step: int
+) -> list[bytes]:
+    """Payloads of consecutive slices of at most ``step`` samples (``batch_seq`` counting
+    up from the given one); each equals ``encode`` of that slice. Every column is made
+    contiguous once, so a slice costs a few memoryview copies, not numpy calls."""
+    plan = schema.plan
+    try:
+        n = len(columns[plan[0][0]])  # type: ignore[arg-type]
+    except KeyError:
+        raise SchemaError(f"encode {schema.key!r}: missing column {plan[0][0]!r}") from None
+    if n <= step:
+        return [encode(schema, columns, batch_seq)]
+    bufs: list[tuple[memoryview, int]] = []
+    for name, dt, shape, per, size in plan:
+        try:
+            arr = np.asarray(columns[name])
+        except KeyError:
+            raise SchemaError(f"encode {schema.key!r}: missing column {name!r}") from None
+        if arr.shape != (n, *shape):
+            raise SchemaError(
+                f"encode {schema.key!r}: column {name!r} has shape {arr.shape}, "
+                f"expected {(n, *shape)}"
+            )
+        arr = np.ascontiguousarray(arr, dtype=dt)
+        bufs.append((memoryview(arr.reshape(-1).view(np.uint8)), per * size))
+    sid = schema.schema_id
+    out = []
+    for k, a in enumerate(range(0, n, step)):
+        m = min(step, n - a)
+        parts: list[bytes | memoryview] = [HEADER.pack(MAGIC, VERSION, 0, sid, m, batch_seq + k)]
+        for mv, row in bufs:
+            nbytes = m * row
+            parts.append(mv[a * row : a * row + nbytes])
+            pad = -nbytes % ALIGN
+            if pad:
+                parts.append(_ZEROS[:pad])
+        out.append(b"".join(parts))
+    return out
+
+
 def read_header(payload: bytes | bytearray | memoryview) -> Header:
     if len(payload) < HEADER.size:
         raise SchemaError(f"payload of {len(payload)} bytes is shorter than the header")

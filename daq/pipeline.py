@@ -339,25 +339,15 @@ class DeviceStream:
         c.window_samples += n
         c.window_rx_delay_ns.append(t_host - mapped)
         off = self.utc_offset_ns
-        t_rx_utc = t_host + off
-        t_mapped_utc = mapped + off
+        base = {
+            "seq": seq,
+            "epoch": epoch,
+            "t_device_us": t_dev,
+            "t_host_rx_ns": t_host + off,
+            "t_mapped_ns": mapped + off,
+            "t_mapped_ok": mapped_ok,
+        }
         step = self.cfg.publish.max_batch_samples
-        for a in range(0, n, step):
-            b = min(n, a + step)
-            base = {
-                "seq": seq[a:b],
-                "epoch": epoch[a:b],
-                "t_device_us": t_dev[a:b],
-                "t_host_rx_ns": t_rx_utc[a:b],
-                "t_mapped_ns": t_mapped_utc[a:b],
-                "t_mapped_ok": mapped_ok[a:b],
-            }
-            self._publish(base, values[a:b], status[a:b])
-
-    def _publish(
-        self, base: dict[str, NDArray[Any]], values: NDArray[Any], status: NDArray[Any]
-    ) -> None:
-        c = self.counters
         for gi, ((schema, idx), publisher) in enumerate(
             zip(self.groups, self.publishers, strict=True)
         ):
@@ -365,8 +355,9 @@ class DeviceStream:
             for j, col in zip(idx.tolist(), schema.columns[len(TIME_COLUMNS) :], strict=False):
                 cols[col.name] = values[:, j]
             cols["status"] = status[:, idx]
+            seq0 = publisher.batch_seq
             try:
-                payload = publisher.publish(cols)
+                payloads = publisher.publish_slices(cols, step)
             except TransportError:  # closed under us while stopping
                 c.publish_errors += 1
                 continue
@@ -376,22 +367,27 @@ class DeviceStream:
                     log.exception("%s: publish failed", schema.key)
                 continue
             t_pub = time.time_ns()
-            c.batches += 1
-            c.bytes += len(payload)
+            c.batches += len(payloads)
+            c.bytes += sum(len(p) for p in payloads)
             if self.recorder is None:
                 continue
-            self.recorder.write(self.rec_ids[gi], payload, t_pub, t_pub, publisher.batch_seq - 1)
-            if gi != 0:
-                continue
-            for cid, name, (x, y, z) in self.fox:
-                xyz = np.stack([cols[x], cols[y], cols[z]], axis=1).astype(float)
-                t_last = int(cols["t_mapped_ns"][-1])
-                msg = (
-                    foxglove.poses_in_frame(t_last, self.dev.frame_id, xyz)
-                    if name == foxglove.POSES_IN_FRAME
-                    else foxglove.point_cloud(t_last, self.dev.frame_id, xyz)
-                )
-                self.recorder.write(cid, msg, t_pub, t_pub)
+            for k, payload in enumerate(payloads):
+                self.recorder.write(self.rec_ids[gi], payload, t_pub, t_pub, seq0 + k)
+            if gi == 0:
+                for a in range(0, n, step):
+                    self._foxglove(cols, a, min(n, a + step), t_pub)
+
+    def _foxglove(self, cols: dict[str, Any], a: int, b: int, t_pub: int) -> None:
+        assert self.recorder is not None
+        for cid, name, (x, y, z) in self.fox:
+            xyz = np.stack([cols[x][a:b], cols[y][a:b], cols[z][a:b]], axis=1).astype(float)
+            t_last = int(cols["t_mapped_ns"][b - 1])
+            msg = (
+                foxglove.poses_in_frame(t_last, self.dev.frame_id, xyz)
+                if name == foxglove.POSES_IN_FRAME
+                else foxglove.point_cloud(t_last, self.dev.frame_id, xyz)
+            )
+            self.recorder.write(cid, msg, t_pub, t_pub)
 
     def _map(
         self, t_dev: NDArray[np.int64], epoch: NDArray[np.int32], t_host: NDArray[np.int64]

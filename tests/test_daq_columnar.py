@@ -78,3 +78,18 @@ def test_rejects_bad_payloads():
         encode(SCHEMA, {**columns(3, np.random.default_rng(1)), "xyz_mm": np.zeros((3, 2))}, 0)
     with pytest.raises(SchemaError, match="dtype"):
         Column("x", "object")
+
+
+@settings(max_examples=30, deadline=None)
+@given(n=st.integers(1, 400), step=st.integers(1, 120), seed=st.integers(0, 2**16))
+def test_encode_slices_equals_encode_of_each_slice(n, step, seed):
+    from daq.columnar import encode_slices
+
+    cols = columns(n, np.random.default_rng(seed))
+    cols["xyz_mm"] = cols["xyz_mm"][:, ::-1]  # a non-contiguous view
+    got = encode_slices(SCHEMA, cols, 5, step)
+    want = [
+        encode(SCHEMA, {k: v[a : a + step] for k, v in cols.items()}, 5 + i)
+        for i, a in enumerate(range(0, n, step))
+    ]
+    assert got == want
