@@ -12,15 +12,27 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
+import tomli_w
 from numpy.typing import NDArray
 
 from calibration.campaign_files import Campaign, write_campaign
 from calibration.description import RobotDescription, load_robot
 from calibration.kinematics import KinematicModel, flange_poses, tcp_positions
 from calibration.pose_selection import OBSERVABILITY_INDICES, select_poses_for_model
+from sim_devices.effects import (
+    EFFECT_NAMES,
+    UndeclaredEffects,
+    approach_direction,
+    deflection_stiffness_nmm_per_rad,
+    grating_reading_rad,
+    tracker_reading_mm,
+    true_tcp_mm,
+)
 from sim_devices.truth import TrueCell
 
 FloatArray = NDArray[np.float64]
@@ -130,6 +142,7 @@ class CampaignSettings:
     encoder_noise_deg: float = 0.002
     pose_time_s: tuple[float, float] = (8.0, 20.0)  # move, settle and measure, per pose
     encoders: bool = True
+    effects: UndeclaredEffects = field(default_factory=UndeclaredEffects)  # off by default
 
 
 @dataclass(frozen=True)
@@ -137,13 +150,36 @@ class CampaignData:
     """An emulated campaign and its hidden truth."""
 
     campaign: Campaign
-    q_true_rad: FloatArray  # (m, n) true joint angles
-    tcp_true_mm: FloatArray  # (m, 3) true TCP in the tracker frame
+    q_true_rad: FloatArray  # (m, n) true joint angles (of the grating rings)
+    tcp_true_mm: FloatArray  # (m, 3) true TCP in the tracker frame, physical effects included
     cell: TrueCell
+    #: (m, 3) what a noise-free tracker reads: the true model's prediction of the points
+    #: (tcp_true_mm with the tracker's own scale error); None: same as tcp_true_mm
+    expected_mm: FloatArray | None = None
+    effects: UndeclaredEffects = field(default_factory=UndeclaredEffects)
 
     @property
     def true_model(self) -> KinematicModel:
         return self.cell.model
+
+    @property
+    def true_prediction_mm(self) -> FloatArray:
+        """The true model's (noise-free) prediction of every measured point ``(m, 3)`` mm."""
+        return self.tcp_true_mm if self.expected_mm is None else self.expected_mm
+
+    def truth_document(self) -> dict[str, Any]:
+        """The cell's truth plus the undeclared effects and their derived parameters."""
+        doc = self.cell.truth_document()
+        eff = self.effects.document()
+        if self.effects.gravity_deflection:
+            k = deflection_stiffness_nmm_per_rad(self.effects, self.cell.truth)
+            eff["derived_stiffness_nmm_per_rad"] = [float(v) if np.isfinite(v) else 0.0 for v in k]
+        doc["undeclared_effects"] = eff
+        return doc
+
+    def write_truth(self, path: str | Path) -> None:
+        """Write the truth for tests (the twin never reads this file); 0 stiffness = rigid."""
+        Path(path).write_text(tomli_w.dumps(self.truth_document()), encoding="utf-8")
 
 
 def generate_campaign(
@@ -151,12 +187,18 @@ def generate_campaign(
     rng: np.random.Generator,
     settings: CampaignSettings = CampaignSettings(),
 ) -> CampaignData:
-    """Run an emulated campaign on ``cell``: identification poses then validation poses."""
+    """Run an emulated campaign on ``cell``: identification poses then validation poses.
+
+    ``settings.effects`` switches on undeclared effects (:mod:`sim_devices.effects`). The
+    random draws are the same with and without them, so a campaign with an effect differs
+    from the clean one of the same seed by the effect alone (the tracker's noise σ is taken
+    at the effect-free point; sub-mm displacements change it by < 1e-9 mm).
+    """
     nominal = cell.nominal
     q_id = plan_identification_poses(nominal, settings.n_identify, rng, index=settings.selection)
     q_val = sample_reachable_poses(nominal, settings.n_validate, rng)
     q_true = np.vstack([q_id, q_val])
-    m, n = q_true.shape
+    m = len(q_true)
     tcp = cell.tcp_mm(q_true)
     measured, ok = cell.tracker.measure(tcp, rng)
     for _ in range(100):  # a broken beam is measured again
@@ -165,13 +207,20 @@ def generate_campaign(
         again, ok_again = cell.tracker.measure(tcp[~ok], rng)
         measured[~ok] = again
         ok[~ok] = ok_again
-    grating = q_true * (1.0 + 1e-6 * settings.grating_scale_error_ppm)
+    eff = settings.effects
+    grating = grating_reading_rad(eff, q_true) * (1.0 + 1e-6 * settings.grating_scale_error_ppm)
     grating = grating + np.radians(rng.normal(0.0, settings.grating_noise_deg, q_true.shape))
     dt = rng.uniform(*settings.pose_time_s, size=m)
     t_s = np.cumsum(dt)
+    direction = approach_direction(q_true)
+    expected = None
+    if eff.any_active:
+        tcp_physical = true_tcp_mm(eff, cell.truth, q_true, t_s, direction)
+        expected = tracker_reading_mm(eff, tcp_physical, t_s)
+        measured = measured + (expected - tcp)
+        tcp = tcp_physical
     encoder = None
     if settings.encoders:
-        direction = np.sign(np.diff(np.vstack([np.zeros(n), q_true]), axis=0))
         encoder = q_true + np.radians(
             0.5 * settings.encoder_backlash_deg * direction
             + rng.normal(0.0, settings.encoder_noise_deg, q_true.shape)
@@ -186,7 +235,14 @@ def generate_campaign(
         xyz_mm=measured,
         encoder_deg=None if encoder is None else np.degrees(encoder),
     )
-    return CampaignData(campaign=campaign, q_true_rad=q_true, tcp_true_mm=tcp, cell=cell)
+    return CampaignData(
+        campaign=campaign,
+        q_true_rad=q_true,
+        tcp_true_mm=tcp,
+        cell=cell,
+        expected_mm=expected,
+        effects=eff,
+    )
 
 
 def emulated_campaign(
@@ -218,17 +274,26 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--no-encoders", action="store_true", help="omit e1_deg..eN_deg")
     parser.add_argument("--truth", help="also write the hidden truth (TOML) here, for tests")
+    parser.add_argument(
+        "--effect",
+        action="append",
+        default=[],
+        choices=list(EFFECT_NAMES),
+        help="switch on an effect the twin is not told about, at its default strength "
+        "(repeatable): " + "; ".join(f"{k}: {v}" for k, v in EFFECT_NAMES.items()),
+    )
     args = parser.parse_args(argv)
     settings = CampaignSettings(
         n_identify=args.identify,
         n_validate=args.validate,
         selection=None if args.selection == "none" else args.selection,
         encoders=not args.no_encoders,
+        effects=UndeclaredEffects.named(*args.effect),
     )
     data = emulated_campaign(args.robot, args.seed, settings)
     write_campaign(args.out, data.campaign)
     if args.truth:
-        data.cell.write_truth(args.truth)
+        data.write_truth(args.truth)
     print(f"wrote {args.out}: {len(data.campaign)} poses", file=sys.stderr)
     return 0
 

@@ -1,0 +1,149 @@
+"""The emulator's undeclared effects (sim_devices.effects): physics, generator, truth file."""
+
+from __future__ import annotations
+
+import tomllib
+
+import numpy as np
+import pytest
+
+from calibration.campaign_files import read_campaign
+from calibration.description import load_robot
+from calibration.kinematics import KinematicModel, geometric_jacobian
+from calibration.statics import gravity_torques_for
+from sim_devices import pose_campaign
+from sim_devices.effects import (
+    EFFECT_NAMES,
+    UndeclaredEffects,
+    approach_direction,
+    deflection_stiffness_nmm_per_rad,
+    grating_reading_rad,
+    length_drift_mm,
+    link_rotation_rad,
+    tracker_reading_mm,
+)
+from sim_devices.pose_campaign import CampaignSettings, emulated_campaign
+
+SMALL = dict(n_identify=30, n_validate=20, selection=None)
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return emulated_campaign("kr500", 5, CampaignSettings(**SMALL))
+
+
+def _with(*names, **over):
+    return emulated_campaign(
+        "kr500", 5, CampaignSettings(**SMALL, effects=UndeclaredEffects.named(*names, **over))
+    )
+
+
+def test_off_by_default_and_same_draws(clean):
+    assert UndeclaredEffects().active == ()
+    again = _with()
+    np.testing.assert_array_equal(again.campaign.xyz_mm, clean.campaign.xyz_mm)
+    np.testing.assert_array_equal(again.campaign.q_deg, clean.campaign.q_deg)
+    np.testing.assert_array_equal(clean.true_prediction_mm, clean.tcp_true_mm)
+    with pytest.raises(ValueError, match="unknown effect 'sag'"):
+        UndeclaredEffects.named("sag")
+
+
+def test_gravity_deflection_moves_the_tcp_not_the_gratings(clean):
+    data = _with("gravity_deflection")
+    np.testing.assert_array_equal(data.campaign.q_deg, clean.campaign.q_deg)
+    shift = data.campaign.xyz_mm - clean.campaign.xyz_mm
+    np.testing.assert_allclose(shift, data.tcp_true_mm - clean.tcp_true_mm, atol=1e-12)
+    ap = np.linalg.norm(shift, axis=1)
+    assert 0.1 < np.sqrt(np.mean(ap**2)) < 0.8  # tenths of a mm for a KR500
+    # first order: the TCP moves by J · tau/K
+    truth = data.cell.truth
+    k = deflection_stiffness_nmm_per_rad(data.effects, truth)
+    assert np.isinf(k[0]) and np.isinf(k[5])  # vertical axis and flange carry ~no torque
+    assert 1e10 < k[1] < 2e11 and 3e9 < k[2] < 1e11
+    dq = gravity_torques_for(truth, data.q_true_rad) / k
+    np.testing.assert_allclose(dq, link_rotation_rad(data.effects, truth, data.q_true_rad))
+    jac = geometric_jacobian(KinematicModel.from_description(truth), data.q_true_rad, frame="world")
+    lin = np.einsum("pij,pj->pi", jac[:, :3], dq)
+    assert np.max(np.abs(lin - shift)) < 0.01 * np.max(np.abs(shift)) + 1e-9
+
+
+def test_cyclic_grating_error_changes_the_readings_only(clean):
+    data = _with("grating_cyclic", cyclic_joint=2, cyclic_order=3, cyclic_phase_deg=10.0)
+    np.testing.assert_array_equal(data.campaign.xyz_mm, clean.campaign.xyz_mm)
+    q2 = data.q_true_rad[:, 1]
+    expect = 0.004 * np.sin(3 * q2 + np.radians(10.0))
+    got = data.campaign.q_deg[:, 1] - clean.campaign.q_deg[:, 1]
+    np.testing.assert_allclose(got, expect, atol=1e-9)
+    assert np.all(
+        data.campaign.q_deg[:, [0, 2, 3, 4, 5]] == clean.campaign.q_deg[:, [0, 2, 3, 4, 5]]
+    )
+    np.testing.assert_array_equal(
+        grating_reading_rad(UndeclaredEffects(), q2[:, None]), q2[:, None]
+    )
+
+
+def test_thermal_drift_grows_along_the_link(clean):
+    data = _with("thermal_drift")
+    t = data.campaign.t_s
+    growth = length_drift_mm(data.effects, t)
+    np.testing.assert_allclose(growth, 0.15 * t / 3600.0)
+    shift = data.tcp_true_mm - clean.tcp_true_mm
+    np.testing.assert_allclose(np.linalg.norm(shift, axis=1), growth, atol=1e-9)  # a2: a length
+    expo = UndeclaredEffects.named("thermal_drift", drift_time_constant_s=1800.0)
+    g = length_drift_mm(expo, np.array([0.0, 1.0, 1e6]))
+    np.testing.assert_allclose(g, [0.0, 0.15 / 3600.0, 0.15 / 2.0], rtol=1e-3)
+
+
+def test_tracker_scale_is_about_the_tracker(clean):
+    data = _with("tracker_scale", tracker_scale_drift_ppm_per_h=36.0)
+    t = data.campaign.t_s
+    np.testing.assert_array_equal(data.tcp_true_mm, clean.tcp_true_mm)  # the robot is as it was
+    ppm = 20.0 + 36.0 * t / 3600.0
+    np.testing.assert_allclose(
+        data.true_prediction_mm, clean.tcp_true_mm * (1 + 1e-6 * ppm)[:, None]
+    )
+    shift = data.campaign.xyz_mm - clean.campaign.xyz_mm
+    np.testing.assert_allclose(shift, data.true_prediction_mm - clean.tcp_true_mm, atol=1e-12)
+    pts = np.array([[1000.0, 0.0, 0.0]])
+    assert tracker_reading_mm(UndeclaredEffects(), pts, [0.0])[0, 0] == 1000.0
+
+
+def test_lost_motion_follows_the_approach_direction(clean):
+    data = _with("lost_motion")
+    q = data.q_true_rad
+    direction = approach_direction(q)
+    np.testing.assert_array_equal(direction[0], np.sign(q[0]))
+    rot = link_rotation_rad(data.effects, data.cell.truth, q, direction)
+    np.testing.assert_allclose(rot[:, 1], np.radians(0.003) * direction[:, 1])
+    assert np.all(rot[:, 0] == 0.0)
+    assert np.linalg.norm(data.tcp_true_mm - clean.tcp_true_mm, axis=1).max() > 0.05
+
+
+def test_generator_command_writes_effects_into_the_truth(tmp_path):
+    out, truth = tmp_path / "c.csv", tmp_path / "truth.toml"
+    args = ["--robot", "hp20d", "--seed", "2", "--out", str(out), "--truth", str(truth)]
+    rc = pose_campaign.main(
+        [
+            *args,
+            "--identify",
+            "20",
+            "--validate",
+            "5",
+            "--selection",
+            "none",
+            "--effect",
+            "gravity_deflection",
+            "--effect",
+            "thermal_drift",
+        ]
+    )
+    assert rc == 0
+    doc = tomllib.loads(truth.read_text())
+    eff = doc["undeclared_effects"]
+    assert eff["gravity_deflection"] and eff["thermal_drift"] and not eff["tracker_scale"]
+    assert eff["drift_mm_per_h"] == 0.15 and len(eff["derived_stiffness_nmm_per_rad"]) == 6
+    assert eff["derived_stiffness_nmm_per_rad"][0] == 0.0  # rigid
+    assert set(EFFECT_NAMES) <= set(eff)
+    desc = load_robot("hp20d")
+    camp = read_campaign(out, 6, limits_deg=[(j.lower_deg, j.upper_deg) for j in desc.joints])
+    assert len(camp) == 25
