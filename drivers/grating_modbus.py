@@ -6,8 +6,17 @@ sample sequence number to 0x0100 and reads ``5 + 20·k`` registers from 0x0100: 
 timestamp, six 32-bit counters and six status words. Reads are idempotent: a lost or
 corrupted response is asked again with the same cursor, so no sample is lost.
 
-The Modbus stack is pymodbus's sync RTU client; its port is opened through
+The Modbus RTU master is :mod:`drivers.modbus_rtu` (standard frames; responses read
+event-driven up to their known length); the port is opened through
 :func:`drivers.transport.open_stream` (so ``socket://`` and pty paths work alike).
+
+A new driver starts with the history the box still buffers (up to 7/8 of its ring; the
+driver catches up at ~10k samples/s); a reconnecting one resumes at its cursor.
+
+Pacing: a read returns at most 6 samples, so at 1 kHz the box must be asked ~170 times a
+second. After a response with fewer than ``k`` samples pending, the next request waits
+until ``k`` are due at the box's rate (``idle_poll_s`` overrides this with a fixed
+pause); with more pending (catching up after a stall or at connect) it asks at once.
 
 Values: ``grating1_counts`` .. ``grating6_counts`` as int64, unwrapped from the 32-bit
 counters (raw = value mod 2**32); status bits per channel as the device sends them.
@@ -16,12 +25,11 @@ counters (raw = value mod 2**32); status bits per channel as the device sends th
 from __future__ import annotations
 
 import logging
+import struct
 import time
 from typing import Any, ClassVar
 
 import numpy as np
-from pymodbus.client import ModbusSerialClient
-from pymodbus.exceptions import ConnectionException, ModbusException
 
 from drivers.base import (
     BatchSchema,
@@ -30,9 +38,16 @@ from drivers.base import (
     Driver,
     Option,
     SampleBatch,
-    seconds_left,
 )
 from drivers.errors import DeviceIOError, DriverConfigError
+from drivers.modbus_rtu import (
+    FC_READ_HOLDING,
+    FC_READ_WRITE,
+    Reply,
+    RtuMaster,
+    read_holding_request,
+    readwrite_request,
+)
 from drivers.transport import check_url, open_stream
 
 log = logging.getLogger(__name__)
@@ -45,7 +60,6 @@ FIFO_HEADER = 5
 SAMPLE_REGS = 20
 MAX_SAMPLES_PER_READ = 6
 MAGIC = 0x4752
-FC_READ_WRITE = 23
 U32 = 1 << 32
 
 STATUS_BITS = {
@@ -75,24 +89,6 @@ SCHEMA = BatchSchema(
 )
 
 
-class _Client(ModbusSerialClient):
-    """pymodbus's sync RTU client with the port opened by our URL opener."""
-
-    def __init__(self, url: str, open_kwargs: dict[str, Any], **kwargs: Any) -> None:
-        super().__init__(url, **kwargs)
-        self._open_kwargs = open_kwargs
-
-    def connect(self) -> bool:
-        if self.socket:
-            return True
-        try:
-            self.socket = open_stream(self.comm_params.host, **self._open_kwargs)
-        except DeviceIOError as exc:
-            log.debug("open failed: %s", exc)
-            self.socket = None
-        return self.socket is not None
-
-
 class GratingModbusDriver(Driver):
     """Reads the counter box's sample FIFO; see the module docstring."""
 
@@ -102,8 +98,10 @@ class GratingModbusDriver(Driver):
         "baudrate": Option(int, 2_000_000, "RS-485 line speed (ignored on pty/socket)"),
         "response_timeout_s": Option(float, 0.05, "wait for one response"),
         "samples_per_read": Option(int, 6, "k samples per FC23 read (1..6)"),
-        "idle_poll_s": Option(float, 0.002, "pause when the FIFO is empty"),
-        "quiet_pymodbus": Option(bool, True, "raise pymodbus's logger to CRITICAL"),
+        "idle_poll_s": Option(
+            float, None, "fixed pause when the FIFO is drained (default: until k are due)"
+        ),
+        "quiet_pymodbus": Option(bool, True, "unused (kept for compatibility)"),
     }
 
     def __init__(self, url: str, **options: Any) -> None:
@@ -112,19 +110,20 @@ class GratingModbusDriver(Driver):
         k = self.options["samples_per_read"]
         if not 1 <= k <= MAX_SAMPLES_PER_READ:
             raise DriverConfigError(f"samples_per_read must be in 1..6, got {k}")
-        if self.options["quiet_pymodbus"]:
-            lg = logging.getLogger("pymodbus.logging")
-            if lg.level == logging.NOTSET:
-                lg.setLevel(logging.CRITICAL)
         self.unit = self.options["unit_id"]
-        self.client: _Client | None = None
+        self.k = k
+        self.port: Any = None
+        self.rtu: RtuMaster | None = None
         self.next_seq: int | None = None  # wire value (u32) of the next wanted sample
         self.seq_offset = 0  # unwrapping of the wire sequence within an epoch
         self.boot_id: int | None = None
         self.clock = DeviceClock(bits=32)
         self.last_counts: np.ndarray | None = None
         self.count_offset = np.zeros(N_CHANNELS, np.int64)
-        self._rx = b""
+        self.rate_hz = 1000.0
+        self._due_ns = 0  # when the next FIFO request is worth sending
+        self._fifo_regs = FIFO_HEADER + k * SAMPLE_REGS
+        self._requests: dict[int, bytes] = {}
         self.counters["stale_responses"] = 0
 
     @property
@@ -132,35 +131,23 @@ class GratingModbusDriver(Driver):
         return SCHEMA
 
     # -- link -----------------------------------------------------------------------------
-    def _trace(self, sending: bool, data: bytes) -> bytes:
-        if sending:
-            self._rx = b""
-        else:
-            self._rx = data
-        return data
-
     def _connect(self) -> None:
-        timeout = self.options["response_timeout_s"]
-        self.client = _Client(
+        self.port = open_stream(
             self.url,
-            {"timeout_s": 0.0, "write_timeout_s": 1.0, "baudrate": self.options["baudrate"]},
+            timeout_s=self.options["response_timeout_s"],
+            write_timeout_s=1.0,
             baudrate=self.options["baudrate"],
-            timeout=timeout,
-            retries=0,
-            trace_packet=self._trace,
         )
-        if not self.client.connect():
-            raise DeviceIOError(f"cannot open {self.url}")
-        info = None
+        self.rtu = RtuMaster(self.port, self.unit, self.options["response_timeout_s"])
+        request = read_holding_request(self.unit, REG_INFO, INFO_COUNT)
+        regs = None
         for _ in range(5):  # the identification must answer (a few tries: faults happen)
-            info = self._transact(
-                lambda c: c.read_holding_registers(REG_INFO, count=INFO_COUNT, device_id=self.unit)
-            )
-            if info is not None:
+            payload = self._transact(request, FC_READ_HOLDING, INFO_COUNT)
+            if payload is not None:
+                regs = struct.unpack(f">{INFO_COUNT}H", payload)
                 break
-        if info is None:
+        if regs is None:
             raise DeviceIOError(f"no Modbus answer from unit {self.unit} on {self.url}")
-        regs = info.registers
         if regs[0] != MAGIC or regs[2] != N_CHANNELS:
             raise DeviceIOError(f"unit {self.unit} on {self.url} is not a 6-channel grating box")
         self.info.update(
@@ -171,16 +158,34 @@ class GratingModbusDriver(Driver):
             serial_number=(regs[6] << 16) | regs[7],
             buffer_samples=regs[10],
         )
+        if regs[3] > 0:
+            self.rate_hz = float(regs[3])
         if self.boot_id is not None and regs[5] != self.boot_id:
             self._device_restarted()
         self.boot_id = regs[5]
+        if self.next_seq is None:
+            self.next_seq = self._history_start(regs)
+        self._due_ns = 0
+
+    @staticmethod
+    def _history_start(regs: tuple[int, ...]) -> int:
+        """Wire sequence to start a new stream at: the samples the box holds, less a margin.
+
+        The box keeps ``capacity`` samples; the oldest are overwritten while a new reader
+        catches up, so it starts ``capacity // 8`` samples inside the oldest one (1 s at
+        1 kHz of margin) instead of racing the overwrite; those older samples were taken
+        before this driver connected and are not counted as lost.
+        """
+        newest = (regs[8] << 16) | regs[9]
+        produced = (newest + 1) % U32  # 0 when the box has latched nothing yet
+        capacity = regs[10]
+        keep = capacity - capacity // 8
+        return (newest + 1 - min(produced, keep)) % U32
 
     def _disconnect(self) -> None:
-        if self.client is not None:
-            try:
-                self.client.close()
-            finally:
-                self.client = None
+        port, self.port, self.rtu = self.port, None, None
+        if port is not None:
+            port.close()
 
     def _device_restarted(self) -> None:
         self.count("device_restarts", detail="boot id changed")
@@ -188,82 +193,87 @@ class GratingModbusDriver(Driver):
         self.next_seq = None
         self.seq_offset = 0
 
-    def _transact(self, call: Any) -> Any:
-        """One Modbus transaction; None (counted) on timeout, bad frame or exception."""
-        assert self.client is not None
+    def _transact(self, request: bytes, fc: int, n_regs: int) -> bytes | None:
+        """One Modbus transaction: the register bytes, or None (counted) on a fault."""
+        if self.rtu is None:
+            raise DeviceIOError("not connected")
         try:
-            resp = call(self.client)
-        except ConnectionException as exc:
+            reply = self.rtu.transact(request, fc, n_regs)
+        except OSError as exc:  # pyserial's SerialException is an OSError
             raise DeviceIOError(str(exc)) from exc
-        except ModbusException:
-            self._classify_failure()
-            return None
-        except OSError as exc:
-            raise DeviceIOError(str(exc)) from exc
-        self._check_garbage()
-        if resp.isError():
-            self.count("exception_responses", detail=f"code {getattr(resp, 'exception_code', '?')}")
-            return None
-        return resp
+        return self._classify(reply)
 
-    def _check_garbage(self) -> None:
-        rx = self._rx
-        if rx and rx[0] != self.unit:
-            i = 1
-            while i < len(rx) - 1 and not (rx[i] == self.unit and rx[i + 1] & 0x7F in (3, 23)):
-                i += 1
-            self.count("garbage_bytes", i)
-
-    def _classify_failure(self) -> None:
-        rx = self._rx
-        if not rx:
+    def _classify(self, reply: Reply) -> bytes | None:
+        if reply.stale:
+            self.count("stale_responses", detail=f"{reply.stale} late bytes dropped")
+        if reply.garbage and reply.kind != "timeout":
+            self.count("garbage_bytes", reply.garbage)
+        kind = reply.kind
+        if kind == "ok":
+            return reply.payload
+        if kind == "exception":
+            self.count("exception_responses", detail=f"code {reply.code}")
+        elif kind == "timeout":
             self.count("timeouts")
-            return
-        if rx[0] != self.unit or len(rx) < 2 or rx[1] & 0x7F not in (3, 23):
-            self._check_garbage()
-            return
-        expected = 5 if rx[1] & 0x80 else (5 + rx[2] if len(rx) > 2 else 1 << 16)
-        if len(rx) < expected:
+        elif kind == "truncated":
             self.count("truncated_frames")
-        else:
+        elif kind == "crc":
             self.count("crc_errors")
+        return None
+
+    def _fifo_request(self, want: int) -> bytes:
+        req = self._requests.get(want)
+        if req is None:
+            if len(self._requests) > 64:
+                self._requests.clear()
+            req = readwrite_request(
+                self.unit, REG_FIFO, self._fifo_regs, REG_FIFO, [want >> 16, want & 0xFFFF]
+            )
+            self._requests[want] = req
+        return req
 
     # -- reading --------------------------------------------------------------------------
     def _read_batch(self, deadline_ns: int) -> SampleBatch | None:
-        k = self.options["samples_per_read"]
-        count = FIFO_HEADER + k * SAMPLE_REGS
         blocks: list[np.ndarray] = []
         hosts: list[np.ndarray] = []
         first_seqs: list[int] = []
         while True:
+            now = time.monotonic_ns()
+            if self._due_ns > now:
+                if blocks:
+                    break  # nothing more is due yet: deliver what came
+                if self._due_ns > deadline_ns:
+                    time.sleep(max(0, deadline_ns - now) / 1e9)
+                    break
+                time.sleep((self._due_ns - now) / 1e9)
             want = 0 if self.next_seq is None else self.next_seq
-            resp = self._transact(
-                lambda c, want=want: c.readwrite_registers(
-                    read_address=REG_FIFO,
-                    read_count=count,
-                    write_address=REG_FIFO,
-                    values=[want >> 16, want & 0xFFFF],
-                    device_id=self.unit,
-                )
-            )
+            payload = self._transact(self._fifo_request(want), FC_READ_WRITE, self._fifo_regs)
             t_host = time.monotonic_ns()
-            pending = 0
-            if resp is not None:
-                regs = np.asarray(resp.registers, dtype=np.uint32)
-                if regs.shape[0] != count:
-                    self.count("protocol_errors", detail="short register block")
-                else:
-                    pending = self._accept(regs, t_host, blocks, hosts, first_seqs)
-            if pending == 0 and blocks:
+            if payload is None:
+                self._due_ns = 0  # a fault: ask again at once (same cursor)
+            else:
+                regs = np.frombuffer(payload, ">u2").astype(np.uint32)
+                pending = self._accept(regs, t_host, blocks, hosts, first_seqs)
+                if pending < 0:  # the box restarted: deliver the old epoch first
+                    self._due_ns = 0
+                    break
+                self._pace(pending, t_host)
+            if t_host >= deadline_ns:
                 break
-            left = seconds_left(deadline_ns)
-            if left <= 0:
-                break
-            if pending == 0 and resp is not None:
-                time.sleep(min(self.options["idle_poll_s"], left))
         if not blocks:
             return None
         return self._assemble(blocks, hosts, first_seqs)
+
+    def _pace(self, pending: int, t_host: int) -> None:
+        """When to send the next FIFO request, given ``pending`` samples left in the box."""
+        k = self.k
+        fixed = self.options["idle_poll_s"]
+        if pending >= k or (fixed is not None and pending > 0):
+            self._due_ns = 0
+        elif fixed is not None:
+            self._due_ns = t_host + int(fixed * 1e9)
+        else:
+            self._due_ns = t_host + int((k - pending) * 1e9 / self.rate_hz)
 
     def _accept(
         self,
@@ -277,12 +287,12 @@ class GratingModbusDriver(Driver):
         n = int(regs[2])
         pending = int(regs[3])
         boot = int(regs[4])
-        if n > MAX_SAMPLES_PER_READ:
+        if n > MAX_SAMPLES_PER_READ or regs.shape[0] < FIFO_HEADER + n * SAMPLE_REGS:
             self.count("protocol_errors", detail=f"sample count {n}")
             return 0
         if self.boot_id is not None and boot != self.boot_id:
             if blocks:  # finish the old epoch's batch first; re-read after it
-                return 0
+                return -1
             self._device_restarted()
         self.boot_id = boot
         if n == 0:
@@ -297,7 +307,7 @@ class GratingModbusDriver(Driver):
                 # a late answer to an earlier request (RTU has no transaction id): the
                 # samples were delivered already; drop it and ask again
                 self.count("stale_responses", detail="sequence went back")
-                return 1
+                return MAX_SAMPLES_PER_READ
         block = regs[FIFO_HEADER : FIFO_HEADER + n * SAMPLE_REGS].reshape(n, SAMPLE_REGS)
         blocks.append(block)
         hosts.append(np.full(n, t_host, np.int64))

@@ -86,15 +86,37 @@ def test_modbus_slave_request_decoding(plant, data):
     st.binary(max_size=40),
 )
 def test_grating_driver_block_and_failure_classification(regs, rx):
+    from drivers.modbus_rtu import Reply
+
     drv = GratingModbusDriver("/dev/null")
     blocks, hosts, firsts = [], [], []
     drv._accept(np.asarray(regs, np.uint32), 0, blocks, hosts, firsts)
     if blocks:
         b = drv._assemble(blocks, hosts, firsts)
         assert b.values.shape == (len(b), 6)
-    drv._rx = rx
-    drv._classify_failure()
+    for kind in ("ok", "exception", "timeout", "truncated", "crc", "garbage"):
+        drv._classify(Reply(kind, rx, garbage=len(rx), stale=len(rx) % 3))
     assert sum(drv.counters.values()) >= 0
+
+
+@FUZZ
+@given(st.binary(max_size=300), st.integers(0, 8))
+def test_rtu_response_scanner(data, k):
+    """Any bytes: a result that is consistent with them, never an exception."""
+    from drivers.modbus_rtu import crc16, scan
+
+    nbytes = 2 * (5 + 20 * k)
+    state, start, end = scan(data, 1, 23, nbytes)
+    assert state in ("ok", "need", "crc", "none")
+    if state == "ok":
+        frame = data[start:end]
+        assert frame[0] == 1 and frame[1] in (23, 0x97)
+        assert crc16(frame[:-2]) == frame[-2] | frame[-1] << 8
+        assert len(frame) == (5 if frame[1] & 0x80 else nbytes + 5)
+    elif state == "need":
+        assert end > len(data) and data[start] == 1
+    elif state == "crc":
+        assert end <= len(data)
 
 
 @FUZZ
