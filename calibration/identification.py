@@ -10,6 +10,12 @@ when it falls, and stop when successive error norms differ by at most ``tol_mm``
 iteration runs on the identifiable parameters only (see :mod:`calibration.identifiability`),
 in column-scaled units so that one μ suits mm and rad alike.
 
+Non-geometric effect terms (the closed loop's, :mod:`calibration.closed_loop`) join the
+problem as :class:`EffectTerms`: k parameters ``c`` appended to the geometric vector, the
+predicted point being ``tcp(model, q) + R(model, q, ...)·c`` with the effects' analytic
+regressor ``R`` ``(m, 3, k)``. They go through the same identifiability test (offered after
+every geometric parameter) and the same LM, covariance and outlier test.
+
 Residuals are ``model − tracker`` (mm, shape ``(3m,)``), written as pure functions of the
 parameter vector and the data. A robust loss (Huber, soft-L1, Cauchy) is applied by
 iteratively reweighting whole poses; poses whose 3-D residual is improbably large for the
@@ -71,6 +77,30 @@ class IdentificationError(CalibrationError, ValueError):
 
 
 ProgressCallback = Callable[[int, float, float], None]  # (iteration, error norm mm, damping)
+
+#: An effect regressor: (geometric model, slice of the poses) -> ∂TCP/∂c ``(rows, 3, k)``,
+#: mm per unit of each effect parameter, for the poses the terms were built on.
+EffectRegressor = Callable[[KinematicModel, slice], NDArray[np.float64]]
+
+
+@dataclass(frozen=True, eq=False)
+class EffectTerms:
+    """Non-geometric terms linear in k parameters appended to the geometric vector.
+
+    The twin predicts ``tcp(model, q) + regressor(model, poses) · c``. ``names`` carry the
+    parameters' units (they are reported as they are); ``start`` defaults to zeros.
+    """
+
+    names: tuple[str, ...]
+    regressor: EffectRegressor
+    start: tuple[float, ...] | None = None
+
+    @property
+    def n_parameters(self) -> int:
+        return len(self.names)
+
+    def start_vector(self) -> NDArray[np.float64]:
+        return np.zeros(len(self.names)) if self.start is None else np.asarray(self.start, float)
 
 
 @dataclass(frozen=True)
@@ -135,6 +165,81 @@ def position_residual_jacobian(
         _, jac = identification_jacobian(model, q_rad[e])
         out[e] = jac[:, :, free_idx] * sqrt_weights[e, None, None]
     return out.reshape(-1, len(free_idx))
+
+
+def _effect_split(x: FloatArray, template: KinematicModel) -> tuple[KinematicModel, FloatArray]:
+    p = template.n_parameters
+    return template.with_parameters(x[:p]), x[p:]
+
+
+def effect_position_residuals(
+    x_free: ArrayLike,
+    x_full: FloatArray,
+    free_idx: NDArray[np.intp],
+    template: KinematicModel,
+    q_rad: FloatArray,
+    measured_mm: FloatArray,
+    sqrt_weights: FloatArray,
+    effects: EffectTerms,
+) -> FloatArray:
+    """:func:`position_residuals` with effect terms: ``x_full`` is ``(5n + 9 + k,)``."""
+    model, c = _effect_split(_full_vector(np.asarray(x_free), x_full, free_idx), template)
+    out = np.empty((len(q_rad), 3))
+    for s in range(0, len(q_rad), CHUNK_POSES):
+        e = slice(s, min(s + CHUNK_POSES, len(q_rad)))
+        pred = tcp_positions(model, q_rad[e]) + effects.regressor(model, e) @ c
+        out[e] = (pred - measured_mm[e]) * sqrt_weights[e, None]
+    return out.ravel()
+
+
+def effect_position_residual_jacobian(
+    x_free: ArrayLike,
+    x_full: FloatArray,
+    free_idx: NDArray[np.intp],
+    template: KinematicModel,
+    q_rad: FloatArray,
+    measured_mm: FloatArray,
+    sqrt_weights: FloatArray,
+    effects: EffectTerms,
+) -> FloatArray:
+    """Jacobian ``(3m, k_free)`` of :func:`effect_position_residuals` (the regressors'
+    own dependence on the geometry, second order in sub-mm effects, is left out)."""
+    model, _ = _effect_split(_full_vector(np.asarray(x_free), x_full, free_idx), template)
+    jac = stacked_jacobian(model, q_rad, effects)
+    return (jac[:, :, free_idx] * sqrt_weights[:, None, None]).reshape(-1, len(free_idx))
+
+
+def stacked_jacobian(
+    model: KinematicModel, q_rad: FloatArray, effects: EffectTerms | None = None
+) -> FloatArray:
+    """∂TCP/∂(geometry, effect parameters) ``(m, 3, 5n + 9 + k)``, in blocks of poses."""
+    k = 0 if effects is None else effects.n_parameters
+    p = model.n_parameters
+    out = np.empty((len(q_rad), 3, p + k))
+    for s in range(0, len(q_rad), CHUNK_POSES):
+        e = slice(s, min(s + CHUNK_POSES, len(q_rad)))
+        out[e, :, :p] = identification_jacobian(model, q_rad[e])[1]
+        if effects is not None:
+            out[e, :, p:] = effects.regressor(model, e)
+    return out
+
+
+def predicted_points(
+    model: KinematicModel,
+    q_rad: FloatArray,
+    effects: EffectTerms | None = None,
+    effect_values: ArrayLike | None = None,
+) -> FloatArray:
+    """Predicted tracker points ``(m, 3)`` mm: geometric TCP plus the effect terms."""
+    tcp = tcp_positions(model, q_rad)
+    if effects is None or effects.n_parameters == 0:
+        return tcp
+    c = np.asarray(effect_values, dtype=float)
+    out = np.empty_like(tcp)
+    for s in range(0, len(q_rad), CHUNK_POSES):
+        e = slice(s, min(s + CHUNK_POSES, len(q_rad)))
+        out[e] = tcp[e] + effects.regressor(model, e) @ c
+    return out
 
 
 def full_identification_jacobian(model: KinematicModel, q_rad: FloatArray) -> FloatArray:
@@ -264,9 +369,13 @@ class IdentificationResult:
     #: with per-point σ: the σ the weights are relative to (their harmonic RMS); sigma_mm
     #: over it is how the data compare with the stated σ (1: as stated). None: unweighted.
     reference_sigma_mm: float | None = None
+    #: effect terms identified with the geometry (None: the geometric model alone)
+    effects: EffectTerms | None = None
+    effect_values: FloatArray = field(default_factory=lambda: np.zeros(0))  # (k,)
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
+        """Geometric parameter names, then the effect parameters' (with their units)."""
         return self.identifiability.parameter_names
 
     @property
@@ -277,9 +386,21 @@ class IdentificationResult:
     def success(self) -> bool:
         return bool(self.optimize_result.success)
 
+    @property
+    def n_geometric(self) -> int:
+        return self.model.n_parameters
+
+    def parameter_vector(self) -> FloatArray:
+        """Identified geometry then effect parameters ``(5n + 9 + k,)``."""
+        return np.concatenate([self.model.parameter_vector(), self.effect_values])
+
+    def start_vector(self) -> FloatArray:
+        start = np.zeros(0) if self.effects is None else self.effects.start_vector()
+        return np.concatenate([self.start_model.parameter_vector(), start])
+
     def deviations(self) -> FloatArray:
-        """Identified minus start parameters, full vector ``(5n + 9,)`` (mm, rad)."""
-        return self.model.parameter_vector() - self.start_model.parameter_vector()
+        """Identified minus start parameters, full vector ``(5n + 9 [+ k],)`` (mm, rad)."""
+        return self.parameter_vector() - self.start_vector()
 
     def standard_errors(self) -> FloatArray:
         """Standard errors, full vector (mm, rad); NaN for dropped parameters."""
@@ -288,23 +409,44 @@ class IdentificationResult:
         return se
 
     def residuals_mm(self, q_rad: ArrayLike, measured_mm: ArrayLike) -> FloatArray:
-        """Errors ``tracker − twin`` ``(N, 3)`` mm of the identified model."""
+        """Errors ``tracker − twin`` ``(N, 3)`` mm of the identified *geometric* model
+        (effect terms need their own per-pose data: see :mod:`calibration.closed_loop`)."""
         return np.asarray(measured_mm, dtype=float) - tcp_positions(self.model, q_rad)
 
     def prediction_covariance(self, q_rad: ArrayLike) -> FloatArray:
-        """Covariance ``(N, 3, 3)`` mm² of the predicted TCP at ``q`` from the parameters."""
+        """Covariance ``(N, 3, 3)`` mm² of the predicted geometric TCP at ``q`` from the
+        geometric parameters."""
         _, jac = identification_jacobian(self.model, np.atleast_2d(q_rad))
-        jf = jac[:, :, self.free]
-        return jf @ self.covariance @ jf.transpose(0, 2, 1)
+        p = self.n_geometric
+        geo = self.free[:p]
+        n_geo = int(np.count_nonzero(geo))
+        jf = jac[:, :, geo]
+        cov = self.covariance[:n_geo, :n_geo]
+        return jf @ cov @ jf.transpose(0, 2, 1)
 
     def parameter_table(self) -> list[dict[str, object]]:
-        """One row per parameter, in human units (mm and degrees)."""
-        start = self.start_model.parameter_vector()
-        final = self.model.parameter_vector()
+        """One row per parameter, in human units (mm and degrees; effect parameters in the
+        units their names carry)."""
+        start = self.start_vector()
+        final = self.parameter_vector()
         se = self.standard_errors()
         dropped = {d.name: d.reason for d in self.identifiability.dropped}
         rows = []
         for i, name in enumerate(self.parameter_names):
+            if i >= self.n_geometric:
+                rows.append(
+                    {
+                        "name": name,
+                        "unit": effect_unit(name),
+                        "start": float(start[i]),
+                        "identified": float(final[i]),
+                        "deviation": float(final[i] - start[i]),
+                        "standard_error": None if np.isnan(se[i]) else float(se[i]),
+                        "identified_from_data": bool(self.free[i]),
+                        "dropped_reason": dropped.get(name),
+                    }
+                )
+                continue
             to_deg = name.endswith("_rad")
             k = math.degrees(1.0) if to_deg else 1.0
             unit = "deg" if to_deg else "mm"
@@ -321,6 +463,23 @@ class IdentificationResult:
                 }
             )
         return rows
+
+
+#: Unit suffixes of effect parameter names (longest first) -> unit for people.
+EFFECT_UNITS = (
+    ("_urad_per_knm", "µrad/(kN·m)"),
+    ("_mm_per_h2", "mm/h²"),
+    ("_ppm_per_h", "ppm/h"),
+    ("_mm_per_h", "mm/h"),
+    ("_ppm", "ppm"),
+    ("_deg", "deg"),
+    ("_mm", "mm"),
+)
+
+
+def effect_unit(name: str) -> str:
+    """The unit an effect parameter's name ends with (``''`` when none is known)."""
+    return next((u for suffix, u in EFFECT_UNITS if name.endswith(suffix)), "")
 
 
 def base_start_from_registration(
@@ -350,6 +509,7 @@ def identify(
     max_irls: int = 10,
     point_sigma_mm: ArrayLike | None = None,
     progress: ProgressCallback | None = None,
+    effects: EffectTerms | None = None,
 ) -> IdentificationResult:
     """Identify the kinematic parameters from joint vectors ``q`` ``(m, n)`` rad and tracker
     points ``(m, 3)`` mm.
@@ -359,7 +519,8 @@ def identify(
     registration of the nominal TCPs onto the points. ``fixed`` names parameters held at
     their nominal value whatever the data says. ``point_sigma_mm`` ``(m,)`` gives each
     point's per-axis measurement σ (e.g. :func:`tracker_sigma_mm`): the poses are then
-    weighted by 1/σ² (without it, all poses weigh the same).
+    weighted by 1/σ² (without it, all poses weigh the same). ``effects`` adds non-geometric
+    terms built on these poses; their parameters are identified with the geometry.
     """
     started = time.perf_counter()
     q = np.atleast_2d(np.asarray(q_rad, dtype=float))
@@ -376,6 +537,9 @@ def identify(
     if start not in START_METHODS:
         raise IdentificationError(f"unknown start {start!r} (valid: {', '.join(START_METHODS)})")
     names = nominal.parameter_names()
+    p_geo = len(names)
+    if effects is not None:
+        names = names + list(effects.names)
     unknown = [f for f in fixed if f not in names]
     if unknown:
         raise IdentificationError(f"unknown parameter(s) to fix: {', '.join(unknown)}")
@@ -393,11 +557,11 @@ def identify(
     start_model = (
         base_start_from_registration(nominal, q, meas) if start == "registration" else nominal
     )
-    jac0 = full_identification_jacobian(start_model, q)
+    jac0 = stacked_jacobian(start_model, q, effects)
     analysis = analyze_identifiability(
         jac0,
         names,
-        priority=default_priority(nominal),
+        priority=default_priority(nominal) + list(range(p_geo, len(names))),
         rtol=rtol,
         fixed=[names.index(f) for f in fixed],
     )
@@ -408,7 +572,14 @@ def identify(
             f"{len(q)} poses give {3 * len(q)} equations for {k} identifiable parameters"
         )
     x_full = start_model.parameter_vector()
+    if effects is not None:
+        x_full = np.concatenate([x_full, effects.start_vector()])
     x_scale = 1.0 / analysis.column_scale[free_idx]
+    fun, jac_fun = position_residuals, position_residual_jacobian
+    extra: tuple[object, ...] = ()
+    if effects is not None:
+        fun, jac_fun = effect_position_residuals, effect_position_residual_jacobian
+        extra = (effects,)
 
     weights = np.ones(len(q))
     history: list[tuple[int, float, float]] = []
@@ -426,10 +597,10 @@ def identify(
     while irls < (max_irls if loss != "linear" else 1):
         irls += 1
         sw = np.sqrt(prior * weights)
-        args = (x_full, free_idx, nominal, q, meas, sw)
+        args = (x_full, free_idx, nominal, q, meas, sw, *extra)
         result = levenberg_marquardt(
-            position_residuals,
-            position_residual_jacobian,
+            fun,
+            jac_fun,
             x,
             args=args,
             x_scale=x_scale,
@@ -454,9 +625,11 @@ def identify(
         weights = new_w
     assert result is not None
 
-    model = nominal.with_parameters(_full_vector(x, x_full, free_idx))
+    final = _full_vector(x, x_full, free_idx)
+    model = nominal.with_parameters(final[:p_geo])
+    effect_values = final[p_geo:]
     sw = np.sqrt(prior * weights)
-    resid = (tcp_positions(model, q) - meas).reshape(-1, 3)
+    resid = predicted_points(model, q, effects, effect_values) - meas
     # the solver's last Jacobian is at x, weighted with the weights of its last run
     jw = result.jac * (sw / np.maximum(sw_last, 1e-300)).repeat(3)[:, None]
     dof = max(3 * len(q) - k, 1)
@@ -488,4 +661,6 @@ def identify(
         irls_iterations=irls,
         history=history,
         reference_sigma_mm=reference_sigma,
+        effects=effects,
+        effect_values=effect_values,
     )

@@ -1,21 +1,36 @@
 """Effect terms applied after the geometric model when the twin predicts TCP points.
 
 A calibrated description may carry ``[[effect]]`` tables (non-geometric terms identified by
-the closed loop: joint compliance, backlash, thermal drift, ...). Each ``kind`` is applied by
-a function registered in :data:`EFFECTS`; ``twin predict`` runs the geometric model, then
-every effect of the description in file order. No kind is known yet: a description naming
-one fails with a clear error rather than being predicted without it.
+the closed loop, :mod:`calibration.closed_loop`). Each ``kind`` is applied by a function
+registered in :data:`EFFECTS`; ``twin predict`` runs the geometric model, then adds every
+effect of the description in file order. Every kind of :mod:`calibration.effect_library`
+is registered, with the same regressors the identification used (so a calibrated model
+predicts exactly what the loop fitted). An unknown kind fails with a clear error rather
+than being predicted without it.
+
+Effects may use the joint readings, the times ``t_s`` (drift terms: on the campaign's
+clock) and the approach direction of each joint, taken from the pose sequence in time order
+starting at Home (lost motion).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.description import EffectDescription, RobotDescription
+from calibration.effect_library import (
+    KINDS,
+    EffectContext,
+    EffectData,
+    EffectLibraryError,
+    Kinematics,
+    from_description,
+)
 from calibration.errors import CalibrationError
 from calibration.kinematics import KinematicModel, tcp_positions
 
@@ -36,17 +51,41 @@ class PredictionContext:
     q_rad: FloatArray
     t_s: FloatArray | None
 
+    @cached_property
+    def effect_context(self) -> EffectContext:
+        """The poses as effect data: directions from the sequence in time order, from Home."""
+        data = EffectData.from_sequence(self.q_rad, self.t_s, np.radians(self.description.home))
+        return EffectContext(self.description, data)
+
+    @cached_property
+    def kinematics(self) -> Kinematics:
+        return Kinematics.of(self.model, self.q_rad)
+
 
 #: An effect term: (its description, context, TCP points (N, 3) mm) -> corrected points.
 EffectTerm = Callable[[EffectDescription, PredictionContext, FloatArray], FloatArray]
 
-#: Effect kind -> term. Empty until the closed loop registers its kinds.
+#: Effect kind -> term (every kind of the effect library, see the bottom of this module).
 EFFECTS: dict[str, EffectTerm] = {}
 
 
 def register_effect(kind: str, term: EffectTerm) -> None:
     """Make ``kind`` applicable by :func:`predict_tcp` (later registrations replace)."""
     EFFECTS[kind] = term
+
+
+def library_term(
+    effect: EffectDescription, context: PredictionContext, points_mm: FloatArray
+) -> FloatArray:
+    """Add a library effect's ``R·c`` (its regressor at the geometric model) to the points."""
+    try:
+        spec, values = from_description(effect, context.model.n_joints)
+        ctx = context.effect_context
+        sel = slice(0, len(context.q_rad))
+        offsets = KINDS[spec.kind].regressor(spec, ctx, sel, context.kinematics) @ values
+    except EffectLibraryError as exc:
+        raise ModelEffectError(f"[[effect]] kind {effect.kind!r}: {exc}") from exc
+    return points_mm + offsets
 
 
 def apply_effects(context: PredictionContext, points_mm: FloatArray) -> FloatArray:
@@ -72,3 +111,7 @@ def predict_tcp(
     t = None if t_s is None else np.asarray(t_s, dtype=float)
     context = PredictionContext(description=description, model=model, q_rad=q, t_s=t)
     return apply_effects(context, tcp_positions(model, q))
+
+
+for _kind in KINDS:
+    register_effect(_kind, library_term)

@@ -1,0 +1,822 @@
+"""Candidate effects the geometric model lacks: small parametric models with a physical meaning.
+
+Each effect *kind* is linear in a few parameters and adds ``R·c`` to the geometric TCP, with
+an analytic regressor ``R`` ``(m, 3, k)`` (mm per unit of each parameter) computed from the
+pose data (:class:`EffectData`: joint readings, times, approach directions), the robot
+description (mass model) and the current geometric model. The library (method.md §4):
+
+* ``gravity_compliance``: links and bearings after the grating ring give under gravity and
+  payload; joint i turns by ``c_i·tau_i``, tau from the description's mass model
+  (``compliance_urad_per_knm`` per loaded joint).
+* ``joint_harmonic``: cyclic error of joint j's reading, ``a·cos(k·q_j) + b·sin(k·q_j)``
+  (``cos_deg``, ``sin_deg``).
+* ``lost_motion``: joint j stands ``w·d_j`` off, d_j the direction of its last move
+  (``half_width_deg``).
+* ``length_drift``: a link length (``a`` or ``d`` of joint j) changing linearly with time
+  (``a_rate_mm_per_h`` or ``d_rate_mm_per_h``).
+* ``instrument_scale``: distance-proportional scale error of the tracker (``scale_ppm``).
+* ``instrument_scale_drift``: that scale drifting with time (``rate_ppm_per_h``).
+
+and the generic search, for structure outside the library ("unexplained structure in X"):
+
+* ``cartesian_harmonic``: an error vector in the tracker frame varying as
+  ``cos/sin(k·q_j)`` (``cos_mm``, ``sin_mm``: 3 each).
+* ``cartesian_time``: an error vector fixed in the tracker frame or in a link's frame
+  (``frame``: 0 tracker, j link j), polynomial in time (``rate_mm_per_h``, and
+  ``acceleration_mm_per_h2`` for order 2).
+
+Joint-angle effects are first-order, ``R = ∂TCP/∂θ_j · Δθ_j`` (the second-order term,
+``Δθ²·reach``, is below 1e-4 mm for Δθ < 2e-4 rad ≈ 0.01°); lengths, scale and Cartesian
+terms are exact. Time terms use the campaign clock ``t_s`` with ``t0_s = 0``: the
+geometry of a model with drift terms is the one at the start of the campaign.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from calibration.description import EffectDescription, RobotDescription
+from calibration.errors import CalibrationError
+from calibration.identification import EffectTerms
+from calibration.kinematics import KinematicModel, identification_jacobian
+from calibration.statics import MassModel, gravity_torques_nmm
+
+FloatArray = NDArray[np.float64]
+
+DEG = math.pi / 180.0
+#: 1 µrad/(kN·m) in rad/(N·mm)
+URAD_PER_KNM = 1e-12
+HOUR_S = 3600.0
+#: A loaded joint carries at least this fraction of the largest RMS gravity torque.
+LOADED_JOINT_FRACTION = 1e-3
+#: Nominal lengths (mm) from which a link length is a thermal-drift candidate.
+DRIFT_MIN_LENGTH_MM = 50.0
+#: Harmonic orders offered per joint (library and generic search).
+HARMONIC_ORDERS = (1, 2, 3)
+
+
+class EffectLibraryError(CalibrationError, ValueError):
+    """An effect has bad parameters, or needs data (times) the poses do not have."""
+
+
+# -- data ---------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class EffectData:
+    """Per-pose inputs of the regressors: readings ``(m, n)`` rad, times ``(m,)`` s (None:
+    unknown) and approach directions ``(m, n)`` in {-1, 0, 1} (None: unknown)."""
+
+    q_rad: FloatArray
+    t_s: FloatArray | None = None
+    direction: FloatArray | None = None
+
+    def __len__(self) -> int:
+        return len(self.q_rad)
+
+    @classmethod
+    def from_sequence(
+        cls, q_rad: ArrayLike, t_s: ArrayLike | None = None, start_rad: ArrayLike | None = None
+    ) -> EffectData:
+        """Data of a pose sequence: each joint's approach direction is the sign of its move
+        from the previous pose in time order (the first from ``start_rad``, e.g. Home)."""
+        q = np.atleast_2d(np.asarray(q_rad, dtype=float))
+        t = None if t_s is None else np.asarray(t_s, dtype=float)
+        order = np.arange(len(q)) if t is None else np.argsort(t, kind="stable")
+        start = np.zeros(q.shape[1]) if start_rad is None else np.asarray(start_rad, float)
+        seq = q[order]
+        moves = np.diff(np.vstack([start, seq]), axis=0)
+        direction = np.empty_like(q)
+        direction[order] = np.sign(moves)
+        return cls(q, t, direction)
+
+    def subset(self, mask: ArrayLike) -> EffectData:
+        m = np.asarray(mask)
+        return EffectData(
+            self.q_rad[m],
+            None if self.t_s is None else self.t_s[m],
+            None if self.direction is None else self.direction[m],
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class EffectContext:
+    """What the regressors need: the description (mass model, Home) and the pose data."""
+
+    description: RobotDescription
+    data: EffectData
+
+    @cached_property
+    def torques_nmm(self) -> FloatArray:
+        """Gravity torques ``(m, n)`` N·mm at the readings, nominal geometry and masses."""
+        return gravity_torques_nmm(
+            KinematicModel.from_description(self.description),
+            MassModel.from_description(self.description),
+            self.data.q_rad,
+        )
+
+    def times_h(self, sel: slice, t0_s: float = 0.0) -> FloatArray:
+        if self.data.t_s is None:
+            raise EffectLibraryError("this effect needs the poses' times (t_s)")
+        return (self.data.t_s[sel] - t0_s) / HOUR_S
+
+
+@dataclass(frozen=True, eq=False)
+class Kinematics:
+    """The current geometric model at some poses: TCP ``(r, 3)`` and identification
+    Jacobian ``(r, 3, 5n + 9)`` (world frame)."""
+
+    tcp_mm: FloatArray
+    jacobian: FloatArray
+
+    @classmethod
+    def of(cls, model: KinematicModel, q_rad: FloatArray) -> Kinematics:
+        tcp, jac = identification_jacobian(model, np.atleast_2d(q_rad))
+        return cls(tcp, jac)
+
+    def joint_axis(self, joint: int) -> FloatArray:
+        """∂TCP/∂θ_j ``(r, 3)`` mm/rad (1-based joint)."""
+        return self.jacobian[:, :, 5 * (joint - 1) + 3]
+
+    def length_axis(self, joint: int, parameter: str) -> FloatArray:
+        """∂TCP/∂a_j or ∂TCP/∂d_j ``(r, 3)`` mm/mm."""
+        return self.jacobian[:, :, 5 * (joint - 1) + {"a": 0, "d": 2}[parameter]]
+
+    def frame_axes(self, frame: int) -> FloatArray:
+        """Axes of link frame ``frame`` in the world ``(r, 3, 3)`` (columns x, y, z); frame 0
+        is the tracker frame. Read off the Jacobian: x_j = ∂TCP/∂a_(j+1), z_j = ∂TCP/∂d_j,
+        the flange's from the tool columns."""
+        r = len(self.tcp_mm)
+        if frame == 0:
+            return np.broadcast_to(np.eye(3), (r, 3, 3)).copy()
+        n = (self.jacobian.shape[2] - 9) // 5
+        if frame == n:
+            return self.jacobian[:, :, 5 * n + 6 :].copy()
+        x = self.jacobian[:, :, 5 * frame]
+        z = self.jacobian[:, :, 5 * (frame - 1) + 2]
+        return np.stack([x, np.cross(z, x), z], axis=2)
+
+
+# -- specs and kinds --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class EffectSpec:
+    """One candidate: a kind and what it is attached to (1-based joint, harmonic order,
+    length ``a``/``d``, the loaded joints of a compliance). Hashable."""
+
+    kind: str
+    joint: int = 0
+    order: int = 0
+    parameter: str = ""
+    joints: tuple[int, ...] = ()
+
+    @property
+    def label(self) -> str:
+        return KINDS[self.kind].label(self)
+
+    @property
+    def generic(self) -> bool:
+        return KINDS[self.kind].generic
+
+    def parameter_names(self) -> tuple[str, ...]:
+        return KINDS[self.kind].parameter_names(self)
+
+
+@dataclass(frozen=True, eq=False)
+class Evidence:
+    """The residual in an effect's own coordinate: per pose, the driving variable ``x``
+    (``(r,)``), the TCP displacement per unit coordinate ``coordinate_mm`` ``(r, 3)``, and
+    the coordinate the identified effect predicts ``(r,)``."""
+
+    x: FloatArray
+    x_label: str
+    y_label: str
+    coordinate_mm: FloatArray
+    predicted: FloatArray
+
+    def project(self, residual_mm: ArrayLike) -> FloatArray:
+        """Least-squares coordinate ``(r,)`` of residuals ``(r, 3)`` (NaN where undefined)."""
+        g = self.coordinate_mm
+        gg = np.sum(g * g, axis=1)
+        num = np.sum(g * np.asarray(residual_mm, dtype=float), axis=1)
+        out = np.full(len(g), np.nan)
+        ok = gg > 1e-12 * max(float(gg.max(initial=0.0)), 1e-300)
+        out[ok] = num[ok] / gg[ok]
+        return out
+
+
+class EffectKind(ABC):
+    """How one kind of effect predicts, is named, written and shown."""
+
+    kind: str = ""
+    generic: bool = False  # part of the generic search, not the physical library
+    needs_time: bool = False
+    needs_direction: bool = False
+    description: str = ""
+
+    @abstractmethod
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]: ...
+
+    @abstractmethod
+    def regressor(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
+    ) -> FloatArray:
+        """``(r, 3, k)`` mm per unit parameter at the poses ``sel``."""
+
+    @abstractmethod
+    def label(self, spec: EffectSpec) -> str: ...
+
+    @abstractmethod
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, float | tuple[float, ...]]: ...
+
+    @abstractmethod
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]: ...
+
+    @abstractmethod
+    def evidence(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        sel: slice,
+        kin: Kinematics,
+    ) -> Evidence: ...
+
+
+def _number(params: Mapping[str, Any], key: str, kind: str) -> float:
+    if key not in params:
+        raise EffectLibraryError(f"effect {kind!r}: missing parameter {key!r}")
+    value = params[key]
+    if isinstance(value, tuple | list):
+        raise EffectLibraryError(f"effect {kind!r}: {key!r} must be a number")
+    return float(value)
+
+
+def _vector(params: Mapping[str, Any], key: str, kind: str, length: int) -> FloatArray:
+    if key not in params:
+        raise EffectLibraryError(f"effect {kind!r}: missing parameter {key!r}")
+    value = params[key]
+    if not isinstance(value, tuple | list) or len(value) != length:
+        raise EffectLibraryError(f"effect {kind!r}: {key!r} must be {length} numbers")
+    return np.asarray(value, dtype=float)
+
+
+def _joint(params: Mapping[str, Any], kind: str, n_joints: int) -> int:
+    j = _number(params, "joint", kind)
+    if j != int(j) or not 1 <= j <= n_joints:
+        raise EffectLibraryError(f"effect {kind!r}: joint must be 1..{n_joints}, got {j}")
+    return int(j)
+
+
+def _order(params: Mapping[str, Any], kind: str) -> int:
+    k = _number(params, "order", kind)
+    if k != int(k) or k < 1:
+        raise EffectLibraryError(f"effect {kind!r}: order must be a positive integer")
+    return int(k)
+
+
+def _check_keys(params: Mapping[str, Any], allowed: set[str], kind: str) -> None:
+    unknown = sorted(set(params) - allowed)
+    if unknown:
+        raise EffectLibraryError(
+            f"effect {kind!r}: unknown parameter {unknown[0]!r} (allowed: "
+            f"{', '.join(sorted(allowed))})"
+        )
+
+
+class GravityCompliance(EffectKind):
+    kind = "gravity_compliance"
+    description = "links and bearings after the grating ring give under gravity and payload"
+
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
+        return tuple(f"joint{j}_compliance_urad_per_knm" for j in spec.joints)
+
+    def regressor(self, spec, ctx, sel, kin):
+        tau = ctx.torques_nmm[sel]
+        cols = [kin.joint_axis(j) * (tau[:, j - 1] * URAD_PER_KNM)[:, None] for j in spec.joints]
+        return np.stack(cols, axis=2)
+
+    def label(self, spec):
+        return "gravity compliance (joints " + ", ".join(str(j) for j in spec.joints) + ")"
+
+    def to_parameters(self, spec, values, n_joints):
+        c = np.zeros(n_joints)
+        for j, v in zip(spec.joints, values, strict=True):
+            c[j - 1] = v
+        return {"compliance_urad_per_knm": tuple(float(v) for v in c)}
+
+    def from_parameters(self, params, n_joints):
+        _check_keys(params, {"compliance_urad_per_knm"}, self.kind)
+        c = _vector(params, "compliance_urad_per_knm", self.kind, n_joints)
+        joints = tuple(range(1, n_joints + 1))
+        return EffectSpec(self.kind, joints=joints), c
+
+    def evidence(self, spec, values, ctx, sel, kin):
+        shift = [
+            np.sqrt(
+                np.mean(np.sum(kin.joint_axis(j) ** 2, axis=1) * ctx.torques_nmm[sel, j - 1] ** 2)
+            )
+            * abs(v)
+            for j, v in zip(spec.joints, values, strict=True)
+        ]
+        i = int(np.argmax(shift))
+        j = spec.joints[i]
+        tau = ctx.torques_nmm[sel, j - 1]
+        return Evidence(
+            x=tau / 1e6,
+            x_label=f"gravity torque of joint {j} (kN·m)",
+            y_label=f"joint {j} angle error (deg)",
+            coordinate_mm=kin.joint_axis(j) * DEG,
+            predicted=values[i] * tau * URAD_PER_KNM / DEG,
+        )
+
+
+class JointHarmonic(EffectKind):
+    kind = "joint_harmonic"
+    description = "cyclic error of one joint's reading (harmonic of its angle)"
+
+    def parameter_names(self, spec):
+        return ("cos_deg", "sin_deg")
+
+    def _basis(self, spec, ctx, sel):
+        q = ctx.data.q_rad[sel, spec.joint - 1]
+        return np.cos(spec.order * q), np.sin(spec.order * q)
+
+    def regressor(self, spec, ctx, sel, kin):
+        c, s = self._basis(spec, ctx, sel)
+        axis = kin.joint_axis(spec.joint) * DEG
+        return np.stack([axis * c[:, None], axis * s[:, None]], axis=2)
+
+    def label(self, spec):
+        return f"cyclic error of joint {spec.joint} (harmonic {spec.order})"
+
+    def to_parameters(self, spec, values, n_joints):
+        return {
+            "joint": float(spec.joint),
+            "order": float(spec.order),
+            "cos_deg": float(values[0]),
+            "sin_deg": float(values[1]),
+        }
+
+    def from_parameters(self, params, n_joints):
+        _check_keys(params, {"joint", "order", "cos_deg", "sin_deg"}, self.kind)
+        spec = EffectSpec(
+            self.kind, joint=_joint(params, self.kind, n_joints), order=_order(params, self.kind)
+        )
+        v = np.array([_number(params, "cos_deg", self.kind), _number(params, "sin_deg", self.kind)])
+        return spec, v
+
+    def evidence(self, spec, values, ctx, sel, kin):
+        c, s = self._basis(spec, ctx, sel)
+        return Evidence(
+            x=np.degrees(ctx.data.q_rad[sel, spec.joint - 1]),
+            x_label=f"joint {spec.joint} reading (deg)",
+            y_label=f"joint {spec.joint} angle error (deg)",
+            coordinate_mm=kin.joint_axis(spec.joint) * DEG,
+            predicted=values[0] * c + values[1] * s,
+        )
+
+
+class LostMotion(EffectKind):
+    kind = "lost_motion"
+    needs_direction = True
+    description = "direction-dependent lost motion after the grating ring"
+
+    def parameter_names(self, spec):
+        return ("half_width_deg",)
+
+    def _direction(self, spec, ctx, sel):
+        if ctx.data.direction is None:
+            raise EffectLibraryError("lost_motion needs the approach directions of the poses")
+        return ctx.data.direction[sel, spec.joint - 1]
+
+    def regressor(self, spec, ctx, sel, kin):
+        d = self._direction(spec, ctx, sel)
+        return (kin.joint_axis(spec.joint) * DEG * d[:, None])[:, :, None]
+
+    def label(self, spec):
+        return f"lost motion of joint {spec.joint}"
+
+    def to_parameters(self, spec, values, n_joints):
+        return {"joint": float(spec.joint), "half_width_deg": float(values[0])}
+
+    def from_parameters(self, params, n_joints):
+        _check_keys(params, {"joint", "half_width_deg"}, self.kind)
+        spec = EffectSpec(self.kind, joint=_joint(params, self.kind, n_joints))
+        return spec, np.array([_number(params, "half_width_deg", self.kind)])
+
+    def evidence(self, spec, values, ctx, sel, kin):
+        d = self._direction(spec, ctx, sel)
+        return Evidence(
+            x=d,
+            x_label=f"joint {spec.joint} approach direction",
+            y_label=f"joint {spec.joint} angle error (deg)",
+            coordinate_mm=kin.joint_axis(spec.joint) * DEG,
+            predicted=values[0] * d,
+        )
+
+
+class LengthDrift(EffectKind):
+    kind = "length_drift"
+    needs_time = True
+    description = "a link length changing with time (temperature)"
+
+    def parameter_names(self, spec):
+        return (f"{spec.parameter}_rate_mm_per_h",)
+
+    def regressor(self, spec, ctx, sel, kin):
+        t = ctx.times_h(sel)
+        return (kin.length_axis(spec.joint, spec.parameter) * t[:, None])[:, :, None]
+
+    def label(self, spec):
+        return f"thermal drift of joint {spec.joint} length {spec.parameter}"
+
+    def to_parameters(self, spec, values, n_joints):
+        return {
+            "joint": float(spec.joint),
+            f"{spec.parameter}_rate_mm_per_h": float(values[0]),
+            "t0_s": 0.0,
+        }
+
+    def from_parameters(self, params, n_joints):
+        keys = [k for k in ("a_rate_mm_per_h", "d_rate_mm_per_h") if k in params]
+        if len(keys) != 1:
+            raise EffectLibraryError(
+                f"effect {self.kind!r}: exactly one of a_rate_mm_per_h, d_rate_mm_per_h"
+            )
+        _check_keys(params, {"joint", keys[0], "t0_s"}, self.kind)
+        if float(params.get("t0_s", 0.0)) != 0.0:
+            raise EffectLibraryError(f"effect {self.kind!r}: only t0_s = 0 is supported")
+        spec = EffectSpec(
+            self.kind, joint=_joint(params, self.kind, n_joints), parameter=keys[0][0]
+        )
+        return spec, np.array([_number(params, keys[0], self.kind)])
+
+    def evidence(self, spec, values, ctx, sel, kin):
+        t = ctx.times_h(sel)
+        return Evidence(
+            x=t,
+            x_label="time since the start of the campaign (h)",
+            y_label=f"joint {spec.joint} {spec.parameter} error (mm)",
+            coordinate_mm=kin.length_axis(spec.joint, spec.parameter),
+            predicted=values[0] * t,
+        )
+
+
+class InstrumentScale(EffectKind):
+    kind = "instrument_scale"
+    description = "distance-proportional scale error of the tracker"
+
+    def parameter_names(self, spec):
+        return ("scale_ppm",)
+
+    def regressor(self, spec, ctx, sel, kin):
+        return (kin.tcp_mm * 1e-6)[:, :, None]
+
+    def label(self, spec):
+        return "tracker scale"
+
+    def to_parameters(self, spec, values, n_joints):
+        return {"scale_ppm": float(values[0])}
+
+    def from_parameters(self, params, n_joints):
+        _check_keys(params, {"scale_ppm"}, self.kind)
+        return EffectSpec(self.kind), np.array([_number(params, "scale_ppm", self.kind)])
+
+    def evidence(self, spec, values, ctx, sel, kin):
+        return Evidence(
+            x=np.linalg.norm(kin.tcp_mm, axis=1) / 1000.0,
+            x_label="distance from the tracker (m)",
+            y_label="scale error (ppm)",
+            coordinate_mm=kin.tcp_mm * 1e-6,
+            predicted=np.full(len(kin.tcp_mm), values[0]),
+        )
+
+
+class InstrumentScaleDrift(EffectKind):
+    kind = "instrument_scale_drift"
+    needs_time = True
+    description = "the tracker's scale drifting with time (air temperature)"
+
+    def parameter_names(self, spec):
+        return ("rate_ppm_per_h",)
+
+    def regressor(self, spec, ctx, sel, kin):
+        return (kin.tcp_mm * 1e-6 * ctx.times_h(sel)[:, None])[:, :, None]
+
+    def label(self, spec):
+        return "tracker scale drift"
+
+    def to_parameters(self, spec, values, n_joints):
+        return {"rate_ppm_per_h": float(values[0]), "t0_s": 0.0}
+
+    def from_parameters(self, params, n_joints):
+        _check_keys(params, {"rate_ppm_per_h", "t0_s"}, self.kind)
+        if float(params.get("t0_s", 0.0)) != 0.0:
+            raise EffectLibraryError(f"effect {self.kind!r}: only t0_s = 0 is supported")
+        return EffectSpec(self.kind), np.array([_number(params, "rate_ppm_per_h", self.kind)])
+
+    def evidence(self, spec, values, ctx, sel, kin):
+        t = ctx.times_h(sel)
+        return Evidence(
+            x=t,
+            x_label="time since the start of the campaign (h)",
+            y_label="scale error (ppm)",
+            coordinate_mm=kin.tcp_mm * 1e-6,
+            predicted=values[0] * t,
+        )
+
+
+_AXES = ("x", "y", "z")
+
+
+class CartesianHarmonic(EffectKind):
+    kind = "cartesian_harmonic"
+    generic = True
+    description = "an error vector in the tracker frame varying with a harmonic of one joint"
+
+    def parameter_names(self, spec):
+        return tuple(f"{a}_{f}_mm" for f in ("cos", "sin") for a in _AXES)
+
+    def _basis(self, spec, ctx, sel):
+        q = ctx.data.q_rad[sel, spec.joint - 1]
+        return np.cos(spec.order * q), np.sin(spec.order * q)
+
+    def regressor(self, spec, ctx, sel, kin):
+        c, s = self._basis(spec, ctx, sel)
+        out = np.zeros((len(c), 3, 6))
+        for a in range(3):
+            out[:, a, a] = c
+            out[:, a, 3 + a] = s
+        return out
+
+    def label(self, spec):
+        return f"unexplained structure in q{spec.joint} (harmonic {spec.order})"
+
+    def to_parameters(self, spec, values, n_joints):
+        return {
+            "joint": float(spec.joint),
+            "order": float(spec.order),
+            "cos_mm": tuple(float(v) for v in values[:3]),
+            "sin_mm": tuple(float(v) for v in values[3:]),
+        }
+
+    def from_parameters(self, params, n_joints):
+        _check_keys(params, {"joint", "order", "cos_mm", "sin_mm"}, self.kind)
+        spec = EffectSpec(
+            self.kind, joint=_joint(params, self.kind, n_joints), order=_order(params, self.kind)
+        )
+        v = np.concatenate(
+            [_vector(params, "cos_mm", self.kind, 3), _vector(params, "sin_mm", self.kind, 3)]
+        )
+        return spec, v
+
+    def evidence(self, spec, values, ctx, sel, kin):
+        c, s = self._basis(spec, ctx, sel)
+        a = int(np.argmax(np.hypot(values[:3], values[3:])))
+        g = np.zeros((len(c), 3))
+        g[:, a] = 1.0
+        return Evidence(
+            x=np.degrees(ctx.data.q_rad[sel, spec.joint - 1]),
+            x_label=f"joint {spec.joint} reading (deg)",
+            y_label=f"{_AXES[a].upper()} error (mm)",
+            coordinate_mm=g,
+            predicted=values[a] * c + values[3 + a] * s,
+        )
+
+
+class CartesianTime(EffectKind):
+    kind = "cartesian_time"
+    generic = True
+    needs_time = True
+    description = (
+        "an error vector fixed in the tracker frame or in a link's frame, polynomial in time"
+    )
+
+    def parameter_names(self, spec):
+        names = [f"{a}_mm_per_h" for a in _AXES]
+        if spec.order >= 2:
+            names += [f"{a}_mm_per_h2" for a in _AXES]
+        return tuple(names)
+
+    def regressor(self, spec, ctx, sel, kin):
+        t = ctx.times_h(sel)
+        axes = kin.frame_axes(spec.joint)
+        out = np.zeros((len(t), 3, 3 * spec.order))
+        for p in range(spec.order):
+            out[:, :, 3 * p : 3 * p + 3] = axes * (t ** (p + 1))[:, None, None]
+        return out
+
+    def _frame(self, spec):
+        return "the tracker frame" if spec.joint == 0 else f"the frame of link {spec.joint}"
+
+    def label(self, spec):
+        return f"unexplained structure in time (order {spec.order}, in {self._frame(spec)})"
+
+    def to_parameters(self, spec, values, n_joints):
+        out: dict[str, float | tuple[float, ...]] = {
+            "frame": float(spec.joint),
+            "rate_mm_per_h": tuple(float(v) for v in values[:3]),
+        }
+        if spec.order >= 2:
+            out["acceleration_mm_per_h2"] = tuple(float(v) for v in values[3:6])
+        out["t0_s"] = 0.0
+        return out
+
+    def from_parameters(self, params, n_joints):
+        _check_keys(params, {"frame", "rate_mm_per_h", "acceleration_mm_per_h2", "t0_s"}, self.kind)
+        if float(params.get("t0_s", 0.0)) != 0.0:
+            raise EffectLibraryError(f"effect {self.kind!r}: only t0_s = 0 is supported")
+        frame = _number(params, "frame", self.kind) if "frame" in params else 0.0
+        if frame != int(frame) or not 0 <= frame <= n_joints:
+            raise EffectLibraryError(f"effect {self.kind!r}: frame must be 0..{n_joints}")
+        v = _vector(params, "rate_mm_per_h", self.kind, 3)
+        order = 1
+        if "acceleration_mm_per_h2" in params:
+            v = np.concatenate([v, _vector(params, "acceleration_mm_per_h2", self.kind, 3)])
+            order = 2
+        return EffectSpec(self.kind, joint=int(frame), order=order), v
+
+    def evidence(self, spec, values, ctx, sel, kin):
+        t = ctx.times_h(sel)
+        v = values.reshape(spec.order, 3)
+        a = int(np.argmax(np.sqrt(np.sum(v**2, axis=0))))
+        frame = "" if spec.joint == 0 else f" of link {spec.joint}'s frame"
+        return Evidence(
+            x=t,
+            x_label="time since the start of the campaign (h)",
+            y_label=f"{_AXES[a]} error{frame} (mm)",
+            coordinate_mm=kin.frame_axes(spec.joint)[:, :, a],
+            predicted=sum(v[p, a] * t ** (p + 1) for p in range(spec.order)),
+        )
+
+
+#: Effect kind -> its implementation (the ``kind`` of an ``[[effect]]`` table).
+KINDS: dict[str, EffectKind] = {
+    k.kind: k
+    for k in (
+        GravityCompliance(),
+        JointHarmonic(),
+        LostMotion(),
+        LengthDrift(),
+        InstrumentScale(),
+        InstrumentScaleDrift(),
+        CartesianHarmonic(),
+        CartesianTime(),
+    )
+}
+LIBRARY_KINDS = tuple(k for k, v in KINDS.items() if not v.generic)
+GENERIC_KINDS = tuple(k for k, v in KINDS.items() if v.generic)
+
+
+def check_kinds(kinds: Collection[str]) -> None:
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        raise EffectLibraryError(f"unknown effect kind {unknown[0]!r} (valid: {', '.join(KINDS)})")
+
+
+# -- candidates, terms, descriptions ----------------------------------------------------------
+def loaded_joints(ctx: EffectContext) -> tuple[int, ...]:
+    """Joints (1-based) whose RMS gravity torque over the poses is at least
+    :data:`LOADED_JOINT_FRACTION` of the largest (none without a mass model)."""
+    rms = np.sqrt(np.mean(ctx.torques_nmm**2, axis=0))
+    top = float(rms.max(initial=0.0))
+    if top <= 0.0:
+        return ()
+    return tuple(int(j) + 1 for j in np.flatnonzero(rms >= LOADED_JOINT_FRACTION * top))
+
+
+def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) -> list[EffectSpec]:
+    """Every candidate for these poses: the library, then the generic search.
+
+    ``kinds`` restricts the kinds offered (default: all). Time terms need ``t_s``, lost
+    motion the approach directions, compliance a mass model.
+    """
+    allowed = set(KINDS) if kinds is None else set(kinds)
+    check_kinds(allowed)
+    n = ctx.description.n_joints
+    has_t = ctx.data.t_s is not None and float(np.ptp(ctx.data.t_s)) > 0
+    out: list[EffectSpec] = []
+
+    def offer(spec: EffectSpec) -> None:
+        kind = KINDS[spec.kind]
+        if spec.kind not in allowed or (kind.needs_time and not has_t):
+            return
+        if kind.needs_direction and ctx.data.direction is None:
+            return
+        out.append(spec)
+
+    loaded = loaded_joints(ctx)
+    if loaded:
+        offer(EffectSpec("gravity_compliance", joints=loaded))
+    for j in range(1, n + 1):
+        for k in HARMONIC_ORDERS:
+            offer(EffectSpec("joint_harmonic", joint=j, order=k))
+    for j in range(1, n + 1):
+        offer(EffectSpec("lost_motion", joint=j))
+    for j, joint in enumerate(ctx.description.joints, start=1):
+        for parameter, length in (("d", joint.d_mm), ("a", joint.a_mm)):
+            if abs(length) >= DRIFT_MIN_LENGTH_MM:
+                offer(EffectSpec("length_drift", joint=j, parameter=parameter))
+    offer(EffectSpec("instrument_scale"))
+    offer(EffectSpec("instrument_scale_drift"))
+    for j in range(1, n + 1):
+        for k in HARMONIC_ORDERS:
+            offer(EffectSpec("cartesian_harmonic", joint=j, order=k))
+    for frame in range(n + 1):
+        offer(EffectSpec("cartesian_time", joint=frame, order=1))
+    offer(EffectSpec("cartesian_time", joint=0, order=2))
+    return out
+
+
+def regressor_matrix(
+    specs: Sequence[EffectSpec], ctx: EffectContext, sel: slice, kin: Kinematics
+) -> FloatArray:
+    """The regressors of several effects side by side ``(r, 3, Σk)``."""
+    r = len(kin.tcp_mm)
+    blocks = [KINDS[s.kind].regressor(s, ctx, sel, kin) for s in specs]
+    return np.concatenate(blocks, axis=2) if blocks else np.zeros((r, 3, 0))
+
+
+def effect_terms(
+    specs: Sequence[EffectSpec], ctx: EffectContext, start: ArrayLike | None = None
+) -> EffectTerms:
+    """:class:`~calibration.identification.EffectTerms` of ``specs`` on ``ctx``'s poses."""
+    names = tuple(f"{s.kind}[{_tag(s)}].{p}" for s in specs for p in s.parameter_names())
+    q = ctx.data.q_rad
+
+    def regressor(model: KinematicModel, sel: slice) -> FloatArray:
+        return regressor_matrix(specs, ctx, sel, Kinematics.of(model, q[sel]))
+
+    return EffectTerms(
+        names=names,
+        regressor=regressor,
+        start=None if start is None else tuple(float(v) for v in np.asarray(start)),
+    )
+
+
+def _tag(spec: EffectSpec) -> str:
+    if spec.kind == "gravity_compliance":
+        return "joints " + ",".join(str(j) for j in spec.joints)
+    if spec.kind == "cartesian_time":
+        return f"frame{spec.joint} order{spec.order}"
+    parts = []
+    if spec.joint:
+        parts.append(f"joint{spec.joint}")
+    if spec.parameter:
+        parts.append(spec.parameter)
+    if spec.order:
+        parts.append(f"order{spec.order}")
+    return " ".join(parts)
+
+
+def split_values(specs: Sequence[EffectSpec], values: ArrayLike) -> list[FloatArray]:
+    """The stacked effect parameter vector cut per effect."""
+    v = np.asarray(values, dtype=float)
+    sizes = [len(s.parameter_names()) for s in specs]
+    if sum(sizes) != len(v):
+        raise EffectLibraryError(f"{len(v)} values for effects with {sum(sizes)} parameters")
+    return list(np.split(v, np.cumsum(sizes)[:-1])) if specs else []
+
+
+def to_descriptions(
+    specs: Sequence[EffectSpec], values: ArrayLike, n_joints: int
+) -> tuple[EffectDescription, ...]:
+    """``[[effect]]`` tables (units in the keys) of identified effects."""
+    return tuple(
+        EffectDescription(s.kind, KINDS[s.kind].to_parameters(s, v, n_joints))
+        for s, v in zip(specs, split_values(specs, values), strict=True)
+    )
+
+
+def from_description(effect: EffectDescription, n_joints: int) -> tuple[EffectSpec, FloatArray]:
+    """Spec and parameter values of an ``[[effect]]`` table (errors name the key)."""
+    kind = KINDS.get(effect.kind)
+    if kind is None:
+        raise EffectLibraryError(
+            f"unknown effect kind {effect.kind!r} (known: {', '.join(sorted(KINDS))})"
+        )
+    return kind.from_parameters(effect.parameters, n_joints)
+
+
+def effect_offsets_mm(
+    specs: Sequence[EffectSpec],
+    values: ArrayLike,
+    ctx: EffectContext,
+    model: KinematicModel,
+) -> FloatArray:
+    """What the effects add to the geometric TCP at ``ctx``'s poses ``(m, 3)`` mm."""
+    sel = slice(0, len(ctx.data))
+    kin = Kinematics.of(model, ctx.data.q_rad)
+    if not specs:
+        return np.zeros((len(ctx.data), 3))
+    return regressor_matrix(specs, ctx, sel, kin) @ np.asarray(values, dtype=float)

@@ -1,0 +1,179 @@
+"""Effect library: regressors (against finite differences and the emulator's physics),
+[[effect]] tables, candidates, and `predict_tcp` applying every kind."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from calibration.description import EffectDescription, RobotDescription, load_robot
+from calibration.effect_library import (
+    KINDS,
+    EffectContext,
+    EffectData,
+    EffectLibraryError,
+    EffectSpec,
+    Kinematics,
+    candidate_effects,
+    from_description,
+    regressor_matrix,
+    to_descriptions,
+)
+from calibration.kinematics import KinematicModel, flange_poses, tcp_positions
+from calibration.model_effects import ModelEffectError, predict_tcp
+from sim_devices.effects import UndeclaredEffects, true_tcp_mm
+from sim_devices.pose_campaign import sample_reachable_poses
+
+DESC = load_robot("kr500")
+MODEL = KinematicModel.from_description(DESC)
+Q = sample_reachable_poses(DESC, 40, np.random.default_rng(3))
+T = np.linspace(0.0, 3600.0, 40)
+CTX = EffectContext(DESC, EffectData.from_sequence(Q, T, np.radians(DESC.home)))
+KIN = Kinematics.of(MODEL, Q)
+ALL = slice(0, len(Q))
+
+SPECS = [
+    EffectSpec("gravity_compliance", joints=(2, 3, 5)),
+    EffectSpec("joint_harmonic", joint=1, order=2),
+    EffectSpec("lost_motion", joint=3),
+    EffectSpec("length_drift", joint=2, parameter="a"),
+    EffectSpec("length_drift", joint=4, parameter="d"),
+    EffectSpec("instrument_scale"),
+    EffectSpec("instrument_scale_drift"),
+    EffectSpec("cartesian_harmonic", joint=4, order=3),
+    EffectSpec("cartesian_time", joint=0, order=2),
+    EffectSpec("cartesian_time", joint=2, order=1),
+]
+
+
+def test_every_kind_is_covered():
+    assert {s.kind for s in SPECS} == set(KINDS)
+
+
+def _joint_shift(dq: np.ndarray, eps: float = 1e-5) -> np.ndarray:
+    return (tcp_positions(MODEL, Q + eps * dq) - tcp_positions(MODEL, Q - eps * dq)) / (2 * eps)
+
+
+def test_joint_angle_regressors_match_finite_differences():
+    # harmonic: d TCP / d cos_deg = ∂TCP/∂q1 · cos(2 q1) · π/180
+    r = KINDS["joint_harmonic"].regressor(SPECS[1], CTX, ALL, KIN)
+    dq = np.zeros_like(Q)
+    dq[:, 0] = np.cos(2 * Q[:, 0]) * np.pi / 180
+    np.testing.assert_allclose(r[:, :, 0], _joint_shift(dq), atol=1e-6)
+    # compliance: per µrad/(kN·m), the joint turns by tau · 1e-12 rad
+    r = KINDS["gravity_compliance"].regressor(SPECS[0], CTX, ALL, KIN)
+    dq = np.zeros_like(Q)
+    dq[:, 2] = CTX.torques_nmm[:, 2] * 1e-12
+    np.testing.assert_allclose(r[:, :, 1], _joint_shift(dq, eps=1.0), rtol=1e-6, atol=1e-10)
+    # lost motion: the approach direction of joint 3 times π/180
+    r = KINDS["lost_motion"].regressor(SPECS[2], CTX, ALL, KIN)
+    dq = np.zeros_like(Q)
+    dq[:, 2] = CTX.data.direction[:, 2] * np.pi / 180
+    np.testing.assert_allclose(r[:, :, 0], _joint_shift(dq), atol=1e-6)
+
+
+def test_length_scale_and_time_regressors():
+    x = MODEL.parameter_vector()
+    x[5 * 1 + 0] += 1.0  # a2 + 1 mm
+    axis = tcp_positions(MODEL.with_parameters(x), Q) - tcp_positions(MODEL, Q)
+    r = KINDS["length_drift"].regressor(SPECS[3], CTX, ALL, KIN)
+    np.testing.assert_allclose(r[:, :, 0], axis * (T / 3600.0)[:, None], atol=1e-9)
+    r = KINDS["instrument_scale"].regressor(SPECS[5], CTX, ALL, KIN)
+    np.testing.assert_allclose(r[:, :, 0], tcp_positions(MODEL, Q) * 1e-6)
+    r = KINDS["instrument_scale_drift"].regressor(SPECS[6], CTX, ALL, KIN)
+    np.testing.assert_allclose(r[:, :, 0], tcp_positions(MODEL, Q) * 1e-6 * (T / 3600)[:, None])
+    r = KINDS["cartesian_time"].regressor(SPECS[8], CTX, ALL, KIN)
+    assert r.shape == (40, 3, 6)
+    np.testing.assert_allclose(r[:, 1, 4], (T / 3600.0) ** 2)
+    # link frames read off the Jacobian are the kinematic frames
+    for frame in (1, 2, 4, 6):
+        rot = flange_poses(MODEL.truncated(frame), Q[:, :frame])[:, :3, :3]
+        np.testing.assert_allclose(KIN.frame_axes(frame), rot, atol=1e-12)
+
+
+def test_compliance_matches_the_emulators_deflection():
+    """The twin's first-order compliance term predicts the emulator's exact deflection."""
+    eff = UndeclaredEffects.named("gravity_deflection")
+    sim = true_tcp_mm(eff, DESC, Q, T) - tcp_positions(MODEL, Q)
+    from sim_devices.effects import deflection_stiffness_nmm_per_rad
+
+    k = deflection_stiffness_nmm_per_rad(eff, DESC)
+    spec = EffectSpec("gravity_compliance", joints=(2, 3, 4, 5))
+    c = np.array([1e12 / k[j - 1] for j in spec.joints])  # µrad/(kN·m)
+    twin = regressor_matrix([spec], CTX, ALL, KIN) @ c
+    assert np.max(np.abs(sim)) > 0.2
+    assert np.max(np.linalg.norm(twin - sim, axis=1)) < 1e-3
+
+
+def test_descriptions_round_trip_and_predict_applies_every_kind(tmp_path):
+    rng = np.random.default_rng(0)
+    values = [rng.normal(size=len(s.parameter_names())) * 0.01 for s in SPECS]
+    effects = to_descriptions(SPECS, np.concatenate(values), 6)
+    desc = replace(DESC, effects=effects)
+    path = tmp_path / "m.toml"
+    desc.save(path)
+    back = RobotDescription.load(path)
+    text = path.read_text()
+    assert 'kind = "gravity_compliance"' in text and "compliance_urad_per_knm" in text
+    assert "a_rate_mm_per_h" in text and "d_rate_mm_per_h" in text and "t0_s" in text
+    expected = tcp_positions(MODEL, Q)
+    for spec, v, e in zip(SPECS, values, back.effects, strict=True):
+        spec2, v2 = from_description(e, 6)
+        if spec.kind == "gravity_compliance":  # written for every joint, zeros elsewhere
+            assert spec2.joints == (1, 2, 3, 4, 5, 6) and v2[[1, 2, 4]].tolist() == v.tolist()
+        else:
+            assert spec2 == spec and np.array_equal(v2, v)
+        expected = expected + KINDS[spec.kind].regressor(spec, CTX, ALL, KIN) @ v
+    np.testing.assert_allclose(predict_tcp(back, Q, T), expected, atol=1e-12)
+
+
+def test_predict_names_bad_effects():
+    def bad(kind, **params):
+        desc = replace(DESC, effects=(EffectDescription(kind, params),))
+        with pytest.raises(ModelEffectError) as info:
+            predict_tcp(desc, Q[:3], T[:3])
+        return str(info.value)
+
+    assert "cos_deg" in bad("joint_harmonic", joint=1.0, order=2.0, sin_deg=0.0)
+    assert "joint must be 1..6" in bad("lost_motion", joint=7.0, half_width_deg=0.01)
+    assert "wobble" in bad("lost_motion", joint=1.0, half_width_deg=0.01, wobble=1.0)
+    assert "6 numbers" in bad("gravity_compliance", compliance_urad_per_knm=(1.0, 2.0))
+    assert "exactly one" in bad("length_drift", joint=2.0)
+    desc = replace(
+        DESC, effects=(EffectDescription("instrument_scale_drift", {"rate_ppm_per_h": 1.0}),)
+    )
+    with pytest.raises(ModelEffectError, match="t_s"):
+        predict_tcp(desc, Q[:3])
+
+
+def test_directions_follow_time_order():
+    shuffle = np.random.default_rng(1).permutation(len(Q))
+    data = EffectData.from_sequence(Q[shuffle], T[shuffle], np.zeros(6))
+    np.testing.assert_array_equal(data.direction, CTX.data.direction[shuffle])
+    np.testing.assert_array_equal(CTX.data.direction[0], np.sign(Q[0]))
+    np.testing.assert_array_equal(CTX.data.direction[1:], np.sign(np.diff(Q, axis=0)))
+
+
+def test_candidates():
+    specs = candidate_effects(CTX)
+    kinds = [s.kind for s in specs]
+    assert kinds.count("joint_harmonic") == 18 and kinds.count("cartesian_harmonic") == 18
+    assert kinds.count("lost_motion") == 6 and kinds.count("cartesian_time") == 8
+    drift = {(s.joint, s.parameter) for s in specs if s.kind == "length_drift"}
+    assert drift == {(1, "d"), (2, "a"), (3, "a"), (4, "a"), (4, "d"), (6, "d")}
+    compliance = next(s for s in specs if s.kind == "gravity_compliance")
+    assert 1 not in compliance.joints and {2, 3, 4, 5} <= set(compliance.joints)
+    assert len(set(specs)) == len(specs)  # hashable and distinct
+    # no times: no drift terms; no masses: no compliance; a restricted set
+    no_t = EffectContext(DESC, EffectData.from_sequence(Q))
+    assert not any(KINDS[s.kind].needs_time for s in candidate_effects(no_t))
+    massless = replace(DESC, joints=tuple(replace(j, mass_kg=None) for j in DESC.joints))
+    massless = replace(massless, tool=replace(DESC.tool, mass_kg=None))
+    ctx = EffectContext(massless, CTX.data)
+    assert "gravity_compliance" not in {s.kind for s in candidate_effects(ctx)}
+    only = candidate_effects(CTX, ["instrument_scale", "lost_motion"])
+    assert {s.kind for s in only} == {"instrument_scale", "lost_motion"}
+    with pytest.raises(EffectLibraryError, match="unknown effect kind 'sag'"):
+        candidate_effects(CTX, ["sag"])
