@@ -14,6 +14,7 @@ from typing import Any
 
 import tomli_w
 
+from sim_devices.effects import EFFECT_NAMES, UndeclaredEffects
 from sim_devices.errors import SimConfigError
 
 
@@ -46,6 +47,9 @@ class EffectsSection:
     sag_mm_per_m2: float = 0.05
     tracker_temperature_drift_k_per_h: float = 0.0
     tracker_scale_ppm_per_k: float = 0.0  # instrument error: scale vs air temperature
+    # effects the twin is not told about, shared with the campaign generator
+    # ([effects.undeclared], sim_devices/effects.py; all off by default)
+    undeclared: UndeclaredEffects = field(default_factory=UndeclaredEffects)
 
 
 @dataclass(frozen=True)
@@ -204,6 +208,27 @@ def _check(cfg: CellConfig, source: str) -> None:
         cfg.tracker.target.startswith("link") and cfg.tracker.target[4:].isdigit()
     ):
         fail(f"[tracker].target must be 'tcp' or 'linkN', got {cfg.tracker.target!r}")
+    und = cfg.effects.undeclared
+    if und.drift_parameter not in ("a", "d"):
+        fail(
+            f"[effects.undeclared].drift_parameter must be 'a' or 'd', got {und.drift_parameter!r}"
+        )
+    for key in ("cyclic_joint", "drift_joint"):
+        if not 1 <= getattr(und, key) <= 6:
+            fail(f"[effects.undeclared].{key} must be a joint number 1..6")
+    if und.cyclic_order < 1:
+        fail("[effects.undeclared].cyclic_order must be at least 1")
+    if und.tracker_scale and und.tracker_scale_drift_ppm_per_h != 0.0:
+        fail(
+            "[effects.undeclared].tracker_scale_drift_ppm_per_h is for the campaign generator; "
+            "the live tracker drifts through tracker_temperature_drift_k_per_h and "
+            "tracker_scale_ppm_per_k"
+        )
+    if und.lost_motion:
+        fail(
+            "[effects.undeclared].lost_motion is for the campaign generator only "
+            f"(live effects: {', '.join(n for n in EFFECT_NAMES if n != 'lost_motion')})"
+        )
     for name, p in asdict(cfg.grating.faults).items():
         if name.endswith("probability") and not 0.0 <= p <= 1.0:
             fail(f"[grating.faults].{name} must be in [0, 1]")

@@ -7,6 +7,13 @@ controller servos the *motors* to the commanded joint vector ``q_cmd``; the join
 under gravity and payload (``tau / K``) and by gear backlash. Motor encoders read
 ``gear_ratio · q_cmd``. All evaluations are vectorized over arrays of simulated times.
 
+The undeclared effects of ``[effects.undeclared]`` (:mod:`sim_devices.effects`, the same
+physics as the campaign generator): gravity deflection after the ring and the thermal link
+drift move the target (:meth:`Plant.target_mm`), the cyclic grating error changes the
+counts (:meth:`Plant.grating_counts`), a constant tracker scale error goes to the tracker
+model. The drift follows program time; a caller that does not pass the sample's time gets
+the clock's current time (the drift moves 4e-5 mm/s at 0.15 mm/h).
+
 Clocks: :class:`SimClock` maps the host's ``time.monotonic()`` to wall seconds since the
 emulator started and to simulated robot-program seconds (``speed`` times faster); each
 device has its own :class:`DeviceClock` (drift in ppm, restarts).
@@ -16,7 +23,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -25,8 +32,13 @@ from calibration.description import RobotDescription, load_robot
 from calibration.kinematics import KinematicModel, tcp_positions
 from calibration.statics import MassModel, gravity_torques_nmm
 from sim_devices.config import CellConfig
+from sim_devices.effects import (
+    deflection_stiffness_nmm_per_rad,
+    grating_reading_rad,
+    true_tcp_mm,
+)
 from sim_devices.motion import Move, Trajectory
-from sim_devices.truth import TrueCell
+from sim_devices.truth import TrackerModel, TrueCell
 
 FloatArray = NDArray[np.float64]
 
@@ -111,6 +123,11 @@ class Plant:
         eff = config.effects
         self.stiffness = np.resize(np.asarray(eff.stiffness_nmm_per_rad, float), n)
         self.backlash_rad = np.radians(np.resize(np.asarray(eff.backlash_deg, float), n))
+        und = eff.undeclared
+        if und.gravity_deflection:  # derive the stiffness once, not per sample
+            k = deflection_stiffness_nmm_per_rad(und, cell.truth)
+            und = replace(und, deflection_stiffness_nmm_per_rad=tuple(float(v) for v in k))
+        self.undeclared = und
         self.link_joint: int | None = None
         self._target_model = self.truth_model
         target = config.tracker.target
@@ -126,8 +143,10 @@ class Plant:
     @classmethod
     def from_config(cls, config: CellConfig, clock: SimClock | None = None) -> Plant:
         nominal = load_robot(config.cell.robot)
+        und = config.effects.undeclared
+        tracker = TrackerModel(scale_error_ppm=und.tracker_scale_ppm) if und.tracker_scale else None
         cell = TrueCell.create(
-            nominal, config.cell.seed, eccentricity_mm=config.cell.eccentricity_mm
+            nominal, config.cell.seed, eccentricity_mm=config.cell.eccentricity_mm, tracker=tracker
         )
         rng = np.random.default_rng(config.cell.seed + 1)
         trajectory = build_program(config.cell.program, nominal, rng)
@@ -200,9 +219,15 @@ class Plant:
     def target_mm(self, q_out_rad: FloatArray, wall_s: ArrayLike | None = None) -> FloatArray:
         """True target positions ``(N, 3)`` in the tracker frame for joint outputs."""
         q = np.atleast_2d(q_out_rad)
+        und = self.undeclared
         if self.link_joint is not None:
-            q = q[:, : self.link_joint + 1]
-        pts = tcp_positions(self._target_model, q)
+            pts = tcp_positions(self._target_model, q[:, : self.link_joint + 1])
+        elif und.gravity_deflection or und.thermal_drift:
+            wall = self.clock.wall_s() if wall_s is None else wall_s
+            sim = np.broadcast_to(self.clock.sim_s(wall), (len(q),))
+            pts = true_tcp_mm(und, self.cell.truth, q, sim)
+        else:
+            pts = tcp_positions(self._target_model, q)
         if self.config.effects.sag:
             base = self.truth_model.base_mm
             reach_m = np.linalg.norm((pts - base)[:, :2], axis=1) / 1000.0
@@ -215,8 +240,9 @@ class Plant:
     ) -> NDArray[np.int64]:
         """Unwrapped noisy integer counts ``(N, n)`` of every strip (wrap is the reader's)."""
         out = np.empty(q_out_rad.shape, dtype=np.int64)
+        q_read = grating_reading_rad(self.undeclared, q_out_rad)
         for j, strip in enumerate(self.cell.strips):
-            ideal = strip.ideal_counts(q_out_rad[:, j])
+            ideal = strip.ideal_counts(q_read[:, j])
             out[:, j] = np.rint(ideal + rng.normal(0.0, noise_counts, ideal.shape)).astype(np.int64)
         return out
 
@@ -228,6 +254,11 @@ class Plant:
             "backlash_deg": np.degrees(self.backlash_rad).tolist(),
             "speed": self.clock.speed,
         }
+        if self.undeclared.gravity_deflection:
+            k = self.undeclared.deflection_stiffness_nmm_per_rad
+            doc["plant"]["deflection_stiffness_nmm_per_rad"] = [
+                float(v) if np.isfinite(v) else 0.0 for v in k
+            ]
         doc["program"] = self.trajectory.schedule()
         doc["config"] = self.config.to_document()
         return doc

@@ -147,3 +147,45 @@ def test_generator_command_writes_effects_into_the_truth(tmp_path):
     desc = load_robot("hp20d")
     camp = read_campaign(out, 6, limits_deg=[(j.lower_deg, j.upper_deg) for j in desc.joints])
     assert len(camp) == 25
+
+
+def test_live_plant_shares_the_physics():
+    """The live cell's plant applies the same effects as the campaign generator."""
+    from sim_devices.config import CellConfig
+    from sim_devices.errors import SimConfigError
+    from sim_devices.plant import Plant, SimClock
+
+    text = (
+        '[cell]\nprogram = "hold"\n[effects]\ntorsion = false\nbacklash = false\n'
+        "[effects.undeclared]\ngravity_deflection = true\ngrating_cyclic = true\n"
+        "thermal_drift = true\ntracker_scale = true\n"
+    )
+    cfg = CellConfig.loads(text)
+    assert CellConfig.loads(cfg.dumps()) == cfg
+    plant = Plant.from_config(cfg, SimClock(speed=1.0, t0_monotonic=0.0))
+    off = Plant.from_config(CellConfig.loads(text.split("[effects.undeclared]")[0]))
+    eff = cfg.effects.undeclared
+    truth = plant.cell.truth
+    q = np.radians([[10.0, 20.0, -30.0, 40.0, 50.0, 60.0], [0.0, 60.0, -60.0, 0.0, 30.0, 0.0]])
+    t = np.array([0.0, 1800.0])
+    from sim_devices.effects import true_tcp_mm
+
+    np.testing.assert_allclose(plant.target_mm(q, t), true_tcp_mm(eff, truth, q, t), atol=1e-9)
+    moved = plant.target_mm(q, t) - off.target_mm(q, t)
+    assert 0.05 < np.abs(moved).max() < 2.0
+    rng = np.random.default_rng(0)
+    counts = plant.grating_counts(q, rng, 0.0) - off.grating_counts(q, rng, 0.0)
+    strip = plant.cell.strips[0]
+    expect = strip.ideal_counts(grating_reading_rad(eff, q)[:, 0]) - strip.ideal_counts(q[:, 0])
+    np.testing.assert_allclose(counts[:, 0], np.rint(expect), atol=1.0)
+    assert np.all(counts[:, 1:] == 0)
+    assert plant.cell.tracker.scale_error_ppm == eff.tracker_scale_ppm
+    k = plant.truth_document()["plant"]["deflection_stiffness_nmm_per_rad"]
+    assert k[0] == 0.0 and 1e10 < k[1] < 2e11
+    for bad in (
+        "lost_motion = true",
+        "drift_parameter = 'b'",
+        "tracker_scale_drift_ppm_per_h = 1.0",
+    ):
+        with pytest.raises(SimConfigError, match="undeclared"):
+            CellConfig.loads(text + bad + "\n")
