@@ -43,8 +43,10 @@ TIME_COLUMNS = ("seq", "epoch", "t_device_us", "t_host_rx_ns", "t_mapped_ns", "t
 #: the clock fit is trusted once it has this many bucket minima (0.25 s each) ...
 SETTLED_POINTS = 8
 #: ... a plausible drift, and a tight lower envelope
-SETTLED_MAX_DRIFT_PPM = 1000.0
-SETTLED_MAX_RMS_NS = 2_000_000.0
+SETTLED_MAX_DRIFT_PPM = 500.0
+SETTLED_MAX_RMS_NS = 1_000_000.0
+#: the clock fit is fed at most this often (the least-delayed sample since the last feed)
+CLOCK_FEED_NS = 20_000_000
 
 
 def build_schemas(
@@ -186,6 +188,9 @@ class DeviceStream:
         self._epoch: int | None = None
         self._last_seq: int | None = None
         self._last_t_dev: tuple[int, int] | None = None
+        self._clock_best: tuple[int, int] | None = None  # (device µs, host ns) to feed
+        self._clock_fed = 0  # host ns of the last feed
+        self._settled = False
         self._token: Any = None
         self._lock = threading.Lock()
         self._connected_once = False
@@ -403,19 +408,32 @@ class DeviceStream:
                 self.counters.epochs += 1
                 self.clock = self._new_clock()
                 self._last_seq = None
+                self._clock_best = None
+                self._clock_fed = 0
+                self._settled = False
             self._epoch = ep
             td, th = t_dev[a:b], t_host[a:b]
-            # only the lowest apparent delay of a read matters to the lower-envelope fit:
-            # feed that one point, then map the whole run with the updated fit
+            # only the lowest apparent delay matters to the lower-envelope fit (its buckets
+            # keep one minimum per 0.25 s): keep the best point and feed it every
+            # CLOCK_FEED_NS, then map the whole run with the current fit
             k = int(np.argmin(th - td * 1000)) if b - a > 1 else 0
-            self.clock.update(td[k : k + 1], th[k : k + 1])
+            cand = (int(td[k]), int(th[k]))
+            best = self._clock_best
+            if best is None or cand[1] - cand[0] * 1000 < best[1] - best[0] * 1000:
+                self._clock_best = best = cand
+            now = int(th[-1])
+            if not self._clock_fed or now - self._clock_fed >= CLOCK_FEED_NS:
+                self.clock.update(np.array([best[0]]), np.array([best[1]]))
+                self._clock_best = None
+                self._clock_fed = now
+                q = self.clock.quality()
+                self._settled = (
+                    q.points >= SETTLED_POINTS
+                    and abs(q.drift_ppm) < SETTLED_MAX_DRIFT_PPM
+                    and q.envelope_rms_ns < SETTLED_MAX_RMS_NS
+                )
             out[a:b] = self.clock.map(td)
-            q = self.clock.quality()
-            ok[a:b] = (
-                q.points >= SETTLED_POINTS
-                and abs(q.drift_ppm) < SETTLED_MAX_DRIFT_PPM
-                and q.envelope_rms_ns < SETTLED_MAX_RMS_NS
-            )
+            ok[a:b] = self._settled
         return out, ok
 
     def _count_gaps(self, seq: NDArray[np.int64], epoch: NDArray[np.int32]) -> None:

@@ -91,6 +91,7 @@ def test_emulated_cell_end_to_end(tmp_path):
     assert d.returncode == 0, err[-3000:]
     e.communicate(timeout=60)
     data, health = recorded(rec_path)
+    assert "cell/emulated/robot/robot1/grating/samples" in data, (list(data), err[-3000:])
     grating = data["cell/emulated/robot/robot1/grating/samples"]
     tracker = data["cell/emulated/robot/robot1/tracker/samples"]
 
@@ -130,7 +131,8 @@ def test_emulated_cell_end_to_end(tmp_path):
     assert t_spawn <= np.median(settled) <= t_first_line, (t_spawn, np.median(settled))
     # ~10 s of a 0.3 ms envelope pins the drift to tens of ppm only (longer runs do better)
     assert abs(hg["clock"]["drift_ppm"] + PPM) < 100, hg["clock"]
-    assert np.all(grating["t_mapped_ns"][ok] <= grating["t_host_rx_ns"][ok] + 2_000_000)
+    late_ms = (grating["t_mapped_ns"][ok] - grating["t_host_rx_ns"][ok]) / 1e6
+    assert late_ms.max() <= 2.0, (late_ms.max(), np.flatnonzero(late_ms > 2.0)[:5], ok.mean())
 
     # the tracker was reset (unplugged) once: it came back, and lost only the time away
     ht = health["cell/emulated/robot/robot1/tracker/health"][-1]
