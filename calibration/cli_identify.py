@@ -1,7 +1,12 @@
 """``twin identify`` and ``twin predict``: identification from a campaign, and prediction.
 
 twin identify --robot robot.toml --data campaign.csv --out calibrated.toml [--report DIR]
+    [--no-effects] [--effect-kinds K,K] [--effects-alpha A]
 twin predict --model calibrated.toml --data joints.csv --out points.csv
+
+``twin identify`` runs the closed loop by default (geometric identification, then effects
+the residuals show, :mod:`calibration.closed_loop`); ``--no-effects`` stops after the
+geometry.
 """
 
 from __future__ import annotations
@@ -9,6 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -49,6 +55,23 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="A,B",
         help="weight each point by the tracker's data-sheet MPE ±(A µm + B µm/m · distance), "
         "taken as 2σ (e.g. 15,6); default: all points weigh the same",
+    )
+    p.add_argument(
+        "--no-effects",
+        action="store_true",
+        help="the geometric model alone (default: also search the residuals for effects the "
+        "geometric model lacks and add the significant ones)",
+    )
+    p.add_argument(
+        "--effect-kinds",
+        metavar="K,K",
+        help="offer only these candidate effect kinds (default: all; see docs/closed-loop.md)",
+    )
+    p.add_argument(
+        "--effects-alpha",
+        type=float,
+        default=1e-3,
+        help="family-wise false-positive probability of one search round (default 1e-3)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=run_identify)
@@ -132,19 +155,37 @@ def run_identify(args: argparse.Namespace) -> int:
         f"({len(ana.dropped)} dropped), condition number {ana.condition_number:.1f}; "
         f"{result.optimize_result.message}"
     )
-    calibrated = result.model.to_description(desc)
+    loop = None
+    if args.no_effects:
+        calibrated = replace(result.model.to_description(desc), effects=())
+    else:
+        loop = _closed_loop(args, desc, campaign, start, point_sigma, result, say)
+        result = loop.result
+        calibrated = loop.calibrated_description(desc)
     calibrated.save(args.out)
 
     from calibration.identification_report import build_report, write_report
 
     doc, errors = build_report(
-        result, desc, campaign, robot_source=str(args.robot), calibrated_path=str(args.out)
+        result,
+        desc,
+        campaign,
+        robot_source=str(args.robot),
+        calibrated_path=str(args.out),
+        closed_loop=loop,
     )
     doc["solver"]["point_weights"] = (
         f"tracker MPE ±({args.tracker_mpe_um.replace(',', ' µm + ')} µm/m) as 2σ"
         if args.tracker_mpe_um
         else "none (all points weigh the same)"
     )
+    if loop is not None:
+        set_name = "validate" if "validate" in loop.final.errors_mm else "identify"
+        for st in doc["closed_loop"]["stages"]:
+            ap = st["sets"][set_name]["AP"]
+            print(f"stage {st['label']}: {set_name} mean AP {ap['mean']:.4f} mm")
+        for c in doc["closed_loop"]["stopped"]["not_identifiable"]:
+            print(f"not identifiable: {c['effect']}")
     for name, s in doc["sets"].items():
         b, a = s["before"]["AP"], s["after"]["AP"]
         print(
@@ -158,13 +199,38 @@ def run_identify(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}")
     if args.report:
         started = time.perf_counter()
-        paths = write_report(args.report, doc, errors)
+        paths = write_report(args.report, doc, errors, closed_loop=loop)
         say(f"report written in {time.perf_counter() - started:.1f} s")
         print(f"wrote report to {args.report} ({len(paths)} files)")
     if not result.success:
         print(f"warning: {result.optimize_result.message}", file=sys.stderr)
         return 1
     return 0
+
+
+def _closed_loop(args, desc, campaign, start, point_sigma, geometric, say):  # type: ignore[no-untyped-def]
+    from calibration.closed_loop import LoopSettings, run_closed_loop
+
+    kinds = None
+    if args.effect_kinds:
+        kinds = tuple(k.strip() for k in args.effect_kinds.split(",") if k.strip())
+    if not 0.0 < args.effects_alpha < 1.0:
+        raise OptionError(f"--effects-alpha: need 0 < A < 1, got {args.effects_alpha}")
+    try:
+        settings = LoopSettings(alpha=args.effects_alpha, kinds=kinds)
+    except ValueError as exc:
+        raise OptionError(f"--effect-kinds: {exc}") from None
+    return run_closed_loop(
+        desc,
+        campaign,
+        start=start,
+        loss=args.loss,
+        f_scale_mm=args.f_scale_mm,
+        point_sigma_mm=point_sigma,
+        settings=settings,
+        geometric=geometric,
+        say=say,
+    )
 
 
 def run_predict(args: argparse.Namespace) -> int:

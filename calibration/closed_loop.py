@@ -140,14 +140,18 @@ def _finite(v: float) -> float | None:
 
 @dataclass(frozen=True, eq=False)
 class EvidencePlot:
-    """Validation residuals in the added effect's coordinate, before and after it."""
+    """Validation residuals (``tracker − twin``) in the added effect's coordinate, each
+    ``(m,)``: before it (the previous stage's), with it added back (this stage's residual
+    plus the effect's own term: what the effect explains, the geometry refitted), and
+    after it; ``model`` is the effect's term in the same coordinate."""
 
     x: FloatArray
     x_label: str
     y_label: str
     before: FloatArray
+    partial: FloatArray
     after: FloatArray
-    predicted: FloatArray
+    model: FloatArray
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,6 +189,7 @@ class ClosedLoopResult:
     n_candidates: int
     penalty_per_parameter: float
     elapsed_s: float
+    kinds: tuple[str, ...] = ()  # the candidate kinds offered
 
     @property
     def final(self) -> Stage:
@@ -307,7 +312,7 @@ def score_candidates(
                     1.0,
                     1.0,
                     False,
-                    "not identifiable: a combination of the parameters already in the model",
+                    "a combination of the parameters already in the model",
                 )
             )
             continue
@@ -504,6 +509,7 @@ def run_closed_loop(
         n_candidates=len(library),
         penalty_per_parameter=penalty,
         elapsed_s=time.perf_counter() - started,
+        kinds=tuple(KINDS) if allowed is None else tuple(allowed),
     )
 
 
@@ -514,16 +520,18 @@ def _evidence(
     set_name = "validate" if "validate" in contexts else "identify"
     ctx = contexts[set_name]
     kin = Kinematics.of(stage.model, ctx.data.q_rad)
-    ev: Evidence = KINDS[spec.kind].evidence(
-        spec, stage.values_of(spec), ctx, slice(0, len(ctx.data)), kin
-    )
+    values = stage.values_of(spec)
+    ev: Evidence = KINDS[spec.kind].evidence(spec, values, ctx, slice(0, len(ctx.data)), kin)
+    term = effect_offsets_mm((spec,), values, ctx, stage.model)
+    after = stage.errors_mm[set_name]
     return EvidencePlot(
         x=ev.x,
         x_label=ev.x_label,
         y_label=ev.y_label + f" ({set_name} set)",
         before=ev.project(previous.errors_mm[set_name]),
-        after=ev.project(stage.errors_mm[set_name]),
-        predicted=ev.predicted,
+        partial=ev.project(after + term),
+        after=ev.project(after),
+        model=ev.project(term),
     )
 
 

@@ -6,8 +6,8 @@ pose data (:class:`EffectData`: joint readings, times, approach directions), the
 description (mass model) and the current geometric model. The library (method.md §4):
 
 * ``gravity_compliance``: links and bearings after the grating ring give under gravity and
-  payload; joint i turns by ``c_i·tau_i``, tau from the description's mass model
-  (``compliance_urad_per_knm`` per loaded joint).
+  payload; joint i turns by ``c_i·tau_i``, tau from the description's mass model at the
+  current geometry (``compliance_urad_per_knm`` per loaded joint).
 * ``joint_harmonic``: cyclic error of joint j's reading, ``a·cos(k·q_j) + b·sin(k·q_j)``
   (``cos_deg``, ``sin_deg``).
 * ``lost_motion``: joint j stands ``w·d_j`` off, d_j the direction of its last move
@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any
 
@@ -113,12 +113,15 @@ class EffectContext:
     data: EffectData
 
     @cached_property
+    def masses(self) -> MassModel:
+        return MassModel.from_description(self.description)
+
+    @cached_property
     def torques_nmm(self) -> FloatArray:
-        """Gravity torques ``(m, n)`` N·mm at the readings, nominal geometry and masses."""
+        """Gravity torques ``(m, n)`` N·mm at the readings with the description's geometry
+        (for choosing candidates; the regressor uses the current model's geometry)."""
         return gravity_torques_nmm(
-            KinematicModel.from_description(self.description),
-            MassModel.from_description(self.description),
-            self.data.q_rad,
+            KinematicModel.from_description(self.description), self.masses, self.data.q_rad
         )
 
     def times_h(self, sel: slice, t0_s: float = 0.0) -> FloatArray:
@@ -129,16 +132,25 @@ class EffectContext:
 
 @dataclass(frozen=True, eq=False)
 class Kinematics:
-    """The current geometric model at some poses: TCP ``(r, 3)`` and identification
-    Jacobian ``(r, 3, 5n + 9)`` (world frame)."""
+    """The current geometric model at some poses ``(r, n)``: TCP ``(r, 3)`` and
+    identification Jacobian ``(r, 3, 5n + 9)`` (world frame)."""
 
+    model: KinematicModel
+    q_rad: FloatArray
     tcp_mm: FloatArray
     jacobian: FloatArray
 
     @classmethod
     def of(cls, model: KinematicModel, q_rad: FloatArray) -> Kinematics:
-        tcp, jac = identification_jacobian(model, np.atleast_2d(q_rad))
-        return cls(tcp, jac)
+        q = np.atleast_2d(q_rad)
+        tcp, jac = identification_jacobian(model, q)
+        return cls(model, q, tcp, jac)
+
+    def torques_nmm(self, masses: MassModel) -> FloatArray:
+        """Gravity torques ``(r, n)`` N·mm at these poses with this model's geometry (the
+        payload at this model's tool point)."""
+        at_tool = replace(masses, tool_mm=np.asarray(self.model.tool_mm, dtype=float))
+        return gravity_torques_nmm(self.model, at_tool, self.q_rad)
 
     def joint_axis(self, joint: int) -> FloatArray:
         """∂TCP/∂θ_j ``(r, 3)`` mm/rad (1-based joint)."""
@@ -190,14 +202,13 @@ class EffectSpec:
 @dataclass(frozen=True, eq=False)
 class Evidence:
     """The residual in an effect's own coordinate: per pose, the driving variable ``x``
-    (``(r,)``), the TCP displacement per unit coordinate ``coordinate_mm`` ``(r, 3)``, and
-    the coordinate the identified effect predicts ``(r,)``."""
+    (``(r,)``) and the TCP displacement per unit coordinate ``coordinate_mm`` ``(r, 3)``
+    (e.g. ∂TCP/∂θ_j per degree: residuals then read as joint-angle errors)."""
 
     x: FloatArray
     x_label: str
     y_label: str
     coordinate_mm: FloatArray
-    predicted: FloatArray
 
     def project(self, residual_mm: ArrayLike) -> FloatArray:
         """Least-squares coordinate ``(r,)`` of residuals ``(r, 3)`` (NaN where undefined)."""
@@ -301,7 +312,7 @@ class GravityCompliance(EffectKind):
         return tuple(f"joint{j}_compliance_urad_per_knm" for j in spec.joints)
 
     def regressor(self, spec, ctx, sel, kin):
-        tau = ctx.torques_nmm[sel]
+        tau = kin.torques_nmm(ctx.masses)
         cols = [kin.joint_axis(j) * (tau[:, j - 1] * URAD_PER_KNM)[:, None] for j in spec.joints]
         return np.stack(cols, axis=2)
 
@@ -321,22 +332,20 @@ class GravityCompliance(EffectKind):
         return EffectSpec(self.kind, joints=joints), c
 
     def evidence(self, spec, values, ctx, sel, kin):
+        # the joint whose term moves the TCP most
+        torques = kin.torques_nmm(ctx.masses)
         shift = [
-            np.sqrt(
-                np.mean(np.sum(kin.joint_axis(j) ** 2, axis=1) * ctx.torques_nmm[sel, j - 1] ** 2)
-            )
+            np.sqrt(np.mean(np.sum(kin.joint_axis(j) ** 2, axis=1) * torques[:, j - 1] ** 2))
             * abs(v)
             for j, v in zip(spec.joints, values, strict=True)
         ]
-        i = int(np.argmax(shift))
-        j = spec.joints[i]
-        tau = ctx.torques_nmm[sel, j - 1]
+        j = spec.joints[int(np.argmax(shift))]
+        tau = torques[:, j - 1]
         return Evidence(
             x=tau / 1e6,
             x_label=f"gravity torque of joint {j} (kN·m)",
             y_label=f"joint {j} angle error (deg)",
             coordinate_mm=kin.joint_axis(j) * DEG,
-            predicted=values[i] * tau * URAD_PER_KNM / DEG,
         )
 
 
@@ -376,13 +385,11 @@ class JointHarmonic(EffectKind):
         return spec, v
 
     def evidence(self, spec, values, ctx, sel, kin):
-        c, s = self._basis(spec, ctx, sel)
         return Evidence(
             x=np.degrees(ctx.data.q_rad[sel, spec.joint - 1]),
             x_label=f"joint {spec.joint} reading (deg)",
             y_label=f"joint {spec.joint} angle error (deg)",
             coordinate_mm=kin.joint_axis(spec.joint) * DEG,
-            predicted=values[0] * c + values[1] * s,
         )
 
 
@@ -421,7 +428,6 @@ class LostMotion(EffectKind):
             x_label=f"joint {spec.joint} approach direction",
             y_label=f"joint {spec.joint} angle error (deg)",
             coordinate_mm=kin.joint_axis(spec.joint) * DEG,
-            predicted=values[0] * d,
         )
 
 
@@ -468,7 +474,6 @@ class LengthDrift(EffectKind):
             x_label="time since the start of the campaign (h)",
             y_label=f"joint {spec.joint} {spec.parameter} error (mm)",
             coordinate_mm=kin.length_axis(spec.joint, spec.parameter),
-            predicted=values[0] * t,
         )
 
 
@@ -498,7 +503,6 @@ class InstrumentScale(EffectKind):
             x_label="distance from the tracker (m)",
             y_label="scale error (ppm)",
             coordinate_mm=kin.tcp_mm * 1e-6,
-            predicted=np.full(len(kin.tcp_mm), values[0]),
         )
 
 
@@ -532,7 +536,6 @@ class InstrumentScaleDrift(EffectKind):
             x_label="time since the start of the campaign (h)",
             y_label="scale error (ppm)",
             coordinate_mm=kin.tcp_mm * 1e-6,
-            predicted=values[0] * t,
         )
 
 
@@ -581,16 +584,14 @@ class CartesianHarmonic(EffectKind):
         return spec, v
 
     def evidence(self, spec, values, ctx, sel, kin):
-        c, s = self._basis(spec, ctx, sel)
         a = int(np.argmax(np.hypot(values[:3], values[3:])))
-        g = np.zeros((len(c), 3))
+        g = np.zeros((len(kin.tcp_mm), 3))
         g[:, a] = 1.0
         return Evidence(
             x=np.degrees(ctx.data.q_rad[sel, spec.joint - 1]),
             x_label=f"joint {spec.joint} reading (deg)",
             y_label=f"{_AXES[a].upper()} error (mm)",
             coordinate_mm=g,
-            predicted=values[a] * c + values[3 + a] * s,
         )
 
 
@@ -656,7 +657,6 @@ class CartesianTime(EffectKind):
             x_label="time since the start of the campaign (h)",
             y_label=f"{_AXES[a]} error{frame} (mm)",
             coordinate_mm=kin.frame_axes(spec.joint)[:, :, a],
-            predicted=sum(v[p, a] * t ** (p + 1) for p in range(spec.order)),
         )
 
 

@@ -9,6 +9,13 @@ uncalibrated robot can do in the tracker frame); *after* is the identified model
 
 Improvement factors are given twice: ``before / after`` and the source's definition
 ``(before − after) / after`` (its "4.97× better" for a mean of 0.8672 → 0.1452 mm).
+
+With the closed loop (:mod:`calibration.closed_loop`) *after* is the final model with its
+effect terms, and the report adds the stage table (nominal → geometric calibration → +
+each added effect: max, min, mean and standard deviation of AP and per axis on each set),
+every added effect's parameters with their standard errors and the evidence that gave it
+away (residuals against its regressor on the validation set, before and after, as PNG),
+one sentence per stage in the Markdown, and why the search stopped.
 """
 
 from __future__ import annotations
@@ -24,8 +31,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.campaign_files import Campaign
+from calibration.closed_loop import CRITERION, ClosedLoopResult, Stage
 from calibration.description import RobotDescription
-from calibration.identification import IdentificationResult, base_start_from_registration
+from calibration.effect_library import KINDS
+from calibration.identification import (
+    IdentificationResult,
+    base_start_from_registration,
+    effect_unit,
+)
 from calibration.kinematics import KinematicModel, tcp_positions
 
 FloatArray = NDArray[np.float64]
@@ -144,12 +157,29 @@ def build_report(
     *,
     robot_source: str,
     calibrated_path: str | None = None,
+    closed_loop: ClosedLoopResult | None = None,
 ) -> tuple[dict[str, Any], list[SetErrors]]:
-    """The JSON document of the report and the per-set errors it was made from."""
+    """The JSON document of the report and the per-set errors it was made from.
+
+    With ``closed_loop``, ``result`` is its final identification and *after* is the final
+    model with its effect terms; the document gains a ``closed_loop`` section.
+    """
     nominal = KinematicModel.from_description(description)
     idm = campaign.mask("identify")
     reference = before_model(nominal, campaign.q_rad[idm], campaign.xyz_mm[idm])
-    errors = set_errors(campaign, reference, result.model)
+    if closed_loop is None:
+        errors = set_errors(campaign, reference, result.model)
+    else:
+        errors = [
+            SetErrors(
+                name=name,
+                pose=tuple(p for p, m in zip(campaign.pose, campaign.mask(name), strict=True) if m),
+                before_mm=closed_loop.stages[0].errors_mm[name],
+                after_mm=closed_loop.final.errors_mm[name],
+            )
+            for name in ("identify", "validate")
+            if name in closed_loop.final.errors_mm
+        ]
     sets: dict[str, Any] = {}
     for se in errors:
         before = accuracy_statistics(se.before_mm)
@@ -206,7 +236,124 @@ def build_report(
         "outlier_poses": [id_poses[i] for i in np.flatnonzero(result.outliers)],
         "sets": sets,
     }
+    if closed_loop is not None:
+        doc["closed_loop"] = closed_loop_document(closed_loop, description.n_joints)
     return doc, errors
+
+
+# -- the closed loop -----------------------------------------------------------------------
+def _opt(v: float) -> float | None:
+    return float(v) if v is not None and math.isfinite(v) else None
+
+
+def evidence_file(index: int, stage: Stage) -> str:
+    assert stage.added is not None
+    return f"effect_{index}_{stage.added.spec.kind}.png"
+
+
+def _effect_parameters(stage: Stage) -> list[dict[str, Any]]:
+    assert stage.added is not None
+    spec = stage.added.spec
+    values, se = stage.values_of(spec), stage.standard_errors_of(spec)
+    return [
+        {
+            "name": name,
+            "unit": effect_unit(name),
+            "value": float(v),
+            "standard_error": _opt(e),
+        }
+        for name, v, e in zip(spec.parameter_names(), values, se, strict=True)
+    ]
+
+
+def _sentence(stage: Stage, previous: Stage | None, n_parameters: int, n_free: int) -> str:
+    ap = {k: float(np.linalg.norm(e, axis=1).mean()) for k, e in stage.errors_mm.items()}
+    set_name = "validate" if "validate" in ap else "identify"
+    set_word = "validation" if set_name == "validate" else "identification"
+    now = ap[set_name]
+    if previous is None:
+        return (
+            f"Nominal geometry and tool with the base registered on the identification points: "
+            f"{set_word} mean AP {now:.4f} mm."
+        )
+    before = float(np.linalg.norm(previous.errors_mm[set_name], axis=1).mean())
+    gain = f"{set_word} mean AP {before:.4f} → {now:.4f} mm ({before / now:.2f}×)"
+    if stage.added is None:
+        return f"Geometric calibration ({n_free} of {n_parameters} parameters identified): {gain}."
+    c = stage.added
+    params = ", ".join(
+        f"{p['name']} = {p['value']:.4g}"
+        + (f" ± {p['standard_error']:.2g}" if p["standard_error"] is not None else "")
+        for p in _effect_parameters(stage)
+    )
+    what = (
+        "structure outside the physical library, modelled by an empirical term"
+        if c.generic
+        else KINDS[c.spec.kind].description
+    )
+    return (
+        f"Added {c.label}: {what}; it lowered the cross-validated error by {c.cv_gain:.0f} σ² "
+        f"(F = {c.f_statistic:.1f}, corrected p = {c.p_adjusted:.2g}); {params}; {gain}."
+    )
+
+
+def closed_loop_document(loop: ClosedLoopResult, n_joints: int) -> dict[str, Any]:
+    """The ``closed_loop`` section of report.json."""
+    stages = []
+    previous: Stage | None = None
+    for i, stage in enumerate(loop.stages):
+        n_par = n_free = 0
+        if stage.result is not None:
+            n_par = len(stage.result.parameter_names)
+            n_free = stage.result.identifiability.rank
+        entry: dict[str, Any] = {
+            "stage": stage.name,
+            "label": stage.label,
+            "n_parameters": n_par,
+            "n_identified": n_free,
+            "sets": {
+                name: {"n_poses": len(e), **accuracy_statistics(e)}
+                for name, e in stage.errors_mm.items()
+            },
+            "sentence": _sentence(stage, previous, n_par, n_free),
+        }
+        if stage.added is not None:
+            entry["effect"] = {
+                "kind": stage.added.spec.kind,
+                "label": stage.added.label,
+                "generic": stage.added.generic,
+                "parameters": _effect_parameters(stage),
+                "selection": stage.added.as_dict(),
+                "runners_up": [c.as_dict() for c in stage.round_scores[1:6]],
+                "evidence_plot": evidence_file(i - 1, stage),
+                "evidence_regressor": stage.evidence.x_label if stage.evidence else None,
+            }
+        stages.append(entry)
+        previous = stage
+    identifiable = [c for c in loop.last_round if c.n_parameters > 0]
+    stopped: dict[str, Any] = {
+        "reason": (
+            "no candidate is significant"
+            if loop.last_round
+            else "maximum number of effects reached or no candidate left"
+        ),
+        "best_remaining": identifiable[0].as_dict() if identifiable else None,
+        "not_identifiable": [
+            {"effect": c.label, "note": c.note} for c in loop.last_round if c.n_parameters == 0
+        ],
+    }
+    return {
+        "criterion": CRITERION,
+        "alpha": loop.settings.alpha,
+        "folds": loop.settings.folds,
+        "penalty_per_parameter_sigma2": loop.penalty_per_parameter,
+        "n_candidates": loop.n_candidates,
+        "candidate_kinds": list(loop.kinds),
+        "elapsed_s": loop.elapsed_s,
+        "stages": stages,
+        "added": [s["effect"]["label"] for s in stages if "effect" in s],
+        "stopped": stopped,
+    }
 
 
 # -- writers ----------------------------------------------------------------------------
@@ -243,6 +390,8 @@ def markdown_report(doc: Mapping[str, Any]) -> str:
         f"- Before = {doc['before_definition']}",
         "",
     ]
+    if doc.get("closed_loop"):
+        lines += _closed_loop_markdown(doc["closed_loop"])
     for set_name, s in doc["sets"].items():
         lines += [
             f"## {set_name.capitalize()} set ({s['n_poses']} poses), errors in mm",
@@ -307,6 +456,113 @@ def markdown_report(doc: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _closed_loop_markdown(loop: Mapping[str, Any]) -> list[str]:
+    stages = loop["stages"]
+    set_name = "validate" if "validate" in stages[0]["sets"] else "identify"
+    lines = [
+        "## Closed loop: what the geometric model lacked",
+        "",
+        f"Criterion: {loop['criterion']} (α = {loop['alpha']:g}, {loop['folds']} folds, "
+        f"penalty {loop['penalty_per_parameter_sigma2']:.1f} σ² per parameter, "
+        f"{loop['n_candidates']} candidates, {loop['elapsed_s']:.2f} s).",
+        "",
+    ]
+    for comp in COMPONENTS:
+        lines += [
+            f"**{comp}, {set_name} set ({stages[0]['sets'][set_name]['n_poses']} poses), mm**",
+            "",
+            "| stage | max | min | mean | std |",
+            "|---|---|---|---|---|",
+        ]
+        for st in stages:
+            v = st["sets"][set_name][comp]
+            lines.append(
+                f"| {st['label']} | "
+                + " | ".join(_f(v[k]) for k in ("max", "min", "mean", "std"))
+                + " |"
+            )
+        lines.append("")
+    lines += ["### Stages", ""]
+    lines += [f"{i}. {st['sentence']}" for i, st in enumerate(stages, start=1)]
+    stop = loop["stopped"]
+    best = stop["best_remaining"]
+    text = f"Stopped: {stop['reason']}"
+    if best:
+        text += (
+            f" (best remaining: {best['effect']}, CV gain {_f(best['cv_gain_sigma2'], 1)} σ², "
+            f"corrected p {best['p_adjusted']:.2g})"
+        )
+    lines += ["", text + "."]
+    if stop["not_identifiable"]:
+        lines += [
+            "Not identifiable from these data: "
+            + "; ".join(f"{c['effect']} ({c['note']})" for c in stop["not_identifiable"])
+            + "."
+        ]
+    for st in stages:
+        eff = st.get("effect")
+        if not eff:
+            continue
+        lines += [
+            "",
+            f"### {st['label']}",
+            "",
+            "| parameter | value | standard error |",
+            "|---|---|---|",
+        ]
+        lines += [
+            f"| {p['name']} | {p['value']:.6g} | "
+            + (f"{p['standard_error']:.3g}" if p["standard_error"] is not None else "–")
+            + " |"
+            for p in eff["parameters"]
+        ]
+        lines += [
+            "",
+            f"Evidence: `{eff['evidence_plot']}` (residuals against "
+            f"{eff['evidence_regressor']}, before and after). Runners-up in that round: "
+            + (
+                ", ".join(f"{c['effect']} ({_f(c['score'], 1)})" for c in eff["runners_up"][:3])
+                or "none"
+            )
+            + " (penalized CV score, σ²).",
+        ]
+    lines.append("")
+    return lines
+
+
+def _evidence_figure(stage: Stage, path: Path) -> None:
+    """Residuals in the added effect's coordinate against the regressor that gave it away:
+    before it, with its own term added back (and the model), and after it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ev = stage.evidence
+    assert ev is not None
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5), sharey=True)
+    panels = (
+        (axes[0], ev.before, "before: residual of the previous stage", "#d08770"),
+        (axes[1], ev.partial, "the effect: residual + its term", "#8a6d2e"),
+        (axes[2], ev.after, "after: residual of this stage", "#2e5c8a"),
+    )
+    for ax, values, title, color in panels:
+        ok = np.isfinite(values)
+        ax.scatter(ev.x[ok], values[ok], s=12, color=color, label="residual")
+        ax.axhline(0.0, color="black", linewidth=0.5)
+        ax.grid(alpha=0.3)
+        ax.set_xlabel(ev.x_label)
+        ax.set_title(title, fontsize=10)
+    ok = np.isfinite(ev.model)
+    axes[1].scatter(ev.x[ok], ev.model[ok], s=5, color="black", label="identified effect")
+    axes[1].legend(loc="best", fontsize=8)
+    axes[0].set_ylabel(ev.y_label)
+    fig.suptitle(stage.label.removeprefix("+ "))
+    fig.subplots_adjust(left=0.07, right=0.99, top=0.86, bottom=0.13, wspace=0.06)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
 def _error_figure(se: SetErrors, path: Path) -> None:
     """Per-pose errors X, Y, Z and 3-D; before (left) and after (right), each on its own
     scale (after a good calibration the errors are far too small to see on the other)."""
@@ -363,9 +619,15 @@ def _histogram(errors: list[SetErrors], path: Path) -> None:
 
 
 def write_report(
-    directory: str | Path, doc: Mapping[str, Any], errors: list[SetErrors]
+    directory: str | Path,
+    doc: Mapping[str, Any],
+    errors: list[SetErrors],
+    closed_loop: ClosedLoopResult | None = None,
 ) -> list[Path]:
-    """Write report.json, report.md and the PNG figures into ``directory``; their paths."""
+    """Write report.json, report.md and the PNG figures into ``directory``; their paths.
+
+    With ``closed_loop``, one evidence figure per added effect (``effect_<i>_<kind>.png``).
+    """
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     written = [out / "report.json", out / "report.md"]
@@ -378,4 +640,10 @@ def write_report(
     path = out / "error_histogram.png"
     _histogram(errors, path)
     written.append(path)
+    if closed_loop is not None:
+        for i, stage in enumerate(closed_loop.stages[2:], start=1):
+            if stage.evidence is not None:
+                path = out / evidence_file(i, stage)
+                _evidence_figure(stage, path)
+                written.append(path)
     return written

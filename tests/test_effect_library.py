@@ -65,7 +65,7 @@ def test_joint_angle_regressors_match_finite_differences():
     # compliance: per µrad/(kN·m), the joint turns by tau · 1e-12 rad
     r = KINDS["gravity_compliance"].regressor(SPECS[0], CTX, ALL, KIN)
     dq = np.zeros_like(Q)
-    dq[:, 2] = CTX.torques_nmm[:, 2] * 1e-12
+    dq[:, 2] = KIN.torques_nmm(CTX.masses)[:, 2] * 1e-12
     np.testing.assert_allclose(r[:, :, 1], _joint_shift(dq, eps=1.0), rtol=1e-6, atol=1e-10)
     # lost motion: the approach direction of joint 3 times π/180
     r = KINDS["lost_motion"].regressor(SPECS[2], CTX, ALL, KIN)

@@ -198,3 +198,96 @@ def test_identify_without_base_guess_registers(campaign, tmp_path, capsys):
     truth_base = data.cell.truth.base
     assert abs(calibrated.base.x_mm - truth_base.x_mm) < 2.0
     assert abs(calibrated.base.rz_deg - truth_base.rz_deg) < 0.1
+
+
+# -- the closed loop through the command line --------------------------------------------------
+def test_clean_campaign_runs_the_loop_and_adds_nothing(identified):
+    proc, out, rep = identified
+    assert "closed loop: nothing significant left" in proc.stderr
+    assert "stage geometric calibration: validate mean AP" in proc.stdout
+    doc = json.loads((rep / "report.json").read_text())
+    loop = doc["closed_loop"]
+    assert [s["stage"] for s in loop["stages"]] == ["nominal", "geometric"]
+    assert loop["added"] == [] and loop["stopped"]["best_remaining"]["p_adjusted"] > 1e-3
+    assert "tracker scale" in [c["effect"] for c in loop["stopped"]["not_identifiable"]]
+    assert load_robot(out).effects == ()
+    md = (rep / "report.md").read_text()
+    assert "## Closed loop" in md and "| geometric calibration |" in md
+
+
+def test_loop_names_the_effect_and_predict_applies_it(tmp_path):
+    """An undeclared gravity deflection: named, written into calibrated.toml, reported with
+    evidence, and `twin predict` reproduces the loop's validation errors from the file."""
+    camp = tmp_path / "campaign.csv"
+    rc = pose_campaign.main(
+        [
+            "--robot",
+            "hp20d",
+            "--seed",
+            "7",
+            "--out",
+            str(camp),
+            "--identify",
+            "80",
+            "--validate",
+            "60",
+            "--effect",
+            "gravity_deflection",
+        ]
+    )
+    assert rc == 0
+    out, rep = tmp_path / "cal.toml", tmp_path / "rep"
+    proc = twin("identify", "--robot", "hp20d", "--data", str(camp), "--out", str(out),
+                "--report", str(rep))  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "closed loop: added gravity compliance" in proc.stderr
+    cal = load_robot(out)
+    assert [e.kind for e in cal.effects] == ["gravity_compliance"]
+    assert "compliance_urad_per_knm" in out.read_text()
+    doc = json.loads((rep / "report.json").read_text())
+    stages = doc["closed_loop"]["stages"]
+    assert [s["stage"] for s in stages] == ["nominal", "geometric", "effect"]
+    for st in stages:
+        for comp in COMPONENTS:
+            assert {"max", "min", "mean", "std"} <= set(st["sets"]["validate"][comp])
+    eff = stages[2]["effect"]
+    assert eff["kind"] == "gravity_compliance" and not eff["generic"]
+    assert all(p["standard_error"] > 0 for p in eff["parameters"][:2])
+    assert (rep / eff["evidence_plot"]).stat().st_size > 0
+    ap = [s["sets"]["validate"]["AP"]["mean"] for s in stages]
+    assert ap[0] > ap[1] > 2 * ap[2]
+    assert doc["sets"]["validate"]["after"]["AP"]["mean"] == pytest.approx(ap[2])
+    md = (rep / "report.md").read_text()
+    assert "### Stages" in md and "3. Added gravity compliance" in md
+    assert md.count("| + gravity compliance") == 4  # one row per component table
+    # predict applies the effect: its points give the loop's validation errors
+    points = tmp_path / "points.csv"
+    proc = twin("predict", "--model", str(out), "--data", str(camp), "--out", str(points))
+    assert proc.returncode == 0, proc.stderr
+    _, xyz = read_points(points)
+    c = read_campaign(camp, 6)
+    vm = c.mask("validate")
+    ap_predict = np.linalg.norm(c.xyz_mm[vm] - xyz[vm], axis=1).mean()
+    assert ap_predict == pytest.approx(ap[2], rel=1e-4)  # points.csv holds 1 nm
+    # --no-effects: the geometry alone, no [[effect]] tables, no closed-loop section
+    out2, rep2 = tmp_path / "geo.toml", tmp_path / "rep2"
+    rc = main(["identify", "--robot", "hp20d", "--data", str(camp), "--out", str(out2),
+               "--report", str(rep2), "--no-effects", "--quiet"])  # fmt: skip
+    assert rc == 0 and load_robot(out2).effects == ()
+    doc2 = json.loads((rep2 / "report.json").read_text())
+    assert "closed_loop" not in doc2
+    assert doc2["sets"]["validate"]["after"]["AP"]["mean"] == pytest.approx(ap[1], rel=1e-9)
+
+
+def test_effect_options_are_checked(campaign, tmp_path, capsys):
+    _, path, _ = campaign
+    out = tmp_path / "x.toml"
+    rc = main(["identify", "--robot", "kr500", "--data", str(path), "--out", str(out),
+               "--quiet", "--effect-kinds", "joint_harmonic,sag"])  # fmt: skip
+    assert rc == 2 and "unknown effect kind 'sag'" in capsys.readouterr().err
+    rc = main(["identify", "--robot", "kr500", "--data", str(path), "--out", str(out),
+               "--quiet", "--effects-alpha", "2"])  # fmt: skip
+    assert rc == 2 and "--effects-alpha" in capsys.readouterr().err
+    rc = main(["identify", "--robot", "kr500", "--data", str(path), "--out", str(out),
+               "--quiet", "--effect-kinds", "lost_motion"])  # fmt: skip
+    assert rc == 0
