@@ -1,11 +1,12 @@
 """Driver of the CiA 406 motor encoders on CANopen (the ``canopen`` master, python-can).
 
-URL forms: ``socketcand://HOST:PORT/CHANNEL`` (python-can's socketcand interface, across
-processes) or ``virtual://CHANNEL`` (python-can's in-process virtual bus). Options name
-the node ids. On connect the driver reads each node's device type (0x1000 must be a CiA
-406 encoder), resolution (0x6001/0x6002) and TPDO1 COB-ID over SDO, sets the producer
-heartbeat time, starts the nodes (NMT) and produces SYNC at ``sync_hz``. Each SYNC gives
-one sample row: the six position values (0x6004, counts) from the TPDO1s.
+URL forms: ``socketcand://HOST:PORT/CHANNEL`` (a socketcand server, across processes;
+client :class:`drivers.socketcand.SocketcandBus`) or ``virtual://CHANNEL`` (python-can's
+in-process virtual bus). Options name the node ids. On connect the driver reads each
+node's device type (0x1000 must be a CiA 406 encoder), resolution (0x6001/0x6002) and
+TPDO1 COB-ID over SDO, sets the producer heartbeat time, starts the nodes (NMT) and
+produces SYNC at ``sync_hz``. Each SYNC gives one sample row: the six position values
+(0x6004, counts) from the TPDO1s.
 
 Heartbeats are watched: a node silent for ``heartbeat_timeout_factor`` × its period is
 counted in ``heartbeat_losses`` and its channel gets the ``node_lost`` status until it is
@@ -13,6 +14,14 @@ heard again; a node that reboots (boot-up / PRE-OPERATIONAL heartbeat) is restar
 NMT and counted in ``node_restarts``.
 
 Device clock: the CAN interface's frame timestamp (for socketcand, the server's), µs.
+
+On socketcand one I/O thread does the cyclic work: at each SYNC instant (a fixed grid at
+``sync_hz``; a late SYNC is sent at once, one per cycle, and the grid restarts when
+more than ``max_sync_lag`` periods behind, counted in ``missed_syncs``) it takes every
+frame that arrived, assembles rows from the TPDOs, watches heartbeats, hands anything
+else to canopen (:meth:`canopen.Network.notify`) and sends the SYNC: one wake-up per
+cycle instead of a notifier and a cyclic-send thread. On the virtual bus canopen's
+notifier and SYNC producer are used.
 """
 
 from __future__ import annotations
@@ -31,7 +40,7 @@ import numpy as np
 from drivers.base import BatchSchema, ChannelSchema, DeviceClock, Driver, Option, SampleBatch
 from drivers.cia406 import DEVICE_TYPE_CIA406_MULTITURN, object_dictionary
 from drivers.errors import DeviceIOError, DriverConfigError
-from drivers.transport import open_stream
+from drivers.socketcand import SocketcandBus, format_send
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +84,8 @@ class EncoderCanopenDriver(Driver):
         "heartbeat_timeout_factor": Option(float, 3.0, "node lost after this many periods"),
         "sdo_timeout_s": Option(float, 0.5, "SDO response timeout"),
         "batch_rows": Option(int, 10, "return from read() once this many rows are in"),
-        "quiet_python_can": Option(bool, True, "socketcand client's per-read warnings off"),
+        "max_sync_lag": Option(int, 20, "SYNC periods late before the grid restarts"),
+        "quiet_python_can": Option(bool, True, "python-can's per-read warnings off"),
     }
 
     def __init__(self, url: str, **options: Any) -> None:
@@ -106,18 +116,22 @@ class EncoderCanopenDriver(Driver):
         self.network: canopen.Network | None = None
         self._cond = threading.Condition()
         self._rows: collections.deque = collections.deque(maxlen=200_000)
-        self._cur = np.zeros(self.n, np.int64)
-        self._cur_filled = np.zeros(self.n, bool)
+        self._cur = [0] * self.n
+        self._filled = [False] * self.n
         self._cur_t: float | None = None
         self._cur_host = 0
         self._cob_to_k: dict[int, int] = {}
-        self._hb_last = np.zeros(self.n)  # time.monotonic of the last heartbeat
-        self._lost = np.zeros(self.n, bool)
+        self._hb_last = [0.0] * self.n  # time.monotonic of the last heartbeat
+        self._lost = [False] * self.n
         self._restart_pending: set[int] = set()
         self._booted: set[int] = set()
         self._seq = 0
+        self._io: threading.Thread | None = None
+        self._io_stop = threading.Event()
+        self._io_error: BaseException | None = None
+        self._sync_on = False
         self.clock = DeviceClock(bits=63, max_gap_us=3_600_000_000)
-        self.counters.update({"heartbeat_losses": 0, "node_restarts": 0})
+        self.counters.update({"heartbeat_losses": 0, "node_restarts": 0, "missed_syncs": 0})
         if self.options["quiet_python_can"]:
             lg = logging.getLogger("can.interfaces.socketcand.socketcand")
             if lg.level == logging.NOTSET:
@@ -130,28 +144,37 @@ class EncoderCanopenDriver(Driver):
     # -- link -----------------------------------------------------------------------------
     def _connect(self) -> None:
         kw = dict(self.can_kwargs)
+        self._io_error = None
+        self._sync_on = False
         if kw["interface"] == "socketcand":
-            # python-can's socketcand client retries a refused connection in a busy loop
-            # for 10 s: probe the port first through our opener (fails fast if down)
-            probe = open_stream(f"socket://{kw['host']}:{kw['port']}", timeout_s=0.2)
-            probe.close()
-        net = canopen.Network()
-        if kw["interface"] == "virtual":
+            bus = SocketcandBus(kw["channel"], kw["host"], kw["port"])
+            net = canopen.Network(bus)  # fed by our I/O thread (no python-can notifier)
+            self.network = net
+            self._io_stop.clear()
+            self._io = threading.Thread(
+                target=self._io_loop, args=(net, bus), name="encoder-canopen-io", daemon=True
+            )
+            self._io.start()
+        else:
+            net = canopen.Network()
             kw["receive_own_messages"] = False
-        try:
-            net.connect(**kw)
-        except Exception as exc:
-            raise DeviceIOError(f"cannot open CAN bus {self.url}: {exc}") from exc
-        self.network = net
+            try:
+                net.connect(**kw)
+            except Exception as exc:
+                raise DeviceIOError(f"cannot open CAN bus {self.url}: {exc}") from exc
+            self.network = net
         try:
             self._configure(net)
         except Exception as exc:
             raise DeviceIOError(f"CANopen setup on {self.url} failed: {exc}") from exc
+        if self._io is not None:
+            self._sync_on = True
+        else:
+            net.sync.start(1.0 / self.options["sync_hz"])
 
     def _configure(self, net: canopen.Network) -> None:
-        now = time.monotonic()
         info = {}
-        self._cob_to_k = {}
+        self._cob_to_k.clear()  # (the I/O thread holds this dict)
         for k, nid in enumerate(self.node_ids):
             node = canopen.RemoteNode(nid, object_dictionary(nid))
             net.add_node(node)
@@ -172,14 +195,20 @@ class EncoderCanopenDriver(Driver):
             self._cob_to_k[cob] = k
             net.subscribe(cob, self._on_tpdo)
             net.subscribe(0x700 + nid, self._on_heartbeat)
-            self._hb_last[k] = now
         self.info["nodes"] = info
-        self._lost[:] = False
+        # the heartbeat watch starts now: setting up six nodes over SDO can take longer
+        # than a heartbeat timeout on a busy machine
+        self._hb_last = [time.monotonic()] * self.n
+        self._lost = [False] * self.n
         net.nmt.send_command(0x01)  # start all nodes (broadcast)
-        net.sync.start(1.0 / self.options["sync_hz"])
 
     def _disconnect(self) -> None:
         net, self.network = self.network, None
+        io, self._io = self._io, None
+        self._sync_on = False
+        if io is not None:
+            self._io_stop.set()
+            io.join(2.0)
         if net is None:
             return
         with contextlib.suppress(Exception):
@@ -187,33 +216,82 @@ class EncoderCanopenDriver(Driver):
         with contextlib.suppress(Exception):
             net.disconnect()
 
-    # -- callbacks (canopen's notifier thread) ----------------------------------------------
-    def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+    # -- the socketcand I/O thread ------------------------------------------------------------
+    def _io_loop(self, net: canopen.Network, bus: SocketcandBus) -> None:
+        period = 1.0 / self.options["sync_hz"]
+        max_lag = self.options["max_sync_lag"] * period
+        sync = format_send(0x080, b"")
+        tpdo = self._cob_to_k
+        hb_lo, hb_hi = 0x701, 0x77F
+        due: float | None = None
+        try:
+            while not self._io_stop.is_set():
+                if not self._sync_on:
+                    frames = bus.poll_frames(0.01)  # setup: SDO answers as they come
+                    due = None
+                else:
+                    now = time.monotonic()
+                    if due is None:
+                        due = now
+                    elif due > now:
+                        time.sleep(due - now)
+                    elif now - due > max_lag:
+                        missed = int((now - due) / period)
+                        self.count("missed_syncs", missed, "SYNC grid restarted")
+                        due = now
+                    frames = bus.poll_frames()
+                for can_id, ext, ts, data in frames:
+                    if ext:
+                        continue
+                    if can_id in tpdo:
+                        self._on_tpdo(can_id, data, ts)
+                    elif hb_lo <= can_id <= hb_hi:
+                        self._on_heartbeat(can_id, data, ts)
+                    else:
+                        net.notify(can_id, bytearray(data), ts)
+                if bus.garbage_bytes:
+                    self.count("garbage_bytes", bus.garbage_bytes)
+                    bus.garbage_bytes = 0
+                if self._sync_on and due is not None:
+                    bus.send_raw(sync)
+                    due += period
+        except Exception as exc:  # the link is gone: read() reconnects
+            self._io_error = exc
+            with self._cond:
+                self._cond.notify_all()
+
+    # -- callbacks (the I/O thread, or canopen's notifier on the virtual bus) ---------------
+    def _on_tpdo(self, can_id: int, data: bytes | bytearray, timestamp: float) -> None:
         k = self._cob_to_k.get(can_id)
         if k is None or len(data) < 4:
             return
         value = int.from_bytes(data[:4], "little")
         with self._cond:
-            if self._cur_filled[k]:
+            filled = self._filled
+            if filled[k]:
                 self._close_row()
             if self._cur_t is None:
                 self._cur_t = timestamp
                 self._cur_host = time.monotonic_ns()
             self._cur[k] = value
-            self._cur_filled[k] = True
-            if np.all(self._cur_filled | self._lost):
+            filled[k] = True
+            if all(f or lost for f, lost in zip(filled, self._lost, strict=True)):
                 self._close_row()
 
     def _close_row(self) -> None:
-        status = np.where(self._cur_filled, ST_VALID, ST_MISSING).astype(np.uint16)
-        status[self._lost] |= ST_NODE_LOST
-        self._rows.append((self._seq, self._cur_t or 0.0, self._cur_host, self._cur.copy(), status))
+        lost = self._lost
+        status = [
+            (ST_VALID if f else ST_MISSING) | (ST_NODE_LOST if lost[k] else 0)
+            for k, f in enumerate(self._filled)
+        ]
+        self._rows.append((self._seq, self._cur_t or 0.0, self._cur_host, list(self._cur), status))
         self._seq += 1
-        self._cur_filled[:] = False
+        self._filled = [False] * self.n
         self._cur_t = None
-        self._cond.notify()
+        if len(self._rows) >= self.options["batch_rows"]:
+            self._cond.notify()
 
-    def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+    def _on_heartbeat(self, can_id: int, data: bytes | bytearray, timestamp: float) -> None:
         nid = can_id - 0x700
         if nid not in self.node_ids or not data:
             return
@@ -247,16 +325,21 @@ class EncoderCanopenDriver(Driver):
         while self._booted:
             self.count("node_restarts", detail=f"node {self._booted.pop()}")
 
+    def _link_error(self) -> str | None:
+        if self._io_error is not None:
+            return f"CAN link failed: {self._io_error}"
+        net = self.network
+        notifier = None if net is None else net.notifier
+        if notifier is not None and getattr(notifier, "exception", None) is not None:
+            return f"CAN receive failed: {notifier.exception}"
+        return None
+
     def _read_batch(self, deadline_ns: int) -> SampleBatch | None:
         net = self.network
-        if net is None:
+        if net is None or net.bus is None:
             raise DeviceIOError("not connected")
-        bus = net.bus
-        if bus is None:
-            raise DeviceIOError("bus gone")
-        notifier = net.notifier
-        if notifier is not None and getattr(notifier, "exception", None) is not None:
-            raise DeviceIOError(f"CAN receive failed: {notifier.exception}")
+        if (err := self._link_error()) is not None:
+            raise DeviceIOError(err)
         self._watch()
         with self._cond:
             while len(self._rows) < self.options["batch_rows"]:
@@ -264,8 +347,8 @@ class EncoderCanopenDriver(Driver):
                 if left <= 0:
                     break
                 self._cond.wait(min(left, 0.05))
-                if notifier is not None and getattr(notifier, "exception", None) is not None:
-                    raise DeviceIOError(f"CAN receive failed: {notifier.exception}")
+                if (err := self._link_error()) is not None:
+                    raise DeviceIOError(err)
             rows = list(self._rows)
             self._rows.clear()
         if not rows:
@@ -274,9 +357,10 @@ class EncoderCanopenDriver(Driver):
         seq = np.fromiter((r[0] for r in rows), np.uint64, n)
         t_raw = np.fromiter((round(r[1] * 1e6) for r in rows), np.int64, n)
         host = np.fromiter((r[2] for r in rows), np.int64, n)
-        values = np.stack([r[3] for r in rows])
-        status = np.stack([r[4] for r in rows])
+        values = np.array([r[3] for r in rows], np.int64)
+        status = np.array([r[4] for r in rows], np.uint16)
         before = self.clock.restarts
         t_us, epoch = self.clock.unwrap(t_raw)
-        self.count("device_restarts", self.clock.restarts - before, "CAN clock went back")
+        if self.clock.restarts != before:
+            self.count("device_restarts", self.clock.restarts - before, "CAN clock went back")
         return SampleBatch(self._schema, seq, t_us, epoch, host, values, status)

@@ -110,6 +110,7 @@ class Cell:
                 port=cfg.encoders.socketcand_port,
                 clock=nodes.clock,
                 sim_clock=self.plant.clock,
+                sync_responder=nodes.sync_frames,
             ).start()
             self.encoders = nodes
             self._closers += [server.stop, nodes.close]

@@ -8,6 +8,12 @@ as one contiguous hex string, which is what python-can's parser expects) and
 ``< send ID DLC B0 B1 ... >`` from it. No beacon is sent (no broadcast, no multicast).
 Frame timestamps come from the server's :class:`~sim_devices.plant.DeviceClock` (the
 CAN adapter's clock), in seconds.
+
+Frames from a client go to the python-can bus and to the other clients, frames on the
+bus go to every client, as on a real bus. With a ``sync_responder`` (the encoder nodes'
+:meth:`~sim_devices.encoders.EncoderNodes.sync_frames`), a SYNC (COB-ID 0x080) from a
+client is answered directly: the SYNC goes to the other clients and the nodes' TPDOs to
+every client, in one write each, without a trip through the python-can bus.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import socket
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 
 import can
 
@@ -38,8 +45,10 @@ class SocketcandServer:
         port: int = 0,
         clock: DeviceClock | None = None,
         sim_clock: SimClock | None = None,
+        sync_responder: Callable[[], list[tuple[int, bytes]]] | None = None,
     ) -> None:
         self.channel = channel
+        self.sync_responder = sync_responder
         self.bus_name = bus_name
         self.clock = clock or DeviceClock()
         self.sim_clock = sim_clock or SimClock()
@@ -53,6 +62,7 @@ class SocketcandServer:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._conns: list[socket.socket] = []
+        self._clients: dict[socket.socket, threading.Lock] = {}  # after the handshake
 
     @property
     def url(self) -> str:
@@ -116,12 +126,14 @@ class SocketcandServer:
                 return
             bus = can.Bus(interface="virtual", channel=self.channel, receive_own_messages=False)
             self.stats["clients"] += 1
+            self._clients[conn] = threading.Lock()
             writer = threading.Thread(target=self._bus_to_tcp, args=(bus, conn), daemon=True)
             writer.start()
             self._tcp_to_bus(conn, bus)
         except OSError:
             pass
         finally:
+            self._clients.pop(conn, None)
             with contextlib.suppress(OSError):
                 conn.close()
             if bus is not None:
@@ -144,12 +156,14 @@ class SocketcandServer:
                 if start < 0:
                     self.stats["garbage"] += 1
                     continue
-                self._command(msg[start + 1 :].decode(errors="replace").split(), bus)
+                self._command(msg[start + 1 :].decode(errors="replace").split(), bus, conn)
             if len(buf) > 1024:
                 buf = b""
                 self.stats["garbage"] += 1
 
-    def _command(self, words: list[str], bus: can.BusABC) -> None:
+    def _command(
+        self, words: list[str], bus: can.BusABC, conn: socket.socket | None = None
+    ) -> None:
         if not words or words[0] != "send":
             self.stats["unknown_commands"] += 1
             return
@@ -160,8 +174,30 @@ class SocketcandServer:
         except (IndexError, ValueError):
             self.stats["bad_frames"] += 1
             return
-        bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=len(words[1]) > 3))
+        extended = len(words[1]) > 3
         self.stats["rx_frames"] += 1
+        if can_id == 0x080 and not extended and self.sync_responder is not None:
+            self._answer_sync(data, conn)
+            return
+        bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=extended))
+
+    def _answer_sync(self, data: bytes, sender: socket.socket | None) -> None:
+        """A client's SYNC: echo it to the other clients, the TPDOs to every client."""
+        assert self.sync_responder is not None
+        frames = self.sync_responder()
+        ts = f"{self._timestamp():.6f}"
+        tpdos = "".join(f"< frame {cob:03X} {ts} {d.hex().upper()} >" for cob, d in frames)
+        sync = f"< frame 080 {ts} {data.hex().upper()} >"
+        for conn, lock in list(self._clients.items()):
+            text = tpdos if conn is sender else sync + tpdos
+            if not text:
+                continue
+            try:
+                with lock:
+                    conn.sendall(text.encode())
+            except OSError:
+                continue
+            self.stats["tx_frames"] += len(frames) + (conn is not sender)
 
     def _bus_to_tcp(self, bus: can.BusABC, conn: socket.socket) -> None:
         while not self._stop.is_set():
@@ -176,8 +212,13 @@ class SocketcandServer:
                     ident = f"{msg.arbitration_id:03X}"
                 out.append(f"< frame {ident} {self._timestamp():.6f} {msg.data.hex().upper()} >")
                 msg = bus.recv(0.0)
+            lock = self._clients.get(conn)
             try:
-                conn.sendall("".join(out).encode())
+                if lock is None:
+                    conn.sendall("".join(out).encode())
+                else:
+                    with lock:
+                        conn.sendall("".join(out).encode())
             except OSError:
                 return
             self.stats["tx_frames"] += len(out)

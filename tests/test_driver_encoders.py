@@ -100,3 +100,67 @@ def test_url_parsing():
     for bad in ("can0", "socketcand://127.0.0.1/can0", "tcp://x:1/can0"):
         with pytest.raises(DriverConfigError):
             parse_can_url(bad)
+
+
+def test_interpolated_positions_match_exact_plant():
+    cell = Cell()
+    try:
+        rng = np.random.default_rng(1)
+        nodes = cell.nodes
+        for wall in np.sort(rng.uniform(0.0, 30.0, 400)):
+            a = np.array(nodes.positions_list(float(wall)))
+            b = nodes.positions(float(wall))
+            d = (a - b + nodes.range // 2) % nodes.range - nodes.range // 2
+            assert np.all(np.abs(d) <= 1), (wall, d)  # rounding boundary at most
+    finally:
+        cell.close()
+
+
+def test_socketcand_node_stops_heartbeat_then_reboots():
+    cell = Cell(
+        "[encoders]\nstop_heartbeat_node = 3\nstop_heartbeat_after_s = 0.6\n"
+        "stop_heartbeat_for_s = 0.8\n"
+    )
+    cell.server.sync_responder = cell.nodes.sync_frames
+    try:
+        with EncoderCanopenDriver(cell.server.url, sync_hz=500.0) as drv:
+            batches = collect(drv, 2.5)
+            h = drv.health()
+        assert h.counters["heartbeat_losses"] == 1, h.counters
+        assert h.counters["node_restarts"] == 1, h.counters
+        st = np.concatenate([b.status for b in batches])
+        assert ((st[:, 2] & 0x4) != 0).any()
+        assert np.all(st[-20:, 2] == 1)
+        assert np.all(st[:, [0, 1, 3, 4, 5]] & 1)
+        seq = np.concatenate([b.seq for b in batches]).astype(np.int64)
+        assert np.all(np.diff(seq) == 1) and len(seq) > 400
+    finally:
+        cell.close()
+
+
+def test_sync_fast_path_reaches_every_client():
+    """A second socketcand client (python-can's own) sees our SYNCs and the TPDOs."""
+    import can
+
+    cell = Cell()
+    cell.server.sync_responder = cell.nodes.sync_frames
+    kw = parse_can_url(cell.server.url)
+    listener = can.Bus(
+        interface="socketcand", host=kw["host"], port=kw["port"], channel=kw["channel"]
+    )
+    try:
+        with EncoderCanopenDriver(cell.server.url, sync_hz=200.0) as drv:
+            got: list[int] = []
+            end = time.monotonic() + 1.0
+            while time.monotonic() < end:
+                drv.read(0.01)
+                msg = listener.recv(0.01)
+                while msg is not None:
+                    got.append(msg.arbitration_id)
+                    msg = listener.recv(0.0)
+        assert got.count(0x080) > 20  # the SYNCs of the driver
+        for nid in range(1, 7):
+            assert got.count(0x180 + nid) > 20
+    finally:
+        listener.shutdown()
+        cell.close()

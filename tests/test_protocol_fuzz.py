@@ -157,4 +157,24 @@ def test_socketcand_server_command_parser(words):
     from collections import Counter
 
     srv.stats = Counter()
+    srv.sync_responder = None
+    srv._clients = {}
     srv._command(words, FakeBus())  # type: ignore[arg-type]
+
+
+@FUZZ
+@given(
+    st.lists(
+        st.binary(max_size=60) | st.sampled_from([b"< frame 181 12.5 0A0B0C0D >"]), max_size=20
+    )
+)
+def test_socketcand_client_frame_parser(chunks):
+    from drivers.socketcand import parse_frames
+
+    buf = b"".join(chunks)
+    frames, rest, junk = parse_frames(buf)
+    assert junk >= 0 and len(rest) <= len(buf)
+    for can_id, _ext, ts, data in frames:
+        assert 0 <= can_id < 2**32 and ts >= 0 and len(data) * 2 <= len(buf)
+    if b"< frame 181 12.5 0A0B0C0D >" in buf and buf.endswith(b">"):
+        assert (0x181, False, 12.5, bytes.fromhex("0A0B0C0D")) in frames
