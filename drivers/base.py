@@ -175,6 +175,14 @@ class DeviceClock:
         """Unwrapped µs ``(N,)`` and epoch ``(N,)`` for raw clock values ``(N,)``."""
         raw = np.asarray(raw, dtype=np.int64)
         n = raw.shape[0]
+        if n and self.last_raw is not None:
+            # the usual case, cheaply: moving forward in small steps, no wrap, no restart
+            lo = int(raw[0]) - self.last_raw
+            if 0 <= lo < self.max_gap_us:
+                steps = np.diff(raw) if n > 1 else None
+                if steps is None or (steps.min() >= 0 and steps.max() < self.max_gap_us):
+                    self.last_raw = int(raw[-1])
+                    return raw + self.offset, np.full(n, self.epoch, np.int32)
         out = np.empty(n, np.int64)
         epochs = np.empty(n, np.int32)
         if n == 0:

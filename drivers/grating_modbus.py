@@ -283,10 +283,8 @@ class GratingModbusDriver(Driver):
         hosts: list[np.ndarray],
         first_seqs: list[int],
     ) -> int:
-        first = int((regs[0] << 16) | regs[1])
-        n = int(regs[2])
-        pending = int(regs[3])
-        boot = int(regs[4])
+        first_hi, first_lo, n, pending, boot = regs[:FIFO_HEADER].tolist()
+        first = (first_hi << 16) | first_lo
         if n > MAX_SAMPLES_PER_READ or regs.shape[0] < FIFO_HEADER + n * SAMPLE_REGS:
             self.count("protocol_errors", detail=f"sample count {n}")
             return 0
@@ -321,36 +319,37 @@ class GratingModbusDriver(Driver):
     def _assemble(
         self, blocks: list[np.ndarray], hosts: list[np.ndarray], first_seqs: list[int]
     ) -> SampleBatch:
-        b = np.concatenate(blocks)
-        seq = np.concatenate(
-            [
-                np.arange(s, s + blk.shape[0], dtype=np.uint64)
-                for s, blk in zip(first_seqs, blocks, strict=True)
-            ]
-        )
+        if len(blocks) == 1:
+            b = blocks[0]
+            seq = np.arange(first_seqs[0], first_seqs[0] + b.shape[0], dtype=np.uint64)
+            host = hosts[0]
+        else:
+            b = np.concatenate(blocks)
+            seq = np.concatenate(
+                [
+                    np.arange(s, s + blk.shape[0], dtype=np.uint64)
+                    for s, blk in zip(first_seqs, blocks, strict=True)
+                ]
+            )
+            host = np.concatenate(hosts)
         t_raw = (b[:, 0] << 16) | b[:, 1]
         restarts_before = self.clock.restarts
         wraps_before = self.clock.wraps
         t_us, epoch = self.clock.unwrap(t_raw)
-        self.count("device_restarts", self.clock.restarts - restarts_before, "clock went back")
-        self.count("clock_wraps", self.clock.wraps - wraps_before)
+        if self.clock.restarts != restarts_before:
+            self.count("device_restarts", self.clock.restarts - restarts_before, "clock went back")
+        if self.clock.wraps != wraps_before:
+            self.count("clock_wraps", self.clock.wraps - wraps_before)
         raw = ((b[:, 2:14:2] << 16) | b[:, 3:14:2]).astype(np.int64)
         prev = raw[:1] if self.last_counts is None else self.last_counts
-        step = np.diff(np.concatenate([prev, raw]), axis=0)
-        wraps = np.where(step > U32 // 2, -1, np.where(step < -(U32 // 2), 1, 0))
-        n_wraps = int(np.count_nonzero(wraps))
-        values = raw + self.count_offset + np.cumsum(wraps, axis=0) * U32
-        self.count_offset += wraps.sum(axis=0) * U32
+        step = np.diff(raw, axis=0, prepend=prev)
+        if np.abs(step).max() <= U32 // 2:  # no counter wrapped (the usual case)
+            values = raw + self.count_offset
+        else:
+            wraps = np.where(step > U32 // 2, -1, np.where(step < -(U32 // 2), 1, 0))
+            values = raw + self.count_offset + np.cumsum(wraps, axis=0) * U32
+            self.count_offset += wraps.sum(axis=0) * U32
+            self.count("counter_wraps", int(np.count_nonzero(wraps)))
         self.last_counts = raw[-1:].copy()
-        if n_wraps:
-            self.count("counter_wraps", n_wraps)
         status = b[:, 14:].astype(np.uint16)
-        return SampleBatch(
-            SCHEMA,
-            seq,
-            t_us,
-            epoch,
-            np.concatenate(hosts),
-            values,
-            status,
-        )
+        return SampleBatch(SCHEMA, seq, t_us, epoch, host, values, status)

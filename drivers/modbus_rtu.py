@@ -16,6 +16,8 @@ response is ``unit, fc, byte_count, registers (big endian), crc``; an exception 
 
 from __future__ import annotations
 
+import os
+import select
 import struct
 import sys
 import time
@@ -145,30 +147,94 @@ class Reply:
     raw: bytes = b""
 
 
+def _fileno(port: Any) -> int | None:
+    """The port's file descriptor if it has a usable one (posix serial, socket://)."""
+    try:
+        fd = port.fileno()
+    except Exception:  # loop:// and friends have none
+        return None
+    return fd if isinstance(fd, int) and fd >= 0 else None
+
+
 class RtuMaster:
     """Request/response on a pyserial port object (``read``/``write``/``in_waiting``).
 
-    The port's read timeout bounds each wait; ``timeout_s`` bounds a transaction.
+    Ports with a file descriptor (a serial device, a pty, ``socket://``; pyserial opens
+    them non-blocking) are driven directly: one ``select`` and one ``read`` per arrival
+    instead of pyserial's per-call bookkeeping. Others use pyserial's ``read``/``write``.
+    ``timeout_s`` bounds a transaction.
     """
 
     def __init__(self, port: Any, unit: int, timeout_s: float) -> None:
         self.port = port
         self.unit = unit
         self.timeout_s = timeout_s
+        self.fd = _fileno(port)
+
+    # -- raw I/O -------------------------------------------------------------------------
+    def _drain(self) -> int:
+        """Discard what is waiting (a late answer to a request that timed out)."""
+        if self.fd is None:
+            n = self.port.in_waiting
+            if n:
+                self.port.read(n)
+            return n
+        n = 0
+        while True:
+            try:
+                chunk = os.read(self.fd, 4096)
+            except (BlockingIOError, InterruptedError):
+                return n
+            if not chunk:  # a tty with VMIN=0: nothing there (a closed socket: next read)
+                return n
+            n += len(chunk)
+
+    def _write(self, data: bytes, deadline: float) -> None:
+        if self.fd is None:
+            self.port.write(data)
+            return
+        view = memoryview(data)
+        while view:
+            try:
+                view = view[os.write(self.fd, view) :]
+                continue
+            except (BlockingIOError, InterruptedError):
+                pass
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([], [self.fd], [], left)[1]:
+                raise OSError("write timeout")
+
+    def _read(self, want: int, deadline: float) -> bytes:
+        """What arrives until ``deadline`` (at least one byte unless it passes)."""
+        if self.fd is None:
+            return self.port.read(want)
+        readable = False
+        while True:
+            try:
+                chunk = os.read(self.fd, 4096)
+            except (BlockingIOError, InterruptedError):
+                chunk = None
+            if chunk:
+                return chunk
+            if chunk is not None and readable:
+                # select said readable, read gave nothing: a closed socket or a tty
+                # whose other side is gone (pyserial reports the same)
+                raise OSError("device reports readiness to read but returned no data")
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([self.fd], [], [], left)[0]:
+                return b""
+            readable = True
 
     def transact(self, request: bytes, fc: int, n_regs: int) -> Reply:
-        port = self.port
-        stale = port.in_waiting
-        if stale:
-            port.read(stale)  # a late answer to a request that timed out: drop it
-        port.write(request)
-        byte_count = 2 * n_regs
+        stale = self._drain()
         deadline = time.monotonic() + self.timeout_s
+        self._write(request, deadline + 1.0)
+        byte_count = 2 * n_regs
         buf = b""
         want = 5
         state, start, end = "none", 0, 0
         while True:
-            chunk = port.read(max(1, want - len(buf)))
+            chunk = self._read(max(1, want - len(buf)), deadline)
             if chunk:
                 buf += chunk
                 state, start, end = scan(buf, self.unit, fc, byte_count)
