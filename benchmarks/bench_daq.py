@@ -241,6 +241,8 @@ def throughput(seconds: float, batch: int = 100) -> dict[str, Any]:
     payload = _sample_payload(batch)
     raw = raw_zenoh_throughput(payload, seconds)
     dmn = daemon_throughput(batch, seconds)
+    if dmn["messages"] < 2:  # the subscriber missed the run (a stalled start): once more
+        dmn = daemon_throughput(batch, seconds)
     return {
         "payload_bytes": len(payload),
         "batch_samples": batch,
@@ -319,7 +321,13 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.soak:
         res = cell(args.soak, emulated=args.emulated)
-        res.pop("per_key")
+        res["per_key"] = {
+            k.rsplit("/", 2)[-2]: {
+                f: v.get(f) for f in ("samples", "seq_gaps", "lost_batches", "unsettled")
+            }
+            | {"latency_p99_ms": v.get("latency_mapped_ms", {}).get("p99")}
+            for k, v in res["per_key"].items()
+        }
         print(json.dumps({"soak": res}, indent=1))
         return 0 if res["loss_samples"] == 0 else 1
     for r in run(quick=not args.full, emulated=args.emulated):
