@@ -20,6 +20,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "scale-apply": ("calibration.cli_scale", "turn grating counts into joint angles"),
     "identify": ("calibration.cli_identify", "identify kinematic parameters from a campaign"),
     "predict": ("calibration.cli_identify", "predict tracker points from joint angles"),
+    "export": ("calibration.cli_export", "phases found in a recording as home/sweep/campaign.csv"),
+    "run": ("calibration.cli_run", "the twin end to end: recording or live, reports, live twin"),
 }
 
 

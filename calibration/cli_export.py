@@ -1,0 +1,62 @@
+"""``twin export``: the campaign's phases found in a recording, as the documented files.
+
+twin export --replay run.mcap --robot kr500 --out DIR
+
+writes ``home.csv``, ``sweep.csv`` (docs/scale-calibration.md), ``scale.toml`` (the scale
+calibration of those, needed for the joint angles), ``campaign.csv``
+(docs/identification.md) and ``phases.json`` (what was found, lost stops, lost intervals).
+See docs/twin-run.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "export",
+        help="write the phases found in a recording as home.csv, sweep.csv, campaign.csv",
+        description="Find the campaign's phases (dwells, Home returns, sweeps, poses) in an "
+        "MCAP recording of the daemon, pair tracker and grating samples, and write the "
+        "documented files. See docs/twin-run.md.",
+    )
+    p.add_argument("--replay", required=True, metavar="FILE.mcap", help="the recording")
+    p.add_argument("--robot", default="kr500", help="nominal robot: preset or .toml (kr500)")
+    p.add_argument("--out", required=True, metavar="DIR", help="directory for the files")
+    p.add_argument(
+        "--encoder-counts-per-rev", type=int, default=131072, help="motor encoder counts/turn"
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=run_export)
+
+
+def progress(command: str, quiet: bool):  # type: ignore[no-untyped-def]
+    def say(text: str) -> None:
+        if not quiet:
+            print(f"twin {command}: {text}", file=sys.stderr, flush=True)
+
+    return say
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from calibration.description import load_robot
+    from calibration.streams import read_recording_streams
+    from calibration.twin_run import export_campaign
+
+    say = progress("export", args.quiet)
+    say(f"reading {args.replay}")
+    streams = read_recording_streams(args.replay)
+    res = export_campaign(
+        streams,
+        load_robot(args.robot),
+        args.out,
+        encoder_counts_per_rev=args.encoder_counts_per_rev,
+        say=say,
+    )
+    print(json.dumps(res.summary["phases"]))
+    for name, path in res.files.items():
+        print(f"wrote {name}: {path}")
+    return 0

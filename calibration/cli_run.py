@@ -1,0 +1,95 @@
+"""``twin run``: the twin end to end, on a recording or on the daemon's live streams.
+
+twin run --replay run.mcap --robot kr500 --out DIR     # offline, deterministic
+twin run --robot kr500 --out DIR [--connect EP] ...    # live: collect, calibrate, publish
+
+See docs/twin-run.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from calibration.cli_export import progress
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="the twin end to end: phases, scale calibration, identification, live twin",
+        description="Find the campaign in the data, calibrate the gratings, identify the "
+        "geometry and the effects it lacks, write the reports and the calibrated model; "
+        "live, then publish the twin. See docs/twin-run.md.",
+    )
+    p.add_argument("--replay", metavar="FILE.mcap", help="a recording (default: live zenoh)")
+    p.add_argument("--robot", default="kr500", help="nominal robot: preset or .toml (kr500)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--no-effects", action="store_true", help="the geometry alone")
+    p.add_argument("--no-report", action="store_true", help="no figures (report.json only)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    live = p.add_argument_group("live (without --replay)")
+    live.add_argument(
+        "--connect",
+        action="append",
+        default=None,
+        metavar="EP",
+        help="zenoh endpoint of the daemon (tcp/127.0.0.1:7447)",
+    )
+    live.add_argument(
+        "--listen",
+        action="append",
+        default=None,
+        metavar="EP",
+        help="zenoh endpoints to listen on (default: none)",
+    )
+    live.add_argument("--key", default="cell/**", help="key expression of the data (cell/**)")
+    live.add_argument(
+        "--idle-s",
+        type=float,
+        default=10.0,
+        help="the campaign is over when the robot has not moved for this long "
+        "after the last pose (10 s)",
+    )
+    live.add_argument(
+        "--collect-s", type=float, default=0.0, help="collect for at most this long (0: until idle)"
+    )
+    live.add_argument(
+        "--publish-s",
+        type=float,
+        default=0.0,
+        help="publish the live twin for this long, then stop (0: until Ctrl-C)",
+    )
+    p.set_defaults(func=run_run)
+
+
+def run_run(args: argparse.Namespace) -> int:
+    say = progress("run", args.quiet)
+    if args.replay:
+        from calibration.streams import read_recording_streams
+        from calibration.twin_run import run_twin
+
+        say(f"reading {args.replay}")
+        streams = read_recording_streams(args.replay)
+    else:
+        from calibration.live_twin import collect_live
+
+        streams = collect_live(args, say)
+    from calibration.twin_run import run_twin
+
+    run = run_twin(
+        streams,
+        args.robot,
+        args.out,
+        effects=not args.no_effects,
+        report=not args.no_report,
+        say=say,
+    )
+    print(run["stage_table"])
+    print(f"calibrated model: {run['calibrated']}")
+    print(f"report: {run['report']}/report.md (scale: {args.out}/scale-report/report.md)")
+    print(f"phases: {run['files']['phases']}")
+    if not args.replay:
+        from calibration.live_twin import publish_live
+
+        return publish_live(args, run, say)
+    return 0 if run["success"] else 1
