@@ -5,7 +5,7 @@ settled part of the data by :meth:`calibration.streams.Stream.remapped`). For ea
 the twin needs a tracker point at (sweep stops, poses):
 
 1. Tracker samples inside the dwell, less ``margin`` at both ends (the clock maps agree
-   to about ±2 ms; the margin shrinks to a quarter of the dwell for very short dwells),
+   to about ±2 ms; the margin shrinks to a sixth of the dwell for very short dwells),
    are candidates. Samples outside any dwell are never paired: **the robot was moving**.
 2. A candidate whose status lacks the *valid* bit or whose coordinates are not finite is
    rejected: **the beam was broken** (or the tracker dropped the point).
@@ -39,7 +39,7 @@ VALID_BIT = 1
 @dataclass(frozen=True)
 class PairingOptions:
     margin_s: float = 0.002
-    min_pairs: int = 3
+    min_pairs: int = 2
     still_counts: float = 4.0
     point_floor_mm: float = 0.05
 
@@ -73,7 +73,7 @@ def pair_dwell(
     gt = grating.t_ns[dwell.i0 : dwell.i1 + 1]
     gc = grating.values[dwell.i0 : dwell.i1 + 1].astype(np.float64)
     span = dwell.t1_ns - dwell.t0_ns
-    margin = int(min(opts.margin_s * 1e9, span / 4))
+    margin = int(min(opts.margin_s * 1e9, span / 6))
     lo, hi = dwell.t0_ns + margin, dwell.t1_ns - margin
     t_tr = tracker.t_ns
     a = int(np.searchsorted(t_tr, lo, side="left"))

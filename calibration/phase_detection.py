@@ -22,7 +22,8 @@ its own controller's or a pendant operator's. Everything here comes from the gra
    dwell is *at Home* when every joint is within ``home_tolerance`` sweep steps of that
    vector.
 4. **Home returns.** A Home dwell (not a sweep stop) approached by one joint alone (the
-   other joints' excursion at most ``single_joint_ratio`` of its), at the sweep speed: its
+   other joints' excursion at most ``single_joint_ratio`` of its, counted from the last
+   sample where another joint was away from Home), at the sweep speed: its
    final approach, from the last standstill or reversal, is no faster than
    ``home_speed_ratio`` times that joint's fastest sweep move (the method's returns and
    sweeps both run at 3 %). A quick return to Home (e.g. after a sweep) is not a return.
@@ -254,8 +255,10 @@ def find_phases(t_ns: IntArray, counts: IntArray, opts: PhaseOptions | None = No
                 )
         if speeds:
             sweep_speed[j] = float(np.median(speeds))
+    # joints without a sweep: the smallest step of the swept joints sets their tolerance
+    fallback = min(step_counts.values()) if step_counts else np.nan
     tol = np.array(
-        [opts.home_tolerance * step_counts.get(k + 1, np.nan) for k in range(n)], dtype=float
+        [opts.home_tolerance * step_counts.get(k + 1, fallback) for k in range(n)], dtype=float
     )
     homes: list[HomeReturn] = []
     poses_idx: list[int] = []
@@ -267,15 +270,26 @@ def find_phases(t_ns: IntArray, counts: IntArray, opts: PhaseOptions | None = No
         off = np.abs(d.counts - home)
         known = np.isfinite(off) & np.isfinite(tol)
         at_home = bool(np.all(off[known] <= tol[known])) and bool(known.any())
-        if at_home and d.index > 0:
-            prev_end = dwells[d.index - 1].i1
+        if at_home and d.i0 > 0:
+            prev_end = dwells[d.index - 1].i1 if d.index > 0 else 0
             seg = counts[prev_end : d.i0 + 1]
-            exc = np.abs(seg - home[None, :]).max(axis=0)
+            # the approaching joint is the one away from Home last; the approach starts
+            # after the last sample with any other joint away from Home
+            dev = np.abs(seg - home[None, :])
+            away = dev > tol[None, :]
+            rows = np.flatnonzero(away.any(axis=1))
+            if rows.size:
+                jj = int(np.argmax(dev[rows[-1]] / tol))
+                others = np.flatnonzero(np.delete(away, jj, axis=1).any(axis=1))
+                if others.size:
+                    prev_end += int(others[-1]) + 1
+                    dev = dev[int(others[-1]) + 1 :]
+            exc = dev.max(axis=0) if dev.shape[0] else np.zeros(n)
             exc = np.where(np.isfinite(exc), exc, 0.0)
             j = int(np.argmax(exc))
             others = np.delete(exc, j)
             single = others.size == 0 or float(others.max()) <= opts.single_joint_ratio * exc[j]
-            if single and (j + 1) in sweep_speed and exc[j] > tol[j]:
+            if single and (j + 1) in sweep_speed and exc[j] > 10 * opts.still_counts:
                 i_start = _final_approach_start(counts[:, j], prev_end, d.i0)
                 speed = _peak_speed(t_ns, counts[:, j], i_start, d.i0)
                 if speed <= opts.home_speed_ratio * sweep_speed[j + 1]:

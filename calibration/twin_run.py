@@ -143,16 +143,6 @@ def export_campaign(
     )
     sopts = scale_options or ScaleOptions()
     say("scale calibration")
-    results = calibrate_files(files["sweep"], files["home"], robot, sopts)
-    doc = scale_document(
-        results,
-        robot=robot.name,
-        metadata={"sweep_file": "sweep.csv", "home_file": "home.csv", "source": "twin export"},
-        counts_per_mm=sopts.counts_per_mm,
-    )
-    write_scale_toml(files["scale"], doc)
-    scales = {r.joint: r.scale for r in results}
-    missing = [j for j in range(1, n + 1) if j not in scales]
     summary: dict[str, Any] = {
         "format": "twin-phases/1",
         "source": Path(streams.source).name,
@@ -166,17 +156,32 @@ def export_campaign(
         "stops_needed": len(needed),
         "stops_lost": rejected,
         "lost_intervals": [_with_seconds(x, g.t_ns[0]) for x in streams.lost()],
-        "scale": {
-            str(r.joint): {
-                "counts_per_deg": round(r.scale.counts_per_deg, 6),
-                "terms": list(r.scale.terms),
-                "residual_rms_arcsec": round(r.residual_rms_arcsec, 4),
-                "notes": list(r.notes),
-            }
-            for r in results
-        },
-        "uncalibrated_joints": missing,
     }
+    files["phases"].write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    results = calibrate_files(files["sweep"], files["home"], robot, sopts)
+    doc = scale_document(
+        results,
+        robot=robot.name,
+        metadata={"sweep_file": "sweep.csv", "home_file": "home.csv", "source": "twin export"},
+        counts_per_mm=sopts.counts_per_mm,
+    )
+    write_scale_toml(files["scale"], doc)
+    scales = {r.joint: r.scale for r in results}
+    missing = [j for j in range(1, n + 1) if j not in scales]
+    summary.update(
+        {
+            "scale": {
+                str(r.joint): {
+                    "counts_per_deg": round(r.scale.counts_per_deg, 6),
+                    "terms": list(r.scale.terms),
+                    "residual_rms_arcsec": round(r.residual_rms_arcsec, 4),
+                    "notes": list(r.notes),
+                }
+                for r in results
+            },
+            "uncalibrated_joints": missing,
+        }
+    )
     if missing or not ph.poses:
         files["phases"].write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
         what = f"joints {missing} have no sweep" if missing else "no poses found"

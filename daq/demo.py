@@ -1,0 +1,163 @@
+"""The demo: emulated cell with an undeclared effect → daemon → MCAP → twin → stage table.
+
+``make demo`` runs ``python -m daq.demo``:
+
+1. writes the emulated cell's configuration (``sim-cell.toml`` in the output directory):
+   the KR500 running the whole calibration campaign (10 Home returns per joint, 2° sweeps
+   limit to limit and back for all six joints, 100 identification and 150 validation
+   poses, 1 s dwells) on a simulated clock ``--speed`` times faster than real time, with
+   an effect the twin is not told about (``--effect``, default gravity deflection after
+   the ring);
+2. runs the acquisition daemon on it (``daq run --sim-config ... --record``, a separate
+   process) for the program's length, recording every stream to MCAP;
+3. runs the twin on the recording (``twin run --replay``: phases found in the data,
+   scale calibration, identification, closed loop, reports);
+4. prints the stage table (nominal → geometric → + found effects), where the reports are,
+   and the time each step took.
+
+``--record-only`` stops after step 2 (how the replay tests' recording is made, see
+docs/twin-run.md). Zenoh stays on loopback (``--port``), no scouting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+EFFECTS = ("gravity_deflection", "grating_cyclic", "thermal_drift", "tracker_scale", "none")
+
+
+def sim_config_text(
+    robot: str, seed: int, speed: float, effect: str, *, encoders: bool, rate_hz: float
+) -> str:
+    lines = [
+        "[cell]",
+        f'robot = "{robot}"',
+        f"seed = {seed}",
+        f"speed = {speed}",
+        'program = "campaign"',
+        "",
+        "[grating]",
+        f"rate_hz = {rate_hz}",
+        "",
+        "[encoders]",
+        f"enabled = {'true' if encoders else 'false'}",
+        "",
+    ]
+    if effect != "none":
+        lines += ["[effects.undeclared]", f"{effect} = true", ""]
+    return "\n".join(lines)
+
+
+def program_length_s(sim_config: Path) -> float:
+    """Simulated length of the configured robot program (the demo knows it; the twin not)."""
+    from sim_devices.config import CellConfig
+    from sim_devices.plant import Plant
+
+    return float(Plant.from_config(CellConfig.load(sim_config)).trajectory.end_s)
+
+
+def record(args: argparse.Namespace, out_dir: Path, mcap: Path) -> dict:
+    sim = out_dir / "sim-cell.toml"
+    sim.write_text(
+        sim_config_text(
+            args.robot,
+            args.seed,
+            args.speed,
+            args.effect,
+            encoders=not args.no_encoders,
+            rate_hz=args.rate,
+        ),
+        encoding="utf-8",
+    )
+    length = program_length_s(sim)
+    duration = length / args.speed + args.margin_s
+    env = dict(os.environ)
+    # coarser batches than the default 1 ms: a smaller file, faster to replay
+    env.setdefault("DAQ_PUBLISH_MAX_BATCH_AGE_S", str(args.batch_age_s))
+    env.setdefault("DAQ_PUBLISH_MAX_BATCH_SAMPLES", "200")
+    cmd = [
+        sys.executable,
+        "-m",
+        "daq.cli",
+        "run",
+        "--sim-config",
+        str(sim),
+        "--duration",
+        f"{duration:.1f}",
+        "--record",
+        str(mcap),
+        "--rate",
+        str(args.rate),
+        "--listen",
+        f"tcp/127.0.0.1:{args.port}",
+    ]
+    print(
+        f"demo: emulated {args.robot} campaign, {length:.0f} s of robot time at {args.speed:g}x "
+        f"= {length / args.speed:.0f} s; undeclared effect: {args.effect}",
+        flush=True,
+    )
+    print(f"demo: {' '.join(cmd)}", flush=True)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, text=True)
+    wall = time.perf_counter() - t0
+    last = {}
+    for line in proc.stdout.splitlines():
+        if line.startswith("{"):
+            last = json.loads(line)
+    if proc.returncode != 0:
+        raise SystemExit(f"demo: daq run exited with {proc.returncode}")
+    size = mcap.stat().st_size
+    print(
+        f"demo: recorded {mcap} ({size / 1e6:.1f} MB) in {wall:.0f} s; devices "
+        + json.dumps(last.get("devices", {})),
+        flush=True,
+    )
+    return {"record_s": wall, "mcap_bytes": size, "program_s": length}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m daq.demo", description=__doc__.splitlines()[0])
+    p.add_argument("--out", default="demo-out", help="output directory (demo-out)")
+    p.add_argument("--robot", default="kr500")
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--speed", type=float, default=100.0, help="simulated clock speed (100)")
+    p.add_argument("--effect", default="gravity_deflection", choices=EFFECTS)
+    p.add_argument("--rate", type=float, default=1000.0, help="device rates, Hz (1000)")
+    p.add_argument("--no-encoders", action="store_true", help="leave the motor encoders out")
+    p.add_argument("--batch-age-s", type=float, default=0.02, help="daemon batch age (0.02)")
+    p.add_argument("--margin-s", type=float, default=8.0, help="extra recording time (8 s)")
+    p.add_argument("--port", type=int, default=17447, help="zenoh port on 127.0.0.1 (17447)")
+    p.add_argument("--record-only", action="store_true", help="stop after the recording")
+    p.add_argument("--mcap", help="recording path (default OUT/campaign.mcap)")
+    args = p.parse_args(argv)
+    started = time.perf_counter()
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    mcap = Path(args.mcap) if args.mcap else out_dir / "campaign.mcap"
+    rec = record(args, out_dir, mcap)
+    if args.record_only:
+        return 0
+    from calibration.cli import main as twin_main
+
+    t0 = time.perf_counter()
+    twin_out = out_dir / "twin"
+    print(f"demo: twin run --replay {mcap} --robot {args.robot} --out {twin_out}", flush=True)
+    rc = twin_main(["run", "--replay", str(mcap), "--robot", args.robot, "--out", str(twin_out)])
+    twin_s = time.perf_counter() - t0
+    total = time.perf_counter() - started
+    print(
+        f"demo: recording {rec['record_s']:.0f} s, twin {twin_s:.0f} s, total {total:.0f} s "
+        f"(wall); recording {rec['mcap_bytes'] / 1e6:.1f} MB",
+        flush=True,
+    )
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())
