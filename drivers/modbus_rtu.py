@@ -16,8 +16,6 @@ response is ``unit, fc, byte_count, registers (big endian), crc``; an exception 
 
 from __future__ import annotations
 
-import os
-import select
 import struct
 import sys
 import time
@@ -25,6 +23,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from drivers.transport import drain, read_available, stream_fileno, write_all
 
 FC_READ_HOLDING = 3
 FC_READ_WRITE = 23
@@ -147,15 +147,6 @@ class Reply:
     raw: bytes = b""
 
 
-def _fileno(port: Any) -> int | None:
-    """The port's file descriptor if it has a usable one (posix serial, socket://)."""
-    try:
-        fd = port.fileno()
-    except Exception:  # loop:// and friends have none
-        return None
-    return fd if isinstance(fd, int) and fd >= 0 else None
-
-
 class RtuMaster:
     """Request/response on a pyserial port object (``read``/``write``/``in_waiting``).
 
@@ -169,7 +160,7 @@ class RtuMaster:
         self.port = port
         self.unit = unit
         self.timeout_s = timeout_s
-        self.fd = _fileno(port)
+        self.fd = stream_fileno(port)
 
     # -- raw I/O -------------------------------------------------------------------------
     def _drain(self) -> int:
@@ -179,51 +170,19 @@ class RtuMaster:
             if n:
                 self.port.read(n)
             return n
-        n = 0
-        while True:
-            try:
-                chunk = os.read(self.fd, 4096)
-            except (BlockingIOError, InterruptedError):
-                return n
-            if not chunk:  # a tty with VMIN=0: nothing there (a closed socket: next read)
-                return n
-            n += len(chunk)
+        return drain(self.fd)
 
     def _write(self, data: bytes, deadline: float) -> None:
         if self.fd is None:
             self.port.write(data)
-            return
-        view = memoryview(data)
-        while view:
-            try:
-                view = view[os.write(self.fd, view) :]
-                continue
-            except (BlockingIOError, InterruptedError):
-                pass
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([], [self.fd], [], left)[1]:
-                raise OSError("write timeout")
+        else:
+            write_all(self.fd, data, max(0.0, deadline - time.monotonic()))
 
     def _read(self, want: int, deadline: float) -> bytes:
         """What arrives until ``deadline`` (at least one byte unless it passes)."""
         if self.fd is None:
             return self.port.read(want)
-        readable = False
-        while True:
-            try:
-                chunk = os.read(self.fd, 4096)
-            except (BlockingIOError, InterruptedError):
-                chunk = None
-            if chunk:
-                return chunk
-            if chunk is not None and readable:
-                # select said readable, read gave nothing: a closed socket or a tty
-                # whose other side is gone (pyserial reports the same)
-                raise OSError("device reports readiness to read but returned no data")
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([self.fd], [], [], left)[0]:
-                return b""
-            readable = True
+        return read_available(self.fd, max(0.0, deadline - time.monotonic()), 4096)
 
     def transact(self, request: bytes, fc: int, n_regs: int) -> Reply:
         stale = self._drain()

@@ -23,7 +23,7 @@ import serial
 
 from drivers.base import BatchSchema, ChannelSchema, DeviceClock, Driver, Option, SampleBatch
 from drivers.errors import DeviceIOError, ProtocolError
-from drivers.transport import check_url, open_stream
+from drivers.transport import check_url, open_stream, read_available, stream_fileno
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,9 @@ STATUS_CODES = {
     "BROKEN_OBSTRUCTED": ST_BEAM_BROKEN,
     "BROKEN_DROPOUT": ST_DROPOUT,
 }
+STATUS_BYTES = {k.encode(): v for k, v in STATUS_CODES.items()}
 MAX_LINE = 512
+I63 = 1 << 63
 
 SCHEMA = BatchSchema(
     kind="tracker_ascii",
@@ -61,7 +63,7 @@ def parse_data_line(line: str) -> tuple[int, int, float, float, float, int]:
     except ValueError as exc:
         raise ProtocolError("bad_number", line[:60]) from exc
     status = STATUS_CODES.get(parts[6])
-    if status is None or seq < 0 or t_us < 0:
+    if status is None or not (0 <= seq < I63 and 0 <= t_us < I63):
         raise ProtocolError("bad_field", line[:60])
     return seq, t_us, x, y, z, status
 
@@ -91,6 +93,7 @@ class TrackerAsciiDriver(Driver):
         self._pending: list[tuple[int, int, float, float, float, int]] = []
         self._pending_host: list[int] = []
         self._carry: list[SampleBatch] = []
+        self._fd: int | None = None
 
     @property
     def schema(self) -> BatchSchema:
@@ -101,8 +104,17 @@ class TrackerAsciiDriver(Driver):
         self.port = open_stream(
             self.url, timeout_s=self.options["poll_s"], baudrate=self.options["baudrate"]
         )
+        self._fd = stream_fileno(self.port)
         self.rx = b""
         self.replies.clear()
+        # samples received before the link broke are kept, numbered in the old session
+        # (before any command: lines of the new stream arrive with the replies)
+        carry = self._finish_pending()
+        if carry is not None:
+            self._carry.append(carry)
+        # a new session numbers its stream from 0: keep the driver's sequence increasing
+        self.seq_base = 0 if self.last_seq is None else self.last_seq + 1
+        self.session_last = None
         self.command("STREAM:STOP", timeout_s=0.3)  # a serial device may still be streaming
         idn = self.command("*IDN?")
         if idn is None or idn.count(",") != 3:
@@ -113,15 +125,9 @@ class TrackerAsciiDriver(Driver):
             raise DeviceIOError(f"tracker refused rate: {rate!r}")
         if self.command("STREAM:START") != "OK":
             raise DeviceIOError("tracker did not start streaming")
-        # samples received before the link broke are kept, numbered in the old session
-        carry = self._finish_pending()
-        if carry is not None:
-            self._carry.append(carry)
-        # a new session numbers its stream from 0: keep the driver's sequence increasing
-        self.seq_base = 0 if self.last_seq is None else self.last_seq + 1
-        self.session_last: int | None = None
 
     def _disconnect(self) -> None:
+        self._fd = None
         if self.port is not None:
             with contextlib.suppress(Exception):
                 self.port.close()
@@ -134,11 +140,14 @@ class TrackerAsciiDriver(Driver):
         except (serial.SerialException, OSError) as exc:
             raise DeviceIOError(f"write to {self.url} failed: {exc}") from exc
 
-    def _pump(self) -> bool:
-        """Read what is there (waits up to poll_s); parse lines. False if nothing came."""
+    def _pump(self, wait_s: float | None = None) -> bool:
+        """Read what is there, waiting up to ``wait_s`` (default ``poll_s``) for it; parse
+        the complete lines. False if nothing came."""
         assert self.port is not None
+        wait = self.options["poll_s"] if wait_s is None else wait_s
         try:
-            data = self.port.read(65536)
+            fd = self._fd
+            data = self.port.read(65536) if fd is None else read_available(fd, wait)
         except (serial.SerialException, OSError) as exc:
             if self.rx:
                 self.count("truncated_frames", detail="partial line at disconnect")
@@ -153,9 +162,26 @@ class TrackerAsciiDriver(Driver):
         if len(self.rx) > MAX_LINE:
             self.count("garbage_bytes", len(self.rx), "overlong line")
             self.rx = b""
-        for raw in lines:
-            self._line(raw, host)
+        self._lines(lines, host)
         return True
+
+    def _lines(self, lines: list[bytes], host: int) -> None:
+        """Handle received lines: well-formed ``D`` lines directly from the bytes (the
+        stream's bulk), everything else through :meth:`_line`."""
+        pending, hosts, codes = self._pending, self._pending_host, STATUS_BYTES
+        for raw in lines:
+            if raw[:2] == b"D,":
+                p = raw.rstrip(b"\r").split(b",")
+                if len(p) == 7 and (st := codes.get(p[6])) is not None:
+                    try:
+                        row = (int(p[1]), int(p[2]), float(p[3]), float(p[4]), float(p[5]), st)
+                    except ValueError:
+                        row = None
+                    if row is not None and 0 <= row[0] < I63 and 0 <= row[1] < I63:
+                        pending.append(row)
+                        hosts.append(host)
+                        continue
+            self._line(raw, host)
 
     def _line(self, raw: bytes, host: int) -> None:
         try:
@@ -191,10 +217,13 @@ class TrackerAsciiDriver(Driver):
         self.replies.clear()
         self._write(line)
         end = time.monotonic() + (timeout_s or self.options["command_timeout_s"])
-        while time.monotonic() < end:
+        while True:
             if self.replies:
                 return self.replies.popleft()
-            self._pump()
+            left = end - time.monotonic()
+            if left <= 0:
+                break
+            self._pump(min(self.options["poll_s"], left))
         self.count("timeouts", detail=f"no reply to {line!r}")
         return None
 
@@ -235,9 +264,13 @@ class TrackerAsciiDriver(Driver):
 
     # -- reading --------------------------------------------------------------------------
     def _read_batch(self, deadline_ns: int) -> SampleBatch | None:
+        poll = self.options["poll_s"]
         while True:
-            got = self._pump()
-            if (self._pending or self._carry) and not got:
+            have = bool(self._pending or self._carry)
+            left = (deadline_ns - time.monotonic_ns()) / 1e9
+            # with samples in hand, only take what is already there; else wait for some
+            got = self._pump(0.0 if have else max(0.0, min(poll, left)))
+            if have and not got:
                 break
             if time.monotonic_ns() >= deadline_ns:
                 break
@@ -254,20 +287,23 @@ class TrackerAsciiDriver(Driver):
         rows = self._pending
         hosts = self._pending_host
         self._pending, self._pending_host = [], []
+        n = len(rows)
+        first, last = rows[0][0], rows[-1][0]
+        if self.session_last is not None and first > self.session_last + 1:
+            self.count("lost_samples", first - self.session_last - 1)
+        if last - first + 1 != n:  # not one contiguous run: count the gaps
+            gaps = np.diff(np.fromiter((r[0] for r in rows), np.int64, n))
+            if np.any(gaps > 1):
+                self.count("lost_samples", int(np.sum(gaps[gaps > 1] - 1)))
+        self.session_last = last
         arr = np.array(rows, dtype=np.float64)
-        seq = arr[:, 0].astype(np.int64)
-        if self.session_last is not None and seq[0] > self.session_last + 1:
-            self.count("lost_samples", int(seq[0] - self.session_last - 1))
-        gaps = np.diff(seq)
-        if np.any(gaps > 1):
-            self.count("lost_samples", int(np.sum(gaps[gaps > 1] - 1)))
-        self.session_last = int(seq[-1])
-        seq = seq + self.seq_base
-        self.last_seq = int(seq[-1])
+        seq = np.fromiter((r[0] for r in rows), np.int64, n) + self.seq_base
+        self.last_seq = last + self.seq_base
         before = self.clock.restarts
-        t_us, epoch = self.clock.unwrap(np.array([r[1] for r in rows], dtype=np.int64))
-        self.count("device_restarts", self.clock.restarts - before, "tracker clock went back")
-        st = arr[:, 5].astype(np.uint16)
+        t_us, epoch = self.clock.unwrap(np.fromiter((r[1] for r in rows), np.int64, n))
+        if self.clock.restarts != before:
+            self.count("device_restarts", self.clock.restarts - before, "tracker clock went back")
+        st = arr[:, 5:6].astype(np.uint16)
         return SampleBatch(
             SCHEMA,
             seq.astype(np.uint64),
@@ -275,5 +311,5 @@ class TrackerAsciiDriver(Driver):
             epoch,
             np.array(hosts, dtype=np.int64),
             arr[:, 2:5].copy(),
-            np.repeat(st[:, None], 3, axis=1),
+            np.repeat(st, 3, axis=1),
         )

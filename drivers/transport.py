@@ -10,6 +10,8 @@ Drivers never build sockets themselves: a TCP instrument is a ``socket://`` URL.
 from __future__ import annotations
 
 import os
+import select
+import time
 import urllib.parse
 from typing import Any
 
@@ -73,3 +75,72 @@ def open_stream(
         )
     except (serial.SerialException, OSError, ValueError) as exc:
         raise DeviceIOError(f"cannot open {url}: {exc}") from exc
+
+
+# -- event-driven I/O on the port's file descriptor -------------------------------------------
+# pyserial opens device paths and socket:// non-blocking; its read(n) waits for n bytes or
+# the whole timeout and writes wait for writability after every write. The helpers below
+# return as soon as something has arrived (one select and one read), for ports that have a
+# file descriptor; callers fall back to pyserial's read/write for the others (loop://).
+
+
+def stream_fileno(port: Any) -> int | None:
+    """The port's file descriptor, if it has a usable one (serial device, pty, socket://)."""
+    try:
+        fd = port.fileno()
+    except Exception:  # loop:// and friends have none
+        return None
+    return fd if isinstance(fd, int) and fd >= 0 else None
+
+
+def read_available(fd: int, timeout_s: float, max_bytes: int = 65536) -> bytes:
+    """What has arrived on ``fd``, waiting up to ``timeout_s`` for the first bytes.
+
+    Returns b"" on timeout; raises OSError when the other side is gone (readable but
+    nothing to read: a closed socket, a tty whose device went away).
+    """
+    readable = False
+    deadline = None
+    while True:
+        try:
+            chunk = os.read(fd, max_bytes)
+        except (BlockingIOError, InterruptedError):
+            chunk = None
+        if chunk:
+            return chunk
+        if chunk is not None and readable:
+            raise OSError("device reports readiness to read but returned no data")
+        if deadline is None:
+            deadline = time.monotonic() + timeout_s
+        left = deadline - time.monotonic()
+        if left <= 0 or not select.select([fd], [], [], left)[0]:
+            return b""
+        readable = True
+
+
+def drain(fd: int) -> int:
+    """Discard what is waiting on ``fd``; the number of bytes dropped."""
+    n = 0
+    while True:
+        try:
+            chunk = os.read(fd, 65536)
+        except (BlockingIOError, InterruptedError):
+            return n
+        if not chunk:  # a tty with VMIN=0: nothing there (a closed socket: next read)
+            return n
+        n += len(chunk)
+
+
+def write_all(fd: int, data: bytes, timeout_s: float) -> None:
+    """Write all of ``data`` to the non-blocking ``fd``; OSError after ``timeout_s``."""
+    view = memoryview(data)
+    deadline = time.monotonic() + timeout_s
+    while view:
+        try:
+            view = view[os.write(fd, view) :]
+            continue
+        except (BlockingIOError, InterruptedError):
+            pass
+        left = deadline - time.monotonic()
+        if left <= 0 or not select.select([], [fd], [], left)[1]:
+            raise OSError("write timeout")

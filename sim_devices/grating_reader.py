@@ -335,6 +335,8 @@ class ModbusRtuSlave:
         self._thread = threading.Thread(target=self._run, name="modbus-rtu-slave", daemon=True)
         self._rebooted = False
 
+    IDLE_S = 0.05  # wake-up period without requests
+
     def start(self) -> ModbusRtuSlave:
         self._thread.start()
         return self
@@ -357,14 +359,20 @@ class ModbusRtuSlave:
         clock = self.device.plant.clock
         unit = self.device.unit_id
         while not self._stop.is_set():
-            data = self.link.read(0.004)
+            # samples are latched lazily (at a request, or every IDLE_S): their values and
+            # instants are those of the box's own clock grid either way
+            data = self.link.read(0.004 if buf else self.IDLE_S)
             wall = clock.wall_s()
             f = self.faults
             if not self._rebooted and 0 <= f.restart_after_s <= wall:
                 self._rebooted = True
-                self.device.reboot(wall)
+                try:
+                    self.device.produce(f.restart_after_s)  # what it latched until then
+                except Exception:
+                    log.exception("grating reader: sampling failed")
+                self.device.reboot(f.restart_after_s)
                 buf = b""
-            if data or wall - last_produce >= 0.004:
+            if data or wall - last_produce >= self.IDLE_S:
                 last_produce = wall
                 try:
                     self.device.produce(wall)

@@ -6,6 +6,10 @@ a pty. Commands end in LF (CR LF accepted); every reply line ends in CR LF. It a
 
 Each connection is a session with its own streaming state; the beam (breaks, restores)
 and the device clock belong to the instrument and are shared by all sessions.
+
+Streaming evaluates the plant ahead: the lines of the next ~0.1 s of samples are measured
+and formatted in one vectorized call and written when their instant has passed (a plant
+call costs ~1 ms whatever its size up to ~100 samples).
 """
 
 from __future__ import annotations
@@ -163,8 +167,12 @@ class TrackerSession:
         self.period_us = 1e6 / self.rate_hz
         self.last_error = (0, "No error")
         self.rx = b""
-        self.was_broken = False
+        self.was_broken = False  # beam state of the last line written
         self.stop = threading.Event()
+        # lines computed ahead: sample k0 + i is self._ahead[i] (with its EV line, if any)
+        self._ahead_k0 = 0
+        self._ahead: list[str] = []
+        self._ahead_broken: list[bool] = []
 
     def run(self) -> None:
         clock = self.inst.plant.clock
@@ -225,6 +233,7 @@ class TrackerSession:
                 return self._error(-222, f"rate must be 0.1..{MAX_RATE_HZ:g} Hz")
             self.rate_hz = rate
             self.period_us = 1e6 / rate
+            self._ahead = []
             return "OK"
         if head == "STREAM:RATE?":
             return f"RATE,{self.rate_hz:g}"
@@ -233,6 +242,7 @@ class TrackerSession:
                 self.streaming = True
                 now_us = self._now_us() - self.inst.clock.start_us
                 self.next_k = int(now_us // self.period_us) + 1
+                self._ahead = []
             return "OK"
         if head == "STREAM:STOP":
             self.streaming = False
@@ -277,6 +287,40 @@ class TrackerSession:
         mean = pts[good].mean(axis=0)
         return f"PT,{t_us},{mean[0]:.4f},{mean[1]:.4f},{mean[2]:.4f},OK,{int(good.sum())}"
 
+    LOOKAHEAD_S = 0.1
+
+    def _compute_ahead(self, n: int) -> None:
+        """Measure and format the ``n`` samples from ``next_k`` (not due yet)."""
+        clock = self.inst.clock
+        k = np.arange(self.next_k, self.next_k + n)
+        t_dev = clock.start_us + k * self.period_us
+        pts, status = self.inst.measure(clock.wall_of(t_dev))
+        t_int = np.rint(t_dev).astype(np.int64).tolist()
+        xyz = pts.tolist()
+        codes = status.tolist()
+        lines: list[str] = []
+        broken_list: list[bool] = []
+        was = self.was_broken
+        seq = self.seq
+        for i in range(n):
+            code = codes[i]
+            broken = code == 1
+            ev = ""
+            if broken != was:
+                was = broken
+                if broken:
+                    ev = f"EV,BEAM_BROKEN,{t_int[i]},OBSTRUCTED\r\n"
+                else:
+                    ev = f"EV,BEAM_RESTORED,{t_int[i]}\r\n"
+            x, y, z = xyz[i]
+            lines.append(
+                f"{ev}D,{seq + i},{t_int[i]},{x:.4f},{y:.4f},{z:.4f},{STATUS_TEXT[code]}\r\n"
+            )
+            broken_list.append(broken)
+        self._ahead_k0 = self.next_k
+        self._ahead = lines
+        self._ahead_broken = broken_list
+
     def _stream(self, wall: float) -> None:
         if not self.streaming:
             return
@@ -286,27 +330,21 @@ class TrackerSession:
         n = min(k_end - self.next_k, 2000)
         if n <= 0:
             return
-        k = np.arange(self.next_k, self.next_k + n)
-        t_dev = clock.start_us + k * self.period_us
-        walls = clock.wall_of(t_dev)
-        pts, status = self.inst.measure(walls)
-        t_int = np.rint(t_dev).astype(np.int64)
-        out = []
-        for i in range(n):
-            broken = status[i] == 1
-            if broken != self.was_broken:
-                self.was_broken = broken
-                if broken:
-                    out.append(f"EV,BEAM_BROKEN,{t_int[i]},OBSTRUCTED")
-                else:
-                    out.append(f"EV,BEAM_RESTORED,{t_int[i]}")
-            x, y, z = pts[i]
-            out.append(
-                f"D,{self.seq + i},{t_int[i]},{x:.4f},{y:.4f},{z:.4f},{STATUS_TEXT[int(status[i])]}"
-            )
-        self.seq += n
-        self.next_k += n
-        self.port.write(("\r\n".join(out) + "\r\n").encode())
+        block = max(8, int(self.rate_hz * self.LOOKAHEAD_S))
+        out: list[str] = []
+        left = n
+        while left > 0:
+            off = self.next_k - self._ahead_k0
+            if not 0 <= off < len(self._ahead):
+                self._compute_ahead(max(block, left))
+                off = 0
+            m = min(left, len(self._ahead) - off)
+            out += self._ahead[off : off + m]
+            self.was_broken = self._ahead_broken[off + m - 1]
+            self.next_k += m
+            self.seq += m
+            left -= m
+        self.port.write("".join(out).encode())
         self.inst.stats["samples"] += n
 
 

@@ -178,3 +178,28 @@ def test_socketcand_client_frame_parser(chunks):
         assert 0 <= can_id < 2**32 and ts >= 0 and len(data) * 2 <= len(buf)
     if b"< frame 181 12.5 0A0B0C0D >" in buf and buf.endswith(b">"):
         assert (0x181, False, 12.5, bytes.fromhex("0A0B0C0D")) in frames
+
+
+_D_LINE = st.builds(
+    lambda seq, t, x, status, tail: f"D,{seq},{t},{x},{x},{x},{status}{tail}".encode(),
+    st.integers(-5, 2**64),
+    st.integers(-5, 2**64),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from(["OK", "BROKEN_OBSTRUCTED", "BROKEN_DROPOUT", "ok", "OK ", "X"]),
+    st.sampled_from(["", "\r", " \r", ",1"]),
+)
+
+
+@FUZZ
+@given(st.lists(_D_LINE | st.binary(max_size=60), max_size=20))
+def test_tracker_fast_line_path_equals_general_path(lines):
+    """D lines parsed from bytes give exactly what the general line handler gives."""
+    fast = TrackerAsciiDriver("socket://127.0.0.1:9")
+    slow = TrackerAsciiDriver("socket://127.0.0.1:9")
+    fast._lines(list(lines), 7)
+    for raw in lines:
+        slow._line(raw, 7)
+    np.testing.assert_equal(fast._pending, slow._pending)
+    assert fast._pending_host == slow._pending_host
+    assert dict(fast.counters) == dict(slow.counters)
+    assert list(fast.replies) == list(slow.replies)
