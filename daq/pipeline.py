@@ -191,6 +191,11 @@ class DeviceStream:
         self._clock_best: tuple[int, int] | None = None  # (device µs, host ns) to feed
         self._clock_fed = 0  # host ns of the last feed
         self._settled = False
+        n_ok = max(1, 2 * cfg.publish.max_batch_samples)
+        self._ok_ones = np.ones(n_ok, np.uint8)  # t_mapped_ok columns, sliced (read-only)
+        self._ok_zeros = np.zeros(n_ok, np.uint8)
+        self._ok_ones.flags.writeable = False
+        self._ok_zeros.flags.writeable = False
         self._token: Any = None
         self._lock = threading.Lock()
         self._connected_once = False
@@ -335,9 +340,12 @@ class DeviceStream:
             t_host = np.concatenate([b.t_host_ns for b in batches])
             values = np.concatenate([b.values for b in batches])
             status = np.concatenate([b.status for b in batches])
-        mapped, mapped_ok = self._map(t_dev, epoch, t_host)
-        self._count_gaps(seq.astype(np.int64), epoch)
-        self._count_time_gaps(t_dev, epoch)
+        # epochs only ever rise: first == last means one epoch (the common case, whose
+        # bookkeeping below avoids numpy calls: a 1 kHz device sends 1-4 samples a message)
+        one = int(epoch[0]) if int(epoch[0]) == int(epoch[-1]) else None
+        mapped, mapped_ok = self._map(t_dev, epoch, t_host, one)
+        self._count_gaps(seq, epoch, one)
+        self._count_time_gaps(t_dev, epoch, one)
         c = self.counters
         n = len(seq)
         c.samples += n
@@ -395,11 +403,23 @@ class DeviceStream:
             self.recorder.write(cid, msg, t_pub, t_pub)
 
     def _map(
-        self, t_dev: NDArray[np.int64], epoch: NDArray[np.int32], t_host: NDArray[np.int64]
+        self,
+        t_dev: NDArray[np.int64],
+        epoch: NDArray[np.int32],
+        t_host: NDArray[np.int64],
+        one_epoch: int | None = None,
     ) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
         """Mapped monotonic ns and settled flags; a new clock map per device epoch."""
+        n = len(t_host)
+        if one_epoch is not None and (self._epoch is None or one_epoch == self._epoch):
+            self._epoch = one_epoch
+            self._feed_clock(t_dev, t_host)
+            ok = self._ok_ones if self._settled else self._ok_zeros
+            return self.clock.map(t_dev), ok[:n] if n <= len(ok) else np.full(
+                n, self._settled, np.uint8
+            )
         out = np.empty_like(t_host)
-        ok = np.zeros(len(t_host), np.uint8)
+        ok = np.zeros(n, np.uint8)
         starts = np.flatnonzero(np.diff(epoch)) + 1
         bounds = [0, *starts.tolist(), len(epoch)]
         for a, b in itertools.pairwise(bounds):
@@ -413,42 +433,46 @@ class DeviceStream:
                 self._settled = False
             self._epoch = ep
             td, th = t_dev[a:b], t_host[a:b]
-            # only the lowest apparent delay matters to the lower-envelope fit (its buckets
-            # keep one minimum per 0.25 s): keep the best point and feed it every
-            # CLOCK_FEED_NS, then map the whole run with the current fit
-            k = int(np.argmin(th - td * 1000)) if b - a > 1 else 0
-            cand = (int(td[k]), int(th[k]))
-            best = self._clock_best
-            if best is None or cand[1] - cand[0] * 1000 < best[1] - best[0] * 1000:
-                self._clock_best = best = cand
-            now = int(th[-1])
-            if not self._clock_fed or now - self._clock_fed >= CLOCK_FEED_NS:
-                self.clock.update(np.array([best[0]]), np.array([best[1]]))
-                self._clock_best = None
-                self._clock_fed = now
-                q = self.clock.quality()
-                self._settled = (
-                    q.points >= SETTLED_POINTS
-                    and abs(q.drift_ppm) < SETTLED_MAX_DRIFT_PPM
-                    and q.envelope_rms_ns < SETTLED_MAX_RMS_NS
-                )
+            self._feed_clock(td, th)
             out[a:b] = self.clock.map(td)
             ok[a:b] = self._settled
         return out, ok
 
-    def _count_gaps(self, seq: NDArray[np.int64], epoch: NDArray[np.int32]) -> None:
-        if not len(seq):
+    def _feed_clock(self, td: NDArray[np.int64], th: NDArray[np.int64]) -> None:
+        # only the lowest apparent delay matters to the lower-envelope fit (its buckets
+        # keep one minimum per 0.25 s): keep the best point and feed it every
+        # CLOCK_FEED_NS; the caller maps the whole run with the current fit
+        k = int(np.argmin(th - td * 1000)) if len(td) > 1 else 0
+        d, h = int(td[k]), int(th[k])
+        best = self._clock_best
+        if best is None or h - d * 1000 < best[1] - best[0] * 1000:
+            self._clock_best = best = (d, h)
+        now = int(th[-1])
+        if not self._clock_fed or now - self._clock_fed >= CLOCK_FEED_NS:
+            self.clock.update(np.array([best[0]]), np.array([best[1]]))
+            self._clock_best = None
+            self._clock_fed = now
+            q = self.clock.quality()
+            self._settled = (
+                q.points >= SETTLED_POINTS
+                and abs(q.drift_ppm) < SETTLED_MAX_DRIFT_PPM
+                and q.envelope_rms_ns < SETTLED_MAX_RMS_NS
+            )
+
+    def _count_gaps(
+        self, seq: NDArray[Any], epoch: NDArray[np.int32], one_epoch: int | None = None
+    ) -> None:
+        n = len(seq)
+        if not n:
             return
         c = self.counters
         last = self._last_seq
-        if (
-            last is not None
-            and int(seq[-1]) - last == len(seq)
-            and epoch[0] == epoch[-1]
-            and np.all(np.diff(seq) == 1)
-        ):
-            self._last_seq = int(seq[-1])
-            return  # contiguous: the common case
+        if last is not None and one_epoch is not None:
+            s0, s1 = int(seq[0]), int(seq[-1])
+            if s0 == last + 1 and s1 - s0 == n - 1 and (n <= 2 or bool(np.all(np.diff(seq) == 1))):
+                self._last_seq = s1
+                return  # contiguous: the common case
+        seq = seq.astype(np.int64)
         prev = np.concatenate([[seq[0] - 1 if last is None else last], seq])
         same = np.concatenate([[True], np.diff(epoch) == 0])
         d = np.diff(prev)
@@ -458,12 +482,21 @@ class DeviceStream:
         c.seq_breaks += int(np.count_nonzero(same & (d < 1)))
         self._last_seq = int(seq[-1])
 
-    def _count_time_gaps(self, t_dev: NDArray[np.int64], epoch: NDArray[np.int32]) -> None:
+    def _count_time_gaps(
+        self, t_dev: NDArray[np.int64], epoch: NDArray[np.int32], one_epoch: int | None = None
+    ) -> None:
         """Gaps in device time: a driver may renumber its sequence across a reconnect."""
-        if self.dev.rate_hz is None or not len(t_dev):
+        n = len(t_dev)
+        if self.dev.rate_hz is None or not n:
             return
         period_us = 1e6 / self.dev.rate_hz
         last = self._last_t_dev
+        if last is not None and one_epoch is not None and last[1] == one_epoch:
+            limit = 1.5 * period_us
+            t0 = int(t_dev[0])
+            if t0 - last[0] <= limit and (n == 1 or int(np.diff(t_dev).max()) <= limit):
+                self._last_t_dev = (int(t_dev[-1]), one_epoch)
+                return  # no gap: the common case
         prev = t_dev[0] if last is None or last[1] != int(epoch[0]) else last[0]
         dt = np.diff(np.concatenate([[prev], t_dev]))
         same = np.concatenate([[True], np.diff(epoch) == 0])
