@@ -263,12 +263,26 @@ def encode(schema: StreamSchema, columns: Mapping[str, ArrayLike], batch_seq: in
     return b"".join(parts)
 
 
+_HEADER_DTYPE = np.dtype(
+    [
+        ("magic", "S4"),
+        ("version", "<u2"),
+        ("flags", "<u2"),
+        ("schema_id", "<u4"),
+        ("n_samples", "<u4"),
+        ("batch_seq", "<u8"),
+    ]
+)
+assert _HEADER_DTYPE.itemsize == HEADER.size
+
+
 def encode_slices(
     schema: StreamSchema, columns: Mapping[str, ArrayLike], batch_seq: int, step: int
 ) -> list[bytes]:
     """Payloads of consecutive slices of at most ``step`` samples (``batch_seq`` counting
-    up from the given one); each equals ``encode`` of that slice. Every column is made
-    contiguous once, so a slice costs a few memoryview copies, not numpy calls."""
+    up from the given one); each equals ``encode`` of that slice. The full slices are laid
+    out at once in one ``(slices, payload bytes)`` array, one numpy copy per column for
+    all of them; each payload is then one ``tobytes`` of its row."""
     plan = schema.plan
     try:
         n = len(columns[plan[0][0]])  # type: ignore[arg-type]
@@ -276,8 +290,20 @@ def encode_slices(
         raise SchemaError(f"encode {schema.key!r}: missing column {plan[0][0]!r}") from None
     if n <= step:
         return [encode(schema, columns, batch_seq)]
-    bufs: list[tuple[memoryview, int]] = []
-    for name, dt, shape, per, size in plan:
+    full = n // step
+    size = payload_size(schema, step)
+    buf = np.empty((full, size), np.uint8)
+    hdr = np.empty(full, _HEADER_DTYPE)
+    hdr["magic"] = MAGIC
+    hdr["version"] = VERSION
+    hdr["flags"] = 0
+    hdr["schema_id"] = schema.schema_id
+    hdr["n_samples"] = step
+    hdr["batch_seq"] = np.arange(batch_seq, batch_seq + full, dtype=np.uint64)
+    buf[:, : HEADER.size] = hdr.view(np.uint8).reshape(full, HEADER.size)
+    off = HEADER.size
+    tails: dict[str, Any] = {}
+    for name, dt, shape, per, item in plan:
         try:
             arr = np.asarray(columns[name])
         except KeyError:
@@ -287,20 +313,17 @@ def encode_slices(
                 f"encode {schema.key!r}: column {name!r} has shape {arr.shape}, "
                 f"expected {(n, *shape)}"
             )
-        arr = np.ascontiguousarray(arr, dtype=dt)
-        bufs.append((memoryview(arr.reshape(-1).view(np.uint8)), per * size))
-    sid = schema.schema_id
-    out = []
-    for k, a in enumerate(range(0, n, step)):
-        m = min(step, n - a)
-        parts: list[bytes | memoryview] = [HEADER.pack(MAGIC, VERSION, 0, sid, m, batch_seq + k)]
-        for mv, row in bufs:
-            nbytes = m * row
-            parts.append(mv[a * row : a * row + nbytes])
-            pad = -nbytes % ALIGN
-            if pad:
-                parts.append(_ZEROS[:pad])
-        out.append(b"".join(parts))
+        nbytes = step * per * item
+        # a typed view of the column's bytes in every row: one strided, casting copy
+        buf[:, off : off + nbytes].view(dt)[...] = arr[: full * step].reshape(full, step * per)
+        pad = _padded(nbytes) - nbytes
+        if pad:
+            buf[:, off + nbytes : off + nbytes + pad] = 0
+        off += nbytes + pad
+        tails[name] = arr[full * step :]
+    out = [row.tobytes() for row in buf]
+    if n > full * step:
+        out.append(encode(schema, tails, batch_seq + full))
     return out
 
 
