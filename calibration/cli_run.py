@@ -9,6 +9,7 @@ See docs/twin-run.md.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from calibration.cli_export import progress
 
@@ -63,33 +64,36 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_run(args: argparse.Namespace) -> int:
+    from calibration.twin_run import run_twin
+
     say = progress("run", args.quiet)
+    live = None
     if args.replay:
         from calibration.streams import read_recording_streams
-        from calibration.twin_run import run_twin
 
         say(f"reading {args.replay}")
         streams = read_recording_streams(args.replay)
     else:
-        from calibration.live_twin import collect_live
+        from calibration.live_twin import LiveTwin
 
-        streams = collect_live(args, say)
-    from calibration.twin_run import run_twin
-
-    run = run_twin(
-        streams,
-        args.robot,
-        args.out,
-        effects=not args.no_effects,
-        report=not args.no_report,
-        say=say,
-    )
-    print(run["stage_table"])
-    print(f"calibrated model: {run['calibrated']}")
-    print(f"report: {run['report']}/report.md (scale: {args.out}/scale-report/report.md)")
-    print(f"phases: {run['files']['phases']}")
-    if not args.replay:
-        from calibration.live_twin import publish_live
-
-        return publish_live(args, run, say)
-    return 0 if run["success"] else 1
+        live = LiveTwin(args, say)
+        streams = live.collect()
+    try:
+        run = run_twin(
+            streams,
+            args.robot,
+            args.out,
+            effects=not args.no_effects,
+            report=not args.no_report,
+            say=say,
+        )
+        print(run["stage_table"])
+        print(f"calibrated model: {run['calibrated']}")
+        print(f"report: {run['report']}/report.md (scale: {args.out}/scale-report/report.md)")
+        print(f"phases: {run['files']['phases']}", flush=True)
+        if live is not None:
+            return live.publish(run, Path(args.out))
+        return 0 if run["success"] else 1
+    finally:
+        if live is not None:
+            live.close()

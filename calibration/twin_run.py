@@ -194,8 +194,12 @@ def export_campaign(
     if streams.encoders is not None and all(
         meas[p.dwell].encoder_counts is not None for p in pose_ok
     ):
-        enc_deg = _encoder_deg(ph, meas, streams, robot, scales, pose_ok, encoder_counts_per_rev)
+        enc_deg, offsets = _encoder_deg(
+            ph, meas, streams, robot, scales, pose_ok, encoder_counts_per_rev
+        )
         summary["encoder_zero"] = "mean encoder reading over the Home returns = Home angle"
+        summary["encoder_counts_per_rev"] = encoder_counts_per_rev
+        summary["encoder_offset_deg"] = [round(float(v), 9) for v in offsets]
     campaign = Campaign(
         source=str(files["campaign"]),
         pose=tuple(p.name for p in pose_ok),
@@ -247,7 +251,7 @@ def _encoder_deg(ph, meas, streams, robot, scales, pose_ok, cpr):  # type: ignor
             offsets[j] = robot.home[j] - float(np.mean(vals))
         else:  # no Home return: the poses' mean difference to the gratings is zero
             offsets[j] = 0.0
-    return raw + offsets[None, :]
+    return raw + offsets[None, :], offsets
 
 
 # -- the whole run -----------------------------------------------------------------------

@@ -1,0 +1,107 @@
+"""Replay a small recorded campaign through the twin: bit-identical results; a dropout.
+
+The recording ``tests/data/campaign_small.mcap`` is made by (docs/twin-run.md):
+
+    python -m daq.demo --record-only --speed 120 --no-encoders --seed 5 \
+        --out /tmp/campaign-small --mcap tests/data/campaign_small.mcap
+
+a real ``daq run`` on the emulated cell (whole KR500 campaign at 120x, gravity deflection
+switched on and not told to the twin).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from calibration.streams import read_recording_streams
+from calibration.twin_run import run_twin
+
+DATA = Path(__file__).parent / "data" / "campaign_small.mcap"
+
+pytestmark = pytest.mark.skipif(not DATA.exists(), reason="tests/data/campaign_small.mcap missing")
+
+
+def _run(src: Path, out: Path) -> dict:
+    return run_twin(read_recording_streams(src), "kr500", out, report=False)
+
+
+def test_replay_gives_bit_identical_model_and_report(tmp_path):
+    a = _run(DATA, tmp_path / "a")
+    b = _run(DATA, tmp_path / "b")
+    for name in (
+        "calibrated.toml",
+        "report/report.json",
+        "campaign.csv",
+        "sweep.csv",
+        "home.csv",
+        "scale.toml",
+        "phases.json",
+    ):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
+    assert a["stage_table"] == b["stage_table"]
+    phases = json.loads((tmp_path / "a" / "phases.json").read_text())["phases"]
+    # the emulator's KR500 campaign: 2° stops limit to limit and back, 250 poses
+    assert phases["sweep_stops"] == {
+        "1": {"forward": 185, "backward": 185},
+        "2": {"forward": 75, "backward": 75},
+        "3": {"forward": 92, "backward": 92},
+        "4": {"forward": 350, "backward": 350},
+        "5": {"forward": 120, "backward": 120},
+        "6": {"forward": 350, "backward": 350},
+    }
+    assert phases["poses"] == {"identify": 100, "validate": 150}
+    assert sum(phases["home_returns"].values()) >= 58  # of 60
+    report = json.loads((tmp_path / "a" / "report" / "report.json").read_text())
+    stages = report["closed_loop"]["stages"]
+    val = [s["sets"]["validate"]["AP"]["mean"] for s in stages]
+    assert val[-1] < 0.1 < val[0]  # nominal (mm) -> final, with the found effects
+    assert any("gravity compliance" in s["label"] for s in stages)
+
+
+def _drop_slice(src: Path, dst: Path, device: str, t_from_s: float, t_to_s: float) -> int:
+    """Copy ``src`` without ``device``'s messages logged in [t_from_s, t_to_s) from the start."""
+    from daq.recording import McapRecorder, read_recording
+
+    rec = read_recording(src)
+    dropped = 0
+    start = None
+    with McapRecorder(dst) as out:
+        for m in rec.messages_iter():
+            if start is None:
+                start = m.log_time
+                for name, meta in rec.metadata.items():
+                    out._writer.add_metadata(name, meta)
+            cid = out.add_channel(
+                m.topic,
+                schema_name=m.schema.name if m.schema else "",
+                schema_encoding=m.schema.encoding if m.schema else "",
+                schema_data=m.schema.data if m.schema else b"",
+                message_encoding=m.channel.message_encoding,
+                metadata=dict(m.channel.metadata),
+            )
+            t = (m.log_time - start) * 1e-9
+            if f"/{device}/" in m.topic + "/" and t_from_s <= t < t_to_s:
+                dropped += 1
+                continue
+            out.write(cid, m.data, m.log_time, m.publish_time, m.sequence)
+    return dropped
+
+
+def test_a_tracker_dropout_still_calibrates_and_reports_the_lost_interval(tmp_path):
+    src = tmp_path / "dropout.mcap"
+    assert _drop_slice(DATA, src, "tracker", 30.0, 33.0) > 0
+    run = _run(src, tmp_path / "out")
+    phases = json.loads((tmp_path / "out" / "phases.json").read_text())
+    lost = [x for x in phases["lost_intervals"] if x["device"] == "tracker"]
+    assert len(lost) == 1
+    assert 2.9 < lost[0]["duration_s"] < 3.2
+    assert lost[0]["samples_missing"] > 2500
+    assert phases["stops_lost"]  # the stops in the gap have no tracker point
+    assert all(s["reason"] for s in phases["stops_lost"])
+    assert (tmp_path / "out" / "calibrated.toml").exists()
+    report = json.loads((tmp_path / "out" / "report" / "report.json").read_text())
+    assert report["twin_run"]["lost_intervals"][0]["device"] == "tracker"
+    assert run["success"]
