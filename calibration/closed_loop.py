@@ -260,13 +260,21 @@ def _keep_columns(basis_q: FloatArray, cols: FloatArray, rtol: float) -> NDArray
     return keep
 
 
-def _cv_sse(
-    residual: FloatArray, design: FloatArray, folds: list[tuple[FloatArray, FloatArray]]
-) -> float:
+def _cv_sse(residual: FloatArray, design: FloatArray, tests: list[NDArray[np.intp]]) -> float:
+    """Held-out sum of squared errors of the least-squares fit of ``residual`` on
+    ``design`` ``(N, q)``, each fold refitted without its test rows.
+
+    The training normal equations are the full ones minus the test rows', so a fold costs
+    ``O(N_test·q²)`` whatever the number of poses; a ``(q, q)`` least-squares solve keeps
+    nearly dependent columns harmless.
+    """
+    gram = design.T @ design
+    rhs = design.T @ residual
     total = 0.0
-    for train, test in folds:
-        coef, *_ = np.linalg.lstsq(design[train], residual[train], rcond=None)
-        e = residual[test] - design[test] @ coef
+    for test in tests:
+        a, r = design[test], residual[test]
+        coef, *_ = np.linalg.lstsq(gram - a.T @ a, rhs - a.T @ r, rcond=None)
+        e = r - a @ coef
         total += float(e @ e)
     return total
 
@@ -293,7 +301,7 @@ def score_candidates(
     sigma2 = sse0 / max(n_rows - p, 1)
     pose_fold = np.random.default_rng(settings.fold_seed).permutation(n_poses) % settings.folds
     row_fold = np.repeat(pose_fold, 3)
-    folds = [(row_fold != f, row_fold == f) for f in range(settings.folds)]
+    folds = [np.flatnonzero(row_fold == f) for f in range(settings.folds)]
     cv0 = _cv_sse(residual, j, folds)
     n_cand = max(len(candidates), 1)
     out = []
