@@ -286,7 +286,7 @@ class EncoderCanopenDriver(Driver):
         ]
         self._rows.append((self._seq, self._cur_t or 0.0, self._cur_host, list(self._cur), status))
         self._seq += 1
-        self._filled = [False] * self.n
+        self._filled[:] = [False] * self.n  # in place: _on_tpdo holds this list
         self._cur_t = None
         if len(self._rows) >= self.options["batch_rows"]:
             self._cond.notify()

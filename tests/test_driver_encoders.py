@@ -164,3 +164,24 @@ def test_sync_fast_path_reaches_every_client():
     finally:
         listener.shutdown()
         cell.close()
+
+
+def test_row_assembly_with_a_silent_node():
+    """A node that stops answering (not yet flagged lost): each row closes when a node
+    repeats, with only that node missing; never an empty row."""
+    drv = EncoderCanopenDriver("virtual://unit-rows", batch_rows=1)
+    drv._cob_to_k.update({0x180 + nid: nid - 1 for nid in range(1, 7)})
+    for cycle in range(5):
+        for nid in (1, 2, 4, 5, 6) if cycle >= 2 else (1, 2, 3, 4, 5, 6):
+            drv._on_tpdo(0x180 + nid, (1000 * cycle + nid).to_bytes(4, "little"), cycle / 1e3)
+    drv._lost[2] = True  # now the heartbeat watch flags node 3
+    for nid in (1, 2, 4, 5, 6):
+        drv._on_tpdo(0x180 + nid, (5000 + nid).to_bytes(4, "little"), 5e-3)
+    rows = list(drv._rows)
+    status = [r[4] for r in rows]
+    assert status[:2] == [[1] * 6] * 2
+    assert status[2:4] == [[1, 1, 2, 1, 1, 1]] * 2
+    assert status[4:6] == [[1, 1, 6, 1, 1, 1]] * 2  # missing, and lost once flagged
+    assert [r[3][0] for r in rows] == [1, 1001, 2001, 3001, 4001, 5001]
+    assert [r[0] for r in rows] == list(range(6))
+    drv.close()
