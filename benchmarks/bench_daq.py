@@ -262,18 +262,43 @@ def cell(seconds: float, emulated: bool = False) -> dict[str, Any]:
     lat_m = [v["latency_mapped_ms"] for v in keys.values() if "latency_mapped_ms" in v]
     lat_r = [v["latency_rx_ms"] for v in keys.values() if "latency_rx_ms" in v]
     samples = sum(v["samples"] for v in keys.values())
-    loss = sum(v["seq_gaps"] + v["lost_batches"] for v in keys.values())
+    # loss, attributed: samples missing by device sequence at the subscriber (whoever lost
+    # them), messages missing by batch_seq (lost after the daemon encoded them: a failed
+    # put, zenoh, the subscriber) and payloads the subscriber could not decode; the
+    # daemon's own counters (last health document) say which part the device or its
+    # driver lost before the daemon saw it
+    loss = sum(v["seq_gaps"] for v in keys.values())
+    lost_messages = sum(v["lost_batches"] for v in keys.values())
+    undecodable = int(res["echo"].get("undecodable", 0))
+    daemon_side: dict[str, Any] = {}
+    for hk, doc in res["echo"].get("health", {}).items():
+        dc = doc.get("driver_counters", {})
+        daemon_side[doc.get("device", hk)] = {
+            f: doc.get(f)
+            for f in (
+                "gaps",
+                "samples_missing",
+                "lost_samples",
+                "time_gaps",
+                "publish_errors",
+                "messages_unsent",
+                "reconnects",
+            )
+        } | {k: v for k, v in dc.items() if k in ("missed_syncs", "crc_errors", "timeouts")}
     return {
         "devices": len(keys),
         "seconds": seconds,
         "samples_received": samples,
         "loss_samples": loss,
         "loss_fraction": loss / max(1, samples + loss),
+        "lost_messages": lost_messages,
+        "undecodable": undecodable,
         "latency_p50_ms": max(x["p50"] for x in lat_m),
         "latency_p99_ms": max(x["p99"] for x in lat_m),
         "latency_rx_p50_ms": max(x["p50"] for x in lat_r),
         "latency_rx_p99_ms": max(x["p99"] for x in lat_r),
         "daemon_cpu_fraction": res["cpu_fraction"],
+        "daemon_side": daemon_side,
         "per_key": keys,
     }
 
@@ -281,7 +306,7 @@ def cell(seconds: float, emulated: bool = False) -> dict[str, Any]:
 def run(quick: bool = True, emulated: bool = False) -> list[dict[str, Any]]:
     """Flat rows for ``python -m benchmarks`` (quick: a smoke run of a few seconds)."""
     rows: list[dict[str, Any]] = []
-    for batch in (100,) if quick else (100, 1000):
+    for batch in (100,) if quick else (100, 500, 1000):
         t = throughput(1.5 if quick else 10.0, batch)
         rows.append(
             {
@@ -302,6 +327,8 @@ def run(quick: bool = True, emulated: bool = False) -> list[dict[str, Any]]:
             "seconds": c["seconds"],
             "samples": c["samples_received"],
             "loss_samples": c["loss_samples"],
+            "lost_messages": c["lost_messages"],
+            "undecodable": c["undecodable"],
             "latency_p50_ms": c["latency_p50_ms"],
             "latency_p99_ms": c["latency_p99_ms"],
             "rx_to_sub_p50_ms": c["latency_rx_p50_ms"],
@@ -329,7 +356,8 @@ def main(argv: list[str] | None = None) -> int:
             for k, v in res["per_key"].items()
         }
         print(json.dumps({"soak": res}, indent=1))
-        return 0 if res["loss_samples"] == 0 else 1
+        lost = res["loss_samples"] + res["lost_messages"] + res["undecodable"]
+        return 0 if lost == 0 else 1
     for r in run(quick=not args.full, emulated=args.emulated):
         print(json.dumps(r))
     return 0

@@ -121,6 +121,16 @@ class SchemaServer:
             q.undeclare()
 
 
+class PublishError(TransportError):
+    """Some puts of :meth:`ChannelPublisher.publish_slices` failed; ``payloads`` holds all
+    of its payloads (for the recorder), ``cause`` the first error."""
+
+    def __init__(self, payloads: list[bytes], cause: Exception) -> None:
+        super().__init__(f"put failed: {cause!r}")
+        self.payloads = payloads
+        self.cause = cause
+
+
 class ChannelPublisher:
     """Publishes columnar batches on one key, numbering them (``batch_seq``)."""
 
@@ -137,6 +147,7 @@ class ChannelPublisher:
         self.batch_seq = 0
         self.messages = 0
         self.bytes = 0
+        self.put_errors = 0  # puts that raised (their batch_seq is skipped on the wire)
         self._pub: zenoh.Publisher | None = session.declare_publisher(
             self.key, encoding=DATA_ENCODING, congestion_control=CONGESTION[congestion]
         )
@@ -151,11 +162,22 @@ class ChannelPublisher:
         return payload
 
     def publish_slices(self, columns: dict[str, Any], step: int) -> list[bytes]:
-        """Encode and put consecutive batches of at most ``step`` samples."""
+        """Encode and put consecutive batches of at most ``step`` samples; returns every
+        payload, sent or not. A failed put still uses up its ``batch_seq`` (subscribers
+        count the hole as a lost batch) and is counted in ``put_errors``; the remaining
+        slices are still sent. Raises the first put error after trying them all (the
+        caller records the payloads regardless)."""
         payloads = encode_slices(self.schema, columns, self.batch_seq, step)
+        error: Exception | None = None
         for p in payloads:
-            self.put(p)
             self.batch_seq += 1
+            try:
+                self.put(p)
+            except Exception as exc:
+                self.put_errors += 1
+                error = error or exc
+        if error is not None:
+            raise PublishError(payloads, error) from error
         return payloads
 
     def put(self, payload: bytes) -> None:

@@ -27,7 +27,7 @@ import zenoh
 from numpy.typing import NDArray
 
 from daq import foxglove
-from daq.bus import ChannelPublisher, SchemaServer, channel_key, device_key
+from daq.bus import ChannelPublisher, PublishError, SchemaServer, channel_key, device_key
 from daq.clock_sync import DeviceClockMap
 from daq.columnar import Column, StreamSchema
 from daq.config import ChannelGroup, DaqConfig, DeviceConfig
@@ -144,9 +144,15 @@ class Counters:
     time_gaps: int = 0  # device-clock steps > 1.5 periods within an epoch (needs rate_hz)
     time_missing_s: float = 0.0  # device time those steps skipped beyond one period
     publish_errors: int = 0
+    messages_unsent: int = 0  # encoded and recorded, but their put failed (lost on the wire)
     away_s: float = 0.0  # time not connected (after the first connection)
     window_samples: int = 0
     window_rx_delay_ns: list[NDArray[np.int64]] = field(default_factory=list)
+
+
+def _first_of_power2(n: int) -> bool:
+    """Log the 1st, 2nd, 4th, 8th... occurrence."""
+    return n & (n - 1) == 0
 
 
 class DeviceStream:
@@ -296,11 +302,15 @@ class DeviceStream:
                 if now - last_state_check > 0.02:
                     self._track_state()
                     last_state_check = now
+                # stopping: one last read without waiting (if connected: no reconnect
+                # attempt), so rows the driver holds are published, not dropped
+                timeout = 0.0
                 if not stopping:
                     timeout = pub.read_timeout_s
                     if pending:
                         age_left = pub.max_batch_age_s - (time.monotonic_ns() - first_ns) / 1e9
                         timeout = max(0.0, min(timeout, age_left))
+                if not stopping or self._state == "connected":
                     batch = self.driver.read(timeout_s=timeout)
                     if len(batch):
                         if not pending:
@@ -369,14 +379,20 @@ class DeviceStream:
                 cols[col.name] = values[:, j]
             cols["status"] = status[:, idx]
             seq0 = publisher.batch_seq
+            errors0 = publisher.put_errors
             try:
                 payloads = publisher.publish_slices(cols, step)
-            except TransportError:  # closed under us while stopping
+            except PublishError as exc:
+                # not on the wire (subscribers see the batch_seq hole as lost batches),
+                # but counted here and still recorded: the recording stays complete
+                payloads = exc.payloads
+                c.publish_errors += publisher.put_errors - errors0
+                c.messages_unsent += publisher.put_errors - errors0
+                if not isinstance(exc.cause, TransportError) and _first_of_power2(c.publish_errors):
+                    log.error("%s: publish failed: %r", schema.key, exc.cause)
+            except Exception:  # encoding failed: nothing to send or record
                 c.publish_errors += 1
-                continue
-            except Exception:
-                c.publish_errors += 1
-                if c.publish_errors & (c.publish_errors - 1) == 0:  # 1st, 2nd, 4th, ...
+                if _first_of_power2(c.publish_errors):
                     log.exception("%s: publish failed", schema.key)
                 continue
             t_pub = time.time_ns()
@@ -549,6 +565,7 @@ class DeviceStream:
             "device_restarts": c.epochs,
             "away_s": away,
             "publish_errors": c.publish_errors,
+            "messages_unsent": c.messages_unsent,
             "rx_delay_ms": lat,
             "clock": {
                 "offset_ns": q.offset_ns + self.utc_offset_ns,
