@@ -123,7 +123,6 @@ class GratingModbusDriver(Driver):
         self.rate_hz = 1000.0
         self._due_ns = 0  # when the next FIFO request is worth sending
         self._fifo_regs = FIFO_HEADER + k * SAMPLE_REGS
-        self._requests: dict[int, bytes] = {}
         self.counters["stale_responses"] = 0
 
     @property
@@ -222,15 +221,9 @@ class GratingModbusDriver(Driver):
         return None
 
     def _fifo_request(self, want: int) -> bytes:
-        req = self._requests.get(want)
-        if req is None:
-            if len(self._requests) > 64:
-                self._requests.clear()
-            req = readwrite_request(
-                self.unit, REG_FIFO, self._fifo_regs, REG_FIFO, [want >> 16, want & 0xFFFF]
-            )
-            self._requests[want] = req
-        return req
+        return readwrite_request(
+            self.unit, REG_FIFO, self._fifo_regs, REG_FIFO, [want >> 16, want & 0xFFFF]
+        )
 
     # -- reading --------------------------------------------------------------------------
     def _read_batch(self, deadline_ns: int) -> SampleBatch | None:

@@ -41,10 +41,15 @@ def available_drivers() -> dict[str, tuple[str, str]]:
 
 def driver_class(name: str) -> type[Driver]:
     """Import and return the driver class registered as ``name``."""
-    table = available_drivers()
-    if name not in table:
-        raise DriverConfigError(f"unknown driver {name!r} (available: {', '.join(sorted(table))})")
-    module_name, class_name = table[name]
+    if name in BACKENDS:  # built-ins win anyway: no need to scan the installed packages
+        module_name, class_name = BACKENDS[name]
+    else:
+        table = available_drivers()
+        if name not in table:
+            raise DriverConfigError(
+                f"unknown driver {name!r} (available: {', '.join(sorted(table))})"
+            )
+        module_name, class_name = table[name]
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:

@@ -179,6 +179,68 @@ def test_all_three_drivers_together_at_1khz(cell):
         assert np.all(np.diff(seq.astype(np.int64)) == 1), name
 
 
+def _read_all_three(recs, rate_hz, settle_s, seconds):
+    """Open the three drivers at once (threads, as the daemon does), let them connect and
+    catch up, then read a window of ``seconds``; per driver: rate, health, sequences."""
+    from drivers.registry import open_driver
+
+    specs = [
+        ("grating_modbus", recs[("grating_reader", "modbus-rtu")]["path"], {}),
+        ("tracker_ascii", recs[("laser_tracker", "ascii-serial")]["path"], {"rate_hz": rate_hz}),
+        (
+            "encoder_canopen",
+            recs[("motor_encoders", "canopen-socketcand")]["url"],
+            {"sync_hz": rate_hz},
+        ),
+    ]
+    results = {}
+    ready = threading.Barrier(len(specs))
+
+    def run(name, url, opts):
+        with open_driver(name, url, **opts) as drv:
+            t = time.monotonic()
+            while time.monotonic() - t < settle_s:
+                drv.read(0.05)
+            ready.wait(60)
+            n, seqs, t0 = 0, [], time.monotonic()
+            while time.monotonic() - t0 < seconds:
+                b = drv.read(0.05)
+                n += len(b)
+                seqs.append(b.seq)
+            h = drv.health()
+            results[name] = {
+                "rate": n / (time.monotonic() - t0),
+                "health": h,
+                "seq": np.concatenate(seqs).astype(np.int64),
+            }
+
+    threads = [threading.Thread(target=run, args=s) for s in specs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    return results
+
+
+def test_all_three_steady_state_no_loss_at_300hz(tmp_path):
+    """All three devices at once at 300 Hz each (the 1 kHz target is the benchmark's,
+    benchmarks/bench_drivers.py): after the drivers connect, not one sample is lost,
+    sequences are contiguous and each device keeps its rate."""
+    proc, recs, _ = start_cell(tmp_path, "[grating]\nrate_hz = 300.0\n", duration=60.0)
+    try:
+        time.sleep(1.0)
+        results = _read_all_three(recs, 300.0, settle_s=1.5, seconds=4.0)
+    finally:
+        stop_cell(proc)
+    assert set(results) == {"grating_modbus", "tracker_ascii", "encoder_canopen"}
+    for name, r in results.items():
+        counters = r["health"].counters
+        assert counters["lost_samples"] == 0, (name, counters)
+        assert np.all(np.diff(r["seq"]) == 1), name
+        assert r["rate"] > 0.8 * 300, (name, r["rate"], counters)
+        assert r["health"].state == "connected"
+
+
 def test_duration_stops_by_itself_and_ptys_go(tmp_path):
     proc, recs, _ = start_cell(tmp_path, "[tracker]\nserial = false\n", 2.0, n_records=3)
     path = recs[("grating_reader", "modbus-rtu")]["path"]
