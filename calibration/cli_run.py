@@ -25,6 +25,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--replay", metavar="FILE.mcap", help="a recording (default: live zenoh)")
     p.add_argument("--robot", default="kr500", help="nominal robot: preset or .toml (kr500)")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument(
+        "--from",
+        dest="from_dir",
+        metavar="DIR",
+        help="live: skip the campaign, publish the twin calibrated by an earlier run in DIR",
+    )
     p.add_argument("--no-effects", action="store_true", help="the geometry alone")
     p.add_argument("--no-report", action="store_true", help="no figures (report.json only)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -68,6 +74,17 @@ def run_run(args: argparse.Namespace) -> int:
 
     say = progress("run", args.quiet)
     live = None
+    if args.from_dir:
+        import json
+
+        from calibration.live_twin import LiveTwin
+
+        run = json.loads((Path(args.from_dir) / "run.json").read_text(encoding="utf-8"))
+        live = LiveTwin(args, say)
+        try:
+            return live.publish(run, Path(args.out))
+        finally:
+            live.close()
     if args.replay:
         from calibration.streams import read_recording_streams
 
