@@ -21,6 +21,9 @@ and the generic search, for structure outside the library ("unexplained structur
 
 * ``cartesian_harmonic``: an error vector in the tracker frame varying as
   ``cos/sin(k·q_j)`` (``cos_mm``, ``sin_mm``: 3 each).
+* ``link_harmonic``: link j turning about its own x, y and z axes as ``cos/sin(k·q_j)``
+  (``cos_deg``, ``sin_deg``: 3 each): bearing wobble; about z alone it is
+  ``joint_harmonic``, so it names a cyclic error too when that kind is not offered.
 * ``cartesian_time``: an error vector fixed in the tracker frame or in a link's frame
   (``frame``: 0 tracker, j link j), polynomial in time (``rate_mm_per_h``, and
   ``acceleration_mm_per_h2`` for order 2).
@@ -46,7 +49,7 @@ from numpy.typing import ArrayLike, NDArray
 from calibration.description import EffectDescription, RobotDescription
 from calibration.errors import CalibrationError
 from calibration.identification import EffectTerms
-from calibration.kinematics import KinematicModel, identification_jacobian
+from calibration.kinematics import KinematicModel, flange_poses, identification_jacobian
 from calibration.statics import MassModel, gravity_torques_nmm
 
 FloatArray = NDArray[np.float64]
@@ -173,6 +176,18 @@ class Kinematics:
         x = self.jacobian[:, :, 5 * frame]
         z = self.jacobian[:, :, 5 * (frame - 1) + 2]
         return np.stack([x, np.cross(z, x), z], axis=2)
+
+    def frame_origin(self, frame: int) -> FloatArray:
+        """Origin of link frame ``frame`` (1..n) in the world ``(r, 3)`` mm."""
+        sub = self.model.truncated(frame)
+        return flange_poses(sub, self.q_rad[:, :frame])[:, :3, 3]
+
+    def rotation_axes(self, frame: int) -> FloatArray:
+        """∂TCP per rad of a small rotation of link ``frame`` about its own x, y, z axes
+        ``(r, 3, 3)`` (columns): ``axis × (TCP − origin)``; the z column is ∂TCP/∂θ."""
+        axes = self.frame_axes(frame)
+        lever = self.tcp_mm - self.frame_origin(frame)
+        return np.cross(axes, lever[:, :, None], axis=1)
 
 
 # -- specs and kinds --------------------------------------------------------------------------
@@ -595,6 +610,60 @@ class CartesianHarmonic(EffectKind):
         )
 
 
+class LinkHarmonic(EffectKind):
+    kind = "link_harmonic"
+    generic = True
+    description = (
+        "link i turning about its own x, y and z axes with a harmonic of its joint angle "
+        "(bearing wobble; about z alone it is a cyclic error of the reading)"
+    )
+
+    def parameter_names(self, spec):
+        return tuple(f"{a}_{f}_deg" for f in ("cos", "sin") for a in _AXES)
+
+    def _basis(self, spec, ctx, sel):
+        q = ctx.data.q_rad[sel, spec.joint - 1]
+        return np.cos(spec.order * q), np.sin(spec.order * q)
+
+    def regressor(self, spec, ctx, sel, kin):
+        c, s = self._basis(spec, ctx, sel)
+        rot = kin.rotation_axes(spec.joint) * DEG
+        return np.concatenate([rot * c[:, None, None], rot * s[:, None, None]], axis=2)
+
+    def label(self, spec):
+        return (
+            f"unexplained structure in q{spec.joint} "
+            f"(harmonic {spec.order}, link {spec.joint} turning)"
+        )
+
+    def to_parameters(self, spec, values, n_joints):
+        return {
+            "joint": float(spec.joint),
+            "order": float(spec.order),
+            "cos_deg": tuple(float(v) for v in values[:3]),
+            "sin_deg": tuple(float(v) for v in values[3:]),
+        }
+
+    def from_parameters(self, params, n_joints):
+        _check_keys(params, {"joint", "order", "cos_deg", "sin_deg"}, self.kind)
+        spec = EffectSpec(
+            self.kind, joint=_joint(params, self.kind, n_joints), order=_order(params, self.kind)
+        )
+        v = np.concatenate(
+            [_vector(params, "cos_deg", self.kind, 3), _vector(params, "sin_deg", self.kind, 3)]
+        )
+        return spec, v
+
+    def evidence(self, spec, values, ctx, sel, kin):
+        a = int(np.argmax(np.hypot(values[:3], values[3:])))
+        return Evidence(
+            x=np.degrees(ctx.data.q_rad[sel, spec.joint - 1]),
+            x_label=f"joint {spec.joint} reading (deg)",
+            y_label=f"link {spec.joint} rotation about its {_AXES[a]} axis (deg)",
+            coordinate_mm=kin.rotation_axes(spec.joint)[:, :, a] * DEG,
+        )
+
+
 class CartesianTime(EffectKind):
     kind = "cartesian_time"
     generic = True
@@ -671,6 +740,7 @@ KINDS: dict[str, EffectKind] = {
         InstrumentScale(),
         InstrumentScaleDrift(),
         CartesianHarmonic(),
+        LinkHarmonic(),
         CartesianTime(),
     )
 }
@@ -732,6 +802,9 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
     for j in range(1, n + 1):
         for k in HARMONIC_ORDERS:
             offer(EffectSpec("cartesian_harmonic", joint=j, order=k))
+    for j in range(1, n + 1):
+        for k in HARMONIC_ORDERS:
+            offer(EffectSpec("link_harmonic", joint=j, order=k))
     for frame in range(n + 1):
         offer(EffectSpec("cartesian_time", joint=frame, order=1))
     offer(EffectSpec("cartesian_time", joint=0, order=2))

@@ -8,8 +8,9 @@ the (restricted) library cannot explain.
 
 Seeds are fixed; the slow sweeps (many seeds) give the rates behind them. The thermal drift
 is the fragile case: the validation poses are measured after the identification poses, so
-the drift rate (standard error ≈ 0.015 mm/h) is extrapolated by up to 0.6 h; on HP20D seed 2
-this gives 1.301× (the one case above 1.3 in 24, see docs/closed-loop.md).
+the drift rate (standard error ≈ 0.015 mm/h) is extrapolated by up to 0.6 h; the slow sweep
+has 2 of 30 campaigns above 1.3× (HP20D seed 2: 1.301, KR210 seed 4: 1.313; see
+docs/closed-loop.md).
 """
 
 from __future__ import annotations
@@ -120,17 +121,25 @@ def test_clean_data_adds_nothing(robot, seed):
     assert validation_ratio(data, res) <= 1.15
 
 
-def test_generic_search_names_structure_outside_the_library():
+@pytest.mark.parametrize("robot", PRESETS)
+def test_generic_search_names_structure_outside_the_library(robot):
     """With the cyclic error (or the link drift) left out of the library, the generic search
-    names the variable the structure depends on, and the model still improves."""
+    names the variable the structure depends on, and models it."""
     no_harmonic = tuple(k for k in KINDS if k != "joint_harmonic")
-    data, res = loop("kr500", 1, "grating_cyclic", no_harmonic)
-    assert res.added and all(s.kind == "cartesian_harmonic" for s in res.added)
-    assert all(s.joint == 1 for s in res.added)
-    assert res.final.label.startswith("+ unexplained structure in q1")
-    assert mean_ap(res.final) < 0.8 * mean_ap(res.geometric)
+    data, res = loop(robot, 1, "grating_cyclic", no_harmonic)
+    assert res.added == (EffectSpec("link_harmonic", joint=1, order=2),)
+    assert res.final.label == "+ unexplained structure in q1 (harmonic 2, link 1 turning)"
+    values = res.final.values_of(res.added[0])  # (x, y, z) cos, then sin: about z
+    assert np.all(np.abs(values[[0, 1, 3, 4]]) < 0.2 * np.abs(values[[2, 5]]).min())
+    assert validation_ratio(data, res) <= 1.3
+    # translations in the tracker frame alone: what they find depends on q1 (on KR500 two
+    # harmonics; on HP20D nothing is significant: the lever changes from pose to pose)
+    cartesian = tuple(k for k in no_harmonic if k != "link_harmonic")
+    data, res = loop(robot, 1, "grating_cyclic", cartesian)
+    assert all(s.kind == "cartesian_harmonic" and s.joint == 1 for s in res.added)
+    assert bool(res.added) == (robot == "kr500")
     no_drift = tuple(k for k in KINDS if k != "length_drift")
-    data, res = loop("hp20d", 1, "thermal_drift", no_drift)
+    data, res = loop(robot, 1, "thermal_drift", no_drift)
     assert res.added == (EffectSpec("cartesian_time", joint=1, order=1),)
     assert "unexplained structure in time" in res.final.label
     rate = res.final.values_of(res.added[0])

@@ -43,6 +43,7 @@ SPECS = [
     EffectSpec("instrument_scale"),
     EffectSpec("instrument_scale_drift"),
     EffectSpec("cartesian_harmonic", joint=4, order=3),
+    EffectSpec("link_harmonic", joint=2, order=1),
     EffectSpec("cartesian_time", joint=0, order=2),
     EffectSpec("cartesian_time", joint=2, order=1),
 ]
@@ -84,13 +85,21 @@ def test_length_scale_and_time_regressors():
     np.testing.assert_allclose(r[:, :, 0], tcp_positions(MODEL, Q) * 1e-6)
     r = KINDS["instrument_scale_drift"].regressor(SPECS[6], CTX, ALL, KIN)
     np.testing.assert_allclose(r[:, :, 0], tcp_positions(MODEL, Q) * 1e-6 * (T / 3600)[:, None])
-    r = KINDS["cartesian_time"].regressor(SPECS[8], CTX, ALL, KIN)
+    r = KINDS["cartesian_time"].regressor(SPECS[9], CTX, ALL, KIN)
     assert r.shape == (40, 3, 6)
     np.testing.assert_allclose(r[:, 1, 4], (T / 3600.0) ** 2)
     # link frames read off the Jacobian are the kinematic frames
     for frame in (1, 2, 4, 6):
         rot = flange_poses(MODEL.truncated(frame), Q[:, :frame])[:, :3, :3]
         np.testing.assert_allclose(KIN.frame_axes(frame), rot, atol=1e-12)
+    # a link turning about its own axes: z is the joint's own column, x the next alpha's
+    rot = KIN.rotation_axes(2)
+    np.testing.assert_allclose(rot[:, :, 2], KIN.joint_axis(2), atol=1e-9)
+    np.testing.assert_allclose(rot[:, :, 0], KIN.jacobian[:, :, 5 * 2 + 1], atol=1e-9)
+    r = KINDS["link_harmonic"].regressor(SPECS[8], CTX, ALL, KIN)
+    np.testing.assert_allclose(
+        r[:, :, 5], rot[:, :, 2] * np.sin(Q[:, 1])[:, None] * np.pi / 180, atol=1e-12
+    )
 
 
 def test_compliance_matches_the_emulators_deflection():
@@ -160,6 +169,7 @@ def test_candidates():
     specs = candidate_effects(CTX)
     kinds = [s.kind for s in specs]
     assert kinds.count("joint_harmonic") == 18 and kinds.count("cartesian_harmonic") == 18
+    assert kinds.count("link_harmonic") == 18 and len(specs) == 77
     assert kinds.count("lost_motion") == 6 and kinds.count("cartesian_time") == 8
     drift = {(s.joint, s.parameter) for s in specs if s.kind == "length_drift"}
     assert drift == {(1, "d"), (2, "a"), (3, "a"), (4, "a"), (4, "d"), (6, "d")}
