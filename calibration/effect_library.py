@@ -62,6 +62,9 @@ HOUR_S = 3600.0
 LOADED_JOINT_FRACTION = 1e-3
 #: Nominal lengths (mm) from which a link length is a thermal-drift candidate.
 DRIFT_MIN_LENGTH_MM = 50.0
+#: Joint moves smaller than this (rad) keep the previous approach direction: 10× the
+#: gratings' read noise, far below any move between measurement poses.
+MIN_MOVE_RAD = 1e-5
 #: Harmonic orders offered per joint (library and generic search).
 HARMONIC_ORDERS = (1, 2, 3)
 
@@ -85,18 +88,28 @@ class EffectData:
 
     @classmethod
     def from_sequence(
-        cls, q_rad: ArrayLike, t_s: ArrayLike | None = None, start_rad: ArrayLike | None = None
+        cls,
+        q_rad: ArrayLike,
+        t_s: ArrayLike | None = None,
+        start_rad: ArrayLike | None = None,
+        min_move_rad: float = MIN_MOVE_RAD,
     ) -> EffectData:
         """Data of a pose sequence: each joint's approach direction is the sign of its move
-        from the previous pose in time order (the first from ``start_rad``, e.g. Home)."""
+        from the previous pose in time order (the first from ``start_rad``, e.g. Home).
+        A move smaller than ``min_move_rad`` (a joint standing still, read with noise) keeps
+        the direction it had; before any move it is 0."""
         q = np.atleast_2d(np.asarray(q_rad, dtype=float))
         t = None if t_s is None else np.asarray(t_s, dtype=float)
         order = np.arange(len(q)) if t is None else np.argsort(t, kind="stable")
         start = np.zeros(q.shape[1]) if start_rad is None else np.asarray(start_rad, float)
         seq = q[order]
         moves = np.diff(np.vstack([start, seq]), axis=0)
+        sign = np.where(np.abs(moves) >= min_move_rad, np.sign(moves), 0.0)
+        rows = np.arange(len(seq))[:, None]
+        last = np.maximum.accumulate(np.where(sign != 0.0, rows, 0), axis=0)  # last real move
+        held = np.take_along_axis(sign, last, axis=0)
         direction = np.empty_like(q)
-        direction[order] = np.sign(moves)
+        direction[order] = held
         return cls(q, t, direction)
 
     def subset(self, mask: ArrayLike) -> EffectData:

@@ -163,6 +163,14 @@ def test_directions_follow_time_order():
     np.testing.assert_array_equal(data.direction, CTX.data.direction[shuffle])
     np.testing.assert_array_equal(CTX.data.direction[0], np.sign(Q[0]))
     np.testing.assert_array_equal(CTX.data.direction[1:], np.sign(np.diff(Q, axis=0)))
+    # standing still (read noise far below 1e-5 rad) keeps the last direction
+    q = np.repeat(np.array([[0.1, -0.2], [0.3, -0.5]]), [1, 4], axis=0)
+    q[2:] += np.random.default_rng(2).normal(0, 1e-7, (3, 2))
+    data = EffectData.from_sequence(q, None, np.zeros(2))
+    np.testing.assert_array_equal(data.direction, np.tile([1.0, -1.0], (5, 1)))
+    still = np.array([[0.0, 0.0], [1e-7, -1e-7], [0.0, 0.0]])
+    data = EffectData.from_sequence(still, None, np.zeros(2))
+    np.testing.assert_array_equal(data.direction, np.zeros((3, 2)))
 
 
 def test_candidates():
