@@ -127,12 +127,13 @@ def test_emulated_cell_end_to_end(tmp_path):
     assert ok.mean() > 0.25  # settles after a few seconds
     settled = t0_est[ok]
     spread_ms = (np.percentile(settled, 99.5) - np.percentile(settled, 0.5)) / 1e6
-    assert spread_ms < 4.0, spread_ms  # within ±2 ms of the truth (a busy 2-core host)
+    # stated tolerance: ±3 ms of the truth once settled, on a busy 2-core host
+    assert spread_ms < 6.0, spread_ms
     assert t_spawn <= np.median(settled) <= t_first_line, (t_spawn, np.median(settled))
     # ~10 s of a 0.3 ms envelope pins the drift to tens of ppm only (longer runs do better)
     assert abs(hg["clock"]["drift_ppm"] + PPM) < 100, hg["clock"]
     late_ms = (grating["t_mapped_ns"][ok] - grating["t_host_rx_ns"][ok]) / 1e6
-    assert late_ms.max() <= 2.0, (late_ms.max(), np.flatnonzero(late_ms > 2.0)[:5], ok.mean())
+    assert late_ms.max() <= 3.0, (late_ms.max(), np.flatnonzero(late_ms > 3.0)[:5], ok.mean())
 
     # the tracker was reset (unplugged) once: it came back, and lost only the time away
     ht = health["cell/emulated/robot/robot1/tracker/health"][-1]
