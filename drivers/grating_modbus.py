@@ -14,9 +14,11 @@ A new driver starts with the history the box still buffers (up to 7/8 of its rin
 driver catches up at ~10k samples/s); a reconnecting one resumes at its cursor.
 
 Pacing: a read returns at most 6 samples, so at 1 kHz the box must be asked ~170 times a
-second. After a response with fewer than ``k`` samples pending, the next request waits
-until ``k`` are due at the box's rate (``idle_poll_s`` overrides this with a fixed
-pause); with more pending (catching up after a stall or at connect) it asks at once.
+second. With ``k`` or more samples pending (catching up after a stall or at connect) the
+driver asks at once; otherwise it waits until the ``k``-th new sample is latched (or the
+first waiting one is ``max_age_s`` old), timed on the box's own sample grid as seen from
+the host, so that the newest sample of every response is fresh (~0.3 ms) and a request
+fetches ~6 samples. ``idle_poll_s`` replaces this with a fixed pause.
 
 Values: ``grating1_counts`` .. ``grating6_counts`` as int64, unwrapped from the 32-bit
 counters (raw = value mod 2**32); status bits per channel as the device sends them.
@@ -99,8 +101,9 @@ class GratingModbusDriver(Driver):
         "response_timeout_s": Option(float, 0.05, "wait for one response"),
         "samples_per_read": Option(int, 6, "k samples per FC23 read (1..6)"),
         "idle_poll_s": Option(
-            float, None, "fixed pause when the FIFO is drained (default: until k are due)"
+            float, None, "fixed pause when the FIFO is drained (default: paced on the grid)"
         ),
+        "max_age_s": Option(float, 0.01, "ask before a waiting sample gets older than this"),
         "quiet_pymodbus": Option(bool, True, "unused (kept for compatibility)"),
     }
 
@@ -122,6 +125,11 @@ class GratingModbusDriver(Driver):
         self.count_offset = np.zeros(N_CHANNELS, np.int64)
         self.rate_hz = 1000.0
         self._due_ns = 0  # when the next FIFO request is worth sending
+        self._grid_raw: int | None = None  # device time of the last sample received ...
+        self._grid_t_us = 0.0  # ... unwrapped for the pacing
+        self._grid_ub: float | None = None  # bounds of host ns - device µs·1000
+        self._grid_lb: float | None = None
+        self._grid_host_ns = 0
         self._fifo_regs = FIFO_HEADER + k * SAMPLE_REGS
         self.counters["stale_responses"] = 0
 
@@ -191,6 +199,8 @@ class GratingModbusDriver(Driver):
         self.clock.restart()
         self.next_seq = None
         self.seq_offset = 0
+        self._grid_raw = None
+        self._grid_ub = self._grid_lb = None
 
     def _transact(self, request: bytes, fc: int, n_regs: int) -> bytes | None:
         """One Modbus transaction: the register bytes, or None (counted) on a fault."""
@@ -240,13 +250,15 @@ class GratingModbusDriver(Driver):
                     break
                 time.sleep((self._due_ns - now) / 1e9)
             want = 0 if self.next_seq is None else self.next_seq
-            payload = self._transact(self._fifo_request(want), FC_READ_WRITE, self._fifo_regs)
+            request = self._fifo_request(want)
+            t_send = time.monotonic_ns()
+            payload = self._transact(request, FC_READ_WRITE, self._fifo_regs)
             t_host = time.monotonic_ns()
             if payload is None:
                 self._due_ns = 0  # a fault: ask again at once (same cursor)
             else:
                 regs = np.frombuffer(payload, ">u2").astype(np.uint32)
-                pending = self._accept(regs, t_host, blocks, hosts, first_seqs)
+                pending = self._accept(regs, t_host, blocks, hosts, first_seqs, t_send)
                 if pending < 0:  # the box restarted: deliver the old epoch first
                     self._due_ns = 0
                     break
@@ -257,16 +269,67 @@ class GratingModbusDriver(Driver):
             return None
         return self._assemble(blocks, hosts, first_seqs)
 
+    #: the grid bounds widen by this much per second (device clock drift)
+    GRID_LEAK_PER_S = 500e-6
+    #: requests go out this long after the instant the sample they wait for is latched
+    GRID_MARGIN_NS = 100_000
+
+    def _track_grid(self, t_last_raw: int, pending: int, t_send: int, t_recv: int) -> None:
+        """Bracket the box's latch grid in host time with one FIFO response.
+
+        The newest sample latched when the request reached the box is the last returned
+        plus ``pending``: it was latched before ``t_recv``, the one after it not before
+        ``t_send``. In "host ns minus device µs·1000" these are an upper and a lower bound
+        of the clock offset; both are kept (widening by ``GRID_LEAK_PER_S`` to follow
+        drift) and requests aim at their middle, which converges to within a transaction
+        time of the truth.
+        """
+        if self._grid_raw is None or (step := (t_last_raw - self._grid_raw) % U32) >= U32 // 2:
+            self._grid_t_us = float(t_last_raw)  # first sample, or the clock went back
+            self._grid_ub = self._grid_lb = None
+        else:
+            self._grid_t_us += step
+        self._grid_raw = t_last_raw
+        period_us = 1e6 / self.rate_hz
+        latched_us = self._grid_t_us + min(pending, 0xFFFE) * period_us
+        ub = t_recv - latched_us * 1e3
+        lb = t_send - (latched_us + period_us) * 1e3
+        if self._grid_ub is not None and self._grid_lb is not None:
+            leak = self.GRID_LEAK_PER_S * (t_recv - self._grid_host_ns)
+            ub = min(ub, self._grid_ub + leak)
+            lb = max(lb, self._grid_lb - leak)
+            if lb > ub:  # inconsistent (a clock jump): start over from this response
+                ub = t_recv - latched_us * 1e3
+                lb = t_send - (latched_us + period_us) * 1e3
+        self._grid_ub, self._grid_lb, self._grid_host_ns = ub, lb, t_recv
+
     def _pace(self, pending: int, t_host: int) -> None:
-        """When to send the next FIFO request, given ``pending`` samples left in the box."""
+        """When to send the next FIFO request, given ``pending`` samples left in the box.
+
+        With ``k`` or more pending: at once. Otherwise when the ``k``-th sample after the
+        last one received is latched, or earlier when the first of them would be older
+        than ``max_age_s``; timed on the box's grid (:meth:`_track_grid`) so that the
+        newest sample of each response is fresh. ``idle_poll_s`` replaces this with a
+        fixed pause.
+        """
         k = self.k
         fixed = self.options["idle_poll_s"]
         if pending >= k or (fixed is not None and pending > 0):
             self._due_ns = 0
-        elif fixed is not None:
+            return
+        if fixed is not None:
             self._due_ns = t_host + int(fixed * 1e9)
-        else:
-            self._due_ns = t_host + int((k - pending) * 1e9 / self.rate_hz)
+            return
+        period_ns = 1e9 / self.rate_hz
+        wait_ns = min(k * period_ns, period_ns + self.options["max_age_s"] * 1e9)
+        plain = t_host + wait_ns - pending * period_ns
+        if self._grid_ub is None or self._grid_lb is None:
+            self._due_ns = int(plain)
+            return
+        offset = 0.5 * (self._grid_ub + self._grid_lb)
+        due = offset + self._grid_t_us * 1e3 + wait_ns + self.GRID_MARGIN_NS
+        # never later than a plain wait from now (a stale estimate)
+        self._due_ns = int(min(due, plain + period_ns))
 
     def _accept(
         self,
@@ -275,6 +338,7 @@ class GratingModbusDriver(Driver):
         blocks: list[np.ndarray],
         hosts: list[np.ndarray],
         first_seqs: list[int],
+        t_send: int | None = None,
     ) -> int:
         first_hi, first_lo, n, pending, boot = regs[:FIFO_HEADER].tolist()
         first = (first_hi << 16) | first_lo
@@ -300,6 +364,9 @@ class GratingModbusDriver(Driver):
                 self.count("stale_responses", detail="sequence went back")
                 return MAX_SAMPLES_PER_READ
         block = regs[FIFO_HEADER : FIFO_HEADER + n * SAMPLE_REGS].reshape(n, SAMPLE_REGS)
+        if t_send is not None:
+            t_hi, t_lo = block[-1, :2].tolist()
+            self._track_grid((t_hi << 16) | t_lo, pending, t_send, t_host)
         blocks.append(block)
         hosts.append(np.full(n, t_host, np.int64))
         first_seqs.append(first + self.seq_offset)
