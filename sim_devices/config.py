@@ -30,7 +30,8 @@ class CellSection:
 
 
 PROGRAMS = {
-    "campaign": "grating calibration (home returns, 2° sweeps) + 100 id + 150 validation poses",
+    "campaign": "grating calibration (home returns, 2° sweeps; tracker target on the swept "
+    "link) + 100 id + 150 validation poses (TCP target)",
     "random": "free trajectory through random reachable poses, looping",
     "hold": "stand still at Home",
 }
@@ -97,7 +98,10 @@ class TrackerSection:
     enabled: bool = True
     tcp_port: int = 0  # 0: any free port on 127.0.0.1
     serial: bool = True  # also serve the protocol on a pty
-    target: str = "tcp"  # "tcp" or "link1".."link6"
+    # "program": the target the robot program names (campaign: link J for joint J's
+    # scale calibration, TCP for the poses; free programs: TCP); "tcp" or "link1".."link6":
+    # that target for the whole run
+    target: str = "program"
     internal_rate_hz: float = 1000.0
     clock_ppm: float = 0.0
     beam_breaks_per_min: float = 0.0
@@ -204,10 +208,10 @@ def _check(cfg: CellConfig, source: str) -> None:
     ids = cfg.encoders.node_ids
     if len(set(ids)) != len(ids) or not all(1 <= i <= 127 for i in ids):
         fail("[encoders].node_ids must be distinct CANopen node ids in 1..127")
-    if cfg.tracker.target != "tcp" and not (
+    if cfg.tracker.target not in ("tcp", "program") and not (
         cfg.tracker.target.startswith("link") and cfg.tracker.target[4:].isdigit()
     ):
-        fail(f"[tracker].target must be 'tcp' or 'linkN', got {cfg.tracker.target!r}")
+        fail(f"[tracker].target must be 'program', 'tcp' or 'linkN', got {cfg.tracker.target!r}")
     und = cfg.effects.undeclared
     if und.drift_parameter not in ("a", "d"):
         fail(

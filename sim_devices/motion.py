@@ -4,6 +4,11 @@ A :class:`Trajectory` is built once from a start vector and a list of :class:`Mo
 then evaluated for whole arrays of times at once (the devices sample it at 1 kHz).
 All joints of one move start and stop together; the slowest joint sets the duration.
 Units: rad, rad/s, rad/s², seconds of simulated time.
+
+Each move also names the tracker target that is mounted while it runs (motion and dwell):
+``"tcp"`` (the tool's target) or ``"link:J"`` (the target fixed on link J, 1-based, for
+joint J's scale calibration). The target changes at a move's start; the campaign program
+makes every change a zero-motion move whose dwell is the operator moving the reflector.
 """
 
 from __future__ import annotations
@@ -24,6 +29,16 @@ class Move:
     speed: float = 1.0
     dwell_s: float = 0.0
     label: str = ""
+    target: str = "tcp"  # tracker target mounted during this move: "tcp" or "link:J"
+
+
+def parse_target(target: str) -> int | None:
+    """``"tcp"`` -> None, ``"link:J"`` -> J - 1 (0-based joint index); else ValueError."""
+    if target == "tcp":
+        return None
+    if target.startswith("link:") and target[5:].isdigit() and int(target[5:]) >= 1:
+        return int(target[5:]) - 1
+    raise ValueError(f"tracker target must be 'tcp' or 'link:J', got {target!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,6 +54,7 @@ class Trajectory:
     labels: tuple[str, ...]
     end_s: float
     repeat: bool = False
+    targets: tuple[str, ...] = ()  # per segment (empty: all "tcp")
 
     @classmethod
     def build(
@@ -71,6 +87,7 @@ class Trajectory:
                 raise ValueError(f"move {k}: target must have {n} joints")
             if not 0.0 < mv.speed <= 1.0:
                 raise ValueError(f"move {k}: speed must be in (0, 1], got {mv.speed}")
+            parse_target(mv.target)
             d = target - q
             dist = np.abs(d)
             v = vmax * mv.speed
@@ -87,7 +104,9 @@ class Trajectory:
             direction[k] = last_dir
             t += total + max(0.0, mv.dwell_s)
             q = target
-        return cls(start, dur, acc, q0, dq, direction, tuple(m.label for m in moves), t, repeat)
+        labels = tuple(m.label for m in moves)
+        targets = tuple(m.target for m in moves)
+        return cls(start, dur, acc, q0, dq, direction, labels, t, repeat, targets)
 
     @property
     def n_joints(self) -> int:
@@ -135,8 +154,17 @@ class Trajectory:
     def segment_at(self, t_s: float) -> int:
         return int(self._locate(np.array([t_s]))[0][0])
 
+    def segments_at(self, t_s: ArrayLike) -> NDArray[np.intp]:
+        """Segment index ``(N,)`` at simulated times ``(N,)`` (before 0: the first)."""
+        return self._locate(np.atleast_1d(t_s))[0]
+
+    def target_of(self, segment: int) -> str:
+        """The tracker target mounted during ``segment``."""
+        return self.targets[segment] if self.targets else "tcp"
+
     def schedule(self) -> list[dict[str, float | str]]:
-        """Start, end of motion, end of dwell and label of every move (for the truth file)."""
+        """Start, end of motion, end of dwell, label and mounted tracker target of every move
+        (for the truth file)."""
         ends = np.append(self.start_s[1:], self.end_s)
         return [
             {
@@ -144,6 +172,9 @@ class Trajectory:
                 "arrive_s": float(a + d),
                 "leave_s": float(e),
                 "label": lab,
+                "target": self.target_of(k),
             }
-            for a, d, e, lab in zip(self.start_s, self.move_s, ends, self.labels, strict=True)
+            for k, (a, d, e, lab) in enumerate(
+                zip(self.start_s, self.move_s, ends, self.labels, strict=True)
+            )
         ]

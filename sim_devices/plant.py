@@ -14,6 +14,15 @@ counts (:meth:`Plant.grating_counts`), a constant tracker scale error goes to th
 model. The drift follows program time; a caller that does not pass the sample's time gets
 the clock's current time (the drift moves 4e-5 mm/s at 0.15 mm/h).
 
+Which target the tracker measures (``[tracker] target``): ``"program"`` (default) follows
+the robot program — in the campaign the target fixed on link J during joint J's Home
+returns and sweeps (``TrueCell.link_target_mm``), the TCP target for the poses (method.md
+§2-3), the operator moving the reflector in a zero-motion move between the phases; free
+programs keep the TCP. ``"tcp"`` / ``"linkN"`` pin one target for the whole run. A link
+target sees the effects physically downstream of its link: the gravity deflection of rings
+1..J and a drifting length of joints 1..J; sag, tracker scale and noise apply to every
+target.
+
 Clocks: :class:`SimClock` maps the host's ``time.monotonic()`` to wall seconds since the
 emulator started and to simulated robot-program seconds (``speed`` times faster); each
 device has its own :class:`DeviceClock` (drift in ppm, restarts).
@@ -35,9 +44,11 @@ from sim_devices.config import CellConfig
 from sim_devices.effects import (
     deflection_stiffness_nmm_per_rad,
     grating_reading_rad,
+    length_drift_mm,
+    link_rotation_rad,
     true_tcp_mm,
 )
-from sim_devices.motion import Move, Trajectory
+from sim_devices.motion import Move, Trajectory, parse_target
 from sim_devices.truth import TrackerModel, TrueCell
 
 FloatArray = NDArray[np.float64]
@@ -128,16 +139,21 @@ class Plant:
             k = deflection_stiffness_nmm_per_rad(und, cell.truth)
             und = replace(und, deflection_stiffness_nmm_per_rad=tuple(float(v) for v in k))
         self.undeclared = und
+        #: pinned target (``[tracker] target = "linkN"``), else None
         self.link_joint: int | None = None
-        self._target_model = self.truth_model
         target = config.tracker.target
+        self.follow_program = target == "program"
         if target.startswith("link"):
             self.link_joint = int(target[4:]) - 1
             if not 0 <= self.link_joint < n:
                 raise ValueError(f"tracker target {target}: robot has {n} joints")
-            self._target_model = self.truth_model.truncated(
-                self.link_joint + 1, tool_mm=cell.link_targets_mm[self.link_joint]
-            )
+        for k in range(len(trajectory.labels)):
+            j = parse_target(trajectory.target_of(k))
+            if j is not None and not 0 <= j < n:
+                raise ValueError(f"program move {k}: target link:{j + 1}, robot has {n} joints")
+        self._link_models = [
+            self.truth_model.truncated(j + 1, tool_mm=cell.link_targets_mm[j]) for j in range(n)
+        ]
         self._blocks: dict[int, FloatArray] = {}
 
     @classmethod
@@ -216,22 +232,76 @@ class Plant:
             self._blocks[b] = grid
         return grid
 
-    def target_mm(self, q_out_rad: FloatArray, wall_s: ArrayLike | None = None) -> FloatArray:
-        """True target positions ``(N, 3)`` in the tracker frame for joint outputs."""
+    def target_at(self, wall_s: ArrayLike | None = None) -> list[str]:
+        """The target the tracker measures at wall times ``(N,)``: "tcp" or "link:J"."""
+        n = 1 if wall_s is None else int(np.size(wall_s))
+        return ["tcp" if j < 0 else f"link:{j + 1}" for j in self._links(wall_s, n).tolist()]
+
+    def _links(self, wall_s: ArrayLike | None, n: int) -> NDArray[np.intp]:
+        """Per sample: -1 for the TCP target, else the 0-based joint carrying the target."""
+        if self.link_joint is not None:
+            return np.full(n, self.link_joint, dtype=np.intp)
+        if not self.follow_program:
+            return np.full(n, -1, dtype=np.intp)
+        wall = self.clock.wall_s() if wall_s is None else wall_s
+        seg = self.trajectory.segments_at(np.broadcast_to(self.clock.sim_s(wall), (n,)))
+        table = np.array(
+            [
+                -1 if (j := parse_target(self.trajectory.target_of(k))) is None else j
+                for k in range(len(self.trajectory.labels))
+            ],
+            dtype=np.intp,
+        )
+        return table[seg]
+
+    def link_target_mm(self, joint: int, q_out_rad: FloatArray, sim_s: ArrayLike) -> FloatArray:
+        """True position ``(N, 3)`` of the target on link ``joint`` (0-based), with the
+        undeclared effects upstream of it (deflection after rings 1..joint+1, drift)."""
         q = np.atleast_2d(q_out_rad)
         und = self.undeclared
-        if self.link_joint is not None:
-            pts = tcp_positions(self._target_model, q[:, : self.link_joint + 1])
-        elif und.gravity_deflection or und.thermal_drift:
+        sub = self._link_models[joint]
+        q_link = q
+        if und.gravity_deflection:
+            q_link = q + link_rotation_rad(und, self.cell.truth, q)
+        q_link = q_link[:, : joint + 1]
+        pts = tcp_positions(sub, q_link)
+        index = 5 * (und.drift_joint - 1) + {"a": 0, "d": 2}[und.drift_parameter]
+        if und.thermal_drift and index < 5 * (joint + 1):
+            growth = length_drift_mm(und, np.broadcast_to(sim_s, (len(q),)))
+            x = sub.parameter_vector()
+            x[index] += 1.0
+            axis = tcp_positions(sub.with_parameters(x), q_link) - pts
+            pts = pts + growth[:, None] * axis
+        return pts
+
+    def target_mm(self, q_out_rad: FloatArray, wall_s: ArrayLike | None = None) -> FloatArray:
+        """True target positions ``(N, 3)`` in the tracker frame for joint outputs.
+
+        Which target (TCP or a link's) follows the program at the samples' wall times
+        ``wall_s`` (``(N,)`` or scalar), or at the clock's current time when not given.
+        """
+        q = np.atleast_2d(q_out_rad)
+        und = self.undeclared
+        links = self._links(wall_s, len(q))
+        tcp = links < 0
+        pts = np.empty((len(q), 3))
+        if tcp.any():
+            qt = q[tcp]
+            if und.gravity_deflection or und.thermal_drift:
+                wall = self.clock.wall_s() if wall_s is None else wall_s
+                sim = np.broadcast_to(self.clock.sim_s(wall), (len(q),))[tcp]
+                pts[tcp] = true_tcp_mm(und, self.cell.truth, qt, sim)
+            else:
+                pts[tcp] = tcp_positions(self.truth_model, qt)
+        if not tcp.all():
             wall = self.clock.wall_s() if wall_s is None else wall_s
             sim = np.broadcast_to(self.clock.sim_s(wall), (len(q),))
-            pts = true_tcp_mm(und, self.cell.truth, q, sim)
-        else:
-            pts = tcp_positions(self._target_model, q)
+            for j in np.unique(links[~tcp]).tolist():
+                sel = links == j
+                pts[sel] = self.link_target_mm(j, q[sel], sim[sel])
         if self.config.effects.sag:
             base = self.truth_model.base_mm
             reach_m = np.linalg.norm((pts - base)[:, :2], axis=1) / 1000.0
-            pts = pts.copy()
             pts[:, 2] -= self.config.effects.sag_mm_per_m2 * reach_m**2
         return pts
 
@@ -253,6 +323,7 @@ class Plant:
             "stiffness_nmm_per_rad": self.stiffness.tolist(),
             "backlash_deg": np.degrees(self.backlash_rad).tolist(),
             "speed": self.clock.speed,
+            "tracker_target": self.config.tracker.target,
         }
         if self.undeclared.gravity_deflection:
             k = self.undeclared.deflection_stiffness_nmm_per_rad
@@ -312,22 +383,33 @@ def campaign_moves(
     n_validation: int = 150,
     dwell_s: float = 1.0,
     joints: tuple[int, ...] | None = None,
+    target_change_s: float = 20.0,
 ) -> list[Move]:
     """The calibration campaign as moves (method.md §2-3).
 
     Per joint: ``home_returns`` returns to Home at ``slow_speed`` from random angles, then
     a sweep limit to limit stopping every ``sweep_step_deg`` and back; then the
     identification and validation poses. Each stop dwells ``dwell_s`` (for the tracker).
+
+    The tracker target (:attr:`Move.target`): on link j during joint j's returns and sweeps,
+    on the TCP for the poses. The reflector is mounted on the first swept link before the
+    program starts; every later change is a zero-motion move at Home whose dwell
+    ``target_change_s`` is the operator moving it (the random draws do not depend on it).
     """
     home = np.radians(desc.home)
     lo, hi = _limits_rad(desc)
     moves: list[Move] = []
     for j in joints if joints is not None else range(desc.n_joints):
+        link = f"link:{j + 1}"
+        if moves:
+            moves.append(Move(tuple(home), 0.3, target_change_s, f"target {link}", link))
         for r in range(home_returns):
             away = home.copy()
             away[j] = rng.uniform(lo[j], hi[j])
-            moves.append(Move(tuple(away), 0.3, 0.2, f"joint{j + 1} home-return {r + 1} away"))
-            moves.append(Move(tuple(home), slow_speed, dwell_s, f"joint{j + 1} home {r + 1}"))
+            moves.append(
+                Move(tuple(away), 0.3, 0.2, f"joint{j + 1} home-return {r + 1} away", link)
+            )
+            moves.append(Move(tuple(home), slow_speed, dwell_s, f"joint{j + 1} home {r + 1}", link))
         step = math.radians(sweep_step_deg)
         n_steps = math.floor((hi[j] - lo[j]) / step)
         stops = hi[j] - step * np.arange(n_steps + 1)
@@ -336,9 +418,11 @@ def campaign_moves(
                 q = home.copy()
                 q[j] = a
                 moves.append(
-                    Move(tuple(q), slow_speed, dwell_s, f"joint{j + 1} sweep {direction} {k}")
+                    Move(tuple(q), slow_speed, dwell_s, f"joint{j + 1} sweep {direction} {k}", link)
                 )
-        moves.append(Move(tuple(home), 0.3, 0.5, f"joint{j + 1} done"))
+        moves.append(Move(tuple(home), 0.3, 0.5, f"joint{j + 1} done", link))
+    if moves:
+        moves.append(Move(tuple(home), 0.3, target_change_s, "target tcp", "tcp"))
     for name, count in (("identification", n_identification), ("validation", n_validation)):
         for k, q in enumerate(_random_poses(desc, count, rng)):
             moves.append(Move(tuple(q), 0.3, dwell_s, f"{name} {k}"))
