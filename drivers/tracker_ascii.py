@@ -116,6 +116,7 @@ class TrackerAsciiDriver(Driver):
         self.seq_base = 0 if self.last_seq is None else self.last_seq + 1
         self.session_last = None
         self.command("STREAM:STOP", timeout_s=0.3)  # a serial device may still be streaming
+        self._quiesce()
         idn = self.command("*IDN?")
         if idn is None or idn.count(",") != 3:
             raise DeviceIOError(f"no instrument identification from {self.url}: {idn!r}")
@@ -226,6 +227,15 @@ class TrackerAsciiDriver(Driver):
             self._pump(min(self.options["poll_s"], left))
         self.count("timeouts", detail=f"no reply to {line!r}")
         return None
+
+    def _quiesce(self, quiet_s: float = 0.02, max_s: float = 1.0) -> None:
+        """Read until the line has been quiet for ``quiet_s`` (at most ``max_s``), then
+        drop stray replies: a serial device that kept streaming while nobody read answers
+        STREAM:STOP late, and that "OK" must not be taken for the next command's reply."""
+        end = time.monotonic() + max_s
+        while time.monotonic() < end and self._pump(quiet_s):
+            pass
+        self.replies.clear()
 
     # -- convenience queries -------------------------------------------------------------
     def identify(self) -> str | None:

@@ -113,3 +113,19 @@ def test_beam_breaks_reported():
         assert any(e[1].startswith("BEAM_BROKEN") for e in events)
     finally:
         tr.close()
+
+
+def test_serial_reopen_while_the_device_still_streams(tracker):
+    """A serial tracker keeps streaming when a driver goes away without STREAM:STOP; the
+    next driver's connect must not take the late reply to its STOP for *IDN?'s."""
+    for _ in range(2):
+        drv = TrackerAsciiDriver(tracker.pty.path, rate_hz=1000.0)
+        drv.open()
+        try:
+            assert len(np.concatenate([b.seq for b in collect(drv, 0.3)])) > 100
+            h = drv.health()
+            assert h.counters["connect_failures"] == 0, h.counters
+            assert drv.info["idn"].startswith("EMULATED,")
+        finally:
+            drv.close()  # no STREAM:STOP: the serial session keeps streaming
+        time.sleep(2.0)  # the pty fills up; the session blocks in its write
