@@ -26,6 +26,7 @@ notifier and SYNC producer are used.
 
 from __future__ import annotations
 
+import binascii
 import collections
 import contextlib
 import logging
@@ -118,6 +119,7 @@ class EncoderCanopenDriver(Driver):
         self._rows: collections.deque = collections.deque(maxlen=200_000)
         self._cur = [0] * self.n
         self._filled = [False] * self.n
+        self._n_filled = 0
         self._cur_t: float | None = None
         self._cur_host = 0
         self._cob_to_k: dict[int, int] = {}
@@ -223,11 +225,12 @@ class EncoderCanopenDriver(Driver):
         sync = format_send(0x080, b"")
         tpdo = self._cob_to_k
         hb_lo, hb_hi = 0x701, 0x77F
+        unhex = binascii.unhexlify
         due: float | None = None
         try:
             while not self._io_stop.is_set():
                 if not self._sync_on:
-                    frames = bus.poll_frames(0.01)  # setup: SDO answers as they come
+                    raw = bus.poll_raw(0.01)  # setup: SDO answers as they come
                     due = None
                 else:
                     now = time.monotonic()
@@ -239,16 +242,27 @@ class EncoderCanopenDriver(Driver):
                         missed = int((now - due) / period)
                         self.count("missed_syncs", missed, "SYNC grid restarted")
                         due = now
-                    frames = bus.poll_frames()
-                for can_id, ext, ts, data in frames:
-                    if ext:
+                    raw = bus.poll_raw()
+                values: list[tuple[int, bytes, bytes]] = []
+                for ident, ts, data in raw:
+                    if len(ident) > 3:
+                        continue  # extended frame: not CANopen
+                    can_id = int(ident, 16)
+                    k = tpdo.get(can_id)
+                    if k is not None:
+                        values.append((k, data, ts))
                         continue
-                    if can_id in tpdo:
-                        self._on_tpdo(can_id, data, ts)
-                    elif hb_lo <= can_id <= hb_hi:
-                        self._on_heartbeat(can_id, data, ts)
+                    try:
+                        payload = unhex(data)
+                    except (ValueError, binascii.Error):
+                        self.count("protocol_errors", detail=f"odd hex data in frame {can_id:03X}")
+                        continue
+                    if hb_lo <= can_id <= hb_hi:
+                        self._on_heartbeat(can_id, payload, float(ts))
                     else:
-                        net.notify(can_id, bytearray(data), ts)
+                        net.notify(can_id, bytearray(payload), float(ts))
+                if values:
+                    self._on_tpdos(values)
                 if bus.garbage_bytes:
                     self.count("garbage_bytes", bus.garbage_bytes)
                     bus.garbage_bytes = 0
@@ -275,8 +289,37 @@ class EncoderCanopenDriver(Driver):
                 self._cur_host = time.monotonic_ns()
             self._cur[k] = value
             filled[k] = True
+            self._n_filled += 1
             if all(f or lost for f, lost in zip(filled, self._lost, strict=True)):
                 self._close_row()
+
+    def _on_tpdos(self, values: list[tuple[int, bytes, bytes]]) -> None:
+        """TPDOs of one I/O cycle, as ``(channel, data_hex, seconds)`` (the I/O thread)."""
+        unhex = binascii.unhexlify
+        n = self.n
+        with self._cond:
+            filled, cur, lost = self._filled, self._cur, self._lost
+            any_lost = any(lost)
+            for k, data, ts in values:
+                try:
+                    raw = unhex(data)
+                except (ValueError, binascii.Error):
+                    self.count("protocol_errors", detail="odd hex data in a TPDO")
+                    continue
+                if len(raw) < 4:
+                    continue
+                if filled[k]:
+                    self._close_row()
+                if self._cur_t is None:
+                    self._cur_t = float(ts)
+                    self._cur_host = time.monotonic_ns()
+                cur[k] = int.from_bytes(raw[:4], "little")
+                filled[k] = True
+                self._n_filled += 1
+                if self._n_filled == n or (
+                    any_lost and all(f or x for f, x in zip(filled, lost, strict=True))
+                ):
+                    self._close_row()
 
     def _close_row(self) -> None:
         lost = self._lost
@@ -287,6 +330,7 @@ class EncoderCanopenDriver(Driver):
         self._rows.append((self._seq, self._cur_t or 0.0, self._cur_host, list(self._cur), status))
         self._seq += 1
         self._filled[:] = [False] * self.n  # in place: _on_tpdo holds this list
+        self._n_filled = 0
         self._cur_t = None
         if len(self._rows) >= self.options["batch_rows"]:
             self._cond.notify()

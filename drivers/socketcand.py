@@ -20,6 +20,7 @@ can use the bus for SDO and NMT (feed it with :meth:`canopen.Network.notify`).
 
 from __future__ import annotations
 
+import binascii
 import collections
 import contextlib
 import re
@@ -46,22 +47,30 @@ def format_send(can_id: int, data: bytes | bytearray, extended: bool = False) ->
     return f"< send {ident} {len(data):X} {' '.join(f'{b:X}' for b in data)} >".encode()
 
 
-def parse_frames(buf: bytes) -> tuple[list[Frame], bytes, int]:
-    """Frames in ``buf``; returns (frames, the unfinished rest, bytes of non-frame input)."""
+def split_frames(buf: bytes) -> tuple[list[tuple[bytes, bytes, bytes]], bytes, int]:
+    """``(id_hex, seconds, data_hex)`` of the frames in ``buf`` (bytes as received);
+    returns (frames, the unfinished rest, bytes of non-frame input)."""
     end = buf.rfind(b">")
     if end < 0:
         return [], buf, 0
     done, rest = buf[: end + 1], buf[end + 1 :]
+    found = _FRAME.findall(done)
+    if done.count(b"<") == len(found) and done.count(b">") == len(found):
+        return found, rest, 0  # nothing but frames (the usual case)
+    used = sum(m.end() - m.start() for m in _FRAME.finditer(done))
+    return found, rest, len(done) - used
+
+
+def parse_frames(buf: bytes) -> tuple[list[Frame], bytes, int]:
+    """Frames in ``buf``; returns (frames, the unfinished rest, bytes of non-frame input)."""
+    found, rest, junk = split_frames(buf)
     frames: list[Frame] = []
-    used = 0
-    for m in _FRAME.finditer(done):
-        ident, ts, data = m.groups()
-        used += m.end() - m.start()
+    for ident, ts, data in found:
         try:
-            frames.append((int(ident, 16), len(ident) > 3, float(ts), bytes.fromhex(data.decode())))
-        except ValueError:  # odd number of hex digits
+            frames.append((int(ident, 16), len(ident) > 3, float(ts), binascii.unhexlify(data)))
+        except (ValueError, binascii.Error):  # odd number of hex digits
             continue
-    return frames, rest, len(done) - used
+    return frames, rest, junk
 
 
 class SocketcandBus(can.BusABC):
@@ -122,19 +131,18 @@ class SocketcandBus(can.BusABC):
             raise DeviceIOError(f"socketcand: expected {reply.decode()!r}, got {got.decode()!r}")
 
     # -- bulk reading -------------------------------------------------------------------
-    def poll_frames(self, timeout_s: float = 0.0) -> list[Frame]:
-        """Every frame received so far (waits up to ``timeout_s`` for the first bytes).
+    def poll_raw(self, timeout_s: float = 0.0) -> list[tuple[bytes, bytes, bytes]]:
+        """Frames received so far as ``(id_hex, seconds, data_hex)`` byte strings (see
+        :func:`split_frames`), waiting up to ``timeout_s`` for the first bytes.
 
         Raises OSError when the connection is gone.
         """
-        frames = list(self._queue)
-        self._queue.clear()
         got = False
         while True:
             try:
                 data = self._sock.recv(65536)
             except (BlockingIOError, InterruptedError):
-                if got or frames or timeout_s <= 0:
+                if got or timeout_s <= 0:
                     break
                 if not select.select([self._sock], [], [], timeout_s)[0]:
                     break
@@ -146,13 +154,25 @@ class SocketcandBus(can.BusABC):
             got = True
             if len(data) < 65536:
                 break
-        if got:
-            new, self._rx, junk = parse_frames(self._rx)
-            frames += new
-            self.garbage_bytes += junk
-            if len(self._rx) > MAX_PENDING:
-                self.garbage_bytes += len(self._rx)
-                self._rx = b""
+        if not got:
+            return []
+        found, self._rx, junk = split_frames(self._rx)
+        self.garbage_bytes += junk
+        if len(self._rx) > MAX_PENDING:
+            self.garbage_bytes += len(self._rx)
+            self._rx = b""
+        return found
+
+    def poll_frames(self, timeout_s: float = 0.0) -> list[Frame]:
+        """Every frame received so far, parsed (waits up to ``timeout_s`` for the first
+        bytes). Raises OSError when the connection is gone."""
+        frames = list(self._queue)
+        self._queue.clear()
+        for ident, ts, data in self.poll_raw(0.0 if frames else timeout_s):
+            try:
+                frames.append((int(ident, 16), len(ident) > 3, float(ts), binascii.unhexlify(data)))
+            except (ValueError, binascii.Error):
+                self.garbage_bytes += len(ident) + len(ts) + len(data)
         return frames
 
     def send_raw(self, command: bytes) -> None:

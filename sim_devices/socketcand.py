@@ -152,6 +152,10 @@ class SocketcandServer:
             buf += data
             while b">" in buf:
                 msg, _, buf = buf.partition(b">")
+                if self.sync_responder is not None and msg.strip() == b"< send 080 0":
+                    self.stats["rx_frames"] += 1
+                    self._answer_sync(b"", conn)  # a SYNC without data (the usual one)
+                    continue
                 start = msg.find(b"<")
                 if start < 0:
                     self.stats["garbage"] += 1
@@ -201,17 +205,21 @@ class SocketcandServer:
 
     def _bus_to_tcp(self, bus: can.BusABC, conn: socket.socket) -> None:
         while not self._stop.is_set():
-            msg = bus.recv(0.1)
-            if msg is None:
-                continue
-            out = []
-            while msg is not None:
-                if msg.is_extended_id:
-                    ident = f"{msg.arbitration_id:08X}"
-                else:
-                    ident = f"{msg.arbitration_id:03X}"
-                out.append(f"< frame {ident} {self._timestamp():.6f} {msg.data.hex().upper()} >")
-                msg = bus.recv(0.0)
+            try:
+                msg = bus.recv(0.1)
+                if msg is None:
+                    continue
+                out = []
+                while msg is not None:
+                    if msg.is_extended_id:
+                        ident = f"{msg.arbitration_id:08X}"
+                    else:
+                        ident = f"{msg.arbitration_id:03X}"
+                    ts = self._timestamp()
+                    out.append(f"< frame {ident} {ts:.6f} {msg.data.hex().upper()} >")
+                    msg = bus.recv(0.0)
+            except can.CanError:  # the client left and its bus was shut down
+                return
             lock = self._clients.get(conn)
             try:
                 if lock is None:
