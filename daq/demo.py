@@ -7,7 +7,9 @@
    limit to limit and back for all six joints, 100 identification and 150 validation
    poses, 1 s dwells) on a simulated clock ``--speed`` times faster than real time, with
    an effect the twin is not told about (``--effect``, default gravity deflection after
-   the ring);
+   the ring); the tracker measures the target on link J during joint J's Home returns and
+   sweeps and the TCP target during the poses (``[tracker] target = "program"``: the
+   operator moves the reflector between the phases, 20 s of robot time each);
 2. runs the acquisition daemon on it (``daq run --sim-config ... --record``, a separate
    process) for the program's length, recording every stream to MCAP;
 3. runs the twin on the recording (``twin run --replay``: phases found in the data,
@@ -47,6 +49,9 @@ def sim_config_text(
         "",
         "[encoders]",
         f"enabled = {'true' if encoders else 'false'}",
+        "",
+        "[tracker]",
+        'target = "program"  # link J for joint J\'s scale calibration, TCP for the poses',
         "",
     ]
     if effect != "none":
