@@ -136,7 +136,7 @@ class TrackerInstrument:
     def measure(self, wall_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Measured points ``(N, 3)`` mm and status codes ``(N,)`` at wall times ``(N,)``."""
         state = self.plant.joint_state(self.plant.clock.sim_s(wall_s))
-        truth = self.plant.target_mm(state.q_out_rad)
+        truth = self.plant.target_mm(state.q_out_rad, wall_s)  # target and drift at each sample
         ppm = self.effects.tracker_scale_ppm_per_k * (
             self.temperature_c(wall_s) - self.config.temperature_c
         )
