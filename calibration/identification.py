@@ -127,6 +127,12 @@ def _full_vector(x_free: FloatArray, x_full: FloatArray, free_idx: NDArray[np.in
 CHUNK_POSES = 8192
 
 
+def _split(x: FloatArray, template: KinematicModel) -> tuple[KinematicModel, FloatArray]:
+    """Geometry and effect parameters of a full vector ``(5n + 9 + k,)``."""
+    p = template.n_parameters
+    return template.with_parameters(x[:p]), x[p:]
+
+
 def position_residuals(
     x_free: ArrayLike,
     x_full: FloatArray,
@@ -135,17 +141,16 @@ def position_residuals(
     q_rad: FloatArray,
     measured_mm: FloatArray,
     sqrt_weights: FloatArray,
+    effects: EffectTerms | None = None,
 ) -> FloatArray:
-    """Weighted residuals ``(3m,)``: (model TCP − tracker point), mm times √weight per pose.
+    """Weighted residuals ``(3m,)``: (predicted point − tracker point), mm times √weight.
 
-    ``x_free`` replaces the entries ``free_idx`` of the full parameter vector ``x_full``.
+    ``x_free`` replaces the entries ``free_idx`` of the full parameter vector ``x_full``,
+    which is ``(5n + 9,)``, or ``(5n + 9 + k,)`` with ``effects`` appended.
     """
-    model = template.with_parameters(_full_vector(np.asarray(x_free), x_full, free_idx))
-    out = np.empty((len(q_rad), 3))
-    for s in range(0, len(q_rad), CHUNK_POSES):
-        e = slice(s, s + CHUNK_POSES)
-        out[e] = (tcp_positions(model, q_rad[e]) - measured_mm[e]) * sqrt_weights[e, None]
-    return out.ravel()
+    model, c = _split(_full_vector(np.asarray(x_free), x_full, free_idx), template)
+    pred = predicted_points(model, q_rad, effects, c)
+    return ((pred - measured_mm) * sqrt_weights[:, None]).ravel()
 
 
 def position_residual_jacobian(
@@ -156,55 +161,14 @@ def position_residual_jacobian(
     q_rad: FloatArray,
     measured_mm: FloatArray,
     sqrt_weights: FloatArray,
+    effects: EffectTerms | None = None,
 ) -> FloatArray:
-    """Jacobian ``(3m, k)`` of :func:`position_residuals` with respect to ``x_free``."""
-    model = template.with_parameters(_full_vector(np.asarray(x_free), x_full, free_idx))
-    out = np.empty((len(q_rad), 3, len(free_idx)))
-    for s in range(0, len(q_rad), CHUNK_POSES):
-        e = slice(s, s + CHUNK_POSES)
-        _, jac = identification_jacobian(model, q_rad[e])
-        out[e] = jac[:, :, free_idx] * sqrt_weights[e, None, None]
-    return out.reshape(-1, len(free_idx))
+    """Jacobian ``(3m, k_free)`` of :func:`position_residuals` with respect to ``x_free``.
 
-
-def _effect_split(x: FloatArray, template: KinematicModel) -> tuple[KinematicModel, FloatArray]:
-    p = template.n_parameters
-    return template.with_parameters(x[:p]), x[p:]
-
-
-def effect_position_residuals(
-    x_free: ArrayLike,
-    x_full: FloatArray,
-    free_idx: NDArray[np.intp],
-    template: KinematicModel,
-    q_rad: FloatArray,
-    measured_mm: FloatArray,
-    sqrt_weights: FloatArray,
-    effects: EffectTerms,
-) -> FloatArray:
-    """:func:`position_residuals` with effect terms: ``x_full`` is ``(5n + 9 + k,)``."""
-    model, c = _effect_split(_full_vector(np.asarray(x_free), x_full, free_idx), template)
-    out = np.empty((len(q_rad), 3))
-    for s in range(0, len(q_rad), CHUNK_POSES):
-        e = slice(s, min(s + CHUNK_POSES, len(q_rad)))
-        pred = tcp_positions(model, q_rad[e]) + effects.regressor(model, e) @ c
-        out[e] = (pred - measured_mm[e]) * sqrt_weights[e, None]
-    return out.ravel()
-
-
-def effect_position_residual_jacobian(
-    x_free: ArrayLike,
-    x_full: FloatArray,
-    free_idx: NDArray[np.intp],
-    template: KinematicModel,
-    q_rad: FloatArray,
-    measured_mm: FloatArray,
-    sqrt_weights: FloatArray,
-    effects: EffectTerms,
-) -> FloatArray:
-    """Jacobian ``(3m, k_free)`` of :func:`effect_position_residuals` (the regressors'
-    own dependence on the geometry, second order in sub-mm effects, is left out)."""
-    model, _ = _effect_split(_full_vector(np.asarray(x_free), x_full, free_idx), template)
+    The effect regressors' own dependence on the geometry (second order in sub-mm
+    effects) is left out.
+    """
+    model, _ = _split(_full_vector(np.asarray(x_free), x_full, free_idx), template)
     jac = stacked_jacobian(model, q_rad, effects)
     return (jac[:, :, free_idx] * sqrt_weights[:, None, None]).reshape(-1, len(free_idx))
 
@@ -239,15 +203,6 @@ def predicted_points(
     for s in range(0, len(q_rad), CHUNK_POSES):
         e = slice(s, min(s + CHUNK_POSES, len(q_rad)))
         out[e] = tcp[e] + effects.regressor(model, e) @ c
-    return out
-
-
-def full_identification_jacobian(model: KinematicModel, q_rad: FloatArray) -> FloatArray:
-    """:func:`~calibration.kinematics.identification_jacobian` ``(m, 3, p)``, in blocks."""
-    out = np.empty((len(q_rad), 3, model.n_parameters))
-    for s in range(0, len(q_rad), CHUNK_POSES):
-        e = slice(s, s + CHUNK_POSES)
-        out[e] = identification_jacobian(model, q_rad[e])[1]
     return out
 
 
@@ -575,11 +530,6 @@ def identify(
     if effects is not None:
         x_full = np.concatenate([x_full, effects.start_vector()])
     x_scale = 1.0 / analysis.column_scale[free_idx]
-    fun, jac_fun = position_residuals, position_residual_jacobian
-    extra: tuple[object, ...] = ()
-    if effects is not None:
-        fun, jac_fun = effect_position_residuals, effect_position_residual_jacobian
-        extra = (effects,)
 
     weights = np.ones(len(q))
     history: list[tuple[int, float, float]] = []
@@ -597,10 +547,10 @@ def identify(
     while irls < (max_irls if loss != "linear" else 1):
         irls += 1
         sw = np.sqrt(prior * weights)
-        args = (x_full, free_idx, nominal, q, meas, sw, *extra)
+        args = (x_full, free_idx, nominal, q, meas, sw, effects)
         result = levenberg_marquardt(
-            fun,
-            jac_fun,
+            position_residuals,
+            position_residual_jacobian,
             x,
             args=args,
             x_scale=x_scale,
