@@ -50,6 +50,7 @@ from calibration.kinematics import (
     KinematicModel,
     flange_poses,
     geometric_jacobian,
+    rot_x,
 )
 
 BoolArray = NDArray[np.bool_]
@@ -205,11 +206,6 @@ class IKResult:
 
 
 # -- geometry ---------------------------------------------------------------------------
-def _rot_x(angle: float) -> FloatArray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
 def _turn_z(x: FloatArray, angle: FloatArray) -> FloatArray:
     """``Rz(angle)ᵀ · x`` for stacked 3×3 ``x`` ``(..., 3, 3)`` and ``angle`` ``(...)``.
 
@@ -300,7 +296,7 @@ class _Pieper:
         al, a, d = model.alpha_rad, model.a_mm, model.d_mm
         w3 = np.array([a[3], -np.sin(al[3]) * d[3], np.cos(al[3]) * d[3]])
         return cls(
-            pre_rot=_rot_x(al[0]),
+            pre_rot=rot_x(al[0]),
             a0=float(a[0]),
             d0=float(d[0]),
             s1=float(np.round(np.sin(al[1]))),
@@ -311,7 +307,7 @@ class _Pieper:
             phi=float(np.arctan2(w3[1], w3[0])),
             sigma4=float(np.round(np.sin(al[4]))),
             kappa=1.0 if np.cos(al[4] + al[5]) > 0 else -1.0,
-            post_rot=_rot_x(al[4] + al[5]),
+            post_rot=rot_x(al[4] + al[5]),
             d_flange=float(d[5]),
             offsets=model.theta_offset_rad.copy(),
             alpha=model.alpha_rad.copy(),

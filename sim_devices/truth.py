@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import asdict, dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -212,8 +213,9 @@ class TrueCell:
             deviations=dev,
         )
 
-    @property
+    @cached_property
     def model(self) -> KinematicModel:
+        """The true kinematic model (built once: tcp_mm and link_target_mm use it per call)."""
         return KinematicModel.from_description(self.truth)
 
     def tcp_mm(self, q_rad: ArrayLike) -> FloatArray:
