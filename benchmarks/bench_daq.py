@@ -37,6 +37,8 @@ from typing import Any
 import numpy as np
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")
+#: samples one read of the throughput benchmark's source returns at most
+MAX_READ = 20_000
 PY = sys.executable
 
 
@@ -90,7 +92,7 @@ def _sink_main(port: int, key: str, seconds: float, idle_s: float) -> None:
     session = open_session(loopback_sink(port))
     sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(1 << 16))
     print(json.dumps({"ready": True}), flush=True)
-    n = nbytes = 0
+    n = nbytes = samples = 0
     t_first = t_last = 0.0
     t_end = time.monotonic() + seconds
     while time.monotonic() < t_end:
@@ -104,11 +106,24 @@ def _sink_main(port: int, key: str, seconds: float, idle_s: float) -> None:
         if not n:
             t_first = t_last
         n += 1
-        nbytes += len(s.payload.to_bytes())
+        payload = s.payload.to_bytes()
+        nbytes += len(payload)
+        if n > 1 and payload[:4] == b"DQC1":  # not health JSON; after the first message
+            samples += int.from_bytes(payload[12:16], "little")  # the header's n_samples
     sub.undeclare()
     session.close()
     dt = max(1e-9, t_last - t_first)
-    print(json.dumps({"messages": n, "bytes": nbytes, "seconds": dt, "msg_per_s": (n - 1) / dt}))
+    print(
+        json.dumps(
+            {
+                "messages": n,
+                "bytes": nbytes,
+                "seconds": dt,
+                "msg_per_s": (n - 1) / dt,
+                "samples_per_s": samples / dt,
+            }
+        )
+    )
 
 
 def _start_sink(port: int, key: str, seconds: float, idle_s: float = 1.0) -> subprocess.Popen:
@@ -156,7 +171,13 @@ def raw_zenoh_throughput(payload: bytes, seconds: float) -> dict[str, Any]:
         session.close()
 
 
-def _cell_config(port: int, devices: int, rate_hz: float, batch: int, age_s: float) -> str:
+def _cell_config(
+    port: int, devices: int, rate_hz: float, batch: int, age_s: float, max_read: int = 0
+) -> str:
+    # with a backlog (max_read) device time lags the wall clock: no expected rate, so no
+    # time-gap counting against it
+    extra = f", max_read = {max_read}" if max_read else ""
+    declared = "" if max_read else f"rate_hz = {rate_hz}\n"
     out = [
         '[cell]\nname = "bench"\nrobot = "r1"\n',
         f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n',
@@ -165,7 +186,8 @@ def _cell_config(port: int, devices: int, rate_hz: float, batch: int, age_s: flo
     for i in range(devices):
         out.append(
             f'[[device]]\nname = "dev{i + 1}"\ndriver = "daq.testing:FakeDriver"\n'
-            f'url = "fake://{i}"\nrate_hz = {rate_hz}\noptions = {{ rate_hz = {rate_hz} }}\n'
+            f'url = "fake://{i}"\n{declared}'
+            f"options = {{ rate_hz = {rate_hz}{extra} }}\n"
         )
     return "\n".join(out)
 
@@ -216,7 +238,9 @@ def daemon_throughput(batch: int, seconds: float) -> dict[str, Any]:
     port = _free_port()
     with tempfile.TemporaryDirectory() as tmp:
         cfg = Path(tmp) / "cell.toml"
-        cfg.write_text(_cell_config(port, 1, 5e6, batch, 0.0))
+        # a source far ahead of the daemon: a growing backlog read MAX_READ samples at a
+        # time, so the daemon, not the source, sets the rate
+        cfg.write_text(_cell_config(port, 1, 1e9, batch, 0.0, max_read=MAX_READ))
         d = subprocess.Popen(
             [PY, "-m", "daq.cli", "run", "--config", str(cfg), "--duration", str(seconds + 1)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -247,16 +271,19 @@ def throughput(seconds: float, batch: int = 100) -> dict[str, Any]:
         "payload_bytes": len(payload),
         "batch_samples": batch,
         "raw_msg_per_s": raw["msg_per_s"],
+        "raw_samples_per_s": raw["samples_per_s"],
         "daemon_msg_per_s": dmn["msg_per_s"],
-        "daemon_samples_per_s": dmn["msg_per_s"] * batch,
-        "ratio": dmn["msg_per_s"] / raw["msg_per_s"],
+        "daemon_samples_per_s": dmn["samples_per_s"],
+        # samples, not messages: a daemon message may carry fewer samples than a raw one
+        "ratio": dmn["samples_per_s"] / raw["samples_per_s"],
         "daemon_cpu_fraction": dmn["cpu_fraction"],
     }
 
 
 def cell(seconds: float, emulated: bool = False) -> dict[str, Any]:
     port = _free_port()
-    text = None if emulated else _cell_config(port, 3, 1000.0, 500, 0.001)
+    # the daemon's default batching (500 samples, age 0: every read is published)
+    text = None if emulated else _cell_config(port, 3, 1000.0, 500, 0.0)
     res = _run_daemon_and_echo(text, port, seconds)
     keys = res["echo"]["keys"]
     lat_m = [v["latency_mapped_ms"] for v in keys.values() if "latency_mapped_ms" in v]
@@ -314,6 +341,8 @@ def run(quick: bool = True, emulated: bool = False) -> list[dict[str, Any]]:
                 "payload_bytes": t["payload_bytes"],
                 "daemon_msg_per_s": t["daemon_msg_per_s"],
                 "raw_msg_per_s": t["raw_msg_per_s"],
+                "daemon_samples_per_s": t["daemon_samples_per_s"],
+                "raw_samples_per_s": t["raw_samples_per_s"],
                 "ratio_vs_raw": t["ratio"],
                 "daemon_cpu": t["daemon_cpu_fraction"],
                 "note": "same payload bytes, same subscriber process, BLOCK",

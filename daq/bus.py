@@ -168,14 +168,25 @@ class ChannelPublisher:
         slices are still sent. Raises the first put error after trying them all (the
         caller records the payloads regardless)."""
         payloads = encode_slices(self.schema, columns, self.batch_seq, step)
+        if self._pub is None:
+            self.batch_seq += len(payloads)
+            self.put_errors += len(payloads)
+            raise PublishError(payloads, TransportError(f"publisher {self.key} is closed"))
+        put = self._pub.put
         error: Exception | None = None
-        for p in payloads:
+        sent = nbytes = 0
+        for p in payloads:  # per message only the put: ~10 µs of zenoh for 100 samples
             self.batch_seq += 1
             try:
-                self.put(p)
+                put(p)
             except Exception as exc:
                 self.put_errors += 1
                 error = error or exc
+            else:
+                sent += 1
+                nbytes += len(p)
+        self.messages += sent
+        self.bytes += nbytes
         if error is not None:
             raise PublishError(payloads, error) from error
         return payloads

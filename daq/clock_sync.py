@@ -194,15 +194,23 @@ class DeviceClockMap:
     def _map_unwrapped(self, dev: IntArray) -> IntArray:
         assert self._dev0 is not None
         a, b = self._fit
-        dev_s = (dev - self._dev0) * self.tick_s
-        return self._host0 + np.rint((a + b * dev_s) * 1e9).astype(np.int64) - self.latency_ns
+        # host0 + rint((a + b·(dev - dev0)·tick)·1e9) - latency, in place: called per read
+        x = (dev - self._dev0).astype(np.float64)
+        x *= b * self.tick_s * 1e9
+        x += a * 1e9
+        np.rint(x, out=x)
+        out = x.astype(np.int64)
+        out += self._host0 - self.latency_ns
+        return out
 
     # -- output ----------------------------------------------------------------------
     def map(self, device_ticks: ArrayLike) -> IntArray:
         """Host ns of raw device ticks of the current segment and wrap epoch (no update)."""
         if self._dev0 is None:
             raise RuntimeError("no samples yet: call update() first")
-        dev = np.asarray(device_ticks, dtype=np.int64) + self._wrap_base
+        dev = np.asarray(device_ticks, dtype=np.int64)
+        if self._wrap_base:
+            dev = dev + self._wrap_base
         return self._map_unwrapped(dev)
 
     def quality(self) -> ClockFitQuality:

@@ -75,7 +75,7 @@ class ZenohConfig:
 @dataclass(frozen=True)
 class PublishConfig:
     max_batch_samples: int = 500
-    max_batch_age_s: float = 0.001
+    max_batch_age_s: float = 0.0  # publish each read: a fast device's read holds many samples
     health_period_s: float = 1.0
     read_timeout_s: float = 0.002
     gil_switch_s: float = 0.0005  # sys.setswitchinterval for the daemon (0: Python's 5 ms)

@@ -64,6 +64,27 @@ def make_driver(dev: DeviceConfig) -> Any:
         raise ConfigError(f"[[device]] {dev.name!r}: key 'options': {exc}") from exc
 
 
+def keep_freed_heap(pad_bytes: int = 64 << 20) -> bool:
+    """Ask glibc to keep freed heap memory instead of returning it to the kernel.
+
+    Every published message is a fresh ``bytes`` of up to tens of kB. With glibc's
+    defaults the heap top is trimmed and grown again around each read's payloads, and
+    every regrowth page-faults: a 67 kB ``tobytes`` then costs ~30 µs instead of ~6 µs
+    (measured here). Returns False where there is no glibc ``mallopt`` (nothing changes).
+    """
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_top_pad = -1, -2
+    return bool(mallopt(m_trim_threshold, pad_bytes * 4)) and bool(mallopt(m_top_pad, pad_bytes))
+
+
 def recording_path(cfg: DaqConfig, path: str | None = None) -> Path:
     start = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     template = path or cfg.recording.path
@@ -87,6 +108,7 @@ class Daemon:
         interval = cfg.publish.gil_switch_s
         if interval > 0:
             sys.setswitchinterval(min(sys.getswitchinterval(), interval))
+        keep_freed_heap()
         self.utc_offset_ns = utc_offset_ns()
         self.session = open_session(cfg.zenoh)
         self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")

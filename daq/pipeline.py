@@ -33,6 +33,7 @@ from daq.columnar import Column, StreamSchema
 from daq.config import ChannelGroup, DaqConfig, DeviceConfig
 from daq.errors import ConfigError, TransportError
 from daq.recording import KIND_FOXGLOVE, BackgroundRecorder
+from drivers.base import SampleBatch
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +46,8 @@ SETTLED_POINTS = 8
 #: ... a plausible drift, and a tight lower envelope
 SETTLED_MAX_DRIFT_PPM = 500.0
 SETTLED_MAX_RMS_NS = 1_000_000.0
+#: rx delays kept per batch for the health percentiles (a strided subsample)
+RX_DELAY_SAMPLES = 64
 #: the clock fit is fed at most this often (the least-delayed sample since the last feed)
 CLOCK_FEED_NS = 20_000_000
 
@@ -317,14 +320,21 @@ class DeviceStream:
                             first_ns = int(batch.t_host_ns[0])
                         pending.append(batch)
                         n_pending += len(batch)
-                due = pending and (
-                    stopping
-                    or n_pending >= pub.max_batch_samples
-                    or time.monotonic_ns() - first_ns >= pub.max_batch_age_s * 1e9
-                )
-                if due:
+                if not pending:
+                    pass
+                elif stopping or time.monotonic_ns() - first_ns >= pub.max_batch_age_s * 1e9:
                     self._process(pending)
                     pending, n_pending = [], 0
+                elif n_pending >= pub.max_batch_samples:
+                    # a source ahead of us: full messages only, the rest waits for the next
+                    # read or its age (a short tail message would cost as much as a full one)
+                    whole = SampleBatch.concat(self.driver.schema, pending)
+                    cut = n_pending - n_pending % pub.max_batch_samples
+                    self._process([whole[:cut]])
+                    pending, n_pending = [], 0
+                    if cut < len(whole):
+                        pending, n_pending = [whole[cut:]], len(whole) - cut
+                        first_ns = int(whole.t_host_ns[cut])
                 if stopping:
                     break
         except BaseException as exc:  # keep the daemon up; report in health
@@ -360,7 +370,9 @@ class DeviceStream:
         n = len(seq)
         c.samples += n
         c.window_samples += n
-        c.window_rx_delay_ns.append(t_host - mapped)
+        # the health percentiles need a sample of the delays, not millions a second
+        stride = max(1, n // RX_DELAY_SAMPLES)
+        c.window_rx_delay_ns.append(t_host[::stride] - mapped[::stride])
         off = self.utc_offset_ns
         base = {
             "seq": seq,
@@ -379,6 +391,7 @@ class DeviceStream:
                 cols[col.name] = values[:, j]
             cols["status"] = status[:, idx]
             seq0 = publisher.batch_seq
+            sent0, bytes0 = publisher.messages, publisher.bytes
             errors0 = publisher.put_errors
             try:
                 payloads = publisher.publish_slices(cols, step)
@@ -396,8 +409,8 @@ class DeviceStream:
                     log.exception("%s: publish failed", schema.key)
                 continue
             t_pub = time.time_ns()
-            c.batches += len(payloads)
-            c.bytes += sum(len(p) for p in payloads)
+            c.batches += publisher.messages - sent0  # published: unsent ones are counted
+            c.bytes += publisher.bytes - bytes0  # in messages_unsent
             if self.recorder is None:
                 continue
             for k, payload in enumerate(payloads):

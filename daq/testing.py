@@ -50,12 +50,21 @@ FAKE_SCHEMA = (
 )
 
 
+_ZEROS_I32 = np.zeros(4096, np.int32)  # read-only constants, sliced per read
+_VALID = np.ones((4096, 3), np.uint16)
+_ONES_3 = np.ones(3, np.int64)
+_ZEROS_I32.flags.writeable = False
+_VALID.flags.writeable = False
+
+
 class FakeDriver(Driver):  # type: ignore[misc,valid-type]
     """A device sampling at ``rate_hz`` on its own drifting µs clock, in process.
 
     Samples are latched at host monotonic times ``t0 + k / rate``; the device clock reads
     ``start_us + (t - t0)·1e6·(1 + ppm·1e-6)``. Values are ``k`` in every channel, so
-    tests can check continuity. ``away(from_s, for_s)`` makes the link fail for a while
+    tests can check continuity. ``max_read`` caps the samples one read returns (a source
+    faster than the daemon then builds a backlog instead of ever larger reads).
+    ``away(from_s, for_s)`` makes the link fail for a while
     (the samples of that time are lost, as with an unplugged device).
     """
 
@@ -63,10 +72,16 @@ class FakeDriver(Driver):  # type: ignore[misc,valid-type]
     OPTIONS: ClassVar[dict[str, Any]] = {}
 
     def __init__(
-        self, url: str = "fake://", rate_hz: float = 1000.0, ppm: float = 30.0, **kw: Any
+        self,
+        url: str = "fake://",
+        rate_hz: float = 1000.0,
+        ppm: float = 30.0,
+        max_read: int | None = None,
+        **kw: Any,
     ) -> None:
         super().__init__(url, **kw)
         self.rate_hz = rate_hz
+        self.max_read = max_read
         self.ppm = ppm
         self.start_us = 5_000_000
         self.t0_ns = 0
@@ -116,22 +131,31 @@ class FakeDriver(Driver):  # type: ignore[misc,valid-type]
             k_end = int((now - self.t0_ns) * self.rate_hz / 1e9) + 1
             if k_end > self.k or now >= deadline_ns:
                 break
-            time.sleep(min(0.0005, max(0.0, (deadline_ns - now) / 1e9)))
+            # wake when the next sample is latched (as a device's frame would wake a read)
+            next_ns = self.t0_ns + int(self.k * 1e9 / self.rate_hz) + 1
+            time.sleep(max(0.0, (min(next_ns, deadline_ns) - now) / 1e9))
         if k_end <= self.k:
             return None
+        if self.max_read is not None:  # a device buffer read in pieces (a backlog waits)
+            k_end = min(k_end, self.k + self.max_read)
+        # few numpy calls per read: the fake device's cost should stay small beside the
+        # daemon's (a read at 1 kHz holds one sample); same numbers as truth_ns()
         k = np.arange(self.k, k_end, dtype=np.int64)
         self.k = k_end
-        t_latch = self.truth_ns(k)
-        dev_us = self.start_us + np.rint(
-            (t_latch - self.t0_ns) * 1e-3 * (1 + self.ppm * 1e-6)
-        ).astype(np.int64)
         n = len(k)
+        x = k * (1e9 / self.rate_hz)
+        np.rint(x, out=x)  # ns since t0 of each latch
+        x *= 1e-3 * (1 + self.ppm * 1e-6)
+        np.rint(x, out=x)
+        dev_us = x.astype(np.int64)
+        dev_us += self.start_us
+        const = n <= len(_ZEROS_I32)
         return SampleBatch(
             FAKE_SCHEMA,
-            k.astype(np.uint64),
+            k.view(np.uint64),
             dev_us,
-            np.zeros(n, np.int32),
+            _ZEROS_I32[:n] if const else np.zeros(n, np.int32),
             np.full(n, now, np.int64),
-            np.repeat(k[:, None], 3, axis=1),
-            np.ones((n, 3), np.uint16),
+            k[:, None] * _ONES_3,
+            _VALID[:n] if const else np.ones((n, 3), np.uint16),
         )

@@ -113,6 +113,20 @@ class SampleBatch:
     def __len__(self) -> int:
         return int(self.seq.shape[0])
 
+    def __getitem__(self, index: slice) -> SampleBatch:
+        """Samples ``index`` (a slice; views, no copy)."""
+        if not isinstance(index, slice):
+            raise TypeError(f"SampleBatch indices are slices, not {type(index).__name__}")
+        return SampleBatch(
+            self.schema,
+            self.seq[index],
+            self.t_device_us[index],
+            self.epoch[index],
+            self.t_host_ns[index],
+            self.values[index],
+            self.status[index],
+        )
+
     @classmethod
     def empty(cls, schema: BatchSchema) -> SampleBatch:
         c = schema.n_channels

@@ -165,3 +165,78 @@ def test_rows_held_by_the_driver_at_stop_are_published():
         schemas.close()
     finally:
         session.close()
+
+
+def test_a_source_ahead_gets_full_messages_and_the_tail_waits_for_its_age():
+    """Reads larger than ``max_batch_samples`` go out as full messages only; the rest
+    waits for the next read or ``max_batch_age_s``, and no sample is lost or reordered."""
+    cfg = DaqConfig()
+    cfg = replace(
+        cfg,
+        zenoh=loopback_source(free_port()),
+        publish=replace(cfg.publish, max_batch_samples=100, max_batch_age_s=0.3),
+    )
+    dev = DeviceConfig(name="d1", driver="fake", url="fake://", robot="r1", rate_hz=1000.0)
+
+    class Scripted(FakeDriver):
+        def __init__(self) -> None:
+            super().__init__()
+            self.reads = [batch(0, 250), batch(250, 130)]
+
+        def _read_batch(self, deadline_ns: int) -> SampleBatch | None:
+            if self.reads:  # received now (the age counts from the host receive time)
+                b = self.reads.pop(0)
+                return replace(b, t_host_ns=np.full(len(b), time.monotonic_ns(), np.int64))
+            time.sleep(0.002)
+            return None
+
+    session = open_session(cfg.zenoh)
+    try:
+        schemas = SchemaServer(session, "cell/cell1")
+        stop = threading.Event()
+        rec = ListRecorder()
+        st = DeviceStream(
+            cfg,
+            dev,
+            Scripted(),
+            session,
+            schemas,
+            recorder=rec,  # type: ignore[arg-type]
+            utc_offset_ns=0,
+            stop=stop,
+        )
+        t0 = time.monotonic()
+        st.start()
+        while len(rec.messages) < 3 and time.monotonic() - t0 < 5:
+            time.sleep(0.005)
+        full_at = time.monotonic() - t0
+        sizes = [int.from_bytes(data[12:16], "little") for _, data, _ in rec.messages]
+        assert sizes == [100, 100, 100]  # the 80-sample tail is held back
+        while len(rec.messages) < 4 and time.monotonic() - t0 < 5:
+            time.sleep(0.005)
+        tail_at = time.monotonic() - t0
+        stop.set()
+        st.join(5)
+        sizes = [int.from_bytes(data[12:16], "little") for _, data, _ in rec.messages]
+        assert sizes == [100, 100, 100, 80]
+        assert tail_at - full_at > 0.2  # it waited for its age (0.3 s), not for the stop
+        assert [s for _, _, s in rec.messages] == [0, 1, 2, 3]
+        assert st.counters.samples == 380 and st.counters.gaps == 0
+        assert st.counters.seq_breaks == 0
+        st.close()
+        schemas.close()
+    finally:
+        session.close()
+
+
+def test_sample_batch_slices_are_views_of_every_column():
+    b = batch(10, 6)
+    part = b[2:5]
+    assert len(part) == 3
+    assert part.seq.tolist() == [12, 13, 14]
+    assert part.values[:, 0].tolist() == [12, 13, 14] and part.status.shape == (3, 3)
+    assert np.shares_memory(part.t_host_ns, b.t_host_ns)
+    import pytest
+
+    with pytest.raises(TypeError, match="slices"):
+        b[0]  # type: ignore[index]
