@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import struct
+import sys
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -62,7 +63,10 @@ DTYPES: tuple[str, ...] = (
 
 
 def _le(dtype: str) -> np.dtype:
-    return np.dtype(dtype).newbyteorder("<")
+    d = np.dtype(dtype)
+    if sys.byteorder == "little" and d.byteorder in "=|":
+        return d  # the native singleton: encode's ``arr.dtype is dt`` check is then cheap
+    return d.newbyteorder("<")
 
 
 @dataclass(frozen=True)
@@ -249,12 +253,12 @@ def encode(schema: StreamSchema, columns: Mapping[str, ArrayLike], batch_seq: in
             raise SchemaError(f"encode {schema.key!r}: missing column {name!r}") from None
         if not isinstance(arr, np.ndarray):
             arr = np.asarray(arr)
-        if arr.shape != (n, *shape):
+        if arr.shape[1:] != shape or arr.shape[:1] != (n,):
             raise SchemaError(
                 f"encode {schema.key!r}: column {name!r} has shape {arr.shape}, "
                 f"expected {(n, *shape)}"
             )
-        if arr.dtype != dt:
+        if arr.dtype is not dt and arr.dtype != dt:
             arr = arr.astype(dt)
         parts.append(arr.tobytes())
         pad = -(n * per * size) % ALIGN

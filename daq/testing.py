@@ -52,7 +52,6 @@ FAKE_SCHEMA = (
 
 _ZEROS_I32 = np.zeros(4096, np.int32)  # read-only constants, sliced per read
 _VALID = np.ones((4096, 3), np.uint16)
-_ONES_3 = np.ones(3, np.int64)
 _ZEROS_I32.flags.writeable = False
 _VALID.flags.writeable = False
 
@@ -156,6 +155,7 @@ class FakeDriver(Driver):  # type: ignore[misc,valid-type]
             dev_us,
             _ZEROS_I32[:n] if const else np.zeros(n, np.int32),
             np.full(n, now, np.int64),
-            k[:, None] * _ONES_3,
-            _VALID[:n] if const else np.ones((n, 3), np.uint16),
+            # large reads: read-only views (broadcast), small ones: the cheaper call
+            np.broadcast_to(k[:, None], (n, 3)) if n > 64 else np.repeat(k[:, None], 3, 1),
+            _VALID[:n] if const else np.broadcast_to(_VALID[:1], (n, 3)),
         )
