@@ -174,19 +174,26 @@ class ChannelPublisher:
             raise PublishError(payloads, TransportError(f"publisher {self.key} is closed"))
         put = self._pub.put
         error: Exception | None = None
-        sent = nbytes = 0
-        for p in payloads:  # per message only the put: ~10 µs of zenoh for 100 samples
-            self.batch_seq += 1
-            try:
+        done = 0
+        try:
+            for p in payloads:  # per message nothing but the put (~6-10 µs of zenoh)
                 put(p)
-            except Exception as exc:
-                self.put_errors += 1
-                error = error or exc
-            else:
-                sent += 1
-                nbytes += len(p)
-        self.messages += sent
-        self.bytes += nbytes
+                done += 1
+        except Exception as exc:
+            error = exc
+        failed = failed_bytes = 0
+        if error is not None:  # the failed one is lost; the rest are still tried
+            failed, failed_bytes = 1, len(payloads[done])
+            for p in payloads[done + 1 :]:
+                try:
+                    put(p)
+                except Exception:
+                    failed += 1
+                    failed_bytes += len(p)
+        self.put_errors += failed
+        self.batch_seq += len(payloads)
+        self.messages += len(payloads) - failed
+        self.bytes += sum(map(len, payloads)) - failed_bytes
         if error is not None:
             raise PublishError(payloads, error) from error
         return payloads

@@ -325,7 +325,7 @@ def encode_slices(
             buf[:, off + nbytes : off + nbytes + pad] = 0
         off += nbytes + pad
         tails[name] = arr[full * step :]
-    out = [row.tobytes() for row in buf]
+    out = list(map(np.ndarray.tobytes, buf))
     if n > full * step:
         out.append(encode(schema, tails, batch_seq + full))
     return out
