@@ -151,7 +151,13 @@ def test_router_mode_and_record_process(tmp_path):
             time.sleep(1.0)
             alive = [str(r.ok.key_expr) for r in router.liveliness().get("cell/**", timeout=2)]
             t.join()
-            gone = [str(r.ok.key_expr) for r in router.liveliness().get("cell/**", timeout=1)]
+            # the undeclaration reaches the router asynchronously: wait for it (bounded)
+            deadline = time.monotonic() + 5
+            while True:
+                gone = [str(r.ok.key_expr) for r in router.liveliness().get("cell/**", timeout=1)]
+                if not gone or time.monotonic() > deadline:
+                    break
+                time.sleep(0.1)
         assert alive == ["cell/rt/robot/robot1/fake"] and gone == []  # token per device
         e_out, e_err = echo.communicate(timeout=30)
         rec.communicate(timeout=30)
