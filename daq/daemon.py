@@ -285,6 +285,9 @@ def main_run(args: Any) -> int:
                     "connect": list(cfg.zenoh.connect),
                     "recording": str(path) if path is not None else None,
                     "emulated": emulated.devices if emulated is not None else None,
+                    "emulator_t0_monotonic_ns": (
+                        emulated.t0_monotonic_ns if emulated is not None else None
+                    ),
                 }
             ),
             flush=True,

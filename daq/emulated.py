@@ -93,6 +93,13 @@ class EmulatedCell:
             raise
         return self.document()
 
+    @property
+    def t0_monotonic_ns(self) -> int | None:
+        """The emulator's truth-clock origin (host CLOCK_MONOTONIC ns), as it printed."""
+        return next(
+            (int(r["t0_monotonic_ns"]) for r in self.records if "t0_monotonic_ns" in r), None
+        )
+
     def document(self) -> dict[str, Any]:
         """A daemon configuration document (as from TOML) for the printed devices."""
         devices: list[dict[str, Any]] = []

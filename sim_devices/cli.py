@@ -216,7 +216,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
             if not conn.poll(60):
                 raise SimError(f"device process {kind} did not start")
             for rec in conn.recv():
-                print(json.dumps(rec), flush=True)
+                # the truth clock's origin on the host's CLOCK_MONOTONIC: device time
+                # t_us of a sample latched at wall second w is clock.device_us(w), and w is
+                # seconds since this instant (what a test compares mapped timestamps with)
+                print(json.dumps({**rec, "t0_monotonic_ns": round(t0 * 1e9)}), flush=True)
         end = time.monotonic() + args.duration if args.duration else None
         while not stop.is_set():
             if end is not None and time.monotonic() >= end:

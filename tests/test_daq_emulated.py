@@ -3,10 +3,10 @@ separate ``daq echo`` subscriber process on loopback.
 
 * every sample the daemon published after the subscription arrives, in order, and equals
   what was recorded;
-* the grating box's mapped timestamps follow the emulator's truth clock (a 40 ppm fast
-  device clock) to within ±2 ms once the fit has settled (``t_mapped_ok``;
-  the first seconds are a backlog catch-up: the box buffered since its start), and the
-  fitted drift is plausible;
+* every settled grating sample's mapped timestamp is within ±3 ms of the emulator's
+  truth clock (a 40 ppm fast device clock; its origin is the ``emulator_t0_monotonic_ns``
+  the daemon prints; ``t_mapped_ok`` marks settled: the first seconds are a backlog
+  catch-up, the box buffered since its start), and the fitted drift is plausible;
 * the grating box goes silent for 1 s (its FIFO keeps sampling): nothing is lost; the
   tracker's connection is reset (unplug/replug): it reconnects and the device time lost
   matches the time it was away.
@@ -119,17 +119,21 @@ def test_emulated_cell_end_to_end(tmp_path):
     assert len(grating["seq"]) >= RATE * (DURATION - 3)
 
     # mapped timestamps vs the truth clock: latch = t0 + t_dev / (1 + ppm·1e-6) on the
-    # emulator's monotonic clock, t0 its start (between our spawn and its first line)
+    # emulator's monotonic clock, t0 the origin it printed (inside our spawn ... first line)
+    t0 = int(first["emulator_t0_monotonic_ns"])
+    assert t_spawn <= t0 <= t_first_line
     off = _offset(rec_path)
-    mono = grating["t_mapped_ns"] - off
-    t0_est = mono - grating["t_device_us"] * 1e3 / (1 + PPM * 1e-6)
+    truth = t0 + grating["t_device_us"] * 1e3 / (1 + PPM * 1e-6)
+    err_ms = (grating["t_mapped_ns"] - off - truth) / 1e6
     ok = grating["t_mapped_ok"] == 1
     assert ok.mean() > 0.25  # settles after a few seconds
-    settled = t0_est[ok]
-    spread_ms = (np.percentile(settled, 99.5) - np.percentile(settled, 0.5)) / 1e6
-    # stated tolerance: ±3 ms of the truth once settled, on a busy 2-core host
-    assert spread_ms < 6.0, spread_ms
-    assert t_spawn <= np.median(settled) <= t_first_line, (t_spawn, np.median(settled))
+    # stated tolerance: every settled sample within ±3 ms of the truth, on a busy 2-core
+    # host (typically ±0.3 ms: the fit's lower envelope sits on the least-delayed reads)
+    print(
+        "grating mapped - truth, settled (ms): p0 p1 p50 p99 p100",
+        np.percentile(err_ms[ok], [0, 1, 50, 99, 100]),
+    )
+    assert np.abs(err_ms[ok]).max() <= 3.0, np.percentile(err_ms[ok], [0, 1, 50, 99, 100])
     # ~10 s of a 0.3 ms envelope pins the drift to tens of ppm only (longer runs do better)
     assert abs(hg["clock"]["drift_ppm"] + PPM) < 100, hg["clock"]
     late_ms = (grating["t_mapped_ns"][ok] - grating["t_host_rx_ns"][ok]) / 1e6
