@@ -207,6 +207,10 @@ class McapRecorder:
         self.close()
 
 
+#: how often the background writer drains its queue (s)
+DRAIN_PERIOD_S = 0.02
+
+
 class BackgroundRecorder:
     """A :class:`McapRecorder` fed through a queue by any thread, written by one thread.
 
@@ -242,6 +246,10 @@ class BackgroundRecorder:
             self._q.put((channel_id, data, log_time_ns, publish_time_ns, seq))
 
     def _run(self) -> None:
+        # wake once per DRAIN_PERIOD_S and write everything queued, not once per message
+        # (3 000 wake-ups a second on the full cell, each taking the interpreter from the
+        # acquisition threads; A/B: daemon CPU 0.68-0.79 vs 0.79-0.88 core, latency within
+        # the run-to-run noise)
         while True:
             try:
                 item = self._q.get(timeout=0.1)
@@ -249,15 +257,22 @@ class BackgroundRecorder:
                 with self._lock:
                     self.recorder.tick()
                 continue
-            if item is None:
-                return
-            backlog = self._q.qsize()
-            self.max_backlog = max(self.max_backlog, backlog)
-            with self._lock:
+            items = [item]
+            while items[-1] is not None:
                 try:
-                    self.recorder.write(*item)
-                except Exception:
-                    log.exception("recording to %s failed", self.recorder.path)
+                    items.append(self._q.get_nowait())
+                except queue.Empty:
+                    break
+            self.max_backlog = max(self.max_backlog, len(items) - 1)
+            with self._lock:
+                for it in items:
+                    if it is None:
+                        return
+                    try:
+                        self.recorder.write(*it)
+                    except Exception:
+                        log.exception("recording to %s failed", self.recorder.path)
+            time.sleep(DRAIN_PERIOD_S)
 
     def close(self) -> None:
         """Drain the queue, write the summary; safe to call twice."""
