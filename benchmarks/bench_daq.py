@@ -12,7 +12,8 @@ Every figure comes from separate processes on loopback, measured in the same run
   --stats``: the daemon's CPU (its own process, from /proc), latency device → subscriber
   p50/p99 (subscriber receive time − mapped device latch time, same host clock), and
   sample loss (sequence gaps + lost batches seen by the subscriber).
-* ``--soak S``: the cell benchmark for S seconds (the 10-minute soak: ``--soak 600``).
+* ``--soak S``: the cell benchmark for S seconds (the 10-minute soak: ``--soak 600``;
+  ``--record``: the daemon records MCAP meanwhile).
 
 Devices: the emulated cell (``sim-cell``) when ``--emulated`` is given, else in-process
 fake devices (``daq.testing.FakeDriver``: a drifting µs clock, 1 kHz, no wire).
@@ -198,9 +199,14 @@ def _cell_config(
 
 
 def _run_daemon_and_echo(
-    config_text: str | None, port: int, seconds: float, warmup_s: float = 2.0
+    config_text: str | None,
+    port: int,
+    seconds: float,
+    warmup_s: float = 2.0,
+    record: bool = False,
 ) -> dict[str, Any]:
-    """``daq run`` for ``seconds`` + ``daq echo --stats``; CPU of the daemon process."""
+    """``daq run`` for ``seconds`` + ``daq echo --stats``; CPU of the daemon process.
+    ``record``: the daemon also records every stream to an MCAP file (deleted after)."""
     with tempfile.TemporaryDirectory() as tmp:
         args = [PY, "-m", "daq.cli", "run", "--duration", str(seconds + warmup_s)]
         if config_text is not None:
@@ -208,7 +214,8 @@ def _run_daemon_and_echo(
             cfg.write_text(config_text)
             args += ["--config", str(cfg)]
         else:
-            args += ["--no-record", "--listen", f"tcp/127.0.0.1:{port}"]
+            args += ["--listen", f"tcp/127.0.0.1:{port}"]
+        args += ["--record", str(Path(tmp) / "bench.mcap")] if record else ["--no-record"]
         d = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         assert d.stdout is not None
         started = json.loads(d.stdout.readline())
@@ -301,11 +308,11 @@ def throughput(seconds: float, batch: int = 100, rounds: int = 1) -> dict[str, A
     }
 
 
-def cell(seconds: float, emulated: bool = False) -> dict[str, Any]:
+def cell(seconds: float, emulated: bool = False, record: bool = False) -> dict[str, Any]:
     port = _free_port()
     # the daemon's default batching (500 samples, age 0: every read is published)
     text = None if emulated else _cell_config(port, 3, 1000.0, 500, 0.0)
-    res = _run_daemon_and_echo(text, port, seconds)
+    res = _run_daemon_and_echo(text, port, seconds, record=record)
     keys = res["echo"]["keys"]
     lat_m = [v["latency_mapped_ms"] for v in keys.values() if "latency_mapped_ms" in v]
     lat_r = [v["latency_rx_ms"] for v in keys.values() if "latency_rx_ms" in v]
@@ -396,9 +403,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--full", action="store_true", help="longer windows")
     ap.add_argument("--soak", type=float, metavar="S", help="only the cell benchmark, S seconds")
     ap.add_argument("--emulated", action="store_true", help="the emulated cell (sim-cell)")
+    ap.add_argument("--record", action="store_true", help="--soak: the daemon also records MCAP")
     args = ap.parse_args(argv)
     if args.soak:
-        res = cell(args.soak, emulated=args.emulated)
+        res = cell(args.soak, emulated=args.emulated, record=args.record)
         res["per_key"] = {
             k.rsplit("/", 2)[-2]: {
                 f: v.get(f) for f in ("samples", "seq_gaps", "lost_batches", "unsettled")
