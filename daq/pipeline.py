@@ -321,9 +321,8 @@ class DeviceStream:
                             first_ns = int(batch.t_host_ns[0])
                         pending.append(batch)
                         n_pending += len(batch)
-                if not pending:
-                    pass
-                elif stopping or time.monotonic_ns() - first_ns >= pub.max_batch_age_s * 1e9:
+                aged = pending and time.monotonic_ns() - first_ns >= pub.max_batch_age_s * 1e9
+                if pending and (stopping or aged):
                     self._process(pending)
                     pending, n_pending = [], 0
                 elif n_pending >= pub.max_batch_samples:
