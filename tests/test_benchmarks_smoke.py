@@ -94,3 +94,15 @@ def test_main_writes_json_and_reports_failures(fake_modules, monkeypatch, tmp_pa
     assert "== bench_fake_good (quick)" in capsys.readouterr().out
     assert runner.main(["--only", "good"]) == 0
     assert runner.main(["--only", "nothing-matches"]) == 2
+
+
+def test_daq_benchmark_measures_both_sides_and_loses_nothing():
+    """The daemon benchmark's harness: raw and daemon rounds both deliver samples (counted
+    from the payload headers) and a short cell run with recording loses nothing."""
+    bench_daq = importlib.import_module("benchmarks.bench_daq")
+    t = bench_daq.throughput(1.0, batch=100, rounds=1)
+    assert t["raw_samples_per_s"] > 0 and t["daemon_samples_per_s"] > 0
+    assert t["ratio"] == pytest.approx(t["ratio_per_round"][0])
+    c = bench_daq.cell(2.0, record=True)
+    assert c["devices"] == 3 and c["samples_received"] > 3 * 1000
+    assert c["loss_samples"] == 0 and c["lost_messages"] == 0 and c["undecodable"] == 0
