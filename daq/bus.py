@@ -236,6 +236,12 @@ class Receiver:
     Samples go into a zenoh ``FifoChannel`` drained by the caller's thread (faster than a
     callback). Non-columnar samples on the key expression (health JSON) are passed to
     ``on_other`` if given, else skipped.
+
+    The schemas under ``key_expr`` are asked for *before* the subscriber is declared. A
+    schema ``get`` issued on the first data message instead, while the subscription was
+    a few ms old, coincided with 1-2 messages missing right after the first one received
+    (zenoh 1.10, in 5 of 45 subscriptions joining a running 3 kHz stream; 0 of 25 with the
+    schemas asked first). A key that appears later is still fetched on its first message.
     """
 
     def __init__(
@@ -245,12 +251,29 @@ class Receiver:
         *,
         capacity: int = 65536,
         on_other: Callable[[zenoh.Sample], None] | None = None,
+        prefetch_schemas: bool = True,
     ) -> None:
         self._session = session
-        self._sub = session.declare_subscriber(key_expr, zenoh.handlers.FifoChannel(capacity))
         self._schemas: dict[str, StreamSchema] = {}
+        if prefetch_schemas:
+            self._prefetch(key_expr)
+        self._sub = session.declare_subscriber(key_expr, zenoh.handlers.FifoChannel(capacity))
         self._on_other = on_other
         self.undecodable = 0
+
+    def _prefetch(self, key_expr: str, timeout_s: float = 2.0) -> None:
+        """Every schema the network has under ``key_expr``, asked once before subscribing."""
+        try:
+            for reply in self._session.get(schema_key(key_expr), timeout=timeout_s):
+                if reply.ok is None:
+                    continue
+                key = str(reply.ok.key_expr).removesuffix("/" + SCHEMA_SUFFIX)
+                try:
+                    self._schemas[key] = StreamSchema.loads(reply.ok.payload.to_bytes())
+                except SchemaError as exc:
+                    log.warning("bad schema for %s: %s", key, exc)
+        except Exception as exc:  # a key expression zenoh cannot extend: ask per key later
+            log.debug("schema prefetch for %s failed: %s", key_expr, exc)
 
     def schema(self, key: str) -> StreamSchema:
         s = self._schemas.get(key)

@@ -105,4 +105,12 @@ def test_daq_benchmark_measures_both_sides_and_loses_nothing():
     assert t["ratio"] == pytest.approx(t["ratio_per_round"][0])
     c = bench_daq.cell(2.0, record=True)
     assert c["devices"] == 3 and c["samples_received"] > 3 * 1000
-    assert c["loss_samples"] == 0 and c["lost_messages"] == 0 and c["undecodable"] == 0
+    lost = {k: c[k] for k in ("loss_samples", "lost_messages", "undecodable")}
+    detail = {
+        "per_key": {
+            k: {f: v.get(f) for f in ("samples", "seq_gaps", "lost_batches", "first_seq")}
+            for k, v in c["per_key"].items()
+        },
+        "daemon_side": c["daemon_side"],
+    }
+    assert lost == {"loss_samples": 0, "lost_messages": 0, "undecodable": 0}, (lost, detail)
