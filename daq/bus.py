@@ -240,8 +240,9 @@ class Receiver:
     The schemas under ``key_expr`` are asked for *before* the subscriber is declared. A
     schema ``get`` issued on the first data message instead, while the subscription was
     a few ms old, coincided with 1-2 messages missing right after the first one received
-    (zenoh 1.10, in 5 of 45 subscriptions joining a running 3 kHz stream; 0 of 25 with the
-    schemas asked first). A key that appears later is still fetched on its first message.
+    (zenoh 1.10: in 7 of ~65 subscriptions joining a running 3 kHz stream right after a
+    throughput benchmark, 0 of 20 without one; 0 of 25 after one with the schemas asked
+    first). A key that appears later is still fetched on its first message.
     """
 
     def __init__(
