@@ -219,6 +219,27 @@ def fetch_schema(session: zenoh.Session, key: str, timeout_s: float = 2.0) -> St
     raise SchemaError(f"no schema answered for {key!r} within {timeout_s}s")
 
 
+def fetch_schemas(
+    session: zenoh.Session, key_expr: str, timeout_s: float = 2.0
+) -> dict[str, StreamSchema]:
+    """Every schema the network has under ``key_expr`` (``get(<key_expr>/@schema)``), by
+    key; empty if none answers. Subscribers ask this *before* declaring their subscriber
+    (see :class:`Receiver`)."""
+    out: dict[str, StreamSchema] = {}
+    try:
+        for reply in session.get(schema_key(key_expr), timeout=timeout_s):
+            if reply.ok is None:
+                continue
+            key = str(reply.ok.key_expr).removesuffix("/" + SCHEMA_SUFFIX)
+            try:
+                out[key] = StreamSchema.loads(reply.ok.payload.to_bytes())
+            except SchemaError as exc:
+                log.warning("bad schema for %s: %s", key, exc)
+    except Exception as exc:  # a key expression zenoh cannot extend: ask per key later
+        log.debug("schema prefetch for %s failed: %s", key_expr, exc)
+    return out
+
+
 @dataclass(frozen=True)
 class Received:
     """One decoded batch: its key, header, columns and host UTC ns at reception."""
@@ -262,19 +283,8 @@ class Receiver:
         self._on_other = on_other
         self.undecodable = 0
 
-    def _prefetch(self, key_expr: str, timeout_s: float = 2.0) -> None:
-        """Every schema the network has under ``key_expr``, asked once before subscribing."""
-        try:
-            for reply in self._session.get(schema_key(key_expr), timeout=timeout_s):
-                if reply.ok is None:
-                    continue
-                key = str(reply.ok.key_expr).removesuffix("/" + SCHEMA_SUFFIX)
-                try:
-                    self._schemas[key] = StreamSchema.loads(reply.ok.payload.to_bytes())
-                except SchemaError as exc:
-                    log.warning("bad schema for %s: %s", key, exc)
-        except Exception as exc:  # a key expression zenoh cannot extend: ask per key later
-            log.debug("schema prefetch for %s failed: %s", key_expr, exc)
+    def _prefetch(self, key_expr: str) -> None:
+        self._schemas.update(fetch_schemas(self._session, key_expr))
 
     def schema(self, key: str) -> StreamSchema:
         s = self._schemas.get(key)

@@ -476,13 +476,16 @@ def main_record(args: Any, zc: Any) -> int:
 
     import zenoh
 
-    from daq.bus import fetch_schema, open_session
+    from daq.bus import fetch_schema, fetch_schemas, open_session
 
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     session = open_session(zc)
     rec = BackgroundRecorder(McapRecorder(args.output))
+    # schemas first, then the subscriber (a schema get on a young subscription coincided
+    # with lost messages: daq.bus.Receiver)
+    known = fetch_schemas(session, args.key)
     channels: dict[str, int] = {}
     sub = session.declare_subscriber(args.key, zenoh.handlers.FifoChannel(65536))
     print(json.dumps({"recording": str(rec.path), "key": args.key}), flush=True)
@@ -500,7 +503,8 @@ def main_record(args: Any, zc: Any) -> int:
                 enc = str(sample.encoding)
                 if enc.endswith(ENCODING_NAME):
                     try:
-                        cid = rec.add_columnar(fetch_schema(session, key))
+                        schema = known.get(key) or fetch_schema(session, key)
+                        cid = rec.add_columnar(schema)
                     except Exception as exc:
                         log.warning("no schema for %s, not recorded: %s", key, exc)
                         channels[key] = -1
