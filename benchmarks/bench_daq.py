@@ -146,7 +146,6 @@ def _start_sink(port: int, key: str, seconds: float, idle_s: float = 1.0) -> sub
 
 def raw_zenoh_throughput(payload: bytes, seconds: float) -> dict[str, Any]:
     """Raw pub/sub of ``payload`` over loopback: publisher here, subscriber process."""
-    ring = [payload] * 100
     import zenoh
 
     from daq.bus import open_session
@@ -165,9 +164,9 @@ def raw_zenoh_throughput(payload: bytes, seconds: float) -> dict[str, Any]:
         t_end = time.monotonic() + seconds
         sent = 0
         while time.monotonic() < t_end:  # bounded by time
-            for p in ring:
-                pub.put(p)
-            sent += len(ring)
+            for _ in range(100):
+                pub.put(payload)
+            sent += 100
         out, _ = sink.communicate(timeout=seconds + 30)
         res = json.loads(out.strip().splitlines()[-1])
         res["sent"] = sent

@@ -278,13 +278,10 @@ class Receiver:
         self._session = session
         self._schemas: dict[str, StreamSchema] = {}
         if prefetch_schemas:
-            self._prefetch(key_expr)
+            self._schemas.update(fetch_schemas(session, key_expr))
         self._sub = session.declare_subscriber(key_expr, zenoh.handlers.FifoChannel(capacity))
         self._on_other = on_other
         self.undecodable = 0
-
-    def _prefetch(self, key_expr: str) -> None:
-        self._schemas.update(fetch_schemas(self._session, key_expr))
 
     def schema(self, key: str) -> StreamSchema:
         s = self._schemas.get(key)

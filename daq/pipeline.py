@@ -182,7 +182,9 @@ class DeviceStream:
         self.stop = stop
         self.counters = Counters()
         self.groups = build_schemas(cfg, dev, driver.schema, utc_offset_ns)
-        self._in_order = [bool(np.array_equal(idx, np.arange(len(idx)))) for _, idx in self.groups]
+        # groups carrying every driver channel in order pass the status array as it is
+        n_ch = driver.schema.n_channels
+        self._all_channels = [np.array_equal(idx, np.arange(n_ch)) for _, idx in self.groups]
         cc = cfg.zenoh.congestion_control
         self.publishers = [
             ChannelPublisher(session, s, congestion=cc, schemas=schemas) for s, _ in self.groups
@@ -389,9 +391,9 @@ class DeviceStream:
             cols = dict(base)
             for j, col in zip(idx.tolist(), schema.columns[len(TIME_COLUMNS) :], strict=False):
                 cols[col.name] = values[:, j]
-            # all channels in order (the usual group): no fancy-index copy, whose result
-            # can come out column-major and cost the encoder another copy
-            whole = len(idx) == status.shape[1] and self._in_order[gi]
+            # the usual group takes no fancy-index copy (whose result can come out
+            # column-major and cost the encoder another copy)
+            whole = self._all_channels[gi]
             cols["status"] = status if whole else np.ascontiguousarray(status[:, idx])
             seq0 = publisher.batch_seq
             sent0, bytes0 = publisher.messages, publisher.bytes

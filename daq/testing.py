@@ -93,9 +93,13 @@ class FakeDriver(Driver):  # type: ignore[misc,valid-type]
 
     def truth_ns(self, seq: np.ndarray) -> np.ndarray:
         """Host monotonic ns at which samples ``seq`` were latched."""
-        return self.t0_ns + np.rint(np.asarray(seq, dtype=np.float64) * 1e9 / self.rate_hz).astype(
+        return self.t0_ns + self._latch_offset_ns(np.asarray(seq, dtype=np.float64)).astype(
             np.int64
         )
+
+    def _latch_offset_ns(self, k: np.ndarray) -> np.ndarray:
+        """ns from t0 to the latch of samples ``k`` (float, whole numbers)."""
+        return np.rint(k * (1e9 / self.rate_hz))
 
     def away(self, from_s: float, for_s: float) -> None:
         self.away_window = (from_s, for_s)
@@ -142,8 +146,7 @@ class FakeDriver(Driver):  # type: ignore[misc,valid-type]
         k = np.arange(self.k, k_end, dtype=np.int64)
         self.k = k_end
         n = len(k)
-        x = k * (1e9 / self.rate_hz)
-        np.rint(x, out=x)  # ns since t0 of each latch
+        x = self._latch_offset_ns(k)  # the same latch instants as truth_ns()
         x *= 1e-3 * (1 + self.ppm * 1e-6)
         np.rint(x, out=x)
         dev_us = x.astype(np.int64)

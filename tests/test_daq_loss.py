@@ -47,6 +47,30 @@ def batch(k0: int, n: int) -> SampleBatch:
     )
 
 
+DEV = DeviceConfig(name="d1", driver="fake", url="fake://", robot="r1", rate_hz=1000.0)
+
+
+def stream(
+    cfg: DaqConfig,
+    driver: Any,
+    session: Any,
+    schemas: SchemaServer,
+    rec: ListRecorder,
+    stop: threading.Event,
+) -> DeviceStream:
+    """The device stream of ``DEV`` on ``driver``, recording into ``rec``."""
+    return DeviceStream(
+        cfg,
+        DEV,
+        driver,
+        session,
+        schemas,
+        recorder=rec,  # type: ignore[arg-type]
+        utc_offset_ns=0,
+        stop=stop,
+    )
+
+
 class FailOnce:
     """Wraps a zenoh publisher; the ``fail_at``-th put raises."""
 
@@ -70,21 +94,11 @@ def test_failed_put_is_counted_recorded_and_seen_as_lost_batch():
         zenoh=loopback_source(free_port()),
         publish=replace(cfg.publish, max_batch_samples=4),
     )
-    dev = DeviceConfig(name="d1", driver="fake", url="fake://", robot="r1", rate_hz=1000.0)
     session = open_session(cfg.zenoh)
     try:
         schemas = SchemaServer(session, "cell/cell1")
         rec = ListRecorder()
-        st = DeviceStream(
-            cfg,
-            dev,
-            FakeDriver(),
-            session,
-            schemas,
-            recorder=rec,  # type: ignore[arg-type]
-            utc_offset_ns=0,
-            stop=threading.Event(),
-        )
+        st = stream(cfg, FakeDriver(), session, schemas, rec, threading.Event())
         recv = Receiver(session, "cell/**")
         time.sleep(0.2)
         pub = st.publishers[0]
@@ -118,7 +132,6 @@ def test_rows_held_by_the_driver_at_stop_are_published():
     """The device thread reads once more without waiting when stopping."""
     cfg = DaqConfig()
     cfg = replace(cfg, zenoh=loopback_source(free_port()))
-    dev = DeviceConfig(name="d1", driver="fake", url="fake://", robot="r1", rate_hz=1000.0)
 
     class Holding(FakeDriver):
         """Returns nothing while running; its rows come out on the final read."""
@@ -142,16 +155,7 @@ def test_rows_held_by_the_driver_at_stop_are_published():
         drv = Holding()
         drv.stop = stop
         rec = ListRecorder()
-        st = DeviceStream(
-            cfg,
-            dev,
-            drv,
-            session,
-            schemas,
-            recorder=rec,  # type: ignore[arg-type]
-            utc_offset_ns=0,
-            stop=stop,
-        )
+        st = stream(cfg, drv, session, schemas, rec, stop)
         st.start()
         deadline = time.monotonic() + 5
         while st.state != "connected" and time.monotonic() < deadline:
@@ -176,7 +180,6 @@ def test_a_source_ahead_gets_full_messages_and_the_tail_waits_for_its_age():
         zenoh=loopback_source(free_port()),
         publish=replace(cfg.publish, max_batch_samples=100, max_batch_age_s=0.3),
     )
-    dev = DeviceConfig(name="d1", driver="fake", url="fake://", robot="r1", rate_hz=1000.0)
 
     class Scripted(FakeDriver):
         def __init__(self) -> None:
@@ -195,16 +198,7 @@ def test_a_source_ahead_gets_full_messages_and_the_tail_waits_for_its_age():
         schemas = SchemaServer(session, "cell/cell1")
         stop = threading.Event()
         rec = ListRecorder()
-        st = DeviceStream(
-            cfg,
-            dev,
-            Scripted(),
-            session,
-            schemas,
-            recorder=rec,  # type: ignore[arg-type]
-            utc_offset_ns=0,
-            stop=stop,
-        )
+        st = stream(cfg, Scripted(), session, schemas, rec, stop)
         t0 = time.monotonic()
         st.start()
         while len(rec.messages) < 3 and time.monotonic() - t0 < 5:
