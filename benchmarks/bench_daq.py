@@ -4,10 +4,13 @@ Every figure comes from separate processes on loopback, measured in the same run
 
 * ``throughput``: the daemon (``daq run``, a device source producing as fast as it can,
   batches of ``B`` samples) → a subscriber process, in messages/s, against raw
-  eclipse-zenoh pub/sub of the *same payload bytes* (a publisher in this process, BLOCK
-  congestion control, the same subscriber code). Ratio = daemon / raw samples per second
-  (medians of alternating rounds with ``--full``). The daemon's source outruns it: a
-  backlog read ``MAX_READ`` samples at a time.
+  eclipse-zenoh pub/sub of the *same messages*: same payload bytes, key expression and
+  zenoh Encoding, BLOCK congestion control, from a publisher in this process, to the same
+  subscriber code subscribed to that exact key in both runs. (A wildcard subscription,
+  ``cell/**``, costs the *subscriber's* zenoh 25-40 % of its rate; were only one side to
+  use it, the ratio would measure the subscription, not the daemon.) Ratio = daemon / raw
+  samples per second (medians of alternating rounds with ``--full``). The daemon's source
+  outruns it: a backlog read ``MAX_READ`` samples at a time.
 * ``cell``: the full cell at 1 kHz per device (three devices), ``daq run`` → ``daq echo
   --stats``: the daemon's CPU (its own process, from /proc), latency device → subscriber
   p50/p99 (subscriber receive time − mapped device latch time, same host clock), and
@@ -43,6 +46,8 @@ CLK_TCK = os.sysconf("SC_CLK_TCK")
 #: samples one read of the throughput benchmark's source returns at most
 MAX_READ = 20_000
 PY = sys.executable
+#: the throughput runs' data key: the daemon's (cell "bench", robot "r1", device "dev1")
+DATA_KEY = "cell/bench/robot/r1/dev1/samples"
 
 
 def _cpu_s(pid: int) -> float:
@@ -148,15 +153,15 @@ def raw_zenoh_throughput(payload: bytes, seconds: float) -> dict[str, Any]:
     """Raw pub/sub of ``payload`` over loopback: publisher here, subscriber process."""
     import zenoh
 
-    from daq.bus import open_session
+    from daq.bus import DATA_ENCODING, open_session
     from daq.testing import loopback_source
 
     port = _free_port()
     session = open_session(loopback_source(port))
     try:
-        sink = _start_sink(port, "bench/raw", seconds + 10)
+        sink = _start_sink(port, DATA_KEY, seconds + 10)
         pub = session.declare_publisher(
-            "bench/raw", congestion_control=zenoh.CongestionControl.BLOCK
+            DATA_KEY, encoding=DATA_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
         )
         t_end = time.monotonic() + 5
         while not pub.matching_status.matching and time.monotonic() < t_end:
@@ -258,7 +263,7 @@ def daemon_throughput(batch: int, seconds: float) -> dict[str, Any]:
         )  # fmt: skip
         assert d.stdout is not None
         json.loads(d.stdout.readline())
-        sink = _start_sink(port, "cell/**", seconds + 30)
+        sink = _start_sink(port, DATA_KEY, seconds + 30)
         time.sleep(0.5)
         c0, t0 = _cpu_s(d.pid), time.monotonic()
         time.sleep(max(0.1, seconds - 1.0))
