@@ -73,6 +73,7 @@ def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
         "listen/endpoints": list(zc.listen),
         "connect/endpoints": list(zc.connect),
         "transport/shared_memory/enabled": zc.shared_memory,
+        "transport/link/tx/queue/size/data": zc.tx_queue_batches,
     }
     entries.update(zc.extra)
     for path, value in entries.items():

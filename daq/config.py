@@ -68,6 +68,10 @@ class ZenohConfig:
     gossip_scouting: bool = False
     shared_memory: bool = False
     congestion_control: str = "block"
+    #: zenoh's transmit queue for data, in batches of up to 64 KiB (zenoh allows 1-16,
+    #: default 2). The daemon puts in bursts, one read's messages back to back; a queue
+    #: that outlasts encoding the next read keeps the link busy meanwhile (docs/daq.md)
+    tx_queue_batches: int = 16
     #: extra zenoh config entries, path -> JSON value (``insert_json5``), applied last
     extra: Mapping[str, Any] = field(default_factory=dict)
 
@@ -164,11 +168,13 @@ def _number(v: Any, where: str, *, positive: bool = False, minimum: float | None
     return x
 
 
-def _integer(v: Any, where: str, *, minimum: int | None = None) -> int:
+def _integer(v: Any, where: str, *, minimum: int | None = None, maximum: int | None = None) -> int:
     if isinstance(v, bool) or not isinstance(v, int):
         raise ConfigError(f"{where}: expected an integer, got {_typename(v)} {v!r}")
     if minimum is not None and v < minimum:
         raise ConfigError(f"{where}: must be >= {minimum}, got {v!r}")
+    if maximum is not None and v > maximum:
+        raise ConfigError(f"{where}: must be <= {maximum}, got {v!r}")
     return int(v)
 
 
@@ -265,6 +271,12 @@ def _parse_zenoh(t: Mapping[str, Any], w: _Where) -> ZenohConfig:
             t.get("congestion_control", d.congestion_control),
             w("[zenoh]", "congestion_control"),
             CONGESTION,
+        ),
+        tx_queue_batches=_integer(
+            t.get("tx_queue_batches", d.tx_queue_batches),
+            w("[zenoh]", "tx_queue_batches"),
+            minimum=1,
+            maximum=16,
         ),
         extra=dict(extra),
     )

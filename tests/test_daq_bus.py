@@ -46,6 +46,7 @@ def test_config_is_loopback_only():
     assert get("scouting/gossip/enabled") is False
     assert get("listen/endpoints") == ["tcp/127.0.0.1:7447"]
     assert get("transport/shared_memory/enabled") is False
+    assert get("transport/link/tx/queue/size/data") == 16  # the daemon's bursts (docs/daq.md)
 
 
 @pytest.mark.timeout(60)

@@ -44,7 +44,7 @@ def test_defaults_and_values(tmp_path):
     assert c.cell.name == "c1"
     assert c.zenoh.mode == "peer" and c.zenoh.listen == ("tcp/127.0.0.1:17000",)
     assert not c.zenoh.multicast_scouting and not c.zenoh.gossip_scouting
-    assert c.zenoh.congestion_control == "block"
+    assert c.zenoh.congestion_control == "block" and c.zenoh.tx_queue_batches == 16
     assert c.devices[0].robot == "r1" and c.devices[0].rate_hz == 1000.0
     assert c.devices[0].joints == (1, 2, 3, 4, 5, 6)
     assert c.devices[0].options == {"unit_id": 3}
@@ -78,6 +78,10 @@ def test_precedence_args_over_env_over_file(tmp_path):
         (('path = "x.mcap"', 'compression = "gzip"'), "key 'compression': must be one of"),
         (("tcp = [", "health = ["), "'health' is reserved"),
         (('driver = "tracker_ascii"\n', ""), "#2 'tracker': key 'driver': missing"),
+        (
+            ("listen = [", "tx_queue_batches = 17\nlisten = ["),
+            "key 'tx_queue_batches': must be <= 16",
+        ),
     ],
 )
 def test_errors_name_the_key(tmp_path, patch, message):
