@@ -50,8 +50,10 @@ FAKE_SCHEMA = (
 )
 
 
-_ZEROS_I32 = np.zeros(4096, np.int32)  # read-only constants, sliced per read
-_VALID = np.ones((4096, 3), np.uint16)
+# read-only constants, sliced per read: contiguous like a real driver's arrays (a
+# broadcast status would cost the encoder a slow copy with an inner loop of 3)
+_ZEROS_I32 = np.zeros(1 << 16, np.int32)
+_VALID = np.ones((1 << 16, 3), np.uint16)
 _ZEROS_I32.flags.writeable = False
 _VALID.flags.writeable = False
 
@@ -160,5 +162,5 @@ class FakeDriver(Driver):  # type: ignore[misc,valid-type]
             np.full(n, now, np.int64),
             # large reads: read-only views (broadcast), small ones: the cheaper call
             np.broadcast_to(k[:, None], (n, 3)) if n > 64 else np.repeat(k[:, None], 3, 1),
-            _VALID[:n] if const else np.broadcast_to(_VALID[:1], (n, 3)),
+            _VALID[:n] if const else np.ones((n, 3), np.uint16),
         )
