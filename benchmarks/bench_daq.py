@@ -24,6 +24,7 @@ fake devices (``daq.testing.FakeDriver``: a drifting µs clock, 1 kHz, no wire).
     python -m benchmarks.bench_daq            # quick smoke run (~15 s)
     python -m benchmarks.bench_daq --full     # 3 alternating 5 s throughput rounds, 60 s cell
     python -m benchmarks.bench_daq --soak 600 # 10-minute soak of the cell at 1 kHz/device
+    python -m benchmarks.bench_daq --wildcard # raw zenoh: a cell/** subscriber vs the exact key
 
 ``run(quick) -> list[dict]`` is the entry point for the generic runner.
 """
@@ -149,8 +150,11 @@ def _start_sink(port: int, key: str, seconds: float, idle_s: float = 1.0) -> sub
     return p
 
 
-def raw_zenoh_throughput(payload: bytes, seconds: float) -> dict[str, Any]:
-    """Raw pub/sub of ``payload`` over loopback: publisher here, subscriber process."""
+def raw_zenoh_throughput(
+    payload: bytes, seconds: float, subscription: str = DATA_KEY
+) -> dict[str, Any]:
+    """Raw pub/sub of ``payload`` on ``DATA_KEY`` over loopback: publisher here, subscriber
+    process subscribed to ``subscription`` (the key itself, or a key expression matching it)."""
     import zenoh
 
     from daq.bus import DATA_ENCODING, open_session
@@ -159,7 +163,7 @@ def raw_zenoh_throughput(payload: bytes, seconds: float) -> dict[str, Any]:
     port = _free_port()
     session = open_session(loopback_source(port))
     try:
-        sink = _start_sink(port, DATA_KEY, seconds + 10)
+        sink = _start_sink(port, subscription, seconds + 10)
         pub = session.declare_publisher(
             DATA_KEY, encoding=DATA_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
         )
@@ -312,6 +316,23 @@ def throughput(seconds: float, batch: int = 100, rounds: int = 1) -> dict[str, A
     }
 
 
+def wildcard_cost(seconds: float, batch: int = 100, rounds: int = 3) -> dict[str, Any]:
+    """Raw pub/sub rate with the subscriber on ``cell/**`` against the exact key, in
+    alternating rounds: what a wildcard subscription costs the subscriber's zenoh."""
+    payload = _sample_payload(batch)
+    exact, wild = [], []
+    for _ in range(rounds):
+        exact.append(raw_zenoh_throughput(payload, seconds)["msg_per_s"])
+        wild.append(raw_zenoh_throughput(payload, seconds, "cell/**")["msg_per_s"])
+    return {
+        "payload_bytes": len(payload),
+        "exact_msg_per_s": float(np.median(exact)),
+        "wildcard_msg_per_s": float(np.median(wild)),
+        "ratio": float(np.median(wild)) / float(np.median(exact)),
+        "ratio_per_round": [w / e for e, w in zip(exact, wild, strict=True)],
+    }
+
+
 def cell(seconds: float, emulated: bool = False, record: bool = False) -> dict[str, Any]:
     port = _free_port()
     # the daemon's default batching (500 samples, age 0: every read is published)
@@ -408,7 +429,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--soak", type=float, metavar="S", help="only the cell benchmark, S seconds")
     ap.add_argument("--emulated", action="store_true", help="the emulated cell (sim-cell)")
     ap.add_argument("--record", action="store_true", help="--soak: the daemon also records MCAP")
+    ap.add_argument(
+        "--wildcard",
+        action="store_true",
+        help="only raw zenoh: subscriber on cell/** vs on the exact key (3 rounds of 5 s)",
+    )
     args = ap.parse_args(argv)
+    if args.wildcard:
+        print(json.dumps({"wildcard_subscription": wildcard_cost(5.0)}))
+        return 0
     if args.soak:
         res = cell(args.soak, emulated=args.emulated, record=args.record)
         res["per_key"] = {
