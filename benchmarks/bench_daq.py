@@ -25,6 +25,7 @@ fake devices (``daq.testing.FakeDriver``: a drifting µs clock, 1 kHz, no wire).
     python -m benchmarks.bench_daq --full     # 3 alternating 5 s throughput rounds, 60 s cell
     python -m benchmarks.bench_daq --soak 600 # 10-minute soak of the cell at 1 kHz/device
     python -m benchmarks.bench_daq --wildcard # raw zenoh: a cell/** subscriber vs the exact key
+    python -m benchmarks.bench_daq --full --tx-queue 2  # with zenoh's default transmit queue
 
 ``run(quick) -> list[dict]`` is the entry point for the generic runner.
 """
@@ -42,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 #: samples one read of the throughput benchmark's source returns at most
@@ -56,6 +58,13 @@ def _cpu_s(pid: int) -> float:
     with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
         fields = fh.read().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def _host_steal_s() -> float:
+    """CPU seconds the hypervisor gave to others, all CPUs (Linux /proc/stat ``steal``)."""
+    with open("/proc/stat", encoding="ascii") as fh:
+        fields = fh.readline().split()
+    return int(fields[8]) / CLK_TCK if len(fields) > 8 else 0.0
 
 
 def _free_port() -> int:
@@ -151,17 +160,23 @@ def _start_sink(port: int, key: str, seconds: float, idle_s: float = 1.0) -> sub
 
 
 def raw_zenoh_throughput(
-    payload: bytes, seconds: float, subscription: str = DATA_KEY
+    payload: bytes, seconds: float, subscription: str = DATA_KEY, tx_queue: int | None = None
 ) -> dict[str, Any]:
     """Raw pub/sub of ``payload`` on ``DATA_KEY`` over loopback: publisher here, subscriber
-    process subscribed to ``subscription`` (the key itself, or a key expression matching it)."""
+    process subscribed to ``subscription`` (the key itself, or a key expression matching it).
+    ``tx_queue``: ``[zenoh] tx_queue_batches`` (None: the daemon's default)."""
+    import dataclasses
+
     import zenoh
 
     from daq.bus import DATA_ENCODING, open_session
     from daq.testing import loopback_source
 
     port = _free_port()
-    session = open_session(loopback_source(port))
+    zc = loopback_source(port)
+    if tx_queue is not None:
+        zc = dataclasses.replace(zc, tx_queue_batches=tx_queue)
+    session = open_session(zc)
     try:
         sink = _start_sink(port, subscription, seconds + 10)
         pub = session.declare_publisher(
@@ -186,7 +201,13 @@ def raw_zenoh_throughput(
 
 
 def _cell_config(
-    port: int, devices: int, rate_hz: float, batch: int, age_s: float, max_read: int = 0
+    port: int,
+    devices: int,
+    rate_hz: float,
+    batch: int,
+    age_s: float,
+    max_read: int = 0,
+    tx_queue: int | None = None,
 ) -> str:
     # with a backlog (max_read) device time lags the wall clock: no expected rate, so no
     # time-gap counting against it
@@ -194,7 +215,8 @@ def _cell_config(
     declared = "" if max_read else f"rate_hz = {rate_hz}\n"
     out = [
         '[cell]\nname = "bench"\nrobot = "r1"\n',
-        f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n',
+        f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n'
+        + (f"tx_queue_batches = {tx_queue}\n" if tx_queue is not None else ""),
         f"[publish]\nmax_batch_samples = {batch}\nmax_batch_age_s = {age_s}\n",
     ]
     for i in range(devices):
@@ -204,6 +226,21 @@ def _cell_config(
             f"options = {{ rate_hz = {rate_hz}{extra} }}\n"
         )
     return "\n".join(out)
+
+
+def _wakeup_delays_ms(seconds: float, period_s: float = 0.001) -> NDArray[np.float64]:
+    """How late a plain ``sleep(period_s)`` wakes, in ms, over ``seconds`` (at most
+    ``seconds / period_s`` wake-ups): the host's own scheduling noise, to read the
+    daemon's latency against (a stalled host delays every process alike)."""
+    out = np.empty(int(seconds / period_s) + 1)
+    n = 0
+    t_end = time.monotonic() + seconds
+    while n < len(out) and time.monotonic() < t_end:
+        t = time.perf_counter()
+        time.sleep(period_s)
+        out[n] = (time.perf_counter() - t - period_s) * 1e3
+        n += 1
+    return out[:n]
 
 
 def _run_daemon_and_echo(
@@ -233,9 +270,9 @@ def _run_daemon_and_echo(
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
         time.sleep(warmup_s)
-        c0, t0 = _cpu_s(d.pid), time.monotonic()
-        time.sleep(max(0.0, seconds - 0.5))
-        c1, t1 = _cpu_s(d.pid), time.monotonic()
+        c0, s0, t0 = _cpu_s(d.pid), _host_steal_s(), time.monotonic()
+        wake = _wakeup_delays_ms(max(0.0, seconds - 0.5))
+        c1, s1, t1 = _cpu_s(d.pid), _host_steal_s(), time.monotonic()
         out, err = d.communicate(timeout=seconds + 60)
         e_out, e_err = e.communicate(timeout=60)
         if d.returncode != 0:
@@ -249,10 +286,16 @@ def _run_daemon_and_echo(
         "summary": summary,
         "echo": stats,
         "cpu_fraction": (c1 - c0) / (t1 - t0),
+        "steal_cores": (s1 - s0) / (t1 - t0),
+        "wakeup_late_ms": {
+            "p50": float(np.percentile(wake, 50)),
+            "p99": float(np.percentile(wake, 99)),
+            "max": float(wake.max()),
+        },
     }
 
 
-def daemon_throughput(batch: int, seconds: float) -> dict[str, Any]:
+def daemon_throughput(batch: int, seconds: float, tx_queue: int | None = None) -> dict[str, Any]:
     """``daq run`` with a source far faster than it (full batches back to back) → the same
     counting subscriber process as the raw measurement."""
     port = _free_port()
@@ -260,7 +303,7 @@ def daemon_throughput(batch: int, seconds: float) -> dict[str, Any]:
         cfg = Path(tmp) / "cell.toml"
         # a source far ahead of the daemon: a growing backlog read MAX_READ samples at a
         # time, so the daemon, not the source, sets the rate
-        cfg.write_text(_cell_config(port, 1, 1e9, batch, 0.0, max_read=MAX_READ))
+        cfg.write_text(_cell_config(port, 1, 1e9, batch, 0.0, MAX_READ, tx_queue))
         d = subprocess.Popen(
             [PY, "-m", "daq.cli", "run", "--config", str(cfg), "--duration", str(seconds + 1)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -281,18 +324,21 @@ def daemon_throughput(batch: int, seconds: float) -> dict[str, Any]:
     return res
 
 
-def throughput(seconds: float, batch: int = 100, rounds: int = 1) -> dict[str, Any]:
+def throughput(
+    seconds: float, batch: int = 100, rounds: int = 1, tx_queue: int | None = None
+) -> dict[str, Any]:
     """Daemon vs raw zenoh, ``rounds`` times each, alternating (raw, daemon, raw, ...), so
     both see the same machine; rates are the medians of the rounds (this machine swings
-    ±30 % from one window to the next)."""
+    ±30 % from one window to the next). ``tx_queue``: both sides' ``[zenoh]
+    tx_queue_batches`` (None: the default)."""
     payload = _sample_payload(batch)
     raws: list[dict[str, Any]] = []
     dmns: list[dict[str, Any]] = []
     for _ in range(rounds):
-        raws.append(raw_zenoh_throughput(payload, seconds))
-        dmn = daemon_throughput(batch, seconds)
+        raws.append(raw_zenoh_throughput(payload, seconds, tx_queue=tx_queue))
+        dmn = daemon_throughput(batch, seconds, tx_queue)
         if dmn["messages"] < 2:  # the subscriber missed the run (a stalled start): once more
-            dmn = daemon_throughput(batch, seconds)
+            dmn = daemon_throughput(batch, seconds, tx_queue)
         dmns.append(dmn)
 
     def med(runs: list[dict[str, Any]], key: str) -> float:
@@ -378,16 +424,25 @@ def cell(seconds: float, emulated: bool = False, record: bool = False) -> dict[s
         "latency_rx_p50_ms": max(x["p50"] for x in lat_r),
         "latency_rx_p99_ms": max(x["p99"] for x in lat_r),
         "daemon_cpu_fraction": res["cpu_fraction"],
+        # the host's scheduling noise meanwhile: a sleeping 1 kHz loop in this process
+        "host_wakeup_late_ms": res["wakeup_late_ms"],
+        # and CPU the hypervisor took away (cores, over all CPUs): not ours to fix
+        "host_steal_cores": res["steal_cores"],
         "daemon_side": daemon_side,
         "per_key": keys,
     }
 
 
-def run(quick: bool = True, emulated: bool = False) -> list[dict[str, Any]]:
+def run(
+    quick: bool = True, emulated: bool = False, tx_queue: int | None = None
+) -> list[dict[str, Any]]:
     """Flat rows for ``python -m benchmarks`` (quick: a smoke run of a few seconds)."""
+    from daq.config import ZenohConfig
+
+    queue = ZenohConfig().tx_queue_batches if tx_queue is None else tx_queue
     rows: list[dict[str, Any]] = []
     for batch in (100,) if quick else (100, 500, 1000):
-        t = throughput(1.5 if quick else 5.0, batch, rounds=1 if quick else 3)
+        t = throughput(1.5 if quick else 5.0, batch, rounds=1 if quick else 3, tx_queue=tx_queue)
         rows.append(
             {
                 "benchmark": f"throughput vs raw zenoh, {batch}-sample batches",
@@ -399,7 +454,8 @@ def run(quick: bool = True, emulated: bool = False) -> list[dict[str, Any]]:
                 "ratio_vs_raw": t["ratio"],
                 "ratio_per_round": t["ratio_per_round"],
                 "daemon_cpu": t["daemon_cpu_fraction"],
-                "note": "same payload bytes, same subscriber process, BLOCK",
+                "tx_queue_batches": queue,
+                "note": "same messages, same subscriber process on the exact key, BLOCK",
             }
         )
     c = cell(3.0 if quick else 60.0, emulated=emulated)
@@ -417,6 +473,8 @@ def run(quick: bool = True, emulated: bool = False) -> list[dict[str, Any]]:
             "rx_to_sub_p50_ms": c["latency_rx_p50_ms"],
             "rx_to_sub_p99_ms": c["latency_rx_p99_ms"],
             "daemon_cpu": c["daemon_cpu_fraction"],
+            "host_wakeup_late_p99_ms": c["host_wakeup_late_ms"]["p99"],
+            "host_steal_cores": c["host_steal_cores"],
             "note": "latency: subscriber receive - mapped device latch time (worst device)",
         }
     )
@@ -434,6 +492,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only raw zenoh: subscriber on cell/** vs on the exact key (3 rounds of 5 s)",
     )
+    ap.add_argument(
+        "--tx-queue",
+        type=int,
+        metavar="N",
+        help="throughput: [zenoh] tx_queue_batches of both sides (default: the daemon's)",
+    )
     args = ap.parse_args(argv)
     if args.wildcard:
         print(json.dumps({"wildcard_subscription": wildcard_cost(5.0)}))
@@ -450,7 +514,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"soak": res}, indent=1))
         lost = res["loss_samples"] + res["lost_messages"] + res["undecodable"]
         return 0 if lost == 0 else 1
-    for r in run(quick=not args.full, emulated=args.emulated):
+    for r in run(quick=not args.full, emulated=args.emulated, tx_queue=args.tx_queue):
         print(json.dumps(r))
     return 0
 
