@@ -114,3 +114,13 @@ def test_daq_benchmark_measures_both_sides_and_loses_nothing():
         "daemon_side": c["daemon_side"],
     }
     assert lost == {"loss_samples": 0, "lost_messages": 0, "undecodable": 0}, (lost, detail)
+    host = c["host_wakeup_late_ms"]
+    assert 0.0 <= host["stalled_fraction_over_5ms"] <= 1.0 and host["p50"] <= host["max"]
+    assert c["host_steal_cores"] >= 0.0
+
+
+def test_host_wakeup_probe_is_bounded_by_count_and_time():
+    bench_daq = importlib.import_module("benchmarks.bench_daq")
+    late = bench_daq._wakeup_delays_ms(0.2, period_s=0.01)
+    assert 1 <= len(late) <= 21
+    assert late.min() > -1.0  # a sleep never returns early by more than clock noise
