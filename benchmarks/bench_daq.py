@@ -382,10 +382,12 @@ def wildcard_cost(seconds: float, batch: int = 100, rounds: int = 3) -> dict[str
     }
 
 
-def cell(seconds: float, emulated: bool = False, record: bool = False) -> dict[str, Any]:
+def cell(
+    seconds: float, emulated: bool = False, record: bool = False, devices: int = 3
+) -> dict[str, Any]:
     port = _free_port()
     # the daemon's default batching (500 samples, age 0: every read is published)
-    text = None if emulated else _cell_config(port, 3, 1000.0, 500, 0.0)
+    text = None if emulated else _cell_config(port, devices, 1000.0, 500, 0.0)
     res = _run_daemon_and_echo(text, port, seconds, record=record)
     keys = res["echo"]["keys"]
     lat_m = [v["latency_mapped_ms"] for v in keys.values() if "latency_mapped_ms" in v]
@@ -491,6 +493,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--emulated", action="store_true", help="the emulated cell (sim-cell)")
     ap.add_argument("--record", action="store_true", help="--soak: the daemon also records MCAP")
     ap.add_argument(
+        "--devices", type=int, default=3, help="--soak: fake devices at 1 kHz (default 3)"
+    )
+    ap.add_argument(
         "--wildcard",
         action="store_true",
         help="only raw zenoh: subscriber on cell/** vs on the exact key (3 rounds of 5 s)",
@@ -506,7 +511,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"wildcard_subscription": wildcard_cost(5.0)}))
         return 0
     if args.soak:
-        res = cell(args.soak, emulated=args.emulated, record=args.record)
+        res = cell(args.soak, emulated=args.emulated, record=args.record, devices=args.devices)
         res["per_key"] = {
             k.rsplit("/", 2)[-2]: {
                 f: v.get(f) for f in ("samples", "seq_gaps", "lost_batches", "unsettled")
