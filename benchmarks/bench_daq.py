@@ -235,7 +235,7 @@ def _wakeup_delays_ms(seconds: float, period_s: float = 0.001) -> NDArray[np.flo
     out = np.empty(int(seconds / period_s) + 1)
     n = 0
     t_end = time.monotonic() + seconds
-    while n < len(out) and time.monotonic() < t_end:
+    while n == 0 or (n < len(out) and time.monotonic() < t_end):  # at least one wake-up
         t = time.perf_counter()
         time.sleep(period_s)
         out[n] = (time.perf_counter() - t - period_s) * 1e3
