@@ -49,8 +49,10 @@ CLK_TCK = os.sysconf("SC_CLK_TCK")
 #: samples one read of the throughput benchmark's source returns at most
 MAX_READ = 20_000
 PY = sys.executable
-#: the throughput runs' data key: the daemon's (cell "bench", robot "r1", device "dev1")
-DATA_KEY = "cell/bench/robot/r1/dev1/samples"
+#: cell and robot of the benchmark configurations (``_cell_config``)
+CELL, ROBOT = "bench", "r1"
+#: the throughput runs' data key: the daemon's first device's samples
+DATA_KEY = f"cell/{CELL}/robot/{ROBOT}/dev1/samples"
 
 
 def _cpu_s(pid: int) -> float:
@@ -214,7 +216,7 @@ def _cell_config(
     extra = f", max_read = {max_read}" if max_read else ""
     declared = "" if max_read else f"rate_hz = {rate_hz}\n"
     out = [
-        '[cell]\nname = "bench"\nrobot = "r1"\n',
+        f'[cell]\nname = "{CELL}"\nrobot = "{ROBOT}"\n',
         f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n'
         + (f"tx_queue_batches = {tx_queue}\n" if tx_queue is not None else ""),
         f"[publish]\nmax_batch_samples = {batch}\nmax_batch_age_s = {age_s}\n",
