@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+import queue
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -253,9 +254,13 @@ class Received:
 class Receiver:
     """Subscribes to a key expression and decodes columnar batches (schemas fetched once).
 
-    Samples go into a zenoh ``FifoChannel`` drained by the caller's thread (faster than a
-    callback). Non-columnar samples on the key expression (health JSON) are passed to
-    ``on_other`` if given, else skipped.
+    zenoh's callback thread hands samples to the caller's thread through a queue the
+    caller blocks on, so an idle wait costs no CPU and a sample wakes it at once (polling
+    a ``FifoChannel`` every 0.2 ms cost 0.06 core idle, and at 3 kHz of small messages
+    0.175 core against 0.133 and a p50 of 0.32 ms against 0.21 ms). At most ``capacity``
+    samples wait: beyond that the callback waits too, which holds zenoh back, as a full
+    ``FifoChannel`` would. Non-columnar samples on the key expression (health JSON) are
+    passed to ``on_other`` if given, else skipped.
 
     The schemas under ``key_expr`` are asked for *before* the subscriber is declared. A
     schema ``get`` issued on the first data message instead, while the subscription was
@@ -278,9 +283,18 @@ class Receiver:
         self._schemas: dict[str, StreamSchema] = {}
         if prefetch_schemas:
             self._schemas.update(fetch_schemas(session, key_expr))
-        self._sub = session.declare_subscriber(key_expr, zenoh.handlers.FifoChannel(capacity))
+        self._queue: queue.SimpleQueue[zenoh.Sample] = queue.SimpleQueue()
+        self._capacity = capacity
+        self._closed = False
+        self._sub = session.declare_subscriber(key_expr, zenoh.handlers.Callback(self._push))
         self._on_other = on_other
         self.undecodable = 0
+
+    def _push(self, sample: zenoh.Sample) -> None:
+        # zenoh's callback thread: a full queue waits for the reader (back-pressure)
+        while self._queue.qsize() >= self._capacity and not self._closed:
+            time.sleep(0.0005)
+        self._queue.put(sample)
 
     def schema(self, key: str) -> StreamSchema:
         s = self._schemas.get(key)
@@ -313,15 +327,19 @@ class Receiver:
         """The next decoded batch, or None after ``timeout_s`` without one."""
         deadline = time.monotonic() + timeout_s
         while True:
-            sample = self._sub.try_recv() if self._sub is not None else None
-            if sample is not None:
-                got = self._decode(sample)
-                if got is not None:
-                    return got
-                continue
-            if time.monotonic() >= deadline:
-                return None
-            time.sleep(0.0002)
+            try:
+                sample = self._queue.get_nowait()
+            except queue.Empty:
+                left = deadline - time.monotonic()
+                if left <= 0 or self._sub is None:
+                    return None
+                try:
+                    sample = self._queue.get(timeout=left)
+                except queue.Empty:
+                    return None
+            got = self._decode(sample)
+            if got is not None:
+                return got
 
     def __iter__(self) -> Iterator[Received]:
         while self._sub is not None:
@@ -331,6 +349,7 @@ class Receiver:
 
     def close(self) -> None:
         sub, self._sub = self._sub, None
+        self._closed = True  # a callback waiting for room gives up
         if sub is not None:
             sub.undeclare()
 
