@@ -166,6 +166,27 @@ class StreamSchema:
             for c in self.columns
         )
 
+    @cached_property
+    def _layouts(self) -> dict[int, tuple[int, tuple[tuple[str, np.dtype, int, int, Any], ...]]]:
+        return {}
+
+    def layout(self, n: int) -> tuple[int, tuple[tuple[str, np.dtype, int, int, Any], ...]]:
+        """Payload bytes of ``n`` samples, and per column: name, dtype, value count, byte
+        offset and array shape (None: ``(n,)`` as read). Cached per ``n``: a stream's
+        messages come in a few sizes, and decoding a 1-sample message is mostly this."""
+        got = self._layouts.get(n)
+        if got is None:
+            cols = []
+            offset = HEADER.size
+            for name, dt, shape, per, size in self.plan:
+                count = n * per
+                cols.append((name, dt, count, offset, (n, *shape) if shape else None))
+                offset += _padded(count * size)
+            got = (offset, tuple(cols))
+            if len(self._layouts) < 64:  # bounded: sizes beyond that are computed each time
+                self._layouts[n] = got
+        return got
+
     def column(self, name: str) -> Column:
         for c in self.columns:
             if c.name == name:
@@ -353,17 +374,14 @@ def decode(
             f"!= {schema.schema_id:#010x} (stale schema?)"
         )
     n = header.n_samples
-    expected = payload_size(schema, n)
+    expected, cols = schema.layout(n)
     if len(payload) != expected:
         raise SchemaError(
             f"decode {schema.key!r}: payload is {len(payload)} bytes, expected {expected} "
             f"for {n} samples"
         )
     out: dict[str, NDArray[Any]] = {}
-    offset = HEADER.size
-    for name, dt, shape, per, size in schema.plan:
-        count = n * per
+    for name, dt, count, offset, shape in cols:
         arr = np.frombuffer(payload, dtype=dt, count=count, offset=offset)
-        out[name] = arr.reshape((n, *shape))
-        offset += _padded(count * size)
+        out[name] = arr if shape is None else arr.reshape(shape)
     return header, out

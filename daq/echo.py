@@ -16,11 +16,43 @@ from dataclasses import dataclass, field
 from typing import IO, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from daq.bus import Receiver, open_session
 from daq.config import ZenohConfig
 
 LATENCY_KEEP = 2_000_000  # latency values kept per key for the percentiles (bounded memory)
+
+
+class LatencySeries:
+    """Latencies in ns, appended one message at a time into a buffer that doubles as it
+    fills, up to ``LATENCY_KEEP`` values (a list of per-message arrays cost an allocation
+    and a concatenate per message; a 1 kHz stream sends one sample a message)."""
+
+    def __init__(self) -> None:
+        self._buf = np.empty(4096, np.int64)
+        self.n = 0
+
+    def _room(self, k: int) -> int:
+        k = min(k, LATENCY_KEEP - self.n)
+        if self.n + k > len(self._buf):
+            grown = np.empty(min(LATENCY_KEEP, max(2 * len(self._buf), self.n + k)), np.int64)
+            grown[: self.n] = self._buf[: self.n]
+            self._buf = grown
+        return k
+
+    def add_one(self, value_ns: int) -> None:
+        if self._room(1):
+            self._buf[self.n] = value_ns
+            self.n += 1
+
+    def add(self, values_ns: NDArray[np.int64]) -> None:
+        k = self._room(len(values_ns))
+        self._buf[self.n : self.n + k] = values_ns[:k]
+        self.n += k
+
+    def values(self) -> NDArray[np.int64]:
+        return self._buf[: self.n]
 
 
 @dataclass
@@ -37,9 +69,8 @@ class KeyStats:
     last_batch: int | None = None
     last_t_mapped: int | None = None
     last_epoch: int | None = None
-    lat_mapped_ns: list[np.ndarray] = field(default_factory=list)
-    lat_rx_ns: list[np.ndarray] = field(default_factory=list)
-    kept: int = 0
+    lat_mapped: LatencySeries = field(default_factory=LatencySeries)
+    lat_rx: LatencySeries = field(default_factory=LatencySeries)
 
     def add(self, header: Any, cols: dict[str, np.ndarray], t_recv_ns: int) -> None:
         self.batches += 1
@@ -49,6 +80,8 @@ class KeyStats:
             self.lost_batches += max(0, header.batch_seq - self.last_batch - 1)
         self.last_batch = header.batch_seq
         if n == 0 or "seq" not in cols:
+            return
+        if n == 1 and self._add_one(cols, t_recv_ns):
             return
         seq = cols["seq"].astype(np.int64)
         epoch = cols["epoch"].astype(np.int64) if "epoch" in cols else np.zeros(n, np.int64)
@@ -68,15 +101,35 @@ class KeyStats:
             dt = np.diff(np.concatenate([[prev_t], tm]))
             self.out_of_order += int(np.sum(same & (dt < 0)))
             self.last_t_mapped = int(tm[-1])
-            if self.kept < LATENCY_KEEP:
-                if "t_mapped_ok" in cols:  # a provisional clock fit says nothing of latency
-                    ok = cols["t_mapped_ok"] == 1
-                    self.unsettled += int(n - np.count_nonzero(ok))
-                    tm = tm[ok]
-                self.lat_mapped_ns.append(t_recv_ns - tm)
-                if "t_host_rx_ns" in cols:
-                    self.lat_rx_ns.append(t_recv_ns - cols["t_host_rx_ns"].astype(np.int64))
-                self.kept += n
+            if "t_mapped_ok" in cols:  # a provisional clock fit says nothing of latency
+                ok = cols["t_mapped_ok"] == 1
+                self.unsettled += int(n - np.count_nonzero(ok))
+                tm = tm[ok]
+            self.lat_mapped.add(t_recv_ns - tm)
+            if "t_host_rx_ns" in cols:
+                self.lat_rx.add(t_recv_ns - cols["t_host_rx_ns"].astype(np.int64))
+
+    def _add_one(self, cols: dict[str, np.ndarray], t_recv_ns: int) -> bool:
+        """One sample following the last in the same epoch, in Python ints (the usual
+        message of a 1 kHz device); False: anything else, for the general path."""
+        ep = int(cols["epoch"][0]) if "epoch" in cols else 0
+        s = int(cols["seq"][0])
+        if self.last_seq is None or ep != self.last_epoch or s != self.last_seq + 1:
+            return False
+        self.last_seq = s
+        if "t_mapped_ns" not in cols:
+            return True
+        tm = int(cols["t_mapped_ns"][0])
+        if self.last_t_mapped is not None and tm < self.last_t_mapped:
+            self.out_of_order += 1
+        self.last_t_mapped = tm
+        if "t_mapped_ok" in cols and int(cols["t_mapped_ok"][0]) != 1:
+            self.unsettled += 1
+        else:
+            self.lat_mapped.add_one(t_recv_ns - tm)
+        if "t_host_rx_ns" in cols:
+            self.lat_rx.add_one(t_recv_ns - int(cols["t_host_rx_ns"][0]))
+        return True
 
     def summary(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -93,9 +146,9 @@ class KeyStats:
                 "last_seq",
             )
         }
-        lat = (("latency_mapped_ms", self.lat_mapped_ns), ("latency_rx_ms", self.lat_rx_ns))
-        for name, parts in lat:
-            v = np.concatenate(parts) / 1e6 if parts else np.empty(0)
+        lat = (("latency_mapped_ms", self.lat_mapped), ("latency_rx_ms", self.lat_rx))
+        for name, series in lat:
+            v = series.values() / 1e6
             if v.size:
                 out[name] = {
                     "p50": float(np.percentile(v, 50)),

@@ -1,0 +1,160 @@
+"""The subscriber side: ``Receiver`` hands samples over without polling and holds zenoh
+back when its queue is full; ``daq echo``'s per-key statistics give the same counts on
+the one-sample fast path as on the general path; latency series stay bounded."""
+
+from __future__ import annotations
+
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import daq.echo as echo
+from daq.bus import ChannelPublisher, Receiver, SchemaServer, open_session
+from daq.columnar import Column, StreamSchema
+from daq.echo import KeyStats, LatencySeries
+from daq.testing import free_port, loopback_sink, loopback_source
+
+KEY = "cell/s/robot/r/dev/ch"
+SCHEMA = StreamSchema(
+    KEY,
+    (
+        Column("seq", "uint64"),
+        Column("epoch", "int32"),
+        Column("t_mapped_ns", "int64", unit="ns", clock="host_utc"),
+        Column("t_mapped_ok", "uint8"),
+    ),
+)
+
+
+def _cols(seq: list[int], epoch: list[int], t: list[int], ok: list[int]) -> dict[str, np.ndarray]:
+    return {
+        "seq": np.array(seq, np.uint64),
+        "epoch": np.array(epoch, np.int32),
+        "t_mapped_ns": np.array(t, np.int64),
+        "t_mapped_ok": np.array(ok, np.uint8),
+    }
+
+
+def test_receiver_gets_every_message_in_order_through_a_full_queue():
+    """capacity 4 against 200 messages sent at once: the callback waits for room, so
+    nothing is dropped and order holds; an idle receive returns None after its timeout."""
+    port = free_port()
+    src = open_session(loopback_source(port))
+    dst = open_session(loopback_sink(port))
+    try:
+        schemas = SchemaServer(src, "cell/s")
+        pub = ChannelPublisher(src, SCHEMA, schemas=schemas)
+        recv = Receiver(dst, "cell/s/**", capacity=4)
+        time.sleep(0.5)  # subscription known to the publisher's session
+        for k in range(200):
+            pub.publish(_cols([k], [0], [k], [1]))
+        got = []
+        t_end = time.monotonic() + 20
+        while len(got) < 200 and time.monotonic() < t_end:
+            r = recv.receive(0.5)
+            if r is not None:
+                got.append(int(r.columns["seq"][0]))
+                time.sleep(0.001)  # a slow reader: the queue fills
+        assert got == list(range(200))
+        t0 = time.monotonic()
+        assert recv.receive(0.2) is None
+        assert 0.15 <= time.monotonic() - t0 < 2.0
+        recv.close()
+        assert recv.receive(0.0) is None
+    finally:
+        dst.close()
+        src.close()
+
+
+def test_close_releases_a_callback_waiting_for_room():
+    rec = Receiver.__new__(Receiver)  # the queue logic alone, no session
+    import queue
+
+    rec._queue = queue.SimpleQueue()
+    rec._capacity = 1
+    rec._closed = False
+    rec._push("a")
+    done = threading.Event()
+    th = threading.Thread(target=lambda: (rec._push("b"), done.set()), daemon=True)
+    th.start()
+    assert not done.wait(0.1)  # full: the second push waits
+    rec._closed = True
+    assert done.wait(2.0)
+
+
+def test_latency_series_grows_and_stays_bounded(monkeypatch):
+    monkeypatch.setattr(echo, "LATENCY_KEEP", 10_000)
+    s = LatencySeries()
+    for k in range(3000):
+        s.add_one(k)
+    s.add(np.arange(3000, 9000, dtype=np.int64))
+    assert np.array_equal(s.values(), np.arange(9000))
+    s.add(np.arange(9000, 12000, dtype=np.int64))  # only 1000 fit
+    s.add_one(-1)
+    assert s.n == 10_000 and np.array_equal(s.values(), np.arange(10_000))
+
+
+def _general(stats: KeyStats, header: SimpleNamespace, cols: dict, t_recv: int) -> None:
+    """The vectorised path, even for one sample."""
+    orig = KeyStats._add_one
+    try:
+        KeyStats._add_one = lambda self, c, t: False  # type: ignore[method-assign]
+        stats.add(header, cols, t_recv)
+    finally:
+        KeyStats._add_one = orig  # type: ignore[method-assign]
+
+
+# one-sample messages: seq step (0 = repeat, 1 = next, more = gap), epoch bump, time
+# step (may go back), settled flag
+_message = st.tuples(
+    st.integers(-1, 3),
+    st.booleans(),
+    st.sampled_from([-5, -1, 0, 1, 1000]),
+    st.booleans(),
+    st.booleans(),
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(_message, min_size=1, max_size=40))
+def test_one_sample_fast_path_counts_like_the_general_path(msgs):
+    fast, slow = KeyStats(), KeyStats()
+    seq, ep, t = 100, 0, 10**15
+    for bseq, (dseq, bump, dt, ok, lost_batch) in enumerate(msgs):
+        ep += bump
+        seq = max(0, seq + dseq)
+        t += dt
+        h = SimpleNamespace(n_samples=1, batch_seq=2 * bseq if lost_batch else bseq)
+        cols = _cols([seq], [ep], [t], [int(ok)])
+        t_recv = t + 1000 + bseq
+        fast.add(h, cols, t_recv)
+        _general(slow, h, cols, t_recv)
+    for f in (
+        "batches",
+        "samples",
+        "lost_batches",
+        "seq_gaps",
+        "seq_breaks",
+        "out_of_order",
+        "unsettled",
+        "first_seq",
+        "last_seq",
+        "last_epoch",
+        "last_t_mapped",
+    ):
+        assert getattr(fast, f) == getattr(slow, f), f
+    assert np.array_equal(fast.lat_mapped.values(), slow.lat_mapped.values())
+
+
+def test_summary_reports_latency_of_settled_samples_only():
+    s = KeyStats()
+    s.add(SimpleNamespace(n_samples=2, batch_seq=0), _cols([1, 2], [0, 0], [0, 0], [0, 1]), 10**6)
+    s.add(SimpleNamespace(n_samples=1, batch_seq=1), _cols([3], [0], [0], [1]), 3 * 10**6)
+    out = s.summary()
+    assert out["unsettled"] == 1 and out["latency_mapped_ms"]["n"] == 2
+    assert out["latency_mapped_ms"]["max"] == pytest.approx(3.0)
