@@ -149,15 +149,104 @@ def _sink_main(port: int, key: str, seconds: float, idle_s: float) -> None:
 
 
 def _start_sink(port: int, key: str, seconds: float, idle_s: float = 1.0) -> subprocess.Popen:
-    code = (
-        "import sys; from benchmarks.bench_daq import _sink_main; "
-        f"_sink_main({port}, {key!r}, {seconds}, {idle_s})"
+    return _start_main(f"_sink_main({port}, {key!r}, {seconds}, {idle_s})")
+
+
+# -- raw zenoh latency reference (two separate processes) ----------------------------------
+
+
+def _ref_pub_main(port: int, seconds: float, size: int, rate_hz: float, keys: int) -> None:
+    """``keys`` streams at ``rate_hz``: at each tick, one ``size``-byte message per key
+    carrying the tick's host UTC ns (the "latch") and a counter. No encoding, no clock
+    map: what a minimal Python publisher on zenoh achieves on this host right now."""
+    import zenoh
+
+    from daq.bus import open_session, utc_offset_ns
+    from daq.testing import loopback_source
+
+    session = open_session(loopback_source(port))
+    pubs = [
+        session.declare_publisher(
+            f"ref/{CELL}/dev{i + 1}", congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        for i in range(keys)
+    ]
+    print(json.dumps({"ready": True}), flush=True)
+    off = utc_offset_ns()
+    pad = bytes(max(0, size - 16))
+    period_ns = int(1e9 / rate_hz)
+    t0 = time.monotonic_ns()
+    n_max = int(seconds * rate_hz)
+    for k in range(n_max):  # bounded by count (and so by time)
+        tick = t0 + k * period_ns
+        wait = (tick - time.monotonic_ns()) / 1e9
+        if wait > 0:
+            time.sleep(wait)
+        head = (tick + off).to_bytes(8, "little") + k.to_bytes(8, "little")
+        for p in pubs:
+            p.put(head + pad)
+    time.sleep(0.5)
+    session.close()
+
+
+def _ref_sub_main(port: int, seconds: float, idle_s: float) -> None:
+    """Latency of ``_ref_pub_main``'s messages: receive time − tick time, and losses."""
+    import queue
+
+    import zenoh
+
+    from daq.bus import open_session
+    from daq.testing import loopback_sink
+
+    session = open_session(loopback_sink(port))
+    q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+    sub = session.declare_subscriber(f"ref/{CELL}/**", zenoh.handlers.Callback(q.put))
+    print(json.dumps({"ready": True}), flush=True)
+    lat = np.empty(int(seconds * 1000 * 8) + 1, np.int64)  # up to 8 kHz of messages
+    n = lost = 0
+    last: dict[str, int] = {}
+    t_end = time.monotonic() + seconds
+    t_last = time.monotonic()
+    while time.monotonic() < t_end and n < len(lat):
+        try:
+            s = q.get(timeout=0.05)
+        except queue.Empty:
+            if n and time.monotonic() - t_last > idle_s:
+                break
+            continue
+        t = time.time_ns()
+        t_last = time.monotonic()
+        b = s.payload.to_bytes()
+        key = str(s.key_expr)
+        k = int.from_bytes(b[8:16], "little")
+        lost += max(0, k - last.get(key, k - 1) - 1)
+        last[key] = k
+        lat[n] = t - int.from_bytes(b[:8], "little")
+        n += 1
+    sub.undeclare()
+    session.close()
+    v = lat[:n] / 1e6
+    print(
+        json.dumps(
+            {
+                "messages": n,
+                "lost": lost,
+                "p50": float(np.percentile(v, 50)) if n else None,
+                "p99": float(np.percentile(v, 99)) if n else None,
+                "max": float(v.max()) if n else None,
+            }
+        )
     )
+
+
+def _start_main(call: str) -> subprocess.Popen:
+    """``python -c`` of a function of this module (it prints a ready line first)."""
+    code = f"import benchmarks.bench_daq as b; b.{call}"
     p = subprocess.Popen(
         [PY, "-c", code], stdout=subprocess.PIPE, text=True, cwd=Path(__file__).parents[1]
     )
     assert p.stdout is not None
-    json.loads(p.stdout.readline())  # ready
+    json.loads(p.stdout.readline())
     return p
 
 
@@ -251,9 +340,12 @@ def _run_daemon_and_echo(
     seconds: float,
     warmup_s: float = 2.0,
     record: bool = False,
+    reference: int = 0,
 ) -> dict[str, Any]:
     """``daq run`` for ``seconds`` + ``daq echo --stats``; CPU of the daemon process.
-    ``record``: the daemon also records every stream to an MCAP file (deleted after)."""
+    ``record``: the daemon also records every stream to an MCAP file (deleted after).
+    ``reference``: meanwhile, that many raw zenoh streams at 1 kHz between two other
+    processes (``_ref_pub_main``), whose latency the same host noise shapes."""
     with tempfile.TemporaryDirectory() as tmp:
         args = [PY, "-m", "daq.cli", "run", "--duration", str(seconds + warmup_s)]
         if config_text is not None:
@@ -264,26 +356,50 @@ def _run_daemon_and_echo(
             args += ["--listen", f"tcp/127.0.0.1:{port}"]
         args += ["--record", str(Path(tmp) / "bench.mcap")] if record else ["--no-record"]
         d = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        assert d.stdout is not None
-        started = json.loads(d.stdout.readline())
-        e = subprocess.Popen(
-            [PY, "-m", "daq.cli", "echo", "cell/**", "--stats", "--idle", "3",
-             "--duration", str(seconds + warmup_s + 30), "--connect", f"tcp/127.0.0.1:{port}"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        time.sleep(warmup_s)
-        c0, s0, t0 = _cpu_s(d.pid), _host_steal_s(), time.monotonic()
-        wake = _wakeup_delays_ms(max(0.0, seconds - 0.5))
-        c1, s1, t1 = _cpu_s(d.pid), _host_steal_s(), time.monotonic()
-        out, err = d.communicate(timeout=seconds + 60)
-        e_out, e_err = e.communicate(timeout=60)
-        if d.returncode != 0:
-            raise RuntimeError(f"daq run failed: {err[-2000:]}")
-        if not e_out.strip():
-            raise RuntimeError(f"daq echo failed: {e_err[-2000:]}")
-        stats = json.loads(e_out.strip().splitlines()[-1])
-        summary = json.loads(out.strip().splitlines()[-1])
+        procs = [d]
+        try:
+            assert d.stdout is not None
+            started = json.loads(d.stdout.readline())
+            e = subprocess.Popen(
+                [PY, "-m", "daq.cli", "echo", "cell/**", "--stats", "--idle", "3",
+                 "--duration", str(seconds + warmup_s + 30), "--connect", f"tcp/127.0.0.1:{port}"],
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            )  # fmt: skip
+            procs.append(e)
+            ref: list[subprocess.Popen] = []
+            if reference:
+                rport = _free_port()
+                span = seconds + warmup_s
+                size = len(_sample_payload(1))  # a daemon message of one sample
+                ref.append(_start_main(f"_ref_sub_main({rport}, {span + 30}, 3.0)"))
+                procs.append(ref[0])
+                call = f"_ref_pub_main({rport}, {span}, {size}, 1000.0, {reference})"
+                ref.append(_start_main(call))
+                procs.append(ref[1])
+            time.sleep(warmup_s)
+            c0, s0, t0 = _cpu_s(d.pid), _host_steal_s(), time.monotonic()
+            wake = _wakeup_delays_ms(max(0.0, seconds - 0.5))
+            c1, s1, t1 = _cpu_s(d.pid), _host_steal_s(), time.monotonic()
+            out, err = d.communicate(timeout=seconds + 60)
+            e_out, e_err = e.communicate(timeout=60)
+            if d.returncode != 0:
+                raise RuntimeError(f"daq run failed: {err[-2000:]}")
+            if not e_out.strip():
+                raise RuntimeError(f"daq echo failed: {e_err[-2000:]}")
+            stats = json.loads(e_out.strip().splitlines()[-1])
+            summary = json.loads(out.strip().splitlines()[-1])
+            ref_stats = None
+            if ref:
+                ref[1].communicate(timeout=60)
+                r_out, _ = ref[0].communicate(timeout=60)
+                ref_stats = json.loads(r_out.strip().splitlines()[-1])
+        finally:  # a failed step leaves no process behind
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
     return {
+        "raw_reference": ref_stats,
         "started": started,
         "summary": summary,
         "echo": stats,
@@ -385,12 +501,20 @@ def wildcard_cost(seconds: float, batch: int = 100, rounds: int = 3) -> dict[str
 
 
 def cell(
-    seconds: float, emulated: bool = False, record: bool = False, devices: int = 3
+    seconds: float,
+    emulated: bool = False,
+    record: bool = False,
+    devices: int = 3,
+    reference: bool = False,
 ) -> dict[str, Any]:
+    """``reference``: raw zenoh streams at 1 kHz, one per device, run meanwhile between
+    two other processes: the latency this host allows a minimal Python pub/sub now."""
     port = _free_port()
     # the daemon's default batching (500 samples, age 0: every read is published)
     text = None if emulated else _cell_config(port, devices, 1000.0, 500, 0.0)
-    res = _run_daemon_and_echo(text, port, seconds, record=record)
+    res = _run_daemon_and_echo(
+        text, port, seconds, record=record, reference=devices if reference else 0
+    )
     keys = res["echo"]["keys"]
     lat_m = [v["latency_mapped_ms"] for v in keys.values() if "latency_mapped_ms" in v]
     lat_r = [v["latency_rx_ms"] for v in keys.values() if "latency_rx_ms" in v]
@@ -435,6 +559,8 @@ def cell(
         "host_wakeup_late_ms": res["wakeup_late_ms"],
         # and CPU the hypervisor took away (cores, over all CPUs): not ours to fix
         "host_steal_cores": res["steal_cores"],
+        # raw zenoh at the same rates meanwhile (None: not run): the host's latency floor
+        "raw_reference_latency_ms": res["raw_reference"],
         "daemon_side": daemon_side,
         "per_key": keys,
     }
@@ -465,7 +591,7 @@ def run(
                 "note": "same messages, same subscriber process on the exact key, BLOCK",
             }
         )
-    c = cell(3.0 if quick else 60.0, emulated=emulated)
+    c = cell(3.0 if quick else 60.0, emulated=emulated, reference=not quick)
     rows.append(
         {
             "benchmark": "cell 3 devices at 1 kHz, "
@@ -482,6 +608,7 @@ def run(
             "daemon_cpu": c["daemon_cpu_fraction"],
             "host_wakeup_late_p99_ms": c["host_wakeup_late_ms"]["p99"],
             "host_steal_cores": c["host_steal_cores"],
+            "raw_zenoh_p99_ms": (c["raw_reference_latency_ms"] or {}).get("p99"),
             "note": "latency: subscriber receive - mapped device latch time (worst device)",
         }
     )
@@ -496,6 +623,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--record", action="store_true", help="--soak: the daemon also records MCAP")
     ap.add_argument(
         "--devices", type=int, default=3, help="--soak: fake devices at 1 kHz (default 3)"
+    )
+    ap.add_argument(
+        "--no-reference",
+        action="store_true",
+        help="--soak: without the raw zenoh latency reference run alongside",
     )
     ap.add_argument(
         "--wildcard",
@@ -513,7 +645,13 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"wildcard_subscription": wildcard_cost(5.0)}))
         return 0
     if args.soak:
-        res = cell(args.soak, emulated=args.emulated, record=args.record, devices=args.devices)
+        res = cell(
+            args.soak,
+            emulated=args.emulated,
+            record=args.record,
+            devices=args.devices,
+            reference=not args.no_reference,
+        )
         res["per_key"] = {
             k.rsplit("/", 2)[-2]: {
                 f: v.get(f) for f in ("samples", "seq_gaps", "lost_batches", "unsettled")

@@ -98,12 +98,13 @@ def test_main_writes_json_and_reports_failures(fake_modules, monkeypatch, tmp_pa
 
 def test_daq_benchmark_measures_both_sides_and_loses_nothing():
     """The daemon benchmark's harness: raw and daemon rounds both deliver samples (counted
-    from the payload headers) and a short cell run with recording loses nothing."""
+    from the payload headers), a short cell run with recording loses nothing, and the raw
+    zenoh latency reference run alongside it delivers every message."""
     bench_daq = importlib.import_module("benchmarks.bench_daq")
     t = bench_daq.throughput(1.0, batch=100, rounds=1)
     assert t["raw_samples_per_s"] > 0 and t["daemon_samples_per_s"] > 0
     assert t["ratio"] == pytest.approx(t["ratio_per_round"][0])
-    c = bench_daq.cell(2.0, record=True)
+    c = bench_daq.cell(2.0, record=True, reference=True)
     assert c["devices"] == 3 and c["samples_received"] > 3 * 1000
     lost = {k: c[k] for k in ("loss_samples", "lost_messages", "undecodable")}
     detail = {
@@ -117,6 +118,9 @@ def test_daq_benchmark_measures_both_sides_and_loses_nothing():
     host = c["host_wakeup_late_ms"]
     assert 0.0 <= host["stalled_fraction_over_5ms"] <= 1.0 and host["p50"] <= host["max"]
     assert c["host_steal_cores"] >= 0.0
+    ref = c["raw_reference_latency_ms"]  # raw zenoh streams alongside, one per device
+    assert ref["messages"] > 3 * 1000 and ref["lost"] == 0, ref
+    assert 0.0 < ref["p50"] <= ref["p99"] <= ref["max"]
 
 
 def test_host_wakeup_probe_is_bounded_by_count_and_time():
