@@ -135,6 +135,56 @@ def build_schemas(
     return out
 
 
+def recorder_meta(s: StreamSchema) -> dict[str, str]:
+    """An MCAP channel's metadata: the schema's scalar meta entries, as strings."""
+    return {k: str(v) for k, v in s.meta.items() if not isinstance(v, dict | list)}
+
+
+FoxgloveChannel = tuple[int, str, tuple[str, str, str]]
+
+
+def add_foxglove_channels(
+    recorder: BackgroundRecorder, dev: DeviceConfig, s: StreamSchema
+) -> list[FoxgloveChannel]:
+    """The Foxglove channel derived from ``s`` (points or poses), if the device has one."""
+    kind = dev.foxglove
+    xyz = foxglove.xyz_columns(list(s.names))
+    if kind == "none" or xyz is None:
+        if kind in ("points", "poses"):
+            log.warning("%s: foxglove=%s but no x_mm/y_mm/z_mm columns", s.key, kind)
+        return []
+    name = foxglove.POSES_IN_FRAME if kind == "poses" else foxglove.POINT_CLOUD
+    suffix = "poses" if kind == "poses" else "points"
+    cid = recorder.add_json(
+        f"{s.key}/{suffix}",
+        name,
+        foxglove.schema_bytes(name),
+        {"daq.kind": KIND_FOXGLOVE, "derived_from": s.key, "frame_id": dev.frame_id},
+    )
+    return [(cid, name, xyz)]
+
+
+def write_foxglove(
+    recorder: BackgroundRecorder,
+    fox: list[FoxgloveChannel],
+    dev: DeviceConfig,
+    cols: dict[str, Any],
+    a: int,
+    b: int,
+    t_pub: int,
+) -> None:
+    """Samples ``a:b`` of ``cols`` as one message on each Foxglove channel in ``fox``."""
+    for cid, name, (x, y, z) in fox:
+        xyz = np.stack([cols[x][a:b], cols[y][a:b], cols[z][a:b]], axis=1).astype(float)
+        t_last = int(cols["t_mapped_ns"][b - 1])
+        msg = (
+            foxglove.poses_in_frame(t_last, dev.frame_id, xyz)
+            if name == foxglove.POSES_IN_FRAME
+            else foxglove.point_cloud(t_last, dev.frame_id, xyz)
+        )
+        recorder.write(cid, msg, t_pub, t_pub)
+
+
 @dataclass
 class Counters:
     samples: int = 0
@@ -190,12 +240,11 @@ class DeviceStream:
             ChannelPublisher(session, s, congestion=cc, schemas=schemas) for s, _ in self.groups
         ]
         self.rec_ids: list[int] = []
-        self.fox: list[tuple[int, str, tuple[str, str, str]]] = []
+        self.fox: list[FoxgloveChannel] = []
         if recorder is not None:
             for s, _ in self.groups:
-                meta = {k: str(v) for k, v in s.meta.items() if not isinstance(v, dict | list)}
-                self.rec_ids.append(recorder.add_columnar(s, meta))
-                self._add_foxglove(recorder, s)
+                self.rec_ids.append(recorder.add_columnar(s, recorder_meta(s)))
+                self.fox += add_foxglove_channels(recorder, dev, s)
         self.clock = self._new_clock()
         self._epoch: int | None = None
         self._last_seq: int | None = None
@@ -215,23 +264,6 @@ class DeviceStream:
         self._away_since: float | None = None
         self._thread = threading.Thread(target=self._run, name=f"dev-{dev.name}", daemon=True)
         self.error: BaseException | None = None
-
-    def _add_foxglove(self, recorder: BackgroundRecorder, s: StreamSchema) -> None:
-        kind = self.dev.foxglove
-        xyz = foxglove.xyz_columns(list(s.names))
-        if kind == "none" or xyz is None:
-            if kind in ("points", "poses"):
-                log.warning("%s: foxglove=%s but no x_mm/y_mm/z_mm columns", s.key, kind)
-            return
-        name = foxglove.POSES_IN_FRAME if kind == "poses" else foxglove.POINT_CLOUD
-        suffix = "poses" if kind == "poses" else "points"
-        cid = recorder.add_json(
-            f"{s.key}/{suffix}",
-            name,
-            foxglove.schema_bytes(name),
-            {"daq.kind": KIND_FOXGLOVE, "derived_from": s.key, "frame_id": self.dev.frame_id},
-        )
-        self.fox.append((cid, name, xyz))
 
     def _new_clock(self) -> DeviceClockMap:
         # restarts are the driver's to detect (epoch); a backlog read after a reconnect is
@@ -422,19 +454,9 @@ class DeviceStream:
                 self.recorder.write(self.rec_ids[gi], payload, t_pub, t_pub, seq0 + k)
             if gi == 0:
                 for a in range(0, n, step):
-                    self._foxglove(cols, a, min(n, a + step), t_pub)
-
-    def _foxglove(self, cols: dict[str, Any], a: int, b: int, t_pub: int) -> None:
-        assert self.recorder is not None
-        for cid, name, (x, y, z) in self.fox:
-            xyz = np.stack([cols[x][a:b], cols[y][a:b], cols[z][a:b]], axis=1).astype(float)
-            t_last = int(cols["t_mapped_ns"][b - 1])
-            msg = (
-                foxglove.poses_in_frame(t_last, self.dev.frame_id, xyz)
-                if name == foxglove.POSES_IN_FRAME
-                else foxglove.point_cloud(t_last, self.dev.frame_id, xyz)
-            )
-            self.recorder.write(cid, msg, t_pub, t_pub)
+                    write_foxglove(
+                        self.recorder, self.fox, self.dev, cols, a, min(n, a + step), t_pub
+                    )
 
     def _map(
         self,
