@@ -83,6 +83,9 @@ class PublishConfig:
     health_period_s: float = 1.0
     read_timeout_s: float = 0.002
     gil_switch_s: float = 0.0005  # sys.setswitchinterval for the daemon (0: Python's 5 ms)
+    # each device's acquisition in a process of its own (daq.worker): true, false, or
+    # "auto": when the daemon runs more than one device (one device has no GIL to share)
+    process_per_device: bool | str = "auto"
 
 
 @dataclass(frozen=True)
@@ -199,6 +202,12 @@ def _bool(v: Any, where: str) -> bool:
     return v
 
 
+def _bool_or_auto(v: Any, where: str) -> bool | str:
+    if v == "auto" or isinstance(v, bool):
+        return v
+    raise ConfigError(f'{where}: expected true, false or "auto", got {_typename(v)} {v!r}')
+
+
 def _choice(v: Any, where: str, table: Mapping[str, str]) -> str:
     if v not in table:
         raise ConfigError(f"{where}: must be one of {', '.join(table)}, got {v!r}")
@@ -308,6 +317,10 @@ def _parse_publish(t: Mapping[str, Any], w: _Where) -> PublishConfig:
         ),
         gil_switch_s=_number(
             t.get("gil_switch_s", d.gil_switch_s), w("[publish]", "gil_switch_s"), minimum=0.0
+        ),
+        process_per_device=_bool_or_auto(
+            t.get("process_per_device", d.process_per_device),
+            w("[publish]", "process_per_device"),
         ),
     )
 

@@ -15,10 +15,13 @@ from __future__ import annotations
 import importlib
 import json
 import logging
+import shutil
 import signal
 import sys
+import tempfile
 import threading
 import time
+from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -26,7 +29,7 @@ from typing import Any
 from daq.bus import JSON_ENCODING, SchemaServer, health_key, open_session, utc_offset_ns
 from daq.config import DaqConfig, DeviceConfig
 from daq.errors import ConfigError, DaqError
-from daq.pipeline import DeviceStream
+from daq.pipeline import DeviceStream, build_schemas
 from daq.recording import (
     HEALTH_SCHEMA,
     HEALTH_SCHEMA_NAME,
@@ -34,6 +37,7 @@ from daq.recording import (
     BackgroundRecorder,
     McapRecorder,
 )
+from daq.worker import DeviceWorker, worker_zenoh
 
 log = logging.getLogger(__name__)
 
@@ -110,10 +114,26 @@ class Daemon:
             sys.setswitchinterval(min(sys.getswitchinterval(), interval))
         keep_freed_heap()
         self.utc_offset_ns = utc_offset_ns()
-        self.session = open_session(cfg.zenoh)
+        # worker processes need a driver made from its configured name (a test's factory
+        # of in-process fakes runs in threads here)
+        self._worker_dir: str | None = None
+        zc, worker_zc = cfg.zenoh, None
+        enabled = sum(1 for d in cfg.devices if d.enabled)
+        per_device = cfg.publish.process_per_device
+        if per_device == "auto":
+            per_device = enabled > 1
+        if per_device and driver_factory is make_driver:
+            unix = None
+            if zc.mode != "client":  # workers connect to this session over a unix socket
+                self._worker_dir = tempfile.mkdtemp(prefix="daq-")
+                unix = f"unixsock-stream/{self._worker_dir}/workers.sock"
+                zc = replace(zc, listen=(*zc.listen, unix))
+            worker_zc = worker_zenoh(cfg.zenoh, unix)
+        self.session = open_session(zc)
         self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")
         self.recorder: BackgroundRecorder | None = None
         self.streams: list[DeviceStream] = []
+        self.workers: list[DeviceWorker] = []
         self._health_pubs: dict[str, Any] = {}
         self._health_rec: dict[str, int] = {}
         self._closed = False
@@ -139,6 +159,28 @@ class Daemon:
             for dev in cfg.devices:
                 if not dev.enabled:
                     continue
+                hk = health_key(cfg.cell.name, dev.robot, dev.name)
+                health_rec = None
+                if self.recorder is not None:
+                    health_rec = self._health_rec[dev.name] = self.recorder.add_json(
+                        hk, HEALTH_SCHEMA_NAME, HEALTH_SCHEMA, {"daq.kind": KIND_HEALTH}
+                    )
+                if worker_zc is not None:
+                    schema = driver_factory(dev).schema  # made, not opened
+                    groups = build_schemas(cfg, dev, schema, self.utc_offset_ns)
+                    self.workers.append(
+                        DeviceWorker(
+                            cfg,
+                            dev,
+                            [g for g, _ in groups],
+                            self.session,
+                            worker_zc,
+                            self.utc_offset_ns,
+                            recorder=self.recorder,
+                            health_channel=health_rec,
+                        )
+                    )
+                    continue
                 stream = DeviceStream(
                     cfg,
                     dev,
@@ -150,21 +192,18 @@ class Daemon:
                     stop=self.stop,
                 )
                 self.streams.append(stream)
-                hk = health_key(cfg.cell.name, dev.robot, dev.name)
                 self._health_pubs[dev.name] = self.session.declare_publisher(
                     hk, encoding=JSON_ENCODING
                 )
-                if self.recorder is not None:
-                    self._health_rec[dev.name] = self.recorder.add_json(
-                        hk, HEALTH_SCHEMA_NAME, HEALTH_SCHEMA, {"daq.kind": KIND_HEALTH}
-                    )
         except BaseException:
             self.close()
             raise
 
     @property
     def keys(self) -> list[str]:
-        return [p.key for s in self.streams for p in s.publishers]
+        return [p.key for s in self.streams for p in s.publishers] + [
+            k for w in self.workers for k in w.keys
+        ]
 
     def publish_health(self, period_s: float) -> list[dict[str, Any]]:
         docs = []
@@ -185,6 +224,8 @@ class Daemon:
         """Acquire until stopped; returns the last health documents."""
         for s in self.streams:
             s.start()
+        for w in self.workers:
+            w.start()
         t0 = time.monotonic()
         period = self.cfg.publish.health_period_s
         next_health = t0 + period
@@ -201,15 +242,23 @@ class Daemon:
                 break
             now = time.monotonic()
             if now >= next_health:
+                for w in self.workers:
+                    w.check()
                 docs = self.publish_health(now - last)
                 last = now
                 next_health += period
                 if next_health < now:
                     next_health = now + period
         self.stop.set()
+        for w in self.workers:
+            w.stop()
         for s in self.streams:
             s.join(timeout=10.0)
         docs = self.publish_health(max(1e-3, time.monotonic() - last))
+        for w in self.workers:
+            doc = w.join()
+            if doc:
+                docs.append(doc)
         return docs
 
     def close(self) -> None:
@@ -218,6 +267,10 @@ class Daemon:
             return
         self._closed = True
         self.stop.set()
+        for w in self.workers:
+            w.stop()
+        for w in self.workers:
+            w.close()
         for s in self.streams:
             s.join(timeout=10.0)
             s.close()
@@ -230,6 +283,8 @@ class Daemon:
             self.recorder.close()
         self.schemas.close()
         self.session.close()
+        if self._worker_dir is not None:
+            shutil.rmtree(self._worker_dir, ignore_errors=True)
 
     def __enter__(self) -> Daemon:
         return self
