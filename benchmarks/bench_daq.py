@@ -62,6 +62,24 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
+def _tree_cpu_s(pid: int) -> float:
+    """``_cpu_s`` of ``pid`` and its live children (the daemon and its device workers)."""
+    kids: list[str] = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{task}/children", encoding="ascii") as fh:
+                kids += fh.read().split()
+        except OSError:  # the thread ended meanwhile
+            continue
+    total = _cpu_s(pid)
+    for k in kids:
+        try:
+            total += _cpu_s(int(k))
+        except OSError:  # the child ended meanwhile
+            continue
+    return total
+
+
 def _host_steal_s() -> float:
     """CPU seconds the hypervisor gave to others, all CPUs (Linux /proc/stat ``steal``)."""
     with open("/proc/stat", encoding="ascii") as fh:
@@ -299,6 +317,7 @@ def _cell_config(
     age_s: float,
     max_read: int = 0,
     tx_queue: int | None = None,
+    threads: bool = False,
 ) -> str:
     # with a backlog (max_read) device time lags the wall clock: no expected rate, so no
     # time-gap counting against it
@@ -308,7 +327,8 @@ def _cell_config(
         f'[cell]\nname = "{CELL}"\nrobot = "{ROBOT}"\n',
         f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n'
         + (f"tx_queue_batches = {tx_queue}\n" if tx_queue is not None else ""),
-        f"[publish]\nmax_batch_samples = {batch}\nmax_batch_age_s = {age_s}\n",
+        f"[publish]\nmax_batch_samples = {batch}\nmax_batch_age_s = {age_s}\n"
+        + ("process_per_device = false\n" if threads else ""),
     ]
     for i in range(devices):
         out.append(
@@ -377,9 +397,9 @@ def _run_daemon_and_echo(
                 ref.append(_start_main(call))
                 procs.append(ref[1])
             time.sleep(warmup_s)
-            c0, s0, t0 = _cpu_s(d.pid), _host_steal_s(), time.monotonic()
+            c0, s0, t0 = _tree_cpu_s(d.pid), _host_steal_s(), time.monotonic()
             wake = _wakeup_delays_ms(max(0.0, seconds - 0.5))
-            c1, s1, t1 = _cpu_s(d.pid), _host_steal_s(), time.monotonic()
+            c1, s1, t1 = _tree_cpu_s(d.pid), _host_steal_s(), time.monotonic()
             out, err = d.communicate(timeout=seconds + 60)
             e_out, e_err = e.communicate(timeout=60)
             if d.returncode != 0:
@@ -416,7 +436,9 @@ def _run_daemon_and_echo(
     }
 
 
-def daemon_throughput(batch: int, seconds: float, tx_queue: int | None = None) -> dict[str, Any]:
+def daemon_throughput(
+    batch: int, seconds: float, tx_queue: int | None = None, threads: bool = False
+) -> dict[str, Any]:
     """``daq run`` with a source far faster than it (full batches back to back) → the same
     counting subscriber process as the raw measurement."""
     port = _free_port()
@@ -424,7 +446,7 @@ def daemon_throughput(batch: int, seconds: float, tx_queue: int | None = None) -
         cfg = Path(tmp) / "cell.toml"
         # a source far ahead of the daemon: a growing backlog read MAX_READ samples at a
         # time, so the daemon, not the source, sets the rate
-        cfg.write_text(_cell_config(port, 1, 1e9, batch, 0.0, MAX_READ, tx_queue))
+        cfg.write_text(_cell_config(port, 1, 1e9, batch, 0.0, MAX_READ, tx_queue, threads))
         d = subprocess.Popen(
             [PY, "-m", "daq.cli", "run", "--config", str(cfg), "--duration", str(seconds + 1)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -433,9 +455,9 @@ def daemon_throughput(batch: int, seconds: float, tx_queue: int | None = None) -
         json.loads(d.stdout.readline())
         sink = _start_sink(port, DATA_KEY, seconds + 30)
         time.sleep(0.5)
-        c0, t0 = _cpu_s(d.pid), time.monotonic()
+        c0, t0 = _tree_cpu_s(d.pid), time.monotonic()
         time.sleep(max(0.1, seconds - 1.0))
-        c1, t1 = _cpu_s(d.pid), time.monotonic()
+        c1, t1 = _tree_cpu_s(d.pid), time.monotonic()
         _, err = d.communicate(timeout=seconds + 60)
         out, _ = sink.communicate(timeout=60)
         if d.returncode != 0:
@@ -446,7 +468,11 @@ def daemon_throughput(batch: int, seconds: float, tx_queue: int | None = None) -
 
 
 def throughput(
-    seconds: float, batch: int = 100, rounds: int = 1, tx_queue: int | None = None
+    seconds: float,
+    batch: int = 100,
+    rounds: int = 1,
+    tx_queue: int | None = None,
+    threads: bool = False,
 ) -> dict[str, Any]:
     """Daemon vs raw zenoh, ``rounds`` times each, alternating (raw, daemon, raw, ...), so
     both see the same machine; rates are the medians of the rounds (this machine swings
@@ -457,9 +483,9 @@ def throughput(
     dmns: list[dict[str, Any]] = []
     for _ in range(rounds):
         raws.append(raw_zenoh_throughput(payload, seconds, tx_queue=tx_queue))
-        dmn = daemon_throughput(batch, seconds, tx_queue)
+        dmn = daemon_throughput(batch, seconds, tx_queue, threads)
         if dmn["messages"] < 2:  # the subscriber missed the run (a stalled start): once more
-            dmn = daemon_throughput(batch, seconds, tx_queue)
+            dmn = daemon_throughput(batch, seconds, tx_queue, threads)
         dmns.append(dmn)
 
     def med(runs: list[dict[str, Any]], key: str) -> float:
@@ -506,12 +532,13 @@ def cell(
     record: bool = False,
     devices: int = 3,
     reference: bool = False,
+    threads: bool = False,
 ) -> dict[str, Any]:
     """``reference``: raw zenoh streams at 1 kHz, one per device, run meanwhile between
     two other processes: the latency this host allows a minimal Python pub/sub now."""
     port = _free_port()
     # the daemon's default batching (500 samples, age 0: every read is published)
-    text = None if emulated else _cell_config(port, devices, 1000.0, 500, 0.0)
+    text = None if emulated else _cell_config(port, devices, 1000.0, 500, 0.0, threads=threads)
     res = _run_daemon_and_echo(
         text, port, seconds, record=record, reference=devices if reference else 0
     )
@@ -567,7 +594,10 @@ def cell(
 
 
 def run(
-    quick: bool = True, emulated: bool = False, tx_queue: int | None = None
+    quick: bool = True,
+    emulated: bool = False,
+    tx_queue: int | None = None,
+    threads: bool = False,
 ) -> list[dict[str, Any]]:
     """Flat rows for ``python -m benchmarks`` (quick: a smoke run of a few seconds)."""
     from daq.config import ZenohConfig
@@ -575,7 +605,13 @@ def run(
     queue = ZenohConfig().tx_queue_batches if tx_queue is None else tx_queue
     rows: list[dict[str, Any]] = []
     for batch in (100,) if quick else (100, 500, 1000):
-        t = throughput(1.5 if quick else 5.0, batch, rounds=1 if quick else 3, tx_queue=tx_queue)
+        t = throughput(
+            1.5 if quick else 5.0,
+            batch,
+            rounds=1 if quick else 3,
+            tx_queue=tx_queue,
+            threads=threads,
+        )
         rows.append(
             {
                 "benchmark": f"throughput vs raw zenoh, {batch}-sample batches",
@@ -591,7 +627,7 @@ def run(
                 "note": "same messages, same subscriber process on the exact key, BLOCK",
             }
         )
-    c = cell(3.0 if quick else 60.0, emulated=emulated, reference=not quick)
+    c = cell(3.0 if quick else 60.0, emulated=emulated, reference=not quick, threads=threads)
     rows.append(
         {
             "benchmark": "cell 3 devices at 1 kHz, "
@@ -630,6 +666,12 @@ def main(argv: list[str] | None = None) -> int:
         help="--soak: without the raw zenoh latency reference run alongside",
     )
     ap.add_argument(
+        "--threads",
+        action="store_true",
+        help="the daemon's devices in threads of one process ([publish] process_per_device "
+        "= false) instead of a worker process each",
+    )
+    ap.add_argument(
         "--wildcard",
         action="store_true",
         help="only raw zenoh: subscriber on cell/** vs on the exact key (3 rounds of 5 s)",
@@ -651,6 +693,7 @@ def main(argv: list[str] | None = None) -> int:
             record=args.record,
             devices=args.devices,
             reference=not args.no_reference,
+            threads=args.threads,
         )
         res["per_key"] = {
             k.rsplit("/", 2)[-2]: {
@@ -662,7 +705,10 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"soak": res}, indent=1))
         lost = res["loss_samples"] + res["lost_messages"] + res["undecodable"]
         return 0 if lost == 0 else 1
-    for r in run(quick=not args.full, emulated=args.emulated, tx_queue=args.tx_queue):
+    rows = run(
+        quick=not args.full, emulated=args.emulated, tx_queue=args.tx_queue, threads=args.threads
+    )
+    for r in rows:
         print(json.dumps(r))
     return 0
 
