@@ -375,9 +375,20 @@ def _run_daemon_and_echo(
         else:
             args += ["--listen", f"tcp/127.0.0.1:{port}"]
         args += ["--record", str(Path(tmp) / "bench.mcap")] if record else ["--no-record"]
-        d = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        procs = [d]
+        procs: list[subprocess.Popen] = []
+        ref: list[subprocess.Popen] = []
         try:
+            if reference:  # first: its start-up must not eat into the daemon's window
+                rport = _free_port()
+                span = seconds + warmup_s + 5.0  # and the daemon's and echo's start-up
+                size = len(_sample_payload(1))  # a daemon message of one sample
+                ref.append(_start_main(f"_ref_sub_main({rport}, {span + 30}, 3.0)"))
+                procs.append(ref[0])
+                call = f"_ref_pub_main({rport}, {span}, {size}, 1000.0, {reference})"
+                ref.append(_start_main(call))
+                procs.append(ref[1])
+            d = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            procs.append(d)
             assert d.stdout is not None
             started = json.loads(d.stdout.readline())
             e = subprocess.Popen(
@@ -386,20 +397,12 @@ def _run_daemon_and_echo(
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             )  # fmt: skip
             procs.append(e)
-            ref: list[subprocess.Popen] = []
-            if reference:
-                rport = _free_port()
-                span = seconds + warmup_s
-                size = len(_sample_payload(1))  # a daemon message of one sample
-                ref.append(_start_main(f"_ref_sub_main({rport}, {span + 30}, 3.0)"))
-                procs.append(ref[0])
-                call = f"_ref_pub_main({rport}, {span}, {size}, 1000.0, {reference})"
-                ref.append(_start_main(call))
-                procs.append(ref[1])
             time.sleep(warmup_s)
             c0, s0, t0 = _tree_cpu_s(d.pid), _host_steal_s(), time.monotonic()
             wake = _wakeup_delays_ms(max(0.0, seconds - 0.5))
             c1, s1, t1 = _tree_cpu_s(d.pid), _host_steal_s(), time.monotonic()
+            if d.poll() is not None:  # its workers' CPU would be missing, the window wrong
+                raise RuntimeError("daq run ended inside the measurement window")
             out, err = d.communicate(timeout=seconds + 60)
             e_out, e_err = e.communicate(timeout=60)
             if d.returncode != 0:
