@@ -16,7 +16,8 @@ Every figure comes from separate processes on loopback, measured in the same run
   p50/p99 (subscriber receive time − mapped device latch time, same host clock), and
   sample loss (sequence gaps + lost batches seen by the subscriber).
 * ``--soak S``: the cell benchmark for S seconds (the 10-minute soak: ``--soak 600``;
-  ``--record``: the daemon records MCAP meanwhile).
+  ``--record``: the daemon records MCAP meanwhile; ``--reference``: a raw zenoh latency
+  reference runs alongside, as it does in ``--full``'s cell run).
 
 Devices: the emulated cell (``sim-cell``) when ``--emulated`` is given, else in-process
 fake devices (``daq.testing.FakeDriver``: a drifting µs clock, 1 kHz, no wire).
@@ -664,9 +665,10 @@ def main(argv: list[str] | None = None) -> int:
         "--devices", type=int, default=3, help="--soak: fake devices at 1 kHz (default 3)"
     )
     ap.add_argument(
-        "--no-reference",
+        "--reference",
         action="store_true",
-        help="--soak: without the raw zenoh latency reference run alongside",
+        help="--soak: run a raw zenoh latency reference alongside (one 1 kHz stream per "
+        "device between two other processes; adds ~0.3 core of load)",
     )
     ap.add_argument(
         "--threads",
@@ -695,7 +697,7 @@ def main(argv: list[str] | None = None) -> int:
             emulated=args.emulated,
             record=args.record,
             devices=args.devices,
-            reference=not args.no_reference,
+            reference=args.reference,
             threads=args.threads,
         )
         res["per_key"] = {
