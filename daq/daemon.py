@@ -1,9 +1,12 @@
 """``daq run``: the acquisition daemon.
 
-Opens one zenoh session, one :class:`~daq.pipeline.DeviceStream` thread per enabled
-device, an optional MCAP recorder, and publishes each device's health once a period. It
-stops on SIGINT/SIGTERM or after ``--duration``: device threads flush what they hold and
-close their drivers, the recorder drains and writes the summary, and it exits 0.
+Opens one zenoh session, an optional MCAP recorder, and one
+:class:`~daq.pipeline.DeviceStream` per enabled device: in a worker process of its own
+(:mod:`daq.worker`) when there is more than one device (``[publish] process_per_device``),
+else in a thread. Each device's health is published once a period (by its worker, or by
+the daemon for a thread). It stops on
+SIGINT/SIGTERM or after ``--duration``: device streams flush what they hold and close
+their drivers, the recorder drains and writes the summary, and it exits 0.
 
 On start it prints one JSON line to stdout: ``{"daq": "running", "cell": ..., "keys":
 [...], "listen": [...], "recording": PATH or null}``; on exit one ``{"daq": "stopped",
