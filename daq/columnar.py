@@ -256,7 +256,7 @@ def _padded(nbytes: int) -> int:
 
 
 def payload_size(schema: StreamSchema, n: int) -> int:
-    return HEADER.size + sum(_padded(n * per * size) for _, _, _, per, size in schema.plan)
+    return schema.layout(n)[0]
 
 
 def encode(schema: StreamSchema, columns: Mapping[str, ArrayLike], batch_seq: int) -> bytes:

@@ -164,3 +164,17 @@ class FakeDriver(Driver):  # type: ignore[misc,valid-type]
             np.broadcast_to(k[:, None], (n, 3)) if n > 64 else np.repeat(k[:, None], 3, 1),
             _VALID[:n] if const else np.ones((n, 3), np.uint16),
         )
+
+
+def recorded_columns(path: Any, key: str) -> dict[str, np.ndarray]:
+    """Every column of ``key``'s columnar messages in an MCAP recording, concatenated in
+    file order (a streaming read: a truncated file gives what its complete chunks hold)."""
+    from daq.columnar import StreamSchema, decode
+    from daq.recording import read_recording
+
+    parts: dict[str, list[np.ndarray]] = {}
+    for m in read_recording(path).messages_iter({key}):
+        _, cols = decode(StreamSchema.loads(m.schema.data), m.data)
+        for k, v in cols.items():
+            parts.setdefault(k, []).append(v)
+    return {k: np.concatenate(v) for k, v in parts.items()}

@@ -18,10 +18,9 @@ import numpy as np
 import pytest
 
 from daq.bus import Receiver, open_session
-from daq.columnar import StreamSchema, decode
 from daq.daemon import Daemon
 from daq.recording import read_recording
-from daq.testing import FakeDriver, free_port, loopback_sink
+from daq.testing import FakeDriver, free_port, loopback_sink, recorded_columns
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -84,15 +83,6 @@ def read_jsonl(path: Path) -> tuple[dict[str, np.ndarray], list[dict]]:
     return {k: np.asarray(v) for k, v in cols.items()}, health
 
 
-def recorded_samples(path: Path, key: str = KEY) -> dict[str, np.ndarray]:
-    parts: dict[str, list] = {}
-    for m in read_recording(path).messages_iter({key}):
-        _, c = decode(StreamSchema.loads(m.schema.data), m.data)
-        for k, v in c.items():
-            parts.setdefault(k, []).append(v)
-    return {k: np.concatenate(v) for k, v in parts.items()}
-
-
 def test_daemon_subscriber_record_replay(tmp_path):
     port = free_port()
     cfg = write_config(tmp_path, port)
@@ -119,7 +109,7 @@ def test_daemon_subscriber_record_replay(tmp_path):
     assert seq[-1] == summary["devices"]["fake"]["samples"] - 1
     np.testing.assert_array_equal(got["grating1_counts"], seq)
     # mapped time tracks the fake's truth (latch at t0 + seq/rate on the monotonic clock)
-    rec = recorded_samples(rec_path)
+    rec = recorded_columns(rec_path, KEY)
     np.testing.assert_array_equal(rec["seq"], np.arange(len(rec["seq"])))
     truth_rel = rec["seq"] * 1_000_000  # ns since the first sample, 1 kHz
     mapped_rel = rec["t_mapped_ns"] - rec["t_mapped_ns"][0]
@@ -172,7 +162,7 @@ def test_kill_9_during_recording_leaves_readable_file(tmp_path):
     time.sleep(3.0)
     os.kill(d.pid, signal.SIGKILL)
     d.communicate(timeout=30)
-    rec = recorded_samples(rec_path)
+    rec = recorded_columns(rec_path, KEY)
     # chunks close every second: at least the first two seconds are there, whole
     assert len(rec["seq"]) > 1000
     np.testing.assert_array_equal(rec["seq"], np.arange(len(rec["seq"])))

@@ -16,10 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daq.columnar import StreamSchema, decode
 from daq.config import loads
 from daq.recording import read_recording
-from daq.testing import free_port
+from daq.testing import free_port, recorded_columns
 from daq.worker import config_from_spec, worker_spec, worker_zenoh
 
 pytestmark = pytest.mark.timeout(120)
@@ -69,15 +68,6 @@ def _daq(*args: str) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
     )
-
-
-def _recorded(path: Path, key: str) -> dict[str, np.ndarray]:
-    parts: dict[str, list] = {}
-    for m in read_recording(path).messages_iter({key}):
-        _, c = decode(StreamSchema.loads(m.schema.data), m.data)
-        for k, v in c.items():
-            parts.setdefault(k, []).append(v)
-    return {k: np.concatenate(v) for k, v in parts.items()}
 
 
 def test_worker_spec_round_trips_the_device_and_settings():
@@ -132,7 +122,7 @@ def test_two_devices_in_workers_reach_subscriber_and_recording_whole(tmp_path):
             live = stats["keys"][_key(dev, ch)]
             assert live["seq_gaps"] == 0 and live["lost_batches"] == 0 and live["seq_breaks"] == 0
             assert live["last_seq"] == n - 1  # every sample to the last, in order
-            got = _recorded(rec, _key(dev, ch))
+            got = recorded_columns(rec, _key(dev, ch))
             np.testing.assert_array_equal(got["seq"], np.arange(n))
         assert stats["health"][f"cell/w/robot/r1/{dev}/health"]["device"] == dev
     health = [m for m in read_recording(rec).messages_iter() if m.channel.topic.endswith("health")]
@@ -165,6 +155,6 @@ def test_workers_leave_with_a_killed_daemon_and_a_dead_worker_is_restarted(tmp_p
         time.sleep(0.1)
     assert not _alive(again), "a worker outlived its daemon"
     # the restarted device's samples were recorded too (its sequence starts again)
-    seq = _recorded(rec, _key("d1"))["seq"]
+    seq = recorded_columns(rec, _key("d1"))["seq"]
     restart = np.flatnonzero(np.diff(seq.astype(np.int64)) < 0)
     assert len(restart) == 1 and len(seq) - restart[0] > 500
