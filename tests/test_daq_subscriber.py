@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import daq.echo as echo
-from daq.bus import ChannelPublisher, Receiver, SchemaServer, open_session
+from daq.bus import _NEEDS_SCHEMA, ChannelPublisher, Receiver, SchemaServer, open_session
 from daq.columnar import Column, StreamSchema
 from daq.echo import KeyStats, LatencySeries
 from daq.testing import free_port, loopback_sink, loopback_source
@@ -66,6 +66,62 @@ def test_receiver_gets_every_message_in_order_through_a_full_queue():
         assert 0.15 <= time.monotonic() - t0 < 2.0
         recv.close()
         assert recv.receive(0.0) is None
+    finally:
+        dst.close()
+        src.close()
+
+
+def test_push_mode_delivers_in_order_across_schema_fetches():
+    """``on_batch`` on zenoh's thread: the first messages (schema not asked for yet) and
+    those after a schema change wait in the backlog while it is fetched; every message
+    arrives once, in order, decoded with the schema it was sent with."""
+    port = free_port()
+    src = open_session(loopback_source(port))
+    dst = open_session(loopback_sink(port))
+    wider = StreamSchema(KEY, (*SCHEMA.columns, Column("x", "float64")))
+    got: list[tuple[int, int]] = []
+    threads: set[str] = set()
+
+    def on_batch(r):
+        threads.add(threading.current_thread().name)
+        got.append((int(r.columns["seq"][0]), len(r.columns)))
+
+    class SlowToDrain(Receiver):
+        """Messages keep coming after a fetch, before the backlog is delivered."""
+
+        def _fetch_schema_for(self, sample):
+            fetching = self._decode(sample, fetch=False) is _NEEDS_SCHEMA
+            super()._fetch_schema_for(sample)
+            if fetching:
+                time.sleep(0.1)
+
+    try:
+        schemas = SchemaServer(src, "cell/s")
+        pub = ChannelPublisher(src, SCHEMA, schemas=schemas)
+        recv = SlowToDrain(dst, "cell/s/**", on_batch=on_batch, prefetch_schemas=False)
+        time.sleep(0.5)  # subscription known to the publisher's session
+        for k in range(100):
+            pub.publish(_cols([k], [0], [k], [1]))
+            time.sleep(0.002)
+            if k == 70:
+                time.sleep(0.5)  # the backlog drains: the rest go straight to on_batch
+        time.sleep(0.3)
+        pub.close()
+        pub = ChannelPublisher(src, wider, schemas=schemas)  # same key, new columns
+        pub.batch_seq = 100
+        for k in range(100, 200):
+            pub.publish(_cols([k], [0], [k], [1]) | {"x": np.array([0.5])})
+            time.sleep(0.002)
+        t_end = time.monotonic() + 20
+        while len(got) < 200 and time.monotonic() < t_end:
+            time.sleep(0.05)
+        recv.close()
+        assert [g[0] for g in got] == list(range(200))
+        assert {g[1] for g in got[:100]} == {4} and {g[1] for g in got[100:]} == {5}
+        assert recv.undecodable == 0
+        assert "receiver-backlog" in threads and len(threads) >= 2  # both paths were used
+        with pytest.raises(RuntimeError, match="on_batch"):
+            recv.receive(0.1)
     finally:
         dst.close()
         src.close()
