@@ -199,7 +199,7 @@ def run_echo(
 
     def on_batch(got: Any) -> None:
         # zenoh's callback thread (one message at a time): no hand-over to this thread,
-        # whose wake-up per message doubled the p99 latency a subscriber sees
+        # whose wake-up per message added to the latency (docs/daq.md "Speed")
         if count is not None and progress["batches"] >= count:
             return  # enough: the main thread is closing
         progress["last_rx"] = time.monotonic()

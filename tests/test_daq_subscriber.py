@@ -143,6 +143,28 @@ def test_close_releases_a_callback_waiting_for_room():
     assert done.wait(2.0)
 
 
+def test_push_mode_backlog_is_bounded():
+    """A full backlog (a schema that does not come) holds zenoh's thread back instead of
+    growing; closing releases it."""
+    import collections
+
+    rec = Receiver.__new__(Receiver)  # the hand-over logic alone, no session
+    rec._capacity = 1
+    rec._closed = False
+    rec._on_batch = lambda got: None
+    rec._one_at_a_time = threading.Lock()
+    rec._backlog = collections.deque([("waiting", 0)])
+    rec._backlog_ready = threading.Event()
+    done = threading.Event()
+    th = threading.Thread(target=lambda: (rec._hand_over("next"), done.set()), daemon=True)
+    th.start()
+    assert not done.wait(0.1)  # full: the callback waits
+    assert len(rec._backlog) == 1
+    rec._closed = True
+    assert done.wait(2.0)
+    assert len(rec._backlog) == 1  # closed: nothing more is queued
+
+
 def test_latency_series_grows_and_stays_bounded(monkeypatch):
     monkeypatch.setattr(echo, "LATENCY_KEEP", 10_000)
     s = LatencySeries()
