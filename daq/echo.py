@@ -12,6 +12,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import IO, Any
 
@@ -183,7 +184,22 @@ def run_echo(
     stats: dict[str, KeyStats] = {}
     health: dict[str, Any] = {}
 
-    def on_other(sample: Any) -> None:
+    failed: list[BaseException] = []  # raised on zenoh's thread: re-raised on this one
+
+    def on_zenoh_thread(handler: Callable[[Any], None]) -> Callable[[Any], None]:
+        # zenoh would only log an exception: an output that fails (a closed pipe, a full
+        # disk) must stop the echo with that error, as it did on the main thread
+        def call(arg: Any) -> None:
+            try:
+                handler(arg)
+            except BaseException as exc:
+                if not failed:
+                    failed.append(exc)
+                stop.set()
+
+        return call
+
+    def handle_other(sample: Any) -> None:
         key = str(sample.key_expr)
         try:
             doc = json.loads(sample.payload.to_bytes())
@@ -197,10 +213,10 @@ def run_echo(
 
     progress = {"batches": 0, "last_rx": 0.0}
 
-    def on_batch(got: Any) -> None:
+    def handle_batch(got: Any) -> None:
         # zenoh's callback thread (one message at a time): no hand-over to this thread,
         # whose wake-up per message added to the latency (docs/daq.md "Speed")
-        if count is not None and progress["batches"] >= count:
+        if failed or (count is not None and progress["batches"] >= count):
             return  # enough: the main thread is closing
         progress["last_rx"] = time.monotonic()
         progress["batches"] += 1
@@ -227,7 +243,12 @@ def run_echo(
     t0 = time.monotonic()
     recv: Receiver | None = None
     try:
-        recv = Receiver(session, key_expr, on_other=on_other, on_batch=on_batch)
+        recv = Receiver(
+            session,
+            key_expr,
+            on_other=on_zenoh_thread(handle_other),
+            on_batch=on_zenoh_thread(handle_batch),
+        )
         if ready_out is not None:
             ready_out.write(json.dumps({"ready": key_expr}) + "\n")
             ready_out.flush()
@@ -240,6 +261,8 @@ def run_echo(
         recv.close()  # no batch is handed over after this
     finally:
         session.close()
+    if failed:
+        raise failed[0]
     result = {
         "keys": {k: s.summary() for k, s in sorted(stats.items())},
         "health": health,

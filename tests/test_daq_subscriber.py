@@ -127,6 +127,42 @@ def test_push_mode_delivers_in_order_across_schema_fetches():
         src.close()
 
 
+def test_echo_stops_with_the_error_its_output_raised():
+    """Batches are handled on zenoh's thread, which would only log an exception: a jsonl
+    output that fails ends ``run_echo`` with that error, long before its duration."""
+
+    class FullDisk:
+        def write(self, text: str) -> int:
+            raise OSError(28, "No space left on device")
+
+    port = free_port()
+    src = open_session(loopback_source(port))
+    result: list[BaseException | None] = []
+
+    def echo_thread() -> None:
+        try:
+            echo.run_echo("cell/s/**", loopback_sink(port), duration_s=30.0, jsonl=FullDisk())
+            result.append(None)
+        except BaseException as exc:
+            result.append(exc)
+
+    try:
+        pub = ChannelPublisher(src, SCHEMA, schemas=SchemaServer(src, "cell/s"))
+        th = threading.Thread(target=echo_thread, daemon=True)
+        t0 = time.monotonic()
+        th.start()
+        k = 0
+        while th.is_alive() and time.monotonic() - t0 < 20:  # bounded by time
+            pub.publish(_cols([k], [0], [k], [1]))
+            k += 1
+            time.sleep(0.01)
+        th.join(5)
+        assert result and isinstance(result[0], OSError) and result[0].errno == 28
+        assert time.monotonic() - t0 < 20
+    finally:
+        src.close()
+
+
 def test_close_releases_a_callback_waiting_for_room():
     rec = Receiver.__new__(Receiver)  # the queue logic alone, no session
     import queue
