@@ -366,6 +366,8 @@ class Receiver:
                     self._on_batch(got)  # type: ignore[arg-type]
 
     def _fetch_schema_for(self, sample: zenoh.Sample) -> None:
+        if not str(sample.encoding).endswith(ENCODING_NAME):
+            return  # health JSON and the like: no schema to ask for
         key = str(sample.key_expr)
         try:
             known = self._schemas.get(key)
@@ -373,6 +375,11 @@ class Receiver:
                 self._schemas[key] = fetch_schema(self._session, key)
         except SchemaError as exc:
             log.warning("cannot decode %s: %s", key, exc)
+
+    @property
+    def pending(self) -> int:
+        """Samples received but not handed over yet (push mode: waiting for a schema)."""
+        return len(self._backlog) if self._on_batch is not None else self._queue.qsize()
 
     def schema(self, key: str) -> StreamSchema:
         s = self._schemas.get(key)

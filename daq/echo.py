@@ -256,7 +256,8 @@ def run_echo(
             now = time.monotonic()
             if duration_s is not None and now - t0 >= duration_s:
                 break
-            if idle_s is not None and progress["batches"] and now - progress["last_rx"] >= idle_s:
+            idle = now - progress["last_rx"] >= idle_s if idle_s is not None else False
+            if idle and progress["batches"] and not recv.pending:  # a backlog is not idle
                 break
         recv.close()  # no batch is handed over after this
     finally:

@@ -71,10 +71,16 @@ def test_receiver_gets_every_message_in_order_through_a_full_queue():
         src.close()
 
 
-def test_push_mode_delivers_in_order_across_schema_fetches():
+def test_push_mode_delivers_in_order_across_schema_fetches(monkeypatch):
     """``on_batch`` on zenoh's thread: the first messages (schema not asked for yet) and
     those after a schema change wait in the backlog while it is fetched; every message
-    arrives once, in order, decoded with the schema it was sent with."""
+    arrives once, in order, decoded with the schema it was sent with. A JSON sample
+    (health) in the backlog goes to ``on_other`` in its place, with no schema query."""
+    import daq.bus as bus
+
+    asked: list[str] = []
+    real_fetch = bus.fetch_schema
+    monkeypatch.setattr(bus, "fetch_schema", lambda s, key: asked.append(key) or real_fetch(s, key))
     port = free_port()
     src = open_session(loopback_source(port))
     dst = open_session(loopback_sink(port))
@@ -85,6 +91,9 @@ def test_push_mode_delivers_in_order_across_schema_fetches():
     def on_batch(r):
         threads.add(threading.current_thread().name)
         got.append((int(r.columns["seq"][0]), len(r.columns)))
+
+    def on_other(sample):
+        got.append((-1, len(sample.payload.to_bytes())))
 
     class SlowToDrain(Receiver):
         """Messages keep coming after a fetch, before the backlog is delivered."""
@@ -98,10 +107,14 @@ def test_push_mode_delivers_in_order_across_schema_fetches():
     try:
         schemas = SchemaServer(src, "cell/s")
         pub = ChannelPublisher(src, SCHEMA, schemas=schemas)
-        recv = SlowToDrain(dst, "cell/s/**", on_batch=on_batch, prefetch_schemas=False)
+        recv = SlowToDrain(
+            dst, "cell/s/**", on_batch=on_batch, on_other=on_other, prefetch_schemas=False
+        )
         time.sleep(0.5)  # subscription known to the publisher's session
         for k in range(100):
             pub.publish(_cols([k], [0], [k], [1]))
+            if k == 3:  # while the backlog waits for the first schema
+                src.put("cell/s/robot/r/dev/health", b'{"ok": 1}', encoding=bus.JSON_ENCODING)
             time.sleep(0.002)
             if k == 70:
                 time.sleep(0.5)  # the backlog drains: the rest go straight to on_batch
@@ -113,12 +126,15 @@ def test_push_mode_delivers_in_order_across_schema_fetches():
             pub.publish(_cols([k], [0], [k], [1]) | {"x": np.array([0.5])})
             time.sleep(0.002)
         t_end = time.monotonic() + 20
-        while len(got) < 200 and time.monotonic() < t_end:
+        while sum(g[0] >= 0 for g in got) < 200 and time.monotonic() < t_end:
             time.sleep(0.05)
         recv.close()
+        assert got[4] == (-1, 9)  # the health sample, in its place
+        got = [g for g in got if g[0] >= 0]  # (and the new schema's announcement)
         assert [g[0] for g in got] == list(range(200))
         assert {g[1] for g in got[:100]} == {4} and {g[1] for g in got[100:]} == {5}
         assert recv.undecodable == 0
+        assert asked == [KEY, KEY]  # the first schema and the changed one, nothing else
         assert "receiver-backlog" in threads and len(threads) >= 2  # both paths were used
         with pytest.raises(RuntimeError, match="on_batch"):
             recv.receive(0.1)
