@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import IO, Any
+from typing import IO, Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -72,6 +72,18 @@ class KeyStats:
     last_epoch: int | None = None
     lat_mapped: LatencySeries = field(default_factory=LatencySeries)
     lat_rx: LatencySeries = field(default_factory=LatencySeries)
+    #: the fields ``summary()`` reports as they are
+    COUNTED: ClassVar[tuple[str, ...]] = (
+        "batches",
+        "samples",
+        "lost_batches",
+        "seq_gaps",
+        "seq_breaks",
+        "out_of_order",
+        "unsettled",
+        "first_seq",
+        "last_seq",
+    )
 
     def add(self, header: Any, cols: dict[str, np.ndarray], t_recv_ns: int) -> None:
         self.batches += 1
@@ -133,20 +145,7 @@ class KeyStats:
         return True
 
     def summary(self) -> dict[str, Any]:
-        out: dict[str, Any] = {
-            k: getattr(self, k)
-            for k in (
-                "batches",
-                "samples",
-                "lost_batches",
-                "seq_gaps",
-                "seq_breaks",
-                "out_of_order",
-                "unsettled",
-                "first_seq",
-                "last_seq",
-            )
-        }
+        out: dict[str, Any] = {k: getattr(self, k) for k in self.COUNTED}
         lat = (("latency_mapped_ms", self.lat_mapped), ("latency_rx_ms", self.lat_rx))
         for name, series in lat:
             v = series.values() / 1e6
