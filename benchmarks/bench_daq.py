@@ -17,7 +17,11 @@ Every figure comes from separate processes on loopback, measured in the same run
   sample loss (sequence gaps + lost batches seen by the subscriber).
 * ``--soak S``: the cell benchmark for S seconds (the 10-minute soak: ``--soak 600``;
   ``--record``: the daemon records MCAP meanwhile; ``--reference``: a raw zenoh latency
-  reference runs alongside, as it does in ``--full``'s cell run).
+  reference runs alongside, as it does in ``--full``'s cell run). The cell run also
+  gives its latency per 10 s window beside what a sleeping 1 kHz loop in this process
+  and the hypervisor's steal counter showed in that window, and splits the windows by
+  whether that loop ever woke over 5 ms late (``windows_host_quiet`` /
+  ``windows_host_stalled``; ``--windows FILE``: every window as JSON lines).
 
 Devices: the emulated cell (``sim-cell``) when ``--emulated`` is given, else in-process
 fake devices (``daq.testing.FakeDriver``: a drifting µs clock, 1 kHz, no wire).
@@ -25,6 +29,7 @@ fake devices (``daq.testing.FakeDriver``: a drifting µs clock, 1 kHz, no wire).
     python -m benchmarks.bench_daq            # quick smoke run (~15 s)
     python -m benchmarks.bench_daq --full     # 3 alternating 5 s throughput rounds, 60 s cell
     python -m benchmarks.bench_daq --soak 600 # 10-minute soak of the cell at 1 kHz/device
+    python -m benchmarks.bench_daq --soak 600 --windows soak.jsonl  # and its 10 s windows
     python -m benchmarks.bench_daq --wildcard # raw zenoh: a cell/** subscriber vs the exact key
     python -m benchmarks.bench_daq --full --tx-queue 2  # with zenoh's default transmit queue
 
@@ -40,6 +45,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -340,19 +346,71 @@ def _cell_config(
     return "\n".join(out)
 
 
-def _wakeup_delays_ms(seconds: float, period_s: float = 0.001) -> NDArray[np.float64]:
-    """How late a plain ``sleep(period_s)`` wakes, in ms, over ``seconds`` (at most
-    ``seconds / period_s`` wake-ups): the host's own scheduling noise, to read the
-    daemon's latency against (a stalled host delays every process alike)."""
-    out = np.empty(int(seconds / period_s) + 1)
+#: the cell run's latency and the host's figures are also given per window of this many
+#: seconds (UTC-aligned), so a tail can be read against what the host did in that window
+WINDOW_S = 10
+
+
+@dataclass
+class HostProbe:
+    """What the host let a plain sleeping loop in this process do over a window: how late
+    each wake-up was (``late_ms``) and when it woke (``at_s``, UTC s), and the
+    hypervisor's steal counter once a second (``steal``: rows of UTC s, CPU-seconds
+    stolen so far). A stalled host delays every process alike: read the daemon's
+    latency against it."""
+
+    late_ms: NDArray[np.float64]
+    at_s: NDArray[np.float64]
+    steal: NDArray[np.float64]
+
+    def summary(self, seconds: float) -> dict[str, float]:
+        w = self.late_ms
+        return {
+            "p50": float(np.percentile(w, 50)),
+            "p99": float(np.percentile(w, 99)),
+            "max": float(w.max()),
+            # wall time the loop spent stalled beyond 5 ms: a stall delays every sample
+            # in flight, so 1 % of the run stalled puts the daemon's p99 in the stalls
+            "stalled_fraction_over_5ms": float(w[w > 5.0].sum() / 1e3 / max(seconds, 1e-9)),
+        }
+
+    def windows(self, width_s: int) -> dict[int, dict[str, float]]:
+        """Per window of ``width_s`` s aligned to UTC multiples of it (key: its start,
+        UTC s): ``stalled_fraction_over_5ms`` of the window and ``steal_cores``."""
+        out: dict[int, dict[str, float]] = {}
+        window = (self.at_s // width_s).astype(np.int64)
+        stalled = np.where(self.late_ms > 5.0, self.late_ms / 1e3, 0.0)
+        for w in np.unique(window).tolist():
+            t0 = w * width_s
+            span = min(t0 + width_s, self.at_s[-1]) - max(t0, self.at_s[0])
+            st = self.steal[(self.steal[:, 0] >= t0) & (self.steal[:, 0] <= t0 + width_s)]
+            steal = (st[-1, 1] - st[0, 1]) / (st[-1, 0] - st[0, 0]) if len(st) > 1 else None
+            out[t0] = {
+                "stalled_fraction_over_5ms": float(stalled[window == w].sum() / max(span, 1e-3)),
+                "steal_cores": None if steal is None else float(steal),
+            }
+        return out
+
+
+def _probe_host(seconds: float, period_s: float = 0.001) -> HostProbe:
+    """Sleep ``period_s`` at a time for ``seconds`` (at most ``seconds / period_s``
+    wake-ups, at least one) and note how late each wake-up was; read the steal counter
+    once a second."""
+    late = np.empty(int(seconds / period_s) + 1)
+    at = np.empty_like(late)
+    steal = [(time.time(), _host_steal_s())]
     n = 0
     t_end = time.monotonic() + seconds
-    while n == 0 or (n < len(out) and time.monotonic() < t_end):  # at least one wake-up
+    while n == 0 or (n < len(late) and time.monotonic() < t_end):
         t = time.perf_counter()
         time.sleep(period_s)
-        out[n] = (time.perf_counter() - t - period_s) * 1e3
+        late[n] = (time.perf_counter() - t - period_s) * 1e3
+        at[n] = time.time()
+        if at[n] - steal[-1][0] >= 1.0:
+            steal.append((at[n], _host_steal_s()))
         n += 1
-    return out[:n]
+    steal.append((time.time(), _host_steal_s()))
+    return HostProbe(late[:n], at[:n], np.array(steal))
 
 
 def _run_daemon_and_echo(
@@ -394,13 +452,14 @@ def _run_daemon_and_echo(
             started = json.loads(d.stdout.readline())
             e = subprocess.Popen(
                 [PY, "-m", "daq.cli", "echo", "cell/**", "--stats", "--idle", "3",
+                 "--stats-window", str(WINDOW_S),
                  "--duration", str(seconds + warmup_s + 30), "--connect", f"tcp/127.0.0.1:{port}"],
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             )  # fmt: skip
             procs.append(e)
             time.sleep(warmup_s)
             c0, s0, t0 = _tree_cpu_s(d.pid), _host_steal_s(), time.monotonic()
-            wake = _wakeup_delays_ms(max(0.0, seconds - 0.5))
+            probe = _probe_host(max(0.0, seconds - 0.5))
             c1, s1, t1 = _tree_cpu_s(d.pid), _host_steal_s(), time.monotonic()
             if d.poll() is not None:  # its workers' CPU would be missing, the window wrong
                 raise RuntimeError("daq run ended inside the measurement window")
@@ -429,14 +488,8 @@ def _run_daemon_and_echo(
         "echo": stats,
         "cpu_fraction": (c1 - c0) / (t1 - t0),
         "steal_cores": (s1 - s0) / (t1 - t0),
-        "wakeup_late_ms": {
-            "p50": float(np.percentile(wake, 50)),
-            "p99": float(np.percentile(wake, 99)),
-            "max": float(wake.max()),
-            # wall time the loop spent stalled beyond 5 ms: a stall delays every sample
-            # in flight, so 1 % of the run stalled puts the daemon's p99 in the stalls
-            "stalled_fraction_over_5ms": float(wake[wake > 5.0].sum() / 1e3 / (t1 - t0)),
-        },
+        "wakeup_late_ms": probe.summary(t1 - t0),
+        "probe": probe,
     }
 
 
@@ -592,8 +645,40 @@ def cell(
         "host_steal_cores": res["steal_cores"],
         # raw zenoh at the same rates meanwhile (None: not run): the host's latency floor
         "raw_reference_latency_ms": res["raw_reference"],
+        **_windows_by_host_state(keys, res["probe"]),
         "daemon_side": daemon_side,
         "per_key": keys,
+    }
+
+
+def _windows_by_host_state(keys: dict[str, Any], probe: HostProbe) -> dict[str, Any]:
+    """The latency per ``WINDOW_S`` window (worst device) beside what the host probe saw
+    in it, and the windows split by whether the probe was ever stalled beyond 5 ms: a
+    diagnosis of the run's p99, which stays the figure of record."""
+    host = probe.windows(WINDOW_S)
+    by_t: dict[int, list[dict[str, float]]] = {}
+    for v in keys.values():
+        for w in v.get("latency_mapped_ms_windows", []):
+            by_t.setdefault(int(w["t_s"]), []).append(w)
+    rows = []
+    for t0, h in sorted(host.items()):
+        if t0 not in by_t:
+            continue
+        lat = by_t[t0]
+        rows.append({"t_utc_s": t0, "latency_p99_ms": max(w["p99"] for w in lat),
+                     "latency_max_ms": max(w["max"] for w in lat), **h})  # fmt: skip
+
+    def split(quiet: bool) -> dict[str, Any]:
+        p99 = [r["latency_p99_ms"] for r in rows if (r["stalled_fraction_over_5ms"] == 0) == quiet]
+        if not p99:
+            return {"windows": 0}
+        return {"windows": len(p99), "latency_p99_ms_median": float(np.median(p99)),
+                "latency_p99_ms_max": max(p99)}  # fmt: skip
+
+    return {
+        "windows": rows,
+        "windows_host_quiet": split(True),
+        "windows_host_stalled": split(False),
     }
 
 
@@ -677,6 +762,12 @@ def main(argv: list[str] | None = None) -> int:
         "= false) instead of a worker process each",
     )
     ap.add_argument(
+        "--windows",
+        metavar="FILE",
+        help=f"--soak: write the latency and host figures per {WINDOW_S} s window to FILE "
+        "(JSON lines)",
+    )
+    ap.add_argument(
         "--wildcard",
         action="store_true",
         help="only raw zenoh: subscriber on cell/** vs on the exact key (3 rounds of 5 s)",
@@ -707,6 +798,10 @@ def main(argv: list[str] | None = None) -> int:
             | {"latency_p99_ms": v.get("latency_mapped_ms", {}).get("p99")}
             for k, v in res["per_key"].items()
         }
+        rows = res.pop("windows")
+        if args.windows:
+            with open(args.windows, "w", encoding="utf-8") as fh:
+                fh.writelines(json.dumps(r) + "\n" for r in rows)
         print(json.dumps({"soak": res}, indent=1))
         lost = res["loss_samples"] + res["lost_messages"] + res["undecodable"]
         return 0 if lost == 0 else 1

@@ -7,7 +7,7 @@ Commands (docs/daq.md)::
     daq replay FILE.mcap [--speed X | --fast] [--loop] [--start S] [--topic EXPR]
     daq recover FILE.mcap [-o OUT.mcap]                              rewrite a truncated file
     daq info FILE.mcap                                               channels and counts (streams)
-    daq echo KEYEXPR [--stats] [--jsonl FILE] [--duration S]         look at a key
+    daq echo KEYEXPR [--stats [--stats-window S]] [--jsonl FILE] [--duration S]   look at a key
     daq schema KEY                                                   the JSON schema of a key
 
 zenoh settings: ``--config`` file's ``[zenoh]`` table, ``DAQ_ZENOH_*`` variables and
@@ -37,6 +37,16 @@ COMMANDS: dict[str, str] = {
     "echo": "subscribe to a key expression and print or summarise batches",
     "schema": "print the JSON schema of a key (zenoh query <key>/@schema)",
 }
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number of seconds >= 1, got {text!r}")
+    return value
 
 
 def _zenoh_args(p: argparse.ArgumentParser) -> None:
@@ -143,6 +153,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--idle", type=float, help="stop after S seconds without data (once started)")
     p.add_argument("--jsonl", metavar="FILE", help="write every batch as JSON lines ('-': stdout)")
     p.add_argument("--stats", action="store_true", help="print a JSON summary at the end")
+    p.add_argument(
+        "--stats-window",
+        type=_positive_int,
+        metavar="S",
+        help="with --stats: latency percentiles also per S-second window of receive time",
+    )
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--ready", action="store_true", help="say when subscribed (stderr)")
     _zenoh_args(p)

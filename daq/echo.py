@@ -33,6 +33,16 @@ class LatencySeries:
     def __init__(self) -> None:
         self._buf = np.empty(4096, np.int64)
         self.n = 0
+        # (UTC second of receive, index of that second's first value): percentiles per
+        # time window (``windows``) at the cost of one integer compare per message
+        self._starts: list[tuple[int, int]] = []
+        self._second = -1
+
+    def _mark(self, at_ns: int) -> None:
+        second = at_ns // 1_000_000_000
+        if second != self._second:
+            self._second = second
+            self._starts.append((second, self.n))
 
     def _room(self, k: int) -> int:
         k = min(k, LATENCY_KEEP - self.n)
@@ -42,18 +52,42 @@ class LatencySeries:
             self._buf = grown
         return k
 
-    def add_one(self, value_ns: int) -> None:
+    def add_one(self, value_ns: int, at_ns: int) -> None:
+        """One latency of a message received at ``at_ns`` (UTC ns)."""
+        self._mark(at_ns)
         if self._room(1):
             self._buf[self.n] = value_ns
             self.n += 1
 
-    def add(self, values_ns: NDArray[np.int64]) -> None:
+    def add(self, values_ns: NDArray[np.int64], at_ns: int) -> None:
+        """The latencies of one message received at ``at_ns`` (UTC ns)."""
+        self._mark(at_ns)
         k = self._room(len(values_ns))
         self._buf[self.n : self.n + k] = values_ns[:k]
         self.n += k
 
     def values(self) -> NDArray[np.int64]:
         return self._buf[: self.n]
+
+    def windows(self, width_s: int) -> list[dict[str, float]]:
+        """Percentiles in ms per window of ``width_s`` seconds of receive time, aligned
+        to UTC multiples of ``width_s``: ``t_s`` (the window's start, UTC s), ``n``,
+        ``p50``, ``p99``, ``max``. Windows without values are left out."""
+        if not self._starts:
+            return []
+        second, index = np.array(self._starts, np.int64).T
+        window = second // width_s
+        first = np.flatnonzero(np.r_[True, window[1:] != window[:-1]])
+        bounds = np.r_[index[first], self.n]
+        out: list[dict[str, float]] = []
+        for j, f in enumerate(first.tolist()):
+            v = self._buf[bounds[j] : bounds[j + 1]] / 1e6
+            if v.size:
+                p50, p99 = np.percentile(v, [50, 99])
+                t_s = int(window[f]) * width_s
+                out.append({"t_s": t_s, "n": int(v.size), "p50": float(p50), "p99": float(p99),
+                            "max": float(v.max())})  # fmt: skip
+        return out
 
 
 @dataclass
@@ -118,9 +152,9 @@ class KeyStats:
                 ok = cols["t_mapped_ok"] == 1
                 self.unsettled += int(n - np.count_nonzero(ok))
                 tm = tm[ok]
-            self.lat_mapped.add(t_recv_ns - tm)
+            self.lat_mapped.add(t_recv_ns - tm, t_recv_ns)
             if "t_host_rx_ns" in cols:
-                self.lat_rx.add(t_recv_ns - cols["t_host_rx_ns"].astype(np.int64))
+                self.lat_rx.add(t_recv_ns - cols["t_host_rx_ns"].astype(np.int64), t_recv_ns)
 
     def _add_one(self, cols: dict[str, np.ndarray], t_recv_ns: int) -> bool:
         """One sample following the last in the same epoch, in Python ints (the usual
@@ -139,12 +173,14 @@ class KeyStats:
         if "t_mapped_ok" in cols and int(cols["t_mapped_ok"][0]) != 1:
             self.unsettled += 1
         else:
-            self.lat_mapped.add_one(t_recv_ns - tm)
+            self.lat_mapped.add_one(t_recv_ns - tm, t_recv_ns)
         if "t_host_rx_ns" in cols:
-            self.lat_rx.add_one(t_recv_ns - int(cols["t_host_rx_ns"][0]))
+            self.lat_rx.add_one(t_recv_ns - int(cols["t_host_rx_ns"][0]), t_recv_ns)
         return True
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self, window_s: int | None = None) -> dict[str, Any]:
+        """Counts and latency percentiles (ms); with ``window_s``, also the device →
+        subscriber latency per window of receive time (``latency_mapped_ms_windows``)."""
         out: dict[str, Any] = {k: getattr(self, k) for k in self.COUNTED}
         lat = (("latency_mapped_ms", self.lat_mapped), ("latency_rx_ms", self.lat_rx))
         for name, series in lat:
@@ -156,6 +192,8 @@ class KeyStats:
                     "max": float(v.max()),
                     "n": int(v.size),
                 }
+        if window_s is not None:
+            out["latency_mapped_ms_windows"] = self.lat_mapped.windows(window_s)
         return out
 
 
@@ -174,8 +212,10 @@ def run_echo(
     quiet: bool = False,
     stats_out: IO[str] | None = None,
     ready_out: IO[str] | None = None,
+    stats_window_s: int | None = None,
 ) -> dict[str, Any]:
-    """Receive until duration, batch count, idle time or SIGINT/SIGTERM; return stats."""
+    """Receive until duration, batch count, idle time or SIGINT/SIGTERM; return stats
+    (with ``stats_window_s``: latency percentiles per window of that many seconds too)."""
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -264,7 +304,7 @@ def run_echo(
     if failed:
         raise failed[0]
     result = {
-        "keys": {k: s.summary() for k, s in sorted(stats.items())},
+        "keys": {k: s.summary(stats_window_s) for k, s in sorted(stats.items())},
         "health": health,
         "undecodable": recv.undecodable if recv is not None else 0,
         "elapsed_s": time.monotonic() - t0,
@@ -290,6 +330,7 @@ def main_echo(args: Any, zc: ZenohConfig) -> int:
             quiet=args.quiet or args.stats,
             stats_out=sys.stdout if args.stats else None,
             ready_out=sys.stderr if args.ready else None,
+            stats_window_s=args.stats_window,
         )
     finally:
         if jsonl is not None and jsonl is not sys.stdout:

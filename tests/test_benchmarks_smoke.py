@@ -12,6 +12,7 @@ import sys
 import types
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 # `benchmarks` is not an installed package: `python -m pytest` (make test) finds it through
@@ -118,6 +119,8 @@ def test_daq_benchmark_measures_both_sides_and_loses_nothing():
     host = c["host_wakeup_late_ms"]
     assert 0.0 <= host["stalled_fraction_over_5ms"] <= 1.0 and host["p50"] <= host["max"]
     assert c["host_steal_cores"] >= 0.0
+    split = c["windows_host_quiet"]["windows"] + c["windows_host_stalled"]["windows"]
+    assert split == len(c["windows"]) >= 1  # every window is one or the other
     ref = c["raw_reference_latency_ms"]  # raw zenoh streams alongside, one per device
     assert ref["messages"] > 3 * 1000 and ref["lost"] == 0, ref
     assert 0.0 < ref["p50"] <= ref["p99"] <= ref["max"]
@@ -125,7 +128,40 @@ def test_daq_benchmark_measures_both_sides_and_loses_nothing():
 
 def test_host_wakeup_probe_is_bounded_by_count_and_time():
     bench_daq = importlib.import_module("benchmarks.bench_daq")
-    late = bench_daq._wakeup_delays_ms(0.2, period_s=0.01)
-    assert 1 <= len(late) <= 21
-    assert len(bench_daq._wakeup_delays_ms(0.0)) == 1  # a zero window still has a figure
+    probe = bench_daq._probe_host(0.2, period_s=0.01)
+    late = probe.late_ms
+    assert 1 <= len(late) <= 21 and len(probe.at_s) == len(late)
+    assert len(bench_daq._probe_host(0.0).late_ms) == 1  # a zero window still has a figure
     assert late.min() > -1.0  # a sleep never returns early by more than clock noise
+    assert np.all(np.diff(probe.at_s) >= 0) and len(probe.steal) >= 2
+
+
+def test_host_probe_windows_and_the_latency_beside_them():
+    """Stalls and steal are assigned to the UTC-aligned window they happened in, and each
+    latency window is classed by its host window."""
+    bench_daq = importlib.import_module("benchmarks.bench_daq")
+    t = 1_763_860_000.0  # a multiple of 10 s
+    at = t + np.arange(0.0, 20.0, 0.001)  # two windows of wake-ups every ms
+    late = np.full(len(at), 0.1)
+    late[15_000] = 50.0  # one 50 ms stall in the second window
+    late[16_000] = 4.9  # late, but not a stall beyond 5 ms
+    steal = np.array([[t, 100.0], [t + 10.0, 101.0], [t + 20.0, 106.0]])
+    probe = bench_daq.HostProbe(late, at, steal)
+    w = probe.windows(10)
+    assert list(w) == [int(t), int(t) + 10]
+    assert w[int(t)]["stalled_fraction_over_5ms"] == 0.0
+    assert w[int(t) + 10]["stalled_fraction_over_5ms"] == pytest.approx(0.05 / 9.999, rel=1e-3)
+    assert w[int(t)]["steal_cores"] == pytest.approx(0.1)
+    assert w[int(t) + 10]["steal_cores"] == pytest.approx(0.5)
+
+    def key(p99s):
+        return {"latency_mapped_ms_windows": [
+            {"t_s": int(t) + 10 * i, "n": 10, "p50": 1.0, "p99": p, "max": 2 * p}
+            for i, p in enumerate(p99s)]}  # fmt: skip
+
+    res = bench_daq._windows_by_host_state({"a": key([3.0, 40.0]), "b": key([4.0, 20.0])}, probe)
+    assert [r["latency_p99_ms"] for r in res["windows"]] == [4.0, 40.0]  # worst device
+    assert res["windows_host_quiet"] == {
+        "windows": 1, "latency_p99_ms_median": 4.0, "latency_p99_ms_max": 4.0}  # fmt: skip
+    assert res["windows_host_stalled"]["windows"] == 1
+    assert res["windows_host_stalled"]["latency_p99_ms_max"] == 40.0

@@ -221,12 +221,43 @@ def test_latency_series_grows_and_stays_bounded(monkeypatch):
     monkeypatch.setattr(echo, "LATENCY_KEEP", 10_000)
     s = LatencySeries()
     for k in range(3000):
-        s.add_one(k)
-    s.add(np.arange(3000, 9000, dtype=np.int64))
+        s.add_one(k, 0)
+    s.add(np.arange(3000, 9000, dtype=np.int64), 0)
     assert np.array_equal(s.values(), np.arange(9000))
-    s.add(np.arange(9000, 12000, dtype=np.int64))  # only 1000 fit
-    s.add_one(-1)
+    s.add(np.arange(9000, 12000, dtype=np.int64), 0)  # only 1000 fit
+    s.add_one(-1, 0)
     assert s.n == 10_000 and np.array_equal(s.values(), np.arange(10_000))
+
+
+def test_latency_windows_follow_receive_time_aligned_to_utc(monkeypatch):
+    s = LatencySeries()
+    assert s.windows(10) == []
+    sec = 1_000_000_000
+    base = 1_763_860_000 * sec  # a multiple of 10 s
+    s.add_one(1_000_000, base + sec // 2)  # 1 ms, in [base, base + 10 s)
+    s.add(np.array([2_000_000, 9_000_000]), base + 9 * sec)  # same window, next second
+    s.add_one(4_000_000, base + 10 * sec)  # the next window starts exactly here
+    s.add_one(7_000_000, base + 25 * sec)  # a window with nothing before it skipped
+    w = s.windows(10)
+    assert [x["t_s"] for x in w] == [base // sec, base // sec + 10, base // sec + 20]
+    assert [x["n"] for x in w] == [3, 1, 1]
+    assert w[0]["max"] == pytest.approx(9.0) and w[0]["p50"] == pytest.approx(2.0)
+    assert w[0]["p99"] == pytest.approx(np.percentile([1.0, 2.0, 9.0], 99))
+    assert w[2]["p99"] == pytest.approx(7.0)
+    one = s.windows(1)  # per second: 4 seconds had values
+    assert [x["n"] for x in one] == [1, 2, 1, 1]
+    # values past LATENCY_KEEP are not kept: their windows are left out, not empty
+    monkeypatch.setattr(echo, "LATENCY_KEEP", s.n)
+    s.add_one(5_000_000, base + 40 * sec)
+    assert [x["t_s"] for x in s.windows(10)][-1] == base // sec + 20
+
+
+def test_summary_windows_only_when_asked():
+    s = KeyStats()
+    s.add(SimpleNamespace(n_samples=1, batch_seq=0), _cols([1], [0], [0], [1]), 10**9)
+    assert "latency_mapped_ms_windows" not in s.summary()
+    w = s.summary(window_s=5)["latency_mapped_ms_windows"]
+    assert w == [{"t_s": 0, "n": 1, "p50": 1000.0, "p99": 1000.0, "max": 1000.0}]
 
 
 def _general(stats: KeyStats, header: SimpleNamespace, cols: dict, t_recv: int) -> None:
