@@ -259,7 +259,9 @@ def run_echo(
             return  # enough: the main thread is closing
         progress["last_rx"] = time.monotonic()
         progress["batches"] += 1
-        st = stats.setdefault(got.key, KeyStats())
+        st = stats.get(got.key)
+        if st is None:  # not setdefault: that would build a KeyStats for every message
+            st = stats[got.key] = KeyStats()
         st.add(got.header, got.columns, got.t_recv_ns)
         if jsonl is not None:
             rec = {
