@@ -21,7 +21,8 @@ Every figure comes from separate processes on loopback, measured in the same run
   gives its latency per 10 s window beside what a sleeping 1 kHz loop in this process
   and the hypervisor's steal counter showed in that window, and splits the windows by
   whether that loop ever woke over 5 ms late (``windows_host_quiet`` /
-  ``windows_host_stalled``; ``--windows FILE``: every window as JSON lines).
+  ``windows_host_stalled``) and by the steal in them (``windows_by_steal_cores``);
+  ``--windows FILE`` writes every window as JSON lines.
 
 Devices: the emulated cell (``sim-cell``) when ``--emulated`` is given, else in-process
 fake devices (``daq.testing.FakeDriver``: a drifting µs clock, 1 kHz, no wire).
@@ -374,10 +375,10 @@ class HostProbe:
             "stalled_fraction_over_5ms": float(w[w > 5.0].sum() / 1e3 / max(seconds, 1e-9)),
         }
 
-    def windows(self, width_s: int) -> dict[int, dict[str, float]]:
+    def windows(self, width_s: int) -> dict[int, dict[str, float | None]]:
         """Per window of ``width_s`` s aligned to UTC multiples of it (key: its start,
         UTC s): ``stalled_fraction_over_5ms`` of the window and ``steal_cores``."""
-        out: dict[int, dict[str, float]] = {}
+        out: dict[int, dict[str, float | None]] = {}
         window = (self.at_s // width_s).astype(np.int64)
         stalled = np.where(self.late_ms > 5.0, self.late_ms / 1e3, 0.0)
         for w in np.unique(window).tolist():
@@ -651,10 +652,16 @@ def cell(
     }
 
 
+#: steal bins (cores) the soak's windows are grouped by
+STEAL_BINS = (("<0.01", 0.0, 0.01), ("0.01-0.05", 0.01, 0.05), ("0.05-0.2", 0.05, 0.2),
+              (">=0.2", 0.2, float("inf")))  # fmt: skip
+
+
 def _windows_by_host_state(keys: dict[str, Any], probe: HostProbe) -> dict[str, Any]:
     """The latency per ``WINDOW_S`` window (worst device) beside what the host probe saw
-    in it, and the windows split by whether the probe was ever stalled beyond 5 ms: a
-    diagnosis of the run's p99, which stays the figure of record."""
+    in it; the windows grouped by whether the probe was ever stalled beyond 5 ms, and by
+    the hypervisor's steal in them (``STEAL_BINS``): a diagnosis of the run's p99, which
+    stays the figure of record."""
     host = probe.windows(WINDOW_S)
     by_t: dict[int, list[dict[str, float]]] = {}
     for v in keys.values():
@@ -668,17 +675,23 @@ def _windows_by_host_state(keys: dict[str, Any], probe: HostProbe) -> dict[str, 
         rows.append({"t_utc_s": t0, "latency_p99_ms": max(w["p99"] for w in lat),
                      "latency_max_ms": max(w["max"] for w in lat), **h})  # fmt: skip
 
-    def split(quiet: bool) -> dict[str, Any]:
-        p99 = [r["latency_p99_ms"] for r in rows if (r["stalled_fraction_over_5ms"] == 0) == quiet]
+    def group(members: list[dict[str, Any]]) -> dict[str, Any]:
+        p99 = [r["latency_p99_ms"] for r in members]
         if not p99:
             return {"windows": 0}
-        return {"windows": len(p99), "latency_p99_ms_median": float(np.median(p99)),
+        return {"windows": len(p99), "p99_under_5ms": sum(p < 5.0 for p in p99),
+                "latency_p99_ms_median": float(np.median(p99)),
                 "latency_p99_ms_max": max(p99)}  # fmt: skip
 
+    steal_known = [r for r in rows if r["steal_cores"] is not None]
     return {
         "windows": rows,
-        "windows_host_quiet": split(True),
-        "windows_host_stalled": split(False),
+        "windows_host_quiet": group([r for r in rows if r["stalled_fraction_over_5ms"] == 0]),
+        "windows_host_stalled": group([r for r in rows if r["stalled_fraction_over_5ms"] > 0]),
+        "windows_by_steal_cores": {
+            name: group([r for r in steal_known if lo <= r["steal_cores"] < hi])
+            for name, lo, hi in STEAL_BINS
+        },
     }
 
 

@@ -72,7 +72,8 @@ class LatencySeries:
     def windows(self, width_s: int) -> list[dict[str, float]]:
         """Percentiles in ms per window of ``width_s`` seconds of receive time, aligned
         to UTC multiples of ``width_s``: ``t_s`` (the window's start, UTC s), ``n``,
-        ``p50``, ``p99``, ``max``. Windows without values are left out."""
+        ``p50``, ``p99``, ``max``. Windows without values (none arrived, or they came
+        after ``LATENCY_KEEP`` were kept) are left out."""
         if not self._starts:
             return []
         second, index = np.array(self._starts, np.int64).T

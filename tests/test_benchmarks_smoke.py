@@ -161,7 +161,11 @@ def test_host_probe_windows_and_the_latency_beside_them():
 
     res = bench_daq._windows_by_host_state({"a": key([3.0, 40.0]), "b": key([4.0, 20.0])}, probe)
     assert [r["latency_p99_ms"] for r in res["windows"]] == [4.0, 40.0]  # worst device
-    assert res["windows_host_quiet"] == {
-        "windows": 1, "latency_p99_ms_median": 4.0, "latency_p99_ms_max": 4.0}  # fmt: skip
+    assert res["windows_host_quiet"] == {"windows": 1, "p99_under_5ms": 1,
+        "latency_p99_ms_median": 4.0, "latency_p99_ms_max": 4.0}  # fmt: skip
     assert res["windows_host_stalled"]["windows"] == 1
     assert res["windows_host_stalled"]["latency_p99_ms_max"] == 40.0
+    assert res["windows_host_stalled"]["p99_under_5ms"] == 0
+    steal = res["windows_by_steal_cores"]  # 0.1 and 0.5 cores
+    assert [steal[k]["windows"] for k in steal] == [0, 0, 1, 1]
+    assert steal["0.05-0.2"]["latency_p99_ms_max"] == 4.0
