@@ -39,7 +39,7 @@ COMMANDS: dict[str, str] = {
 }
 
 
-def _positive_int(text: str) -> int:
+def _whole_seconds(text: str) -> int:
     try:
         value = int(text)
     except ValueError:
@@ -155,7 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stats", action="store_true", help="print a JSON summary at the end")
     p.add_argument(
         "--stats-window",
-        type=_positive_int,
+        type=_whole_seconds,
         metavar="S",
         help="with --stats: latency percentiles also per S-second window of receive time",
     )
