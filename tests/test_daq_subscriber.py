@@ -260,6 +260,17 @@ def test_summary_windows_only_when_asked():
     assert w == [{"t_s": 0, "n": 1, "p50": 1000.0, "p99": 1000.0, "max": 1000.0}]
 
 
+@pytest.mark.parametrize("bad", ["0", "-3", "1.5", "ten"])
+def test_echo_stats_window_takes_whole_seconds_only(bad, capsys):
+    from daq.cli import build_parser
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["echo", "--stats", "--stats-window", bad])
+    err = capsys.readouterr().err
+    assert "--stats-window" in err and repr(bad) in err
+    assert build_parser().parse_args(["echo", "--stats-window", "10"]).stats_window == 10
+
+
 def _general(stats: KeyStats, header: SimpleNamespace, cols: dict, t_recv: int) -> None:
     """The vectorised path, even for one sample."""
     orig = KeyStats._add_one
