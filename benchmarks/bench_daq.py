@@ -265,9 +265,12 @@ def _ref_sub_main(port: int, seconds: float, idle_s: float) -> None:
     )
 
 
-def _start_main(call: str) -> subprocess.Popen:
-    """``python -c`` of a function of this module (it prints a ready line first)."""
+def _start_main(call: str, realtime: int = 0) -> subprocess.Popen:
+    """``python -c`` of a function of this module (it prints a ready line first), under
+    SCHED_FIFO priority ``realtime`` if not 0."""
     code = f"import benchmarks.bench_daq as b; b.{call}"
+    if realtime:
+        code = f"from daq.scheduling import set_realtime; set_realtime({realtime}, 'bench'); {code}"
     p = subprocess.Popen(
         [PY, "-c", code], stdout=subprocess.PIPE, text=True, cwd=Path(__file__).parents[1]
     )
@@ -393,10 +396,21 @@ class HostProbe:
         return out
 
 
-def _probe_host(seconds: float, period_s: float = 0.001) -> HostProbe:
+def _probe_host(seconds: float, period_s: float = 0.001, *, realtime: int = 0) -> HostProbe:
     """Sleep ``period_s`` at a time for ``seconds`` (at most ``seconds / period_s``
     wake-ups, at least one) and note how late each wake-up was; read the steal counter
-    once a second."""
+    once a second. ``realtime``: the loop runs under SCHED_FIFO of that priority, as the
+    cell does (a normal loop would measure the cell's real-time threads, not the host)."""
+    if realtime:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(realtime))
+    try:
+        return _probe_loop(seconds, period_s)
+    finally:
+        if realtime:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+def _probe_loop(seconds: float, period_s: float) -> HostProbe:
     late = np.empty(int(seconds / period_s) + 1)
     at = np.empty_like(late)
     steal = [(time.time(), _host_steal_s())]
@@ -421,11 +435,14 @@ def _run_daemon_and_echo(
     warmup_s: float = 2.0,
     record: bool = False,
     reference: int = 0,
+    realtime: int = 0,
 ) -> dict[str, Any]:
     """``daq run`` for ``seconds`` + ``daq echo --stats``; CPU of the daemon process.
     ``record``: the daemon also records every stream to an MCAP file (deleted after).
     ``reference``: meanwhile, that many raw zenoh streams at 1 kHz between two other
-    processes (``_ref_pub_main``), whose latency the same host noise shapes."""
+    processes (``_ref_pub_main``), whose latency the same host noise shapes.
+    ``realtime``: SCHED_FIFO priority of the daemon (``[publish] realtime_priority``) and
+    of the echo (``--realtime-priority``); 0: normal scheduling."""
     with tempfile.TemporaryDirectory() as tmp:
         args = [PY, "-m", "daq.cli", "run", "--duration", str(seconds + warmup_s)]
         if config_text is not None:
@@ -442,25 +459,28 @@ def _run_daemon_and_echo(
                 rport = _free_port()
                 span = seconds + warmup_s + 5.0  # and the daemon's and echo's start-up
                 size = len(_sample_payload(1))  # a daemon message of one sample
-                ref.append(_start_main(f"_ref_sub_main({rport}, {span + 30}, 3.0)"))
+                ref.append(_start_main(f"_ref_sub_main({rport}, {span + 30}, 3.0)", realtime))
                 procs.append(ref[0])
                 call = f"_ref_pub_main({rport}, {span}, {size}, 1000.0, {reference})"
-                ref.append(_start_main(call))
+                ref.append(_start_main(call, realtime))
                 procs.append(ref[1])
-            d = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            env = {**os.environ, "DAQ_PUBLISH_REALTIME_PRIORITY": str(realtime)}
+            d = subprocess.Popen(
+                args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+            )
             procs.append(d)
             assert d.stdout is not None
             started = json.loads(d.stdout.readline())
             e = subprocess.Popen(
                 [PY, "-m", "daq.cli", "echo", "cell/**", "--stats", "--idle", "3",
-                 "--stats-window", str(WINDOW_S),
+                 "--stats-window", str(WINDOW_S), "--realtime-priority", str(realtime),
                  "--duration", str(seconds + warmup_s + 30), "--connect", f"tcp/127.0.0.1:{port}"],
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             )  # fmt: skip
             procs.append(e)
             time.sleep(warmup_s)
             c0, s0, t0 = _tree_cpu_s(d.pid), _host_steal_s(), time.monotonic()
-            probe = _probe_host(max(0.0, seconds - 0.5))
+            probe = _probe_host(max(0.0, seconds - 0.5), realtime=realtime)
             c1, s1, t1 = _tree_cpu_s(d.pid), _host_steal_s(), time.monotonic()
             if d.poll() is not None:  # its workers' CPU would be missing, the window wrong
                 raise RuntimeError("daq run ended inside the measurement window")
@@ -591,14 +611,21 @@ def cell(
     devices: int = 3,
     reference: bool = False,
     threads: bool = False,
+    realtime: int = 0,
 ) -> dict[str, Any]:
     """``reference``: raw zenoh streams at 1 kHz, one per device, run meanwhile between
-    two other processes: the latency this host allows a minimal Python pub/sub now."""
+    two other processes: the latency this host allows a minimal Python pub/sub now.
+    ``realtime``: SCHED_FIFO priority of the daemon and the echo (0: normal)."""
     port = _free_port()
     # the daemon's default batching (500 samples, age 0: every read is published)
     text = None if emulated else _cell_config(port, devices, 1000.0, 500, 0.0, threads=threads)
     res = _run_daemon_and_echo(
-        text, port, seconds, record=record, reference=devices if reference else 0
+        text,
+        port,
+        seconds,
+        record=record,
+        reference=devices if reference else 0,
+        realtime=realtime,
     )
     keys = res["echo"]["keys"]
     lat_m = [v["latency_mapped_ms"] for v in keys.values() if "latency_mapped_ms" in v]
@@ -625,11 +652,13 @@ def cell(
                 "publish_errors",
                 "messages_unsent",
                 "reconnects",
+                "scheduling",
             )
         } | {k: v for k, v in dc.items() if k in ("missed_syncs", "crc_errors", "timeouts")}
     return {
         "devices": len(keys),
         "seconds": seconds,
+        "realtime_priority": realtime,
         "samples_received": samples,
         "loss_samples": loss,
         "loss_fraction": loss / max(1, samples + loss),
@@ -775,6 +804,14 @@ def main(argv: list[str] | None = None) -> int:
         "= false) instead of a worker process each",
     )
     ap.add_argument(
+        "--realtime",
+        type=int,
+        default=0,
+        metavar="N",
+        help="--soak: the daemon ([publish] realtime_priority) and the echo "
+        "(--realtime-priority) under SCHED_FIFO priority N (needs root or CAP_SYS_NICE)",
+    )
+    ap.add_argument(
         "--windows",
         metavar="FILE",
         help=f"--soak: write the latency and host figures per {WINDOW_S} s window to FILE "
@@ -803,6 +840,7 @@ def main(argv: list[str] | None = None) -> int:
             devices=args.devices,
             reference=args.reference,
             threads=args.threads,
+            realtime=args.realtime,
         )
         res["per_key"] = {
             k.rsplit("/", 2)[-2]: {

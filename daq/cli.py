@@ -8,6 +8,9 @@ Commands (docs/daq.md)::
     daq recover FILE.mcap [-o OUT.mcap]                              rewrite a truncated file
     daq info FILE.mcap                                               channels and counts (streams)
     daq echo KEYEXPR [--stats [--stats-window S]] [--jsonl FILE] [--duration S]   look at a key
+
+``echo`` and ``record`` take ``--realtime-priority N`` (SCHED_FIFO, as ``[publish]
+realtime_priority`` for ``run``).
     daq schema KEY                                                   the JSON schema of a key
 
 zenoh settings: ``--config`` file's ``[zenoh]`` table, ``DAQ_ZENOH_*`` variables and
@@ -117,6 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="MCAP file to write")
     p.add_argument("--config", help="take zenoh settings from this cell TOML")
     p.add_argument("--duration", type=float, help="stop after S seconds")
+    _realtime_arg(p)
     _zenoh_args(p)
 
     p = sub.add_parser("replay", help=COMMANDS["replay"])
@@ -161,6 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--ready", action="store_true", help="say when subscribed (stderr)")
+    _realtime_arg(p)
     _zenoh_args(p)
 
     p = sub.add_parser("schema", help=COMMANDS["schema"])
@@ -169,6 +174,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=2.0)
     _zenoh_args(p)
     return parser
+
+
+def _realtime_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--realtime-priority",
+        type=int,
+        default=0,
+        metavar="N",
+        help="run under SCHED_FIFO priority N (1-99; 0: normal); a subscriber on the "
+        "daemon's machine needs the daemon's priority to keep up when CPU is short",
+    )
 
 
 def _schema(args: argparse.Namespace) -> int:
@@ -201,6 +217,10 @@ def main(argv: list[str] | None = None) -> int:
             from daq.daemon import main_run
 
             return main_run(args)
+        if getattr(args, "realtime_priority", 0):
+            from daq.scheduling import set_realtime
+
+            set_realtime(args.realtime_priority, "--realtime-priority")
         if args.command == "record":
             from daq.recording import main_record
 

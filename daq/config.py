@@ -86,6 +86,9 @@ class PublishConfig:
     # each device's acquisition in a process of its own (daq.worker): true, false, or
     # "auto": when the daemon runs more than one device (one device has no GIL to share)
     process_per_device: bool | str = "auto"
+    #: SCHED_FIFO priority (1-99) of the daemon and its device workers; 0: normal
+    #: scheduling (daq.scheduling; docs/daq.md "Real-time scheduling")
+    realtime_priority: int = 0
 
 
 @dataclass(frozen=True)
@@ -321,6 +324,12 @@ def _parse_publish(t: Mapping[str, Any], w: _Where) -> PublishConfig:
         process_per_device=_bool_or_auto(
             t.get("process_per_device", d.process_per_device),
             w("[publish]", "process_per_device"),
+        ),
+        realtime_priority=_integer(
+            t.get("realtime_priority", d.realtime_priority),
+            w("[publish]", "realtime_priority"),
+            minimum=0,
+            maximum=99,
         ),
     )
 

@@ -40,6 +40,7 @@ from daq.recording import (
     BackgroundRecorder,
     McapRecorder,
 )
+from daq.scheduling import set_realtime_of
 from daq.worker import DeviceWorker, worker_zenoh
 
 log = logging.getLogger(__name__)
@@ -320,6 +321,8 @@ def main_run(args: Any) -> int:
         path = recording_path(cfg, args.record or None)
     stopping = threading.Event()
     try:
+        # before any session or worker exists: their threads and processes inherit it
+        set_realtime_of(cfg)
         daemon = Daemon(cfg, record_path=path)
     except BaseException:
         if emulated is not None:

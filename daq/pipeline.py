@@ -33,6 +33,7 @@ from daq.columnar import Column, StreamSchema
 from daq.config import ChannelGroup, DaqConfig, DeviceConfig
 from daq.errors import ConfigError, TransportError
 from daq.recording import KIND_FOXGLOVE, BackgroundRecorder
+from daq.scheduling import describe as describe_scheduling
 from drivers.base import SampleBatch
 
 log = logging.getLogger(__name__)
@@ -264,6 +265,7 @@ class DeviceStream:
         self._away_since: float | None = None
         self._thread = threading.Thread(target=self._run, name=f"dev-{dev.name}", daemon=True)
         self.error: BaseException | None = None
+        self.scheduling = "normal"  # the acquisition thread's, once it runs
 
     def _new_clock(self) -> DeviceClockMap:
         # restarts are the driver's to detect (epoch); a backlog read after a reconnect is
@@ -330,6 +332,7 @@ class DeviceStream:
         pending: list[Any] = []
         n_pending = 0
         first_ns = 0
+        self.scheduling = describe_scheduling()
         try:
             if not self._open():
                 return
@@ -618,6 +621,7 @@ class DeviceStream:
             },
             "driver_counters": dc,
             "error": repr(self.error) if self.error is not None else None,
+            "scheduling": self.scheduling,
         }
         c.window_samples = 0
         return doc

@@ -35,6 +35,7 @@ from mcap.writer import CompressionType, Writer
 
 from daq.columnar import ENCODING_NAME, SCHEMA_ENCODING, StreamSchema
 from daq.errors import RecordingError
+from daq.scheduling import normal_for_this_thread
 
 log = logging.getLogger(__name__)
 
@@ -250,6 +251,7 @@ class BackgroundRecorder:
         # (3 000 wake-ups a second on the full cell, each taking the interpreter from the
         # acquisition threads; A/B: daemon CPU 0.68-0.79 vs 0.79-0.88 core, latency within
         # the run-to-run noise)
+        normal_for_this_thread()  # a chunk's compression must not hold a real-time core
         while True:
             try:
                 item = self._q.get(timeout=0.1)
