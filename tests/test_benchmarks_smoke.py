@@ -8,7 +8,9 @@ from __future__ import annotations
 import importlib
 import json
 import math
+import os
 import sys
+import threading
 import types
 from pathlib import Path
 
@@ -134,6 +136,26 @@ def test_host_wakeup_probe_is_bounded_by_count_and_time():
     assert len(bench_daq._probe_host(0.0).late_ms) == 1  # a zero window still has a figure
     assert late.min() > -1.0  # a sleep never returns early by more than clock noise
     assert np.all(np.diff(probe.at_s) >= 0) and len(probe.steal) >= 2
+
+
+def test_host_probe_under_realtime_gives_the_thread_back_its_normal_scheduling():
+    """``--realtime``: the probe runs at the cell's SCHED_FIFO priority (a normal loop
+    would measure the cell's real-time threads) and leaves its thread as it found it."""
+    bench_daq = importlib.import_module("benchmarks.bench_daq")
+    got: list[object] = []
+
+    def probe() -> None:
+        try:
+            got.append(len(bench_daq._probe_host(0.05, period_s=0.01, realtime=1).late_ms))
+        except PermissionError as exc:  # no CAP_SYS_NICE here: refused, not ignored
+            got.append(exc)
+        got.append(os.sched_getscheduler(0))
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    assert got[-1] == os.SCHED_OTHER
+    assert isinstance(got[0], PermissionError) or 1 <= got[0] <= 6
 
 
 def test_host_probe_windows_and_the_latency_beside_them():
