@@ -8,10 +8,10 @@ Commands (docs/daq.md)::
     daq recover FILE.mcap [-o OUT.mcap]                              rewrite a truncated file
     daq info FILE.mcap                                               channels and counts (streams)
     daq echo KEYEXPR [--stats [--stats-window S]] [--jsonl FILE] [--duration S]   look at a key
+    daq schema KEY                                                   the JSON schema of a key
 
 ``echo`` and ``record`` take ``--realtime-priority N`` (SCHED_FIFO, as ``[publish]
 realtime_priority`` for ``run``).
-    daq schema KEY                                                   the JSON schema of a key
 
 zenoh settings: ``--config`` file's ``[zenoh]`` table, ``DAQ_ZENOH_*`` variables and
 ``--mode/--listen/--connect`` arguments, in rising precedence. Sources (``run``,

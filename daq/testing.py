@@ -3,7 +3,10 @@ in-process fake device that speaks the driver interface (no wire, no sim)."""
 
 from __future__ import annotations
 
+import os
 import socket
+import subprocess
+import sys
 import time
 from typing import Any, ClassVar
 
@@ -22,6 +25,29 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def daq_cli(*args: str, **kw: Any) -> subprocess.Popen[str]:
+    """``python -m daq.cli ARGS`` with text stdout and stderr pipes (extra Popen ``kw``)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "daq.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kw,
+    )
+
+
+def child_pids(pid: int) -> list[int]:
+    """The process ids of ``pid``'s children (Linux: ``/proc/<pid>/task/*/children``)."""
+    kids: list[int] = []
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/children", encoding="ascii") as fh:
+                kids += [int(k) for k in fh.read().split()]
+        except OSError:  # the thread ended meanwhile
+            continue
+    return kids
 
 
 def loopback_source(port: int) -> ZenohConfig:

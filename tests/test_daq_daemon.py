@@ -21,6 +21,7 @@ from daq.bus import Receiver, open_session
 from daq.daemon import Daemon
 from daq.recording import read_recording
 from daq.testing import FakeDriver, free_port, loopback_sink, recorded_columns
+from daq.testing import daq_cli as daq
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -48,16 +49,6 @@ joints = [1, 2, 3]
 """
     )
     return p
-
-
-def daq(*args: str, **kw) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "daq.cli", *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        **kw,
-    )
 
 
 def start_echo(port: int, out: Path) -> subprocess.Popen:

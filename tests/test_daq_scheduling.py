@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -17,7 +15,7 @@ import pytest
 from daq import scheduling
 from daq.config import loads
 from daq.errors import ConfigError
-from daq.testing import free_port
+from daq.testing import child_pids, daq_cli, free_port
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -37,15 +35,6 @@ def _config(port: int, priority: int) -> str:
     return "\n".join(out)
 
 
-def _daq(*args: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "daq.cli", *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-
-
 def _threads(pid: int) -> list[tuple[int, int]]:
     """(policy, rt_priority) of every thread of ``pid`` (proc(5) stat fields 41, 40)."""
     out = []
@@ -56,16 +45,6 @@ def _threads(pid: int) -> list[tuple[int, int]]:
             continue
         out.append((int(fields[38]), int(fields[37])))  # fields from "state" (field 3) on
     return out
-
-
-def _children(pid: int) -> list[int]:
-    kids: list[int] = []
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            kids += [int(k) for k in Path(f"/proc/{pid}/task/{tid}/children").read_text().split()]
-        except OSError:
-            continue
-    return kids
 
 
 def _realtime_allowed() -> bool:
@@ -107,7 +86,7 @@ def test_zero_leaves_scheduling_alone_and_a_refusal_names_the_setting(monkeypatc
 
 
 def test_echo_rejects_a_priority_out_of_range_naming_the_flag():
-    p = _daq("echo", "--realtime-priority", "100", "--duration", "0.1")
+    p = daq_cli("echo", "--realtime-priority", "100", "--duration", "0.1")
     _, err = p.communicate(timeout=60)
     assert p.returncode == 2
     assert "--realtime-priority: must be 0 (off) or 1-99, got 100" in err
@@ -117,23 +96,25 @@ def test_daemon_workers_and_echo_run_under_sched_fifo_but_not_the_mcap_writer(tm
     port = free_port()
     cfg = tmp_path / "cell.toml"
     cfg.write_text(_config(port, 3))
-    d = _daq("run", "--config", str(cfg), "--duration", "6", "--record", str(tmp_path / "r.mcap"))
+    d = daq_cli(
+        "run", "--config", str(cfg), "--duration", "6", "--record", str(tmp_path / "r.mcap")
+    )
     if not _realtime_allowed():  # then the daemon must say why it does not start
         _, err = d.communicate(timeout=60)
         assert d.returncode == 2
         assert "cell.toml: [publish]: key 'realtime_priority': SCHED_FIFO priority 3" in err
         return
     json.loads(d.stdout.readline())
-    e = _daq(
+    e = daq_cli(
         "echo", "cell/**", "--stats", "--idle", "3", "--duration", "60",
         "--realtime-priority", "3", "--connect", f"tcp/127.0.0.1:{port}",
     )  # fmt: skip
     t_end = time.monotonic() + 20
-    while len(_children(d.pid)) < 2 and time.monotonic() < t_end:
+    while len(child_pids(d.pid)) < 2 and time.monotonic() < t_end:
         time.sleep(0.1)
     time.sleep(2.0)  # the workers' zenoh and device threads are up
     daemon = _threads(d.pid)
-    workers = [_threads(w) for w in _children(d.pid)]
+    workers = [_threads(w) for w in child_pids(d.pid)]
     echo = _threads(e.pid)
     out, err = d.communicate(timeout=60)
     assert d.returncode == 0, err

@@ -8,8 +8,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -18,7 +16,7 @@ import pytest
 
 from daq.config import loads
 from daq.recording import read_recording
-from daq.testing import free_port, recorded_columns
+from daq.testing import child_pids, daq_cli, free_port, recorded_columns
 from daq.worker import config_from_spec, worker_spec, worker_zenoh
 
 pytestmark = pytest.mark.timeout(120)
@@ -43,31 +41,12 @@ def _key(dev: str, channel: str = "samples") -> str:
     return f"cell/w/robot/r1/{dev}/{channel}"
 
 
-def _children(pid: int) -> list[int]:
-    kids: list[int] = []
-    for task in os.listdir(f"/proc/{pid}/task"):
-        try:
-            kids += [int(k) for k in Path(f"/proc/{pid}/task/{task}/children").read_text().split()]
-        except OSError:
-            continue
-    return kids
-
-
 def _alive(pid: int) -> bool:
     try:
         state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
     except OSError:
         return False
     return state != "Z"
-
-
-def _daq(*args: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "daq.cli", *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
 
 
 def test_worker_spec_round_trips_the_device_and_settings():
@@ -99,15 +78,15 @@ def test_two_devices_in_workers_reach_subscriber_and_recording_whole(tmp_path):
     cfg = tmp_path / "cell.toml"
     cfg.write_text(_config(port))
     rec = tmp_path / "w.mcap"
-    d = _daq("run", "--config", str(cfg), "--duration", "5", "--record", str(rec))
+    d = daq_cli("run", "--config", str(cfg), "--duration", "5", "--record", str(rec))
     first = json.loads(d.stdout.readline())
     assert first["keys"] == [_key("d1"), _key("d1", "first"), _key("d2"), _key("d2", "first")]
-    e = _daq(
+    e = daq_cli(
         "echo", "cell/**", "--stats", "--idle", "3", "--duration", "60",
         "--connect", f"tcp/127.0.0.1:{port}",
     )  # fmt: skip
     time.sleep(2.0)
-    workers = _children(d.pid)
+    workers = child_pids(d.pid)
     assert len(workers) == 2 and all(_alive(w) for w in workers)
     out, err = d.communicate(timeout=60)
     assert d.returncode == 0, err
@@ -134,18 +113,18 @@ def test_workers_leave_with_a_killed_daemon_and_a_dead_worker_is_restarted(tmp_p
     cfg = tmp_path / "cell.toml"
     cfg.write_text(_config(port, "true", devices=1))
     rec = tmp_path / "k.mcap"
-    d = _daq("run", "--config", str(cfg), "--record", str(rec))
+    d = daq_cli("run", "--config", str(cfg), "--record", str(rec))
     json.loads(d.stdout.readline())
     t_end = time.monotonic() + 20
-    while not _children(d.pid) and time.monotonic() < t_end:
+    while not child_pids(d.pid) and time.monotonic() < t_end:
         time.sleep(0.1)
-    (worker,) = _children(d.pid)
+    (worker,) = child_pids(d.pid)
     time.sleep(1.5)
     os.kill(worker, signal.SIGKILL)  # the daemon starts it again at its next health tick
     t_end = time.monotonic() + 20
-    while time.monotonic() < t_end and _children(d.pid) in ([], [worker]):
+    while time.monotonic() < t_end and child_pids(d.pid) in ([], [worker]):
         time.sleep(0.1)
-    (again,) = _children(d.pid)
+    (again,) = child_pids(d.pid)
     assert again != worker
     time.sleep(2.0)
     os.kill(d.pid, signal.SIGKILL)
