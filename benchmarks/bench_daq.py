@@ -401,13 +401,14 @@ def _probe_host(seconds: float, period_s: float = 0.001, *, realtime: int = 0) -
     wake-ups, at least one) and note how late each wake-up was; read the steal counter
     once a second. ``realtime``: the loop runs under SCHED_FIFO of that priority, as the
     cell does (a normal loop would measure the cell's real-time threads, not the host)."""
-    if realtime:
+    from daq.scheduling import normal_for_this_thread
+
+    if realtime:  # this thread only (set_realtime would take the whole process)
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(realtime))
     try:
         return _probe_loop(seconds, period_s)
     finally:
-        if realtime:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        normal_for_this_thread()
 
 
 def _probe_loop(seconds: float, period_s: float) -> HostProbe:

@@ -50,7 +50,6 @@ from daq.config import (
 )
 from daq.errors import DaqError
 from daq.recording import BackgroundRecorder
-from daq.scheduling import set_realtime_of
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +124,6 @@ def main() -> int:
     if cfg.publish.gil_switch_s > 0:
         sys.setswitchinterval(min(sys.getswitchinterval(), cfg.publish.gil_switch_s))
     keep_freed_heap()
-    set_realtime_of(cfg)  # inherited already
     session = open_session(cfg.zenoh)
     schemas = SchemaServer(session, f"cell/{cfg.cell.name}")
     stream = DeviceStream(
