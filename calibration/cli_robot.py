@@ -8,6 +8,7 @@ import numpy as np
 
 from calibration.description import load_robot, preset_names
 from calibration.kinematics import KinematicModel, tcp_positions
+from calibration.model_effects import description_effects
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,9 +23,12 @@ def run(args: argparse.Namespace) -> int:
         print("\n".join(preset_names()))
         return 0
     desc = load_robot(args.robot)
+    specs, _ = description_effects(desc)  # [[effect]] tables checked as `twin predict` does
     model = KinematicModel.from_description(desc)
     home_tcp = tcp_positions(model, np.radians(desc.home))
     print(f"{desc.name}: {desc.n_joints} joints, Home {list(desc.home)} deg")
+    if specs:
+        print(f"effects: {'; '.join(s.label for s in specs)}")
     print(f"Home TCP in the instrument frame: {np.round(home_tcp, 3).tolist()} mm")
     if args.out:
         desc.save(args.out)

@@ -65,6 +65,10 @@ class BaseDescription:
     rz_deg: float = 0.0
 
 
+#: An ``[[effect]]`` value: a number, a name, or an array of numbers or of names.
+EffectValue = float | str | tuple[float, ...] | tuple[str, ...]
+
+
 @dataclass(frozen=True)
 class EffectDescription:
     """A non-geometric effect term of a calibrated model (written by the closed loop).
@@ -74,7 +78,7 @@ class EffectDescription:
     """
 
     kind: str
-    parameters: Mapping[str, float | tuple[float, ...]] = field(default_factory=dict)
+    parameters: Mapping[str, EffectValue] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -229,14 +233,24 @@ def _parse_joint(data: Any, source: str, index: int) -> JointDescription:
 
 
 def _parse_effect(data: Any, source: str, index: int) -> EffectDescription:
+    """Numbers, names and arrays of either; what they mean is the effect library's to
+    check (:func:`calibration.model_effects.description_effects`)."""
     t = _Table(data, source, f"[[effect]] #{index + 1}")
     kind = t.string("kind")
-    params: dict[str, float | tuple[float, ...]] = {}
+    params: dict[str, EffectValue] = {}
     for key, value in t.data.items():
         if key == "kind":
             continue
-        vec = t.vector(key, None) if isinstance(value, list) else None
-        params[key] = vec if vec is not None else t.number(key)
+        if isinstance(value, str):
+            params[key] = t.string(key)
+        elif isinstance(value, list) and value and all(isinstance(v, str) for v in value):
+            params[key] = tuple(value)
+        elif isinstance(value, list):
+            vec = t.vector(key, None)
+            assert vec is not None
+            params[key] = vec
+        else:
+            params[key] = t.number(key)
     return EffectDescription(kind=kind, parameters=params)
 
 

@@ -3,17 +3,26 @@
 Each effect *kind* is linear in a few parameters and adds ``R·c`` to the geometric TCP, with
 an analytic regressor ``R`` ``(m, 3, k)`` (mm per unit of each parameter) computed from the
 pose data (:class:`EffectData`: joint readings, times, approach directions), the robot
-description (mass model) and the current geometric model. The library (method.md §4):
+description (gravity direction, Home) and the current geometric model. Some kinds also
+have nonlinear *shape* parameters (``EffectSpec.shape``), held fixed while the linear ones
+are fitted and profiled by the closed loop. :data:`KINDS` is the one registry: the loop
+offers these kinds, ``[[effect]]`` tables name them, and the one predictor
+(:func:`calibration.identification.predicted_points`, through :func:`effect_terms`)
+applies them. The library (method.md §4, §6):
 
-* ``gravity_compliance``: links and bearings after the grating ring give under gravity and
-  payload; joint i turns by ``c_i·tau_i``, tau from the description's mass model at the
-  current geometry (``compliance_urad_per_knm`` per loaded joint).
+* ``gravity_deflection``: joints turn after their grating ring under gravity; no mass
+  model needed: compliance × a torque linear in the links' first mass moments, in a
+  linear form (one deflection per joint and base moment) or the physical form (compliance
+  ratios and shared compliance-weighted moments), see :class:`GravityDeflection`.
+* ``gravity_compliance``: the same with the torque from the description's mass model
+  (``compliance_urad_per_knm`` per loaded joint); offered only when asked for by name.
 * ``joint_harmonic``: cyclic error of joint j's reading, ``a·cos(k·q_j) + b·sin(k·q_j)``
   (``cos_deg``, ``sin_deg``).
 * ``lost_motion``: joint j stands ``w·d_j`` off, d_j the direction of its last move
   (``half_width_deg``).
-* ``length_drift``: a link length (``a`` or ``d`` of joint j) changing linearly with time
-  (``a_rate_mm_per_h`` or ``d_rate_mm_per_h``).
+* ``length_drift``: a link length (``a`` or ``d`` of joint j) changing with time,
+  linearly (``a_rate_mm_per_h``) or as a first-order lag (``a_final_mm``,
+  ``time_constant_s``).
 * ``instrument_scale``: distance-proportional scale error of the tracker (``scale_ppm``).
 * ``instrument_scale_drift``: that scale drifting with time (``rate_ppm_per_h``).
 
@@ -31,7 +40,9 @@ and the generic search, for structure outside the library ("unexplained structur
 Joint-angle effects are first-order, ``R = ∂TCP/∂θ_j · Δθ_j`` (the second-order term,
 ``Δθ²·reach``, is below 1e-4 mm for Δθ < 2e-4 rad ≈ 0.01°); lengths, scale and Cartesian
 terms are exact. Time terms use the campaign clock ``t_s`` with ``t0_s = 0``: the
-geometry of a model with drift terms is the one at the start of the campaign.
+geometry of a model with drift terms is the one at the start of the campaign. A polynomial
+in time carries the campaign's span (``t_min_s``, ``t_max_s``) and is held at its value at
+the nearer end outside it: it is never extrapolated.
 """
 
 from __future__ import annotations
@@ -48,7 +59,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration.description import EffectDescription, RobotDescription
 from calibration.errors import CalibrationError
-from calibration.identification import EffectTerms
+from calibration.gravity_regressor import (
+    BaseMoments,
+    base_moments,
+    gravity_of,
+    moment_names,
+    raw_regressor,
+)
+from calibration.identification import EffectTerms, predicted_points
 from calibration.kinematics import KinematicModel, flange_poses, identification_jacobian
 from calibration.statics import MassModel, gravity_torques_nmm
 
@@ -82,6 +100,11 @@ class EffectData:
     q_rad: FloatArray
     t_s: FloatArray | None = None
     direction: FloatArray | None = None
+    #: Readings through scale maps fitted on sweeps with the other joints at this vector
+    #: ``(n,)`` rad (None: maps that read the rings alone). Such a map has absorbed the
+    #: swept link's deflection in its sweep configuration, so the gravity term models the
+    #: deflection relative to it (:class:`GravityDeflection`).
+    sweep_reference: FloatArray | None = None
 
     def __len__(self) -> int:
         return len(self.q_rad)
@@ -118,6 +141,7 @@ class EffectData:
             self.q_rad[m],
             None if self.t_s is None else self.t_s[m],
             None if self.direction is None else self.direction[m],
+            self.sweep_reference,
         )
 
 
@@ -140,10 +164,25 @@ class EffectContext:
             KinematicModel.from_description(self.description), self.masses, self.data.q_rad
         )
 
-    def times_h(self, sel: slice, t0_s: float = 0.0) -> FloatArray:
+    @cached_property
+    def gravity(self) -> FloatArray:
+        """Unit gravity direction in the robot base frame (the description's, else −z)."""
+        return gravity_of(self.description)
+
+    @cached_property
+    def base_moments(self) -> BaseMoments:
+        """The arm's base first moments (chosen on the description's nominal geometry)."""
+        return base_moments(self.description)
+
+    def times_h(self, sel: slice, t0_s: float = 0.0, span_s: Sequence[float] = ()) -> FloatArray:
+        """Times of the poses ``sel`` in hours from ``t0_s``; with ``span_s`` held inside
+        the span (a polynomial in time is never extrapolated past the campaign)."""
         if self.data.t_s is None:
             raise EffectLibraryError("this effect needs the poses' times (t_s)")
-        return (self.data.t_s[sel] - t0_s) / HOUR_S
+        t = self.data.t_s[sel]
+        if len(span_s) == 2:
+            t = np.clip(t, span_s[0], span_s[1])
+        return (t - t0_s) / HOUR_S
 
 
 @dataclass(frozen=True, eq=False)
@@ -207,13 +246,23 @@ class Kinematics:
 @dataclass(frozen=True)
 class EffectSpec:
     """One candidate: a kind and what it is attached to (1-based joint, harmonic order,
-    length ``a``/``d``, the loaded joints of a compliance). Hashable."""
+    length ``a``/``d``, the loaded joints of a compliance). Hashable.
+
+    ``names`` are named parts of a term (the gravity term's joint-moment pairs or base
+    moments); ``shape`` holds nonlinear shape parameters, fixed while the term's linear
+    parameters are fitted and profiled by the closed loop (a lag's time constant in s, the
+    physical gravity form's compliance ratios); ``span_s`` is the campaign's time span
+    ``(t_min, t_max)``: a polynomial in time is held at its ends outside it.
+    """
 
     kind: str
     joint: int = 0
     order: int = 0
     parameter: str = ""
     joints: tuple[int, ...] = ()
+    names: tuple[str, ...] = ()
+    shape: tuple[float, ...] = ()
+    span_s: tuple[float, ...] = ()
 
     @property
     def label(self) -> str:
@@ -295,7 +344,7 @@ def _number(params: Mapping[str, Any], key: str, kind: str) -> float:
     if key not in params:
         raise EffectLibraryError(f"effect {kind!r}: missing parameter {key!r}")
     value = params[key]
-    if isinstance(value, tuple | list):
+    if isinstance(value, tuple | list | str | bool):
         raise EffectLibraryError(f"effect {kind!r}: {key!r} must be a number")
     return float(value)
 
@@ -304,7 +353,11 @@ def _vector(params: Mapping[str, Any], key: str, kind: str, length: int) -> Floa
     if key not in params:
         raise EffectLibraryError(f"effect {kind!r}: missing parameter {key!r}")
     value = params[key]
-    if not isinstance(value, tuple | list) or len(value) != length:
+    if (
+        not isinstance(value, tuple | list)
+        or len(value) != length
+        or any(isinstance(v, str | bool) for v in value)
+    ):
         raise EffectLibraryError(f"effect {kind!r}: {key!r} must be {length} numbers")
     return np.asarray(value, dtype=float)
 
@@ -372,6 +425,190 @@ class GravityCompliance(EffectKind):
         return Evidence(
             x=tau / 1e6,
             x_label=f"gravity torque of joint {j} (kN·m)",
+            y_label=f"joint {j} angle error (deg)",
+            coordinate_mm=kin.joint_axis(j) * DEG,
+        )
+
+
+#: Gravity deflections are written in µrad.
+URAD = 1e-6
+GRAVITY_FORMS = ("linear", "physical")
+
+
+def _joint_moment(name: str, kind: str, n_joints: int) -> tuple[int, str]:
+    """``"joint3.link4.mx"`` -> (3, ``"link4.mx"``); errors name the term."""
+    head, _, moment = name.partition(".")
+    if not (head.startswith("joint") and head[5:].isdigit()) or moment not in moment_names(
+        n_joints
+    ):
+        raise EffectLibraryError(
+            f"effect {kind!r}: term {name!r} is not 'jointJ.linkK.mA' (J, K in 1..{n_joints}, "
+            "A in x, y, z)"
+        )
+    j = int(head[5:])
+    if not 1 <= j <= n_joints:
+        raise EffectLibraryError(f"effect {kind!r}: term {name!r}: joint must be 1..{n_joints}")
+    return j, moment
+
+
+def _strings(params: Mapping[str, Any], key: str, kind: str) -> tuple[str, ...]:
+    value = params.get(key)
+    if not isinstance(value, tuple | list) or not all(isinstance(v, str) for v in value):
+        raise EffectLibraryError(f"effect {kind!r}: {key!r} must be a list of names")
+    return tuple(value)
+
+
+class GravityDeflection(EffectKind):
+    """Gravity deflection with no mass model (method.md §6): joint j turns after its ring by
+    ``c_j·τ_j(q)``, ``τ_j = g·Σ_k Ŷ_jk(q)·β_k`` linear in the base first moments β
+    (:mod:`calibration.gravity_regressor`). Only products c·β are identifiable.
+
+    * ``linear`` form: one free deflection ``p_jk = c_j·g·β_k`` (µrad) per loaded joint and
+      base moment acting on it (``names``: ``jointJ.linkK.mA``), 30 for a 6R arm;
+    * ``physical`` form: every joint shares the same moments, ``p_jk = ρ_j·w_k``: compliance
+      ratios ρ (``shape``, one per loaded joint in ``joints``, 1 for the reference joint)
+      and compliance-weighted moments w (µrad: the reference joint's deflection from that
+      moment alone with its lever horizontal; ``names``: the base moments).
+    """
+
+    kind = "gravity_deflection"
+    description = (
+        "joints turn after their grating ring under the gravity torque of the links outboard "
+        "(compliance × a torque linear in the links' first mass moments; no masses needed)"
+    )
+
+    def parameter_names(self, spec):
+        if spec.parameter == "physical":
+            return tuple(f"{m}_weighted_urad" for m in spec.names)
+        return tuple(f"{n}_urad" for n in spec.names)
+
+    @staticmethod
+    def torque_regressor(ctx: EffectContext, kin: Kinematics) -> FloatArray:
+        """``Ŷ`` ``(r, n, 3n)`` at the poses of ``kin``; with a sweep reference in the data,
+        joint j's row less its value in j's sweep configuration (the reference with joint j
+        at its reading): what a sweep-calibrated map has not absorbed."""
+        y = raw_regressor(kin.model, kin.q_rad, ctx.gravity)
+        ref = ctx.data.sweep_reference
+        if ref is None:
+            return y
+        n = kin.model.n_joints
+        for j in range(n):
+            q = np.broadcast_to(np.asarray(ref, dtype=float), kin.q_rad.shape).copy()
+            q[:, j] = kin.q_rad[:, j]
+            y[:, j] -= raw_regressor(kin.model, q, ctx.gravity)[:, j]
+        return y
+
+    def joint_deflections_rad(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        kin: Kinematics,
+        acting: NDArray[np.bool_] | None = None,
+    ) -> FloatArray:
+        """Each joint's deflection ``(r, n)`` rad at the poses of ``kin`` (relative to the
+        sweep configuration when the data carry a sweep reference); ``acting`` ``(n, 3n)``
+        keeps only some moments' share of each joint's deflection."""
+        n = kin.model.n_joints
+        y = self.torque_regressor(ctx, kin)
+        if acting is not None:
+            y = y * acting[None, :, :]
+        raw = moment_names(n)
+        out = np.zeros((len(kin.q_rad), n))
+        v = np.asarray(values, dtype=float) * URAD
+        if spec.parameter == "physical":
+            idx = [raw.index(m) for m in spec.names]
+            for j, rho in zip(spec.joints, spec.shape, strict=True):
+                out[:, j - 1] += rho * (y[:, j - 1, idx] @ v)
+            return out
+        for name, p in zip(spec.names, v, strict=True):
+            j, m = _joint_moment(name, self.kind, n)
+            out[:, j - 1] += y[:, j - 1, raw.index(m)] * p
+        return out
+
+    def regressor(self, spec, ctx, sel, kin):
+        n = kin.model.n_joints
+        y = self.torque_regressor(ctx, kin) * URAD
+        raw = moment_names(n)
+        if spec.parameter == "physical":
+            idx = [raw.index(m) for m in spec.names]
+            out = np.zeros((len(kin.q_rad), 3, len(idx)))
+            for j, rho in zip(spec.joints, spec.shape, strict=True):
+                out += kin.joint_axis(j)[:, :, None] * (rho * y[:, j - 1, idx])[:, None, :]
+            return out
+        cols = []
+        for name in spec.names:
+            j, m = _joint_moment(name, self.kind, n)
+            cols.append(kin.joint_axis(j) * y[:, j - 1, raw.index(m)][:, None])
+        return np.stack(cols, axis=2)
+
+    def label(self, spec):
+        joints = ", ".join(str(j) for j in spec.joints)
+        form = spec.parameter or "linear"
+        return f"gravity deflection (joints {joints}; {form} form)"
+
+    def to_parameters(self, spec, values, n_joints):
+        v = tuple(float(x) for x in values)
+        if spec.parameter == "physical":
+            return {
+                "form": "physical",
+                "joints": tuple(float(j) for j in spec.joints),
+                "compliance_ratio": tuple(float(r) for r in spec.shape),
+                "moments": spec.names,
+                "weighted_moment_urad": v,
+            }
+        return {"form": "linear", "terms": spec.names, "deflection_urad": v}
+
+    def from_parameters(self, params, n_joints):
+        form = params.get("form", "linear")
+        if form not in GRAVITY_FORMS:
+            raise EffectLibraryError(
+                f"effect {self.kind!r}: form must be one of {', '.join(GRAVITY_FORMS)}, "
+                f"got {form!r}"
+            )
+        if form == "linear":
+            _check_keys(params, {"form", "terms", "deflection_urad"}, self.kind)
+            terms = _strings(params, "terms", self.kind)
+            joints = sorted({_joint_moment(t, self.kind, n_joints)[0] for t in terms})
+            values = _vector(params, "deflection_urad", self.kind, len(terms))
+            return EffectSpec(self.kind, parameter="linear", joints=tuple(joints), names=terms), (
+                values
+            )
+        keys = {"form", "joints", "compliance_ratio", "moments", "weighted_moment_urad"}
+        _check_keys(params, keys, self.kind)
+        moments = _strings(params, "moments", self.kind)
+        bad = [m for m in moments if m not in moment_names(n_joints)]
+        if bad:
+            raise EffectLibraryError(f"effect {self.kind!r}: unknown moment {bad[0]!r}")
+        joints_f = params.get("joints")
+        if not isinstance(joints_f, tuple | list) or not joints_f:
+            raise EffectLibraryError(f"effect {self.kind!r}: 'joints' must be joint numbers")
+        joints = []
+        for j in joints_f:
+            if isinstance(j, str) or j != int(j) or not 1 <= j <= n_joints:
+                raise EffectLibraryError(
+                    f"effect {self.kind!r}: 'joints' must be 1..{n_joints}, got {j!r}"
+                )
+            joints.append(int(j))
+        ratios = _vector(params, "compliance_ratio", self.kind, len(joints))
+        values = _vector(params, "weighted_moment_urad", self.kind, len(moments))
+        spec = EffectSpec(
+            self.kind,
+            parameter="physical",
+            joints=tuple(joints),
+            names=moments,
+            shape=tuple(float(r) for r in ratios),
+        )
+        return spec, values
+
+    def evidence(self, spec, values, ctx, sel, kin):
+        defl = self.joint_deflections_rad(spec, values, ctx, kin)
+        lever = np.stack([np.linalg.norm(kin.joint_axis(j), axis=1) for j in spec.joints], 1)
+        shift = np.sqrt(np.mean((lever * defl[:, [j - 1 for j in spec.joints]]) ** 2, axis=0))
+        j = spec.joints[int(np.argmax(shift))]
+        return Evidence(
+            x=np.degrees(defl[:, j - 1]),
+            x_label=f"modelled gravity deflection of joint {j} (deg)",
             y_label=f"joint {j} angle error (deg)",
             coordinate_mm=kin.joint_axis(j) * DEG,
         )
@@ -459,39 +696,90 @@ class LostMotion(EffectKind):
         )
 
 
+def _span(params: Mapping[str, Any], kind: str) -> tuple[float, ...]:
+    """The campaign's time span of a time term (absent in files of earlier versions)."""
+    if "t_min_s" not in params and "t_max_s" not in params:
+        return ()
+    lo, hi = _number(params, "t_min_s", kind), _number(params, "t_max_s", kind)
+    if not lo <= hi:
+        raise EffectLibraryError(f"effect {kind!r}: t_min_s must not exceed t_max_s")
+    return (lo, hi)
+
+
+def _span_parameters(spec: EffectSpec) -> dict[str, float]:
+    if len(spec.span_s) != 2:
+        return {}
+    return {"t_min_s": float(spec.span_s[0]), "t_max_s": float(spec.span_s[1])}
+
+
+def _t0(params: Mapping[str, Any], kind: str) -> None:
+    if float(params.get("t0_s", 0.0)) != 0.0:
+        raise EffectLibraryError(f"effect {kind!r}: only t0_s = 0 is supported")
+
+
 class LengthDrift(EffectKind):
+    """A link length changing with time (temperature): linear, ``rate·t`` (held at the
+    campaign's span outside it), or a first-order lag ``A·(1 − e^(−t/τ))`` from the start
+    of the campaign (``shape = (τ,)``: ``A`` is the final growth)."""
+
     kind = "length_drift"
     needs_time = True
     description = "a link length changing with time (temperature)"
 
     def parameter_names(self, spec):
+        if spec.shape:
+            return (f"{spec.parameter}_final_mm",)
         return (f"{spec.parameter}_rate_mm_per_h",)
 
+    def time_function(self, spec: EffectSpec, ctx: EffectContext, sel: slice) -> FloatArray:
+        """``(r,)``: hours (linear form) or ``1 − e^(−t/τ)`` (lag)."""
+        if spec.shape:
+            t = ctx.times_h(sel) * HOUR_S
+            return -np.expm1(-np.maximum(t, 0.0) / spec.shape[0])
+        return ctx.times_h(sel, span_s=spec.span_s)
+
     def regressor(self, spec, ctx, sel, kin):
-        t = ctx.times_h(sel)
-        return (kin.length_axis(spec.joint, spec.parameter) * t[:, None])[:, :, None]
+        f = self.time_function(spec, ctx, sel)
+        return (kin.length_axis(spec.joint, spec.parameter) * f[:, None])[:, :, None]
 
     def label(self, spec):
-        return f"thermal drift of joint {spec.joint} length {spec.parameter}"
+        base = f"thermal drift of joint {spec.joint} length {spec.parameter}"
+        if spec.shape:
+            return f"{base} (first-order lag, τ = {spec.shape[0] / 60.0:.1f} min)"
+        return base
 
     def to_parameters(self, spec, values, n_joints):
-        return {
-            "joint": float(spec.joint),
-            f"{spec.parameter}_rate_mm_per_h": float(values[0]),
-            "t0_s": 0.0,
-        }
+        out: dict[str, float | tuple[float, ...]] = {"joint": float(spec.joint)}
+        if spec.shape:
+            out[f"{spec.parameter}_final_mm"] = float(values[0])
+            out["time_constant_s"] = float(spec.shape[0])
+        else:
+            out[f"{spec.parameter}_rate_mm_per_h"] = float(values[0])
+        out["t0_s"] = 0.0
+        out.update(_span_parameters(spec))
+        return out
 
     def from_parameters(self, params, n_joints):
-        keys = [k for k in ("a_rate_mm_per_h", "d_rate_mm_per_h") if k in params]
+        names = ("a_rate_mm_per_h", "d_rate_mm_per_h", "a_final_mm", "d_final_mm")
+        keys = [k for k in names if k in params]
         if len(keys) != 1:
-            raise EffectLibraryError(
-                f"effect {self.kind!r}: exactly one of a_rate_mm_per_h, d_rate_mm_per_h"
-            )
-        _check_keys(params, {"joint", keys[0], "t0_s"}, self.kind)
-        if float(params.get("t0_s", 0.0)) != 0.0:
-            raise EffectLibraryError(f"effect {self.kind!r}: only t0_s = 0 is supported")
+            raise EffectLibraryError(f"effect {self.kind!r}: exactly one of {', '.join(names)}")
+        lag = keys[0].endswith("_final_mm")
+        allowed = {"joint", keys[0], "t0_s", "t_min_s", "t_max_s"}
+        _check_keys(params, allowed | ({"time_constant_s"} if lag else set()), self.kind)
+        _t0(params, self.kind)
+        shape: tuple[float, ...] = ()
+        if lag:
+            tau = _number(params, "time_constant_s", self.kind)
+            if not tau > 0:
+                raise EffectLibraryError(f"effect {self.kind!r}: time_constant_s must be > 0")
+            shape = (tau,)
         spec = EffectSpec(
-            self.kind, joint=_joint(params, self.kind, n_joints), parameter=keys[0][0]
+            self.kind,
+            joint=_joint(params, self.kind, n_joints),
+            parameter=keys[0][0],
+            shape=shape,
+            span_s=_span(params, self.kind),
         )
         return spec, np.array([_number(params, keys[0], self.kind)])
 
@@ -543,19 +831,20 @@ class InstrumentScaleDrift(EffectKind):
         return ("rate_ppm_per_h",)
 
     def regressor(self, spec, ctx, sel, kin):
-        return (kin.tcp_mm * 1e-6 * ctx.times_h(sel)[:, None])[:, :, None]
+        t = ctx.times_h(sel, span_s=spec.span_s)
+        return (kin.tcp_mm * 1e-6 * t[:, None])[:, :, None]
 
     def label(self, spec):
         return "tracker scale drift"
 
     def to_parameters(self, spec, values, n_joints):
-        return {"rate_ppm_per_h": float(values[0]), "t0_s": 0.0}
+        return {"rate_ppm_per_h": float(values[0]), "t0_s": 0.0, **_span_parameters(spec)}
 
     def from_parameters(self, params, n_joints):
-        _check_keys(params, {"rate_ppm_per_h", "t0_s"}, self.kind)
-        if float(params.get("t0_s", 0.0)) != 0.0:
-            raise EffectLibraryError(f"effect {self.kind!r}: only t0_s = 0 is supported")
-        return EffectSpec(self.kind), np.array([_number(params, "rate_ppm_per_h", self.kind)])
+        _check_keys(params, {"rate_ppm_per_h", "t0_s", "t_min_s", "t_max_s"}, self.kind)
+        _t0(params, self.kind)
+        spec = EffectSpec(self.kind, span_s=_span(params, self.kind))
+        return spec, np.array([_number(params, "rate_ppm_per_h", self.kind)])
 
     def evidence(self, spec, values, ctx, sel, kin):
         t = ctx.times_h(sel)
@@ -692,7 +981,7 @@ class CartesianTime(EffectKind):
         return tuple(names)
 
     def regressor(self, spec, ctx, sel, kin):
-        t = ctx.times_h(sel)
+        t = ctx.times_h(sel, span_s=spec.span_s)
         axes = kin.frame_axes(spec.joint)
         out = np.zeros((len(t), 3, 3 * spec.order))
         for p in range(spec.order):
@@ -713,12 +1002,13 @@ class CartesianTime(EffectKind):
         if spec.order >= 2:
             out["acceleration_mm_per_h2"] = tuple(float(v) for v in values[3:6])
         out["t0_s"] = 0.0
+        out.update(_span_parameters(spec))
         return out
 
     def from_parameters(self, params, n_joints):
-        _check_keys(params, {"frame", "rate_mm_per_h", "acceleration_mm_per_h2", "t0_s"}, self.kind)
-        if float(params.get("t0_s", 0.0)) != 0.0:
-            raise EffectLibraryError(f"effect {self.kind!r}: only t0_s = 0 is supported")
+        allowed = {"frame", "rate_mm_per_h", "acceleration_mm_per_h2", "t0_s", "t_min_s", "t_max_s"}
+        _check_keys(params, allowed, self.kind)
+        _t0(params, self.kind)
         frame = _number(params, "frame", self.kind) if "frame" in params else 0.0
         if frame != int(frame) or not 0 <= frame <= n_joints:
             raise EffectLibraryError(f"effect {self.kind!r}: frame must be 0..{n_joints}")
@@ -727,7 +1017,8 @@ class CartesianTime(EffectKind):
         if "acceleration_mm_per_h2" in params:
             v = np.concatenate([v, _vector(params, "acceleration_mm_per_h2", self.kind, 3)])
             order = 2
-        return EffectSpec(self.kind, joint=int(frame), order=order), v
+        spec = EffectSpec(self.kind, joint=int(frame), order=order, span_s=_span(params, self.kind))
+        return spec, v
 
     def evidence(self, spec, values, ctx, sel, kin):
         t = ctx.times_h(sel)
@@ -746,6 +1037,7 @@ class CartesianTime(EffectKind):
 KINDS: dict[str, EffectKind] = {
     k.kind: k
     for k in (
+        GravityDeflection(),
         GravityCompliance(),
         JointHarmonic(),
         LostMotion(),
@@ -778,11 +1070,26 @@ def loaded_joints(ctx: EffectContext) -> tuple[int, ...]:
     return tuple(int(j) + 1 for j in np.flatnonzero(rms >= LOADED_JOINT_FRACTION * top))
 
 
+def gravity_candidate(ctx: EffectContext) -> EffectSpec | None:
+    """The gravity deflection in its linear form: every loaded joint with every base
+    moment acting on it (None when gravity loads no joint)."""
+    base = ctx.base_moments
+    names = tuple(
+        f"joint{j + 1}.{base.names[i]}" for j, cols in enumerate(base.per_joint) for i in cols
+    )
+    if not names:
+        return None
+    return EffectSpec(
+        "gravity_deflection", parameter="linear", joints=base.loaded_joints, names=names
+    )
+
+
 def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) -> list[EffectSpec]:
     """Every candidate for these poses: the library, then the generic search.
 
-    ``kinds`` restricts the kinds offered (default: all). Time terms need ``t_s``, lost
-    motion the approach directions, compliance a mass model.
+    ``kinds`` restricts the kinds offered (default: all but ``gravity_compliance``, the
+    mass-model form of the gravity term, which is offered only when named). Time terms
+    need ``t_s``, lost motion the approach directions, ``gravity_compliance`` a mass model.
     """
     allowed = set(KINDS) if kinds is None else set(kinds)
     check_kinds(allowed)
@@ -798,8 +1105,11 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
             return
         out.append(spec)
 
+    gravity = gravity_candidate(ctx)
+    if gravity is not None:
+        offer(gravity)
     loaded = loaded_joints(ctx)
-    if loaded:
+    if loaded and kinds is not None:  # the mass-model form: only when asked for by name
         offer(EffectSpec("gravity_compliance", joints=loaded))
     for j in range(1, n + 1):
         for k in HARMONIC_ORDERS:
@@ -853,6 +1163,8 @@ def effect_terms(
 def _tag(spec: EffectSpec) -> str:
     if spec.kind == "gravity_compliance":
         return "joints " + ",".join(str(j) for j in spec.joints)
+    if spec.kind == "gravity_deflection":
+        return spec.parameter or "linear"
     if spec.kind == "cartesian_time":
         return f"frame{spec.joint} order{spec.order}"
     parts = []
@@ -894,15 +1206,16 @@ def from_description(effect: EffectDescription, n_joints: int) -> tuple[EffectSp
     return kind.from_parameters(effect.parameters, n_joints)
 
 
-def effect_offsets_mm(
+def predict_points(
+    model: KinematicModel,
     specs: Sequence[EffectSpec],
     values: ArrayLike,
     ctx: EffectContext,
-    model: KinematicModel,
 ) -> FloatArray:
-    """What the effects add to the geometric TCP at ``ctx``'s poses ``(m, 3)`` mm."""
-    sel = slice(0, len(ctx.data))
-    kin = Kinematics.of(model, ctx.data.q_rad)
-    if not specs:
-        return np.zeros((len(ctx.data), 3))
-    return regressor_matrix(specs, ctx, sel, kin) @ np.asarray(values, dtype=float)
+    """Tracker points ``(m, 3)`` mm of a geometric model with effects at ``ctx``'s poses.
+
+    The one way the twin predicts: the identification's own
+    :func:`~calibration.identification.predicted_points` with the effects' terms.
+    """
+    terms = effect_terms(specs, ctx) if specs else None
+    return predicted_points(model, ctx.data.q_rad, terms, np.asarray(values, dtype=float))

@@ -1,5 +1,5 @@
-"""Effect library: regressors (against finite differences and the emulator's physics),
-[[effect]] tables, candidates, and `predict_tcp` applying every kind."""
+"""Effect library: regressors (against finite differences, the mass model and the emulator's
+physics), [[effect]] tables, candidates, and `predict_tcp` applying every kind."""
 
 from __future__ import annotations
 
@@ -18,8 +18,15 @@ from calibration.effect_library import (
     Kinematics,
     candidate_effects,
     from_description,
+    gravity_candidate,
     regressor_matrix,
     to_descriptions,
+)
+from calibration.gravity_regressor import (
+    STANDARD_GRAVITY_M_S2,
+    base_moments,
+    raw_moments_from_masses,
+    raw_regressor,
 )
 from calibration.kinematics import KinematicModel, flange_poses, tcp_positions
 from calibration.model_effects import ModelEffectError, predict_tcp
@@ -34,18 +41,30 @@ CTX = EffectContext(DESC, EffectData.from_sequence(Q, T, np.radians(DESC.home)))
 KIN = Kinematics.of(MODEL, Q)
 ALL = slice(0, len(Q))
 
+GRAVITY = gravity_candidate(CTX)
+assert GRAVITY is not None
+PHYSICAL = EffectSpec(
+    "gravity_deflection",
+    parameter="physical",
+    joints=(2, 3, 4, 5, 6),
+    names=base_moments(DESC).names,
+    shape=(1.0, 0.7, 2.0, 1.5, 0.5),
+)
 SPECS = [
+    GRAVITY,
+    PHYSICAL,
     EffectSpec("gravity_compliance", joints=(2, 3, 5)),
     EffectSpec("joint_harmonic", joint=1, order=2),
     EffectSpec("lost_motion", joint=3),
     EffectSpec("length_drift", joint=2, parameter="a"),
-    EffectSpec("length_drift", joint=4, parameter="d"),
+    EffectSpec("length_drift", joint=4, parameter="d", span_s=(600.0, 3000.0)),
+    EffectSpec("length_drift", joint=3, parameter="a", shape=(900.0,)),
     EffectSpec("instrument_scale"),
     EffectSpec("instrument_scale_drift"),
     EffectSpec("cartesian_harmonic", joint=4, order=3),
     EffectSpec("link_harmonic", joint=2, order=1),
     EffectSpec("cartesian_time", joint=0, order=2),
-    EffectSpec("cartesian_time", joint=2, order=1),
+    EffectSpec("cartesian_time", joint=2, order=1, span_s=(0.0, 1800.0)),
 ]
 
 
@@ -59,33 +78,86 @@ def _joint_shift(dq: np.ndarray, eps: float = 1e-5) -> np.ndarray:
 
 def test_joint_angle_regressors_match_finite_differences():
     # harmonic: d TCP / d cos_deg = ∂TCP/∂q1 · cos(2 q1) · π/180
-    r = KINDS["joint_harmonic"].regressor(SPECS[1], CTX, ALL, KIN)
+    r = KINDS["joint_harmonic"].regressor(
+        EffectSpec("joint_harmonic", joint=1, order=2), CTX, ALL, KIN
+    )
     dq = np.zeros_like(Q)
     dq[:, 0] = np.cos(2 * Q[:, 0]) * np.pi / 180
     np.testing.assert_allclose(r[:, :, 0], _joint_shift(dq), atol=1e-6)
     # compliance: per µrad/(kN·m), the joint turns by tau · 1e-12 rad
-    r = KINDS["gravity_compliance"].regressor(SPECS[0], CTX, ALL, KIN)
+    r = KINDS["gravity_compliance"].regressor(SPECS[2], CTX, ALL, KIN)
     dq = np.zeros_like(Q)
     dq[:, 2] = KIN.torques_nmm(CTX.masses)[:, 2] * 1e-12
     np.testing.assert_allclose(r[:, :, 1], _joint_shift(dq, eps=1.0), rtol=1e-6, atol=1e-10)
     # lost motion: the approach direction of joint 3 times π/180
-    r = KINDS["lost_motion"].regressor(SPECS[2], CTX, ALL, KIN)
+    r = KINDS["lost_motion"].regressor(EffectSpec("lost_motion", joint=3), CTX, ALL, KIN)
     dq = np.zeros_like(Q)
     dq[:, 2] = CTX.data.direction[:, 2] * np.pi / 180
     np.testing.assert_allclose(r[:, :, 0], _joint_shift(dq), atol=1e-6)
+
+
+def test_gravity_deflection_regressor_without_masses():
+    """Linear form: a free deflection per joint and base moment, Ŷ·1e-6 rad per µrad; the
+    physical form is the linear one with p_jk = ρ_j·w_k; with p_jk = c_j·g·β_k from the
+    description's mass model both reproduce the mass-model compliance term exactly."""
+    y = raw_regressor(MODEL, Q)  # (N, n, 3n)
+    names = [m for j in range(6) for m in (f"link{j + 1}.mx", f"link{j + 1}.my", f"link{j + 1}.mz")]
+    r = KINDS["gravity_deflection"].regressor(GRAVITY, CTX, ALL, KIN)
+    assert r.shape == (40, 3, 30) and len(GRAVITY.names) == 30
+    for col in (0, 9, 17, 29):
+        joint, moment = GRAVITY.names[col].split(".", 1)
+        j = int(joint[5:])
+        dq = np.zeros_like(Q)
+        dq[:, j - 1] = y[:, j - 1, names.index(moment)] * 1e-6
+        np.testing.assert_allclose(r[:, :, col], _joint_shift(dq, eps=1.0), atol=1e-9)
+    # physical = linear with p_jk = ρ_j w_k
+    w = np.random.default_rng(4).normal(size=len(PHYSICAL.names))
+    rho = dict(zip(PHYSICAL.joints, PHYSICAL.shape, strict=True))
+    p = []
+    for term in GRAVITY.names:
+        joint, moment = term.split(".", 1)
+        p.append(rho[int(joint[5:])] * w[PHYSICAL.names.index(moment)])
+    phys = regressor_matrix([PHYSICAL], CTX, ALL, KIN) @ w
+    np.testing.assert_allclose(phys, r @ np.array(p), atol=1e-12)
+    # the mass model's compliance term is one point of the linear form
+    compliance = np.array([0.0, 11.0, 95.0, 700.0, 400.0, 900.0])  # µrad/(kN·m)
+    beta = base_moments(DESC).values_from_raw(raw_moments_from_masses(DESC), MODEL)
+    base_names = base_moments(DESC).names
+    p = [
+        compliance[int(t.split(".")[0][5:]) - 1]
+        * 1e-6  # µrad/(kN·m) -> µrad/(N·mm)
+        * STANDARD_GRAVITY_M_S2
+        * beta[base_names.index(t.split(".", 1)[1])]
+        for t in GRAVITY.names
+    ]
+    spec = EffectSpec("gravity_compliance", joints=(1, 2, 3, 4, 5, 6))
+    expected = regressor_matrix([spec], CTX, ALL, KIN) @ compliance
+    np.testing.assert_allclose(r @ np.array(p), expected, atol=1e-9 * np.abs(expected).max())
 
 
 def test_length_scale_and_time_regressors():
     x = MODEL.parameter_vector()
     x[5 * 1 + 0] += 1.0  # a2 + 1 mm
     axis = tcp_positions(MODEL.with_parameters(x), Q) - tcp_positions(MODEL, Q)
-    r = KINDS["length_drift"].regressor(SPECS[3], CTX, ALL, KIN)
+    drift = EffectSpec("length_drift", joint=2, parameter="a")
+    r = KINDS["length_drift"].regressor(drift, CTX, ALL, KIN)
     np.testing.assert_allclose(r[:, :, 0], axis * (T / 3600.0)[:, None], atol=1e-9)
-    r = KINDS["instrument_scale"].regressor(SPECS[5], CTX, ALL, KIN)
+    # a first-order lag: the final growth times 1 − e^(−t/τ)
+    lag = replace(drift, shape=(900.0,))
+    r = KINDS["length_drift"].regressor(lag, CTX, ALL, KIN)
+    np.testing.assert_allclose(r[:, :, 0], axis * (1 - np.exp(-T / 900.0))[:, None], atol=1e-9)
+    # a polynomial in time is held at the campaign's span: never extrapolated
+    held = replace(drift, span_s=(600.0, 1800.0))
+    r = KINDS["length_drift"].regressor(held, CTX, ALL, KIN)
+    t_held = np.clip(T, 600.0, 1800.0) / 3600.0
+    np.testing.assert_allclose(r[:, :, 0], axis * t_held[:, None], atol=1e-9)
+    assert np.any(T > 1800.0) and np.any(T < 600.0)
+    r = KINDS["instrument_scale"].regressor(EffectSpec("instrument_scale"), CTX, ALL, KIN)
     np.testing.assert_allclose(r[:, :, 0], tcp_positions(MODEL, Q) * 1e-6)
-    r = KINDS["instrument_scale_drift"].regressor(SPECS[6], CTX, ALL, KIN)
+    scale_drift = EffectSpec("instrument_scale_drift")
+    r = KINDS["instrument_scale_drift"].regressor(scale_drift, CTX, ALL, KIN)
     np.testing.assert_allclose(r[:, :, 0], tcp_positions(MODEL, Q) * 1e-6 * (T / 3600)[:, None])
-    r = KINDS["cartesian_time"].regressor(SPECS[9], CTX, ALL, KIN)
+    r = KINDS["cartesian_time"].regressor(EffectSpec("cartesian_time", order=2), CTX, ALL, KIN)
     assert r.shape == (40, 3, 6)
     np.testing.assert_allclose(r[:, 1, 4], (T / 3600.0) ** 2)
     # link frames read off the Jacobian are the kinematic frames
@@ -96,7 +168,8 @@ def test_length_scale_and_time_regressors():
     rot = KIN.rotation_axes(2)
     np.testing.assert_allclose(rot[:, :, 2], KIN.joint_axis(2), atol=1e-9)
     np.testing.assert_allclose(rot[:, :, 0], KIN.jacobian[:, :, 5 * 2 + 1], atol=1e-9)
-    r = KINDS["link_harmonic"].regressor(SPECS[8], CTX, ALL, KIN)
+    link = EffectSpec("link_harmonic", joint=2, order=1)
+    r = KINDS["link_harmonic"].regressor(link, CTX, ALL, KIN)
     np.testing.assert_allclose(
         r[:, :, 5], rot[:, :, 2] * np.sin(Q[:, 1])[:, None] * np.pi / 180, atol=1e-12
     )
@@ -127,6 +200,10 @@ def test_descriptions_round_trip_and_predict_applies_every_kind(tmp_path):
     text = path.read_text()
     assert 'kind = "gravity_compliance"' in text and "compliance_urad_per_knm" in text
     assert "a_rate_mm_per_h" in text and "d_rate_mm_per_h" in text and "t0_s" in text
+    assert 'form = "linear"' in text and '"joint2.link2.mx"' in text
+    assert 'form = "physical"' in text and "compliance_ratio" in text
+    assert "a_final_mm" in text and "time_constant_s = 900.0" in text
+    assert "t_min_s = 600.0" in text and "t_max_s = 3000.0" in text
     expected = tcp_positions(MODEL, Q)
     for spec, v, e in zip(SPECS, values, back.effects, strict=True):
         spec2, v2 = from_description(e, 6)
@@ -150,6 +227,24 @@ def test_predict_names_bad_effects():
     assert "wobble" in bad("lost_motion", joint=1.0, half_width_deg=0.01, wobble=1.0)
     assert "6 numbers" in bad("gravity_compliance", compliance_urad_per_knm=(1.0, 2.0))
     assert "exactly one" in bad("length_drift", joint=2.0)
+    assert "time_constant_s" in bad("length_drift", joint=2.0, a_final_mm=0.1)
+    assert "must be > 0" in bad("length_drift", joint=2.0, a_final_mm=0.1, time_constant_s=-5.0)
+    assert "t_min_s" in bad("length_drift", joint=2.0, a_rate_mm_per_h=0.1, t_max_s=5.0)
+    assert "form must be" in bad("gravity_deflection", form="quadratic")
+    assert "jointJ.linkK.mA" in bad(
+        "gravity_deflection", form="linear", terms=("joint2.link9.mx",), deflection_urad=(1.0,)
+    )
+    assert "1 numbers" in bad(
+        "gravity_deflection", form="linear", terms=("joint2.link2.mx",), deflection_urad=(1.0, 2.0)
+    )
+    assert "unknown moment" in bad(
+        "gravity_deflection",
+        form="physical",
+        joints=(2.0,),
+        compliance_ratio=(1.0,),
+        moments=("link2.mq",),
+        weighted_moment_urad=(1.0,),
+    )
     desc = replace(
         DESC, effects=(EffectDescription("instrument_scale_drift", {"rate_ppm_per_h": 1.0}),)
     )
@@ -181,16 +276,22 @@ def test_candidates():
     assert kinds.count("lost_motion") == 6 and kinds.count("cartesian_time") == 8
     drift = {(s.joint, s.parameter) for s in specs if s.kind == "length_drift"}
     assert drift == {(1, "d"), (2, "a"), (3, "a"), (4, "a"), (4, "d"), (6, "d")}
-    compliance = next(s for s in specs if s.kind == "gravity_compliance")
-    assert 1 not in compliance.joints and {2, 3, 4, 5} <= set(compliance.joints)
+    gravity = next(s for s in specs if s.kind == "gravity_deflection")
+    assert gravity.joints == (2, 3, 4, 5, 6) and len(gravity.parameter_names()) == 30
+    assert "gravity_compliance" not in kinds  # the mass-model form only when named
     assert len(set(specs)) == len(specs)  # hashable and distinct
-    # no times: no drift terms; no masses: no compliance; a restricted set
+    # no times: no drift terms; no masses: the same gravity candidate; a restricted set
     no_t = EffectContext(DESC, EffectData.from_sequence(Q))
     assert not any(KINDS[s.kind].needs_time for s in candidate_effects(no_t))
     massless = replace(DESC, joints=tuple(replace(j, mass_kg=None) for j in DESC.joints))
     massless = replace(massless, tool=replace(DESC.tool, mass_kg=None))
     ctx = EffectContext(massless, CTX.data)
-    assert "gravity_compliance" not in {s.kind for s in candidate_effects(ctx)}
+    assert gravity in candidate_effects(ctx)
+    assert "gravity_compliance" not in {
+        s.kind for s in candidate_effects(ctx, ["gravity_compliance"])
+    }
+    named = candidate_effects(CTX, ["gravity_compliance"])
+    assert [s.kind for s in named] == ["gravity_compliance"] and 1 not in named[0].joints
     only = candidate_effects(CTX, ["instrument_scale", "lost_motion"])
     assert {s.kind for s in only} == {"instrument_scale", "lost_motion"}
     with pytest.raises(EffectLibraryError, match="unknown effect kind 'sag'"):
