@@ -2,7 +2,8 @@
 
 After the geometric identification, the residuals are searched for structure the tracker
 noise cannot explain. Each candidate of :mod:`calibration.effect_library` (the physical
-library, then the generic search) is scored on the identification poses:
+library, then the generic search) is scored on the identification poses
+(:mod:`calibration.candidate_scoring`):
 
 * **cross-validation**: the poses are split into K folds (5); the current model plus the
   candidate is refitted on K − 1 folds and predicts the held-out one. The score is the drop
@@ -11,18 +12,26 @@ library, then the generic search) is scored on the identification poses:
 * **significance**: the partial F-test of the candidate's parameters on all identification
   poses, Bonferroni-corrected over the candidates of the round (``p·N < α``, α = 1e-3).
 
-A candidate is significant when both hold (a positive penalized CV score and the corrected
-F-test); the one with the best penalized CV score is added, all parameters (geometry and
-every effect so far) are re-identified together by the LM of
-:mod:`calibration.identification`, and the search repeats until no candidate is
-significant. Candidate columns a combination of the current model's are dropped first (a
-constant tracker scale, for one, is exactly a scaling of every length and the base
-position: it is reported as not identifiable rather than scored).
+A candidate is significant when both hold. A drift candidate is also tried as a
+first-order lag, its time constant profiled (:mod:`calibration.effect_shapes`). Of the
+significant candidates the best penalized CV score is added, unless the data cannot tell
+it from a significant candidate of a more physical kind (its columns lie within that
+one's, principal angles after the model is projected out): then the physical priority
+decides (a gravity term before a harmonic on a joint gravity loads). All parameters
+(geometry and every effect so far) are then re-identified together by the LM of
+:mod:`calibration.identification`; a gravity term found in its linear form is refitted in
+its physical form (shared moments, compliance ratios), kept when the linear form is not
+significantly better. A step that makes the validation error worse is undone and its
+candidate set aside. The search repeats until no candidate is significant. Candidate
+columns a combination of the current model's are dropped first (a constant tracker scale,
+for one, is exactly a scaling of every length and the base position: it is reported as not
+identifiable rather than scored).
 
 Refits inside the scoring are linear least squares on the model linearized at the current
 solution (effects are sub-mm, the linearization error is far below the noise); only the
-chosen model is refitted by the LM. The validation poses take no part in the choice: they
-give the before/after numbers of every stage and the evidence plots.
+chosen model is refitted by the LM. The validation poses take no part in the choice of a
+candidate; they give the before/after numbers of every stage and the evidence plots, and
+they veto a step that made them worse.
 """
 
 from __future__ import annotations
@@ -31,12 +40,21 @@ import math
 import time
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import f as f_distribution
 
 from calibration.campaign_files import Campaign
+from calibration.candidate_scoring import (
+    CandidateScore,
+    Competitor,
+    LinearizedModel,
+    choose,
+    competitors,
+    score_candidate,
+)
 from calibration.description import RobotDescription
 from calibration.effect_library import (
     KINDS,
@@ -47,11 +65,17 @@ from calibration.effect_library import (
     Kinematics,
     candidate_effects,
     check_kinds,
-    effect_offsets_mm,
     effect_terms,
+    predict_points,
     regressor_matrix,
     split_values,
     to_descriptions,
+)
+from calibration.effect_shapes import (
+    PhysicalGravityFit,
+    TimeConstantProfile,
+    fit_physical_gravity,
+    profile_time_constant,
 )
 from calibration.identification import (
     IdentificationError,
@@ -62,17 +86,22 @@ from calibration.identification import (
     identify,
     stacked_jacobian,
 )
-from calibration.kinematics import KinematicModel, tcp_positions
+from calibration.kinematics import KinematicModel
 
 FloatArray = NDArray[np.float64]
+Profile = TimeConstantProfile
 
 CRITERION = (
     "a candidate is added when its 5-fold cross-validated error reduction on the "
     "identification poses, in units of the noise variance, exceeds ln(3m) per parameter, "
     "and the partial F-test of its parameters, Bonferroni-corrected over the candidates of "
     "the round, is significant (p·N < α); the best such candidate by penalized CV score "
-    "is added and everything is re-identified"
+    "is added (unless the data cannot tell it from a significant candidate of a more "
+    "physical kind: then that one), everything is re-identified, and a step that makes the "
+    "validation error worse is undone"
 )
+#: Significance of the linear gravity form's extra freedom over the physical form.
+PHYSICAL_FORM_ALPHA = 0.01
 
 
 @dataclass(frozen=True)
@@ -86,6 +115,8 @@ class LoopSettings:
     kinds: tuple[str, ...] | None = None  # candidate kinds offered (None: all)
     fold_seed: int = 0
     rtol: float = 1e-6  # a candidate column this close to the model's span is dropped
+    validation_guard: bool = True  # undo a step that makes the validation error worse
+    max_rejected: int = 4  # candidates set aside by the validation guard before stopping
 
     def __post_init__(self) -> None:
         if self.folds < 2:
@@ -94,48 +125,6 @@ class LoopSettings:
             raise IdentificationError("alpha must be in (0, 1)")
         if self.kinds is not None:
             check_kinds(self.kinds)
-
-
-@dataclass(frozen=True)
-class CandidateScore:
-    """How one candidate did in one round."""
-
-    spec: EffectSpec
-    n_parameters: int  # identifiable parameters (columns not redundant with the model)
-    cv_gain: float  # held-out SSE reduction / σ̂²
-    score: float  # cv_gain − penalty · n_parameters
-    f_statistic: float
-    p_value: float
-    p_adjusted: float  # Bonferroni: p · number of candidates (at most 1)
-    significant: bool
-    note: str = ""
-
-    @property
-    def label(self) -> str:
-        return self.spec.label
-
-    @property
-    def generic(self) -> bool:
-        return self.spec.generic
-
-    def as_dict(self) -> dict[str, object]:
-        return {
-            "effect": self.label,
-            "kind": self.spec.kind,
-            "generic": self.generic,
-            "n_parameters": self.n_parameters,
-            "cv_gain_sigma2": _finite(self.cv_gain),
-            "score": _finite(self.score),
-            "f_statistic": _finite(self.f_statistic),
-            "p_value": self.p_value,
-            "p_adjusted": self.p_adjusted,
-            "significant": self.significant,
-            "note": self.note,
-        }
-
-
-def _finite(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,6 +157,9 @@ class Stage:
     added: CandidateScore | None = None
     round_scores: tuple[CandidateScore, ...] = ()
     evidence: EvidencePlot | None = None
+    reason: str = ""  # why this candidate was chosen
+    competitors: tuple[Competitor, ...] = ()
+    shape: dict[str, Any] = field(default_factory=dict)  # profiled shape parameters
 
     def values_of(self, spec: EffectSpec) -> FloatArray:
         return split_values(self.specs, self.effect_values)[self.specs.index(spec)]
@@ -177,6 +169,21 @@ class Stage:
         assert self.result is not None
         se = self.result.standard_errors()[self.result.n_geometric :]
         return split_values(self.specs, se)[self.specs.index(spec)]
+
+    def mean_ap(self, set_name: str) -> float:
+        return float(np.linalg.norm(self.errors_mm[set_name], axis=1).mean())
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A candidate set aside: chosen, but the step made the validation error worse (or its
+    re-identification failed)."""
+
+    label: str
+    reason: str
+
+    def as_dict(self) -> dict[str, str]:
+        return {"effect": self.label, "reason": self.reason}
 
 
 @dataclass(frozen=True, eq=False)
@@ -190,6 +197,7 @@ class ClosedLoopResult:
     penalty_per_parameter: float
     elapsed_s: float
     kinds: tuple[str, ...] = ()  # the candidate kinds offered
+    rejected: tuple[Rejected, ...] = ()
 
     @property
     def final(self) -> Stage:
@@ -216,170 +224,76 @@ class ClosedLoopResult:
         return replace(desc, effects=effects)
 
 
-def campaign_effect_data(description: RobotDescription, campaign: Campaign) -> EffectData:
-    """Effect data of a whole campaign: directions from its pose sequence (from Home)."""
-    return EffectData.from_sequence(campaign.q_rad, campaign.t_s, np.radians(description.home))
+def campaign_effect_data(
+    description: RobotDescription, campaign: Campaign, *, sweep_referenced: bool = False
+) -> EffectData:
+    """Effect data of a whole campaign: directions from its pose sequence (from Home).
 
-
-def predict(
-    stage_model: KinematicModel,
-    specs: tuple[EffectSpec, ...],
-    values: FloatArray,
-    ctx: EffectContext,
-) -> FloatArray:
-    """Predicted tracker points ``(m, 3)`` mm of a model with effects at ``ctx``'s poses."""
-    tcp = tcp_positions(stage_model, ctx.data.q_rad)
-    if not specs:
-        return tcp
-    return tcp + effect_offsets_mm(specs, values, ctx, stage_model)
-
-
-# -- scoring --------------------------------------------------------------------------------
-def _scaled(a: FloatArray) -> FloatArray:
-    s = np.sqrt(np.mean(a * a, axis=0))
-    s[s == 0.0] = 1.0
-    return a / s
-
-
-def _keep_columns(basis_q: FloatArray, cols: FloatArray, rtol: float) -> NDArray[np.bool_]:
-    """Which columns of ``cols`` ``(N, k)`` add a direction to the orthonormal ``basis_q``
-    and to the columns kept before them (relative residual > rtol)."""
-    q = basis_q
-    keep = np.zeros(cols.shape[1], dtype=bool)
-    for i in range(cols.shape[1]):
-        c = cols[:, i]
-        norm = float(np.linalg.norm(c))
-        if norm == 0.0:
-            continue
-        r = c - q @ (q.T @ c)
-        r = r - q @ (q.T @ r)
-        rn = float(np.linalg.norm(r))
-        if rn > rtol * norm:
-            keep[i] = True
-            q = np.column_stack([q, r / rn])
-    return keep
-
-
-def _cv_sse(residual: FloatArray, design: FloatArray, tests: list[NDArray[np.intp]]) -> float:
-    """Held-out sum of squared errors of the least-squares fit of ``residual`` on
-    ``design`` ``(N, q)``, each fold refitted without its test rows.
-
-    The training normal equations are the full ones minus the test rows', so a fold costs
-    ``O(N_test·q²)`` whatever the number of poses; a ``(q, q)`` least-squares solve keeps
-    nearly dependent columns harmless.
+    ``sweep_referenced``: the joint readings come from scale maps fitted on sweeps with
+    the other joints at Home, which absorbed each swept link's deflection there.
     """
-    gram = design.T @ design
-    rhs = design.T @ residual
-    total = 0.0
-    for test in tests:
-        a, r = design[test], residual[test]
-        coef, *_ = np.linalg.lstsq(gram - a.T @ a, rhs - a.T @ r, rcond=None)
-        e = r - a @ coef
-        total += float(e @ e)
-    return total
-
-
-def score_candidates(
-    residual: FloatArray,
-    jacobian: FloatArray,
-    candidates: list[tuple[EffectSpec, FloatArray]],
-    n_poses: int,
-    settings: LoopSettings,
-    penalty: float,
-) -> list[CandidateScore]:
-    """Scores of candidates against the current model linearized at its solution.
-
-    ``residual`` ``(3m,)`` and ``jacobian`` ``(3m, p)`` (free columns) are weighted like
-    the fit; each candidate comes with its weighted regressor ``(3m, k)``.
-    """
-    n_rows = len(residual)
-    j = _scaled(jacobian)
-    q_basis, _ = np.linalg.qr(j)
-    fit0 = residual - q_basis @ (q_basis.T @ residual)
-    sse0 = float(fit0 @ fit0)
-    p = j.shape[1]
-    sigma2 = sse0 / max(n_rows - p, 1)
-    pose_fold = np.random.default_rng(settings.fold_seed).permutation(n_poses) % settings.folds
-    row_fold = np.repeat(pose_fold, 3)
-    folds = [np.flatnonzero(row_fold == f) for f in range(settings.folds)]
-    cv0 = _cv_sse(residual, j, folds)
-    n_cand = max(len(candidates), 1)
-    out = []
-    for spec, cols in candidates:
-        cs = _scaled(cols)
-        keep = _keep_columns(q_basis, cs, settings.rtol)
-        k = int(keep.sum())
-        if k == 0:
-            out.append(
-                CandidateScore(
-                    spec,
-                    0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    1.0,
-                    1.0,
-                    False,
-                    "a combination of the parameters already in the model",
-                )
-            )
-            continue
-        ck = cs[:, keep]
-        perp = ck - q_basis @ (q_basis.T @ ck)
-        coef, *_ = np.linalg.lstsq(perp, fit0, rcond=None)
-        e1 = fit0 - perp @ coef
-        sse1 = float(e1 @ e1)
-        dof = n_rows - p - k
-        f_stat = ((sse0 - sse1) / k) / (sse1 / dof) if dof > 0 and sse1 > 0 else math.inf
-        p_value = float(f_distribution.sf(f_stat, k, dof)) if dof > 0 else 1.0
-        p_adj = min(1.0, p_value * n_cand)
-        cv1 = _cv_sse(residual, np.hstack([j, ck]), folds)
-        gain = (cv0 - cv1) / sigma2
-        score = gain - penalty * k
-        note = "" if k == cols.shape[1] else f"{cols.shape[1] - k} parameter(s) redundant"
-        out.append(
-            CandidateScore(
-                spec,
-                k,
-                gain,
-                score,
-                f_stat,
-                p_value,
-                p_adj,
-                bool(p_adj < settings.alpha and score > 0.0),
-                note,
-            )
-        )
-    return out
+    home = np.radians(description.home)
+    data = EffectData.from_sequence(campaign.q_rad, campaign.t_s, home)
+    return replace(data, sweep_reference=home) if sweep_referenced else data
 
 
 # -- the loop ---------------------------------------------------------------------------------
-def _weighted_problem(
-    result: IdentificationResult,
-    model: KinematicModel,
-    specs: tuple[EffectSpec, ...],
-    values: FloatArray,
-    ctx: EffectContext,
-    meas: FloatArray,
-    prior: FloatArray,
-) -> tuple[FloatArray, FloatArray, NDArray[np.float64], Kinematics]:
-    terms = effect_terms(specs, ctx) if specs else None
-    q = ctx.data.q_rad
-    sw = np.sqrt(prior * result.pose_weights)
-    pred = predict(model, specs, values, ctx)
-    residual = ((pred - meas) * sw[:, None]).ravel()
-    jac = stacked_jacobian(model, q, terms)[:, :, result.free] * sw[:, None, None]
-    return residual, jac.reshape(-1, jac.shape[-1]), sw, Kinematics.of(model, q)
+@dataclass(frozen=True, eq=False)
+class _Problem:
+    """The identification poses and how they are weighted; the validation sets."""
+
+    nominal: KinematicModel
+    ctx: EffectContext  # identification poses
+    meas: FloatArray  # (m, 3)
+    prior: FloatArray  # (m,) relative weights of the points
+    contexts: dict[str, EffectContext]
+    points: dict[str, FloatArray]
+    identify_kwargs: dict[str, Any]
+
+    @property
+    def m(self) -> int:
+        return len(self.meas)
+
+    def identify(
+        self, specs: tuple[EffectSpec, ...], start: FloatArray | None
+    ) -> IdentificationResult:
+        terms = effect_terms(specs, self.ctx, start=start) if specs else None
+        q = self.ctx.data.q_rad
+        return identify(self.nominal, q, self.meas, effects=terms, **self.identify_kwargs)
+
+    def errors(
+        self, model: KinematicModel, specs: tuple[EffectSpec, ...], values: FloatArray
+    ) -> dict[str, FloatArray]:
+        return {
+            s: self.points[s] - predict_points(model, specs, values, self.contexts[s])
+            for s in self.contexts
+        }
+
+    def linearized(
+        self, result: IdentificationResult, specs: tuple[EffectSpec, ...], settings: LoopSettings
+    ) -> tuple[LinearizedModel, FloatArray, Kinematics]:
+        """The model at its solution, weighted like the fit; the weights ``(m,)``."""
+        model, values = result.model, result.effect_values
+        terms = effect_terms(specs, self.ctx) if specs else None
+        q = self.ctx.data.q_rad
+        sw = np.sqrt(self.prior * result.pose_weights)
+        pred = predict_points(model, specs, values, self.ctx)
+        residual = ((pred - self.meas) * sw[:, None]).ravel()
+        jac = stacked_jacobian(model, q, terms)[:, :, result.free] * sw[:, None, None]
+        lin = LinearizedModel.build(
+            residual, jac.reshape(-1, jac.shape[-1]), self.m, settings.folds, settings.fold_seed
+        )
+        return lin, sw, Kinematics.of(model, q)
+
+    def columns(self, spec: EffectSpec, sw: FloatArray, kin: Kinematics) -> FloatArray:
+        """A candidate's weighted regressor ``(3m, k)``."""
+        sel = slice(0, self.m)
+        r = KINDS[spec.kind].regressor(spec, self.ctx, sel, kin) * sw[:, None, None]
+        return r.reshape(3 * self.m, -1)
 
 
-def _errors(
-    model: KinematicModel,
-    specs: tuple[EffectSpec, ...],
-    values: FloatArray,
-    contexts: dict[str, EffectContext],
-    points: dict[str, FloatArray],
-) -> dict[str, FloatArray]:
-    return {s: points[s] - predict(model, specs, values, contexts[s]) for s in contexts}
+def _set_name(contexts: dict[str, EffectContext]) -> str:
+    return "validate" if "validate" in contexts else "identify"
 
 
 def run_closed_loop(
@@ -396,18 +310,20 @@ def run_closed_loop(
     progress: ProgressCallback | None = None,
     say: Callable[[str], None] | None = None,
     kinds: Collection[str] | None = None,
+    sweep_referenced: bool = False,
 ) -> ClosedLoopResult:
     """Run the loop on a campaign (identification rows fit, validation rows report).
 
     ``point_sigma_mm`` ``(m_identify,)`` weights the identification poses as in
     :func:`~calibration.identification.identify`; ``geometric`` reuses an existing
     geometric identification of the same poses. ``kinds`` (or ``settings.kinds``)
-    restricts the candidate kinds.
+    restricts the candidate kinds. ``sweep_referenced``: see :func:`campaign_effect_data`
+    (the gravity term then models the deflection relative to each sweep's configuration).
     """
     started = time.perf_counter()
     tell = say or (lambda _text: None)
     nominal = KinematicModel.from_description(description)
-    data = campaign_effect_data(description, campaign)
+    data = campaign_effect_data(description, campaign, sweep_referenced=sweep_referenced)
     masks = {s: campaign.mask(s) for s in ("identify", "validate")}
     masks = {s: m for s, m in masks.items() if m.any()}
     if "identify" not in masks:
@@ -415,8 +331,7 @@ def run_closed_loop(
     contexts = {s: EffectContext(description, data.subset(m)) for s, m in masks.items()}
     points = {s: campaign.xyz_mm[m] for s, m in masks.items()}
     ctx_id = contexts["identify"]
-    q_id, meas = ctx_id.data.q_rad, points["identify"]
-    m = len(q_id)
+    m = len(ctx_id.data)
     prior = np.ones(m)
     if point_sigma_mm is not None:
         ps = np.broadcast_to(np.asarray(point_sigma_mm, dtype=float), (m,))
@@ -429,86 +344,103 @@ def run_closed_loop(
         point_sigma_mm=point_sigma_mm,
         progress=progress,
     )
+    problem = _Problem(nominal, ctx_id, points["identify"], prior, contexts, points, id_kwargs)
     allowed = kinds if kinds is not None else settings.kinds
-    library = candidate_effects(ctx_id, allowed)
+    span = _campaign_span(campaign)
+    library = [_with_span(s, span) for s in candidate_effects(ctx_id, allowed)]
     penalty = (
         math.log(3 * m)
         if settings.penalty_per_parameter is None
         else settings.penalty_per_parameter
     )
-
-    reference = base_start_from_registration(nominal, q_id, meas)
+    reference = base_start_from_registration(nominal, ctx_id.data.q_rad, problem.meas)
     stages = [
-        Stage(
-            "nominal",
-            "nominal",
-            reference,
-            errors_mm=_errors(reference, (), np.zeros(0), contexts, points),
-        )
+        Stage("nominal", "nominal", reference, errors_mm=problem.errors(reference, (), np.zeros(0)))
     ]
-    result = geometric or identify(nominal, q_id, meas, **id_kwargs)  # type: ignore[arg-type]
+    result = geometric or problem.identify((), None)
     stages.append(
         Stage(
             "geometric",
             "geometric calibration",
             result.model,
             result=result,
-            errors_mm=_errors(result.model, (), np.zeros(0), contexts, points),
+            errors_mm=problem.errors(result.model, (), np.zeros(0)),
         )
     )
     specs: tuple[EffectSpec, ...] = ()
-    values = np.zeros(0)
     last_round: list[CandidateScore] = []
+    rejected: list[Rejected] = []
+    set_aside: set[EffectSpec] = set()
     tell(f"closed loop: {len(library)} candidate effects")
     while len(specs) < settings.max_effects:
-        offered = [s for s in library if s not in specs]
+        offered = [s for s in library if s not in specs and s not in set_aside]
+        offered = [s for s in offered if not _same_slot(s, specs)]
         if not offered:
             last_round = []
             break
-        residual, jac, sw, kin = _weighted_problem(
-            result, result.model, specs, values, ctx_id, meas, prior
+        lin, sw, kin = problem.linearized(result, specs, settings)
+        scores, columns, profiles = _score_round(
+            problem, lin, sw, kin, offered, settings, penalty, span
         )
-        sel = slice(0, m)
-        cols = [
-            (
-                s,
-                (KINDS[s.kind].regressor(s, ctx_id, sel, kin) * sw[:, None, None]).reshape(
-                    3 * m, -1
-                ),
-            )
-            for s in offered
-        ]
-        scores = score_candidates(residual, jac, cols, m, settings, penalty)
         scores.sort(key=lambda c: (not c.significant, c.n_parameters == 0, -c.score))
-        best = scores[0]
-        if not best.significant:
+        if not scores[0].significant:
             last_round = scores
+            best = scores[0]
             tell(
                 f"closed loop: nothing significant left (best: {best.label}, "
                 f"CV gain {best.cv_gain:.1f} σ², corrected p {best.p_adjusted:.2g})"
             )
             break
-        specs = (*specs, best.spec)
-        start_values = np.concatenate([values, np.zeros(len(best.spec.parameter_names()))])
-        terms = effect_terms(specs, ctx_id, start=start_values)
-        result = identify(nominal, q_id, meas, effects=terms, **id_kwargs)  # type: ignore[arg-type]
-        values = result.effect_values
+        chosen, reason = choose(lin, scores, columns)
+        shape: dict[str, Any] = {}
+        if chosen.spec in profiles:
+            shape["time_constant"] = profiles[chosen.spec].as_dict()
+        step = _try_step(problem, result, specs, chosen.spec, lin, columns, settings, tell)
+        if isinstance(step, str):
+            rejected.append(Rejected(chosen.label, step))
+            set_aside.add(chosen.spec)
+            tell(f"closed loop: set aside {chosen.label}: {step}")
+            if len(rejected) >= settings.max_rejected:
+                last_round = scores
+                break
+            continue
+        new_specs, new_result, form_info = step
+        shape.update(form_info)
+        errors = problem.errors(new_result.model, new_specs, new_result.effect_values)
         previous = stages[-1]
+        set_name = _set_name(contexts)
+        before = previous.mean_ap(set_name)
+        after = float(np.linalg.norm(errors[set_name], axis=1).mean())
+        if settings.validation_guard and set_name == "validate" and after > before:
+            why = f"the validation mean AP rose from {before:.4f} to {after:.4f} mm: step undone"
+            rejected.append(Rejected(chosen.label, why))
+            set_aside.add(chosen.spec)
+            tell(f"closed loop: set aside {chosen.label}: {why}")
+            if len(rejected) >= settings.max_rejected:
+                last_round = scores
+                break
+            continue
+        added_spec = new_specs[-1]
+        added = replace(chosen, spec=added_spec)
+        specs, result = new_specs, new_result
         stage = Stage(
             "effect",
-            f"+ {best.label}",
+            f"+ {added_spec.label}",
             result.model,
             specs=specs,
-            effect_values=values,
+            effect_values=result.effect_values,
             result=result,
-            errors_mm=_errors(result.model, specs, values, contexts, points),
-            added=best,
+            errors_mm=errors,
+            added=added,
             round_scores=tuple(scores),
+            reason=reason,
+            competitors=competitors(lin, chosen, scores, columns),
+            shape=shape,
         )
-        stages.append(replace(stage, evidence=_evidence(stage, previous, best.spec, contexts)))
+        stages.append(replace(stage, evidence=_evidence(stage, previous, added_spec, contexts)))
         tell(
-            f"closed loop: added {best.label} (CV gain {best.cv_gain:.1f} σ², "
-            f"F {best.f_statistic:.1f}, corrected p {best.p_adjusted:.2g})"
+            f"closed loop: added {added_spec.label} (CV gain {chosen.cv_gain:.1f} σ², "
+            f"F {chosen.f_statistic:.1f}, corrected p {chosen.p_adjusted:.2g}; {reason})"
         )
     return ClosedLoopResult(
         stages=tuple(stages),
@@ -518,19 +450,215 @@ def run_closed_loop(
         penalty_per_parameter=penalty,
         elapsed_s=time.perf_counter() - started,
         kinds=tuple(KINDS) if allowed is None else tuple(allowed),
+        rejected=tuple(rejected),
     )
+
+
+def _campaign_span(campaign: Campaign) -> tuple[float, ...]:
+    t = campaign.t_s
+    if t is None or len(t) == 0 or not np.all(np.isfinite(t)):
+        return ()
+    return (float(np.min(t)), float(np.max(t)))
+
+
+def _with_span(spec: EffectSpec, span: tuple[float, ...]) -> EffectSpec:
+    """Polynomial time terms carry the campaign's span (held outside it when predicting)."""
+    if KINDS[spec.kind].needs_time and not spec.shape:
+        return replace(spec, span_s=span)
+    return spec
+
+
+def _same_slot(spec: EffectSpec, specs: tuple[EffectSpec, ...]) -> bool:
+    """Whether the model already has this term in another form (a lag for a drift)."""
+    return any(
+        s.kind == spec.kind and s.joint == spec.joint and s.parameter == spec.parameter
+        and s.order == spec.order and s.kind == "length_drift"
+        for s in specs
+    )  # fmt: skip
+
+
+def _score_round(
+    problem: _Problem,
+    lin: LinearizedModel,
+    sw: FloatArray,
+    kin: Kinematics,
+    offered: list[EffectSpec],
+    settings: LoopSettings,
+    penalty: float,
+    span: tuple[float, ...],
+) -> tuple[
+    list[CandidateScore], dict[EffectSpec, FloatArray], dict[EffectSpec, TimeConstantProfile]
+]:
+    """Score every offered candidate; a drift is offered as a lag when the data says so."""
+    columns: dict[EffectSpec, FloatArray] = {}
+    profiles: dict[EffectSpec, TimeConstantProfile] = {}
+    extra: dict[EffectSpec, int] = {}
+    for spec in offered:
+        if spec.kind == "length_drift" and len(span) == 2 and span[1] > span[0]:
+            profile = _profile_lag(problem, spec, sw, kin, lin, span)
+            if profile.tau_s is not None:
+                lag = replace(spec, shape=(profile.tau_s,), span_s=())
+                profiles[lag] = profile
+                extra[lag] = 1
+                spec = lag
+            else:
+                profiles[spec] = profile
+        columns[spec] = problem.columns(spec, sw, kin)
+    n = len(columns)
+    scores = [
+        score_candidate(
+            lin, spec, cols, n_candidates=n, alpha=settings.alpha, penalty=penalty,
+            rtol=settings.rtol, extra_parameters=extra.get(spec, 0),
+        )
+        for spec, cols in columns.items()
+    ]  # fmt: skip
+    return scores, columns, profiles
+
+
+def _profile_lag(
+    problem: _Problem,
+    spec: EffectSpec,
+    sw: FloatArray,
+    kin: Kinematics,
+    lin: LinearizedModel,
+    span: tuple[float, ...],
+) -> TimeConstantProfile:
+    def column_at(tau: float | None) -> FloatArray:
+        s = replace(spec, shape=() if tau is None else (tau,), span_s=())
+        return problem.columns(s, sw, kin)[:, 0]
+
+    return profile_time_constant(lin, column_at, span[1] - span[0])
+
+
+def _try_step(
+    problem: _Problem,
+    result: IdentificationResult,
+    specs: tuple[EffectSpec, ...],
+    spec: EffectSpec,
+    lin: LinearizedModel,
+    columns: dict[EffectSpec, FloatArray],
+    settings: LoopSettings,
+    tell: Callable[[str], None],
+) -> tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str:
+    """Re-identify with ``spec`` added (a gravity term in the form the data supports);
+    a string says why the step failed."""
+    new_specs = (*specs, spec)
+    start = np.concatenate([result.effect_values, np.zeros(len(spec.parameter_names()))])
+    try:
+        linear = problem.identify(new_specs, start)
+    except IdentificationError as exc:
+        return f"re-identification failed: {exc}"
+    if spec.kind != "gravity_deflection" or spec.parameter == "physical":
+        return new_specs, linear, {}
+    physical = _physical_gravity(problem, result, specs, spec, lin, columns[spec])
+    if physical is None:
+        return new_specs, linear, {}
+    phys_spec, fit = physical
+    phys_specs = (*specs, phys_spec)
+    start = np.concatenate([result.effect_values, fit.moments])
+    try:
+        phys = problem.identify(phys_specs, start)
+    except IdentificationError as exc:
+        tell(f"closed loop: physical gravity form not kept: {exc}")
+        return new_specs, linear, {"gravity_form": {"kept": "linear", "reason": str(exc)}}
+    info = _form_decision(problem, linear, phys, spec, phys_spec, fit)
+    tell(f"closed loop: gravity deflection, {info['gravity_form']['reason']}")
+    if info["gravity_form"]["kept"] == "physical":
+        return phys_specs, phys, info
+    return new_specs, linear, info
+
+
+def _physical_gravity(
+    problem: _Problem,
+    result: IdentificationResult,
+    specs: tuple[EffectSpec, ...],
+    spec: EffectSpec,
+    lin: LinearizedModel,
+    cols: FloatArray,
+) -> tuple[EffectSpec, PhysicalGravityFit] | None:
+    """The physical form's spec and fit from the linear candidate's columns."""
+    base = problem.ctx.base_moments
+    names = base.names
+    blocks: dict[int, FloatArray] = {}
+    for c, term in enumerate(spec.names):
+        joint, moment = term.split(".", 1)
+        j = int(joint[5:])
+        block = blocks.setdefault(j, np.zeros((cols.shape[0], len(names))))
+        block[:, names.index(moment)] = cols[:, c]
+    if len(blocks) < 1:
+        return None
+    fit = fit_physical_gravity(lin, blocks)
+    if not fit.success or not np.all(np.isfinite(fit.ratios)):
+        return None
+    phys = EffectSpec(
+        "gravity_deflection",
+        parameter="physical",
+        joints=fit.joints,
+        names=names,
+        shape=tuple(float(r) for r in fit.ratios),
+    )
+    return phys, fit
+
+
+def _form_decision(
+    problem: _Problem,
+    linear: IdentificationResult,
+    phys: IdentificationResult,
+    spec: EffectSpec,
+    phys_spec: EffectSpec,
+    fit: PhysicalGravityFit,
+) -> dict[str, Any]:
+    """Keep the physical form unless the linear one is significantly better (F-test)."""
+    sse_lin = _weighted_sse(linear)
+    sse_phys = _weighted_sse(phys)
+    k_lin = len(spec.names)
+    k_phys = len(phys_spec.names) + len(phys_spec.joints) - 1
+    dof = 3 * problem.m - int(np.count_nonzero(linear.free))
+    d1 = max(k_lin - k_phys, 1)
+    f_stat = ((sse_phys - sse_lin) / d1) / max(sse_lin / max(dof, 1), 1e-300)
+    p = float(f_distribution.sf(max(f_stat, 0.0), d1, max(dof, 1)))
+    kept = "physical" if p >= PHYSICAL_FORM_ALPHA else "linear"
+    reason = (
+        f"physical form kept ({k_phys} parameters against {k_lin}; the linear form's extra "
+        f"freedom: F = {f_stat:.2f}, p = {p:.2g})"
+        if kept == "physical"
+        else f"linear form kept: the joints do not share the same moments (F = {f_stat:.2f}, "
+        f"p = {p:.2g} < {PHYSICAL_FORM_ALPHA})"
+    )
+    return {
+        "gravity_form": {
+            "kept": kept,
+            "reason": reason,
+            "f_statistic": float(f_stat),
+            "p_value": p,
+            "reference_joint": fit.reference,
+            "joints": list(fit.joints),
+            "compliance_ratio": [float(r) for r in fit.ratios],
+            "compliance_ratio_se": [float(r) for r in fit.ratio_se],
+            "moments": list(phys_spec.names),
+            "weighted_moment_urad": [float(w) for w in fit.moments],
+            "weighted_moment_se_urad": [float(w) for w in fit.moment_se],
+        }
+    }
+
+
+def _weighted_sse(result: IdentificationResult) -> float:
+    """The LM's weighted residual sum of squares at its solution."""
+    r = np.asarray(result.optimize_result.fun, dtype=float)
+    return float(r @ r)
 
 
 def _evidence(
     stage: Stage, previous: Stage, spec: EffectSpec, contexts: dict[str, EffectContext]
 ) -> EvidencePlot | None:
     """The added effect's evidence on the validation set (identification set without one)."""
-    set_name = "validate" if "validate" in contexts else "identify"
+    set_name = _set_name(contexts)
     ctx = contexts[set_name]
     kin = Kinematics.of(stage.model, ctx.data.q_rad)
     values = stage.values_of(spec)
-    ev: Evidence = KINDS[spec.kind].evidence(spec, values, ctx, slice(0, len(ctx.data)), kin)
-    term = effect_offsets_mm((spec,), values, ctx, stage.model)
+    sel = slice(0, len(ctx.data))
+    ev: Evidence = KINDS[spec.kind].evidence(spec, values, ctx, sel, kin)
+    term = regressor_matrix((spec,), ctx, sel, kin) @ values
     after = stage.errors_mm[set_name]
     return EvidencePlot(
         x=ev.x,
@@ -540,13 +668,4 @@ def _evidence(
         partial=ev.project(after + term),
         after=ev.project(after),
         model=ev.project(term),
-    )
-
-
-def regressors_for(
-    specs: tuple[EffectSpec, ...], ctx: EffectContext, model: KinematicModel
-) -> FloatArray:
-    """Regressors ``(m, 3, k)`` of ``specs`` at ``ctx``'s poses (for tests and reports)."""
-    return regressor_matrix(
-        specs, ctx, slice(0, len(ctx.data)), Kinematics.of(model, ctx.data.q_rad)
     )

@@ -324,6 +324,9 @@ def closed_loop_document(loop: ClosedLoopResult, n_joints: int) -> dict[str, Any
                 "generic": stage.added.generic,
                 "parameters": _effect_parameters(stage),
                 "selection": stage.added.as_dict(),
+                "why_chosen": stage.reason,
+                "competitors": [c.as_dict() for c in stage.competitors],
+                "shape": stage.shape,
                 "runners_up": [c.as_dict() for c in stage.round_scores[1:6]],
                 "evidence_plot": evidence_file(i - 1, stage),
                 "evidence_regressor": stage.evidence.x_label if stage.evidence else None,
@@ -352,6 +355,7 @@ def closed_loop_document(loop: ClosedLoopResult, n_joints: int) -> dict[str, Any
         "elapsed_s": loop.elapsed_s,
         "stages": stages,
         "added": [s["effect"]["label"] for s in stages if "effect" in s],
+        "set_aside": [r.as_dict() for r in loop.rejected],
         "stopped": stopped,
     }
 
@@ -516,6 +520,19 @@ def _closed_loop_markdown(loop: Mapping[str, Any]) -> list[str]:
             + " |"
             for p in eff["parameters"]
         ]
+        lines += ["", f"Why this effect: {eff.get('why_chosen') or 'best score'}."]
+        lines += _shape_markdown(eff.get("shape") or {})
+        if eff.get("competitors"):
+            lines += [
+                "",
+                "| closest competitor | principal cosines | what separated them |",
+                "|---|---|---|",
+            ]
+            lines += [
+                f"| {c['effect']} | {', '.join(f'{x:.3f}' for x in c['principal_cosines'])} | "
+                f"{c['separated_by']} |"
+                for c in eff["competitors"]
+            ]
         lines += [
             "",
             f"Evidence: `{eff['evidence_plot']}` (residuals against "
@@ -526,7 +543,50 @@ def _closed_loop_markdown(loop: Mapping[str, Any]) -> list[str]:
             )
             + " (penalized CV score, σ²).",
         ]
+    if loop.get("set_aside"):
+        lines += ["", "Set aside (chosen, then undone):"]
+        lines += [f"- {r['effect']}: {r['reason']}" for r in loop["set_aside"]]
     lines.append("")
+    return lines
+
+
+def _shape_markdown(shape: Mapping[str, Any]) -> list[str]:
+    """The profiled shape parameters of an effect, for people."""
+    lines: list[str] = []
+    form = shape.get("gravity_form")
+    if form:
+        ratios = ", ".join(
+            f"joint {j}: {r:.3g} ± {e:.2g}"
+            for j, r, e in zip(
+                form["joints"], form["compliance_ratio"], form["compliance_ratio_se"], strict=True
+            )
+        )
+        moments = ", ".join(
+            f"{m}: {w:.3g} ± {e:.2g}"
+            for m, w, e in zip(
+                form["moments"],
+                form["weighted_moment_urad"],
+                form["weighted_moment_se_urad"],
+                strict=True,
+            )
+        )
+        lines += [
+            "",
+            f"Gravity form: {form['reason']}. Compliance ratios (joint "
+            f"{form['reference_joint']} = 1): {ratios}. Compliance-weighted moments (µrad: "
+            f"the reference joint's deflection from that moment alone, lever horizontal): "
+            f"{moments}.",
+        ]
+    tau = shape.get("time_constant")
+    if tau:
+        lo, hi = tau["interval_s"]
+        hi_text = "∞" if hi is None else f"{hi / 60.0:.1f}"
+        lines += [
+            "",
+            f"Time constant: {tau['decision']}; profile minimum "
+            f"{tau['profile_minimum_s'] / 60.0:.1f} min, {tau['confidence']:.0%} interval "
+            f"[{lo / 60.0:.1f}, {hi_text}] min.",
+        ]
     return lines
 
 
