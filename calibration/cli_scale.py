@@ -13,15 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.chain_scale import ScaleCampaignResult, calibrate_scales
 from calibration.description import RobotDescription, load_robot
 from calibration.errors import DataFileError
 from calibration.grating_scale import (
     TERMS,
-    JointScaleResult,
     ScaleError,
     ScaleOptions,
     TrackerSpec,
-    calibrate_joint,
     check_terms,
 )
 from calibration.scale_files import (
@@ -97,8 +96,9 @@ def calibrate_files(
     home_path: str | Path | None,
     robot: RobotDescription | None,
     options: ScaleOptions,
-) -> list[JointScaleResult]:
-    """Read the campaign files and calibrate every joint in the sweep."""
+) -> ScaleCampaignResult:
+    """Read the campaign files and calibrate every joint in the sweep (in chain order, the
+    other joints' motion taken out where sweep.csv has their readings)."""
     n_joints = robot.n_joints if robot is not None else None
     sweep = read_sweep_csv(
         sweep_path, n_joints=n_joints, min_stops_per_pass=options.min_stops_per_pass
@@ -111,22 +111,16 @@ def calibrate_files(
                     f"{home.path}: row {rows.min()}, column 'joint': joint {j} has Home rows "
                     f"but no sweep in {sweep.path}"
                 )
-    results = []
-    for j, js in sweep.joints.items():
-        jd = robot.joints[j - 1] if robot is not None else None
-        try:
-            results.append(
-                calibrate_joint(
-                    js,
-                    home.counts.get(j) if home is not None else None,
-                    home_deg=robot.home[j - 1] if robot is not None else None,
-                    limits_deg=(jd.lower_deg, jd.upper_deg) if jd is not None else None,
-                    options=options,
-                )
-            )
-        except ScaleError as exc:
-            raise ScaleError(f"{sweep.path}: {exc}") from exc
-    return results
+    try:
+        return calibrate_scales(
+            sweep.joints,
+            home.counts if home is not None else None,
+            home_deg=robot.home if robot is not None else None,
+            limits_deg=[(j.lower_deg, j.upper_deg) for j in robot.joints] if robot else None,
+            options=options,
+        )
+    except ScaleError as exc:
+        raise ScaleError(f"{sweep.path}: {exc}") from exc
 
 
 def run_scale(args: argparse.Namespace) -> int:
@@ -170,7 +164,7 @@ def run_scale(args: argparse.Namespace) -> int:
     return 0
 
 
-def _summary(results: list[JointScaleResult], counts_per_mm: float) -> str:
+def _summary(results: ScaleCampaignResult, counts_per_mm: float) -> str:
     lines = [
         f"{'joint':>5} {'zero counts':>14} {'counts/deg':>13} {'R_eff mm':>10} "
         f"{'terms':<20} {'rms arcsec':>10} {'circle R mm':>12}"

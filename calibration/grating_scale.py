@@ -56,6 +56,7 @@ from scipy import stats
 
 from calibration.circle_fit import CircleFit, CircleFitError, fit_circle_3d
 from calibration.errors import CalibrationError
+from calibration.target_set_fit import TargetSetFit, crb_covariance_targets, fit_target_set
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -297,7 +298,9 @@ class GratingScale:
 class JointSweep:
     """The sweep stops of one joint, in any order. Arrays ``(S,)`` / ``(S, 3)``.
 
-    ``rows`` are the source-file row numbers (for messages), or -1.
+    ``rows`` are the source-file row numbers (for messages), or -1. ``chain_counts``
+    ``(S, n)`` holds every joint's raw grating reading at the stop (None: not recorded),
+    for taking the other joints' motion out (:mod:`calibration.chain_scale`).
     """
 
     joint: int
@@ -306,10 +309,19 @@ class JointSweep:
     counts: IntArray
     points_mm: FloatArray
     rows: IntArray | None = None
+    chain_counts: IntArray | None = None
+    target: IntArray | None = None  # (S,) reflector of each row: T targets per stop
 
     @property
     def n_stops(self) -> int:
-        return int(self.step.shape[0])
+        """Stops (one per pass and step, whatever the number of targets)."""
+        if self.target is None:
+            return int(self.step.shape[0])
+        return len({(p, int(k)) for p, k in zip(self.pass_name, self.step, strict=True)})
+
+    @property
+    def n_targets(self) -> int:
+        return 1 if self.target is None else len(set(self.target.tolist()))
 
 
 @dataclass(frozen=True)
@@ -364,8 +376,10 @@ class JointScaleResult:
     joint: int
     scale: GratingScale
     home: HomeZero
-    circle: CircleFit  # common circle of both sweeps, oriented with the joint's + direction
-    pass_circles: dict[str, CircleFit]  # one per sweep, same orientation
+    # common circle of both sweeps (or the common fit of a target set), oriented with the
+    # joint's + direction; one per sweep below, same orientation
+    circle: CircleFit | TargetSetFit
+    pass_circles: dict[str, CircleFit | TargetSetFit]
     tests: tuple[TermTest, ...]
     pass_name: NDArray[np.str_]  # (S,)
     step: IntArray  # (S,)
@@ -553,12 +567,95 @@ class _Angles:
     u_raw: FloatArray
     theta: FloatArray
     inlier: NDArray[np.bool_]
-    circle: CircleFit
-    pass_circles: dict[str, CircleFit]
+    circle: CircleFit | TargetSetFit
+    pass_circles: dict[str, CircleFit | TargetSetFit]
     dropped: list[tuple[int, str]]
 
 
+def _stop_sets(sweep: JointSweep) -> tuple[IntArray, FloatArray]:
+    """Rows grouped into stops: each stop's first row ``(K,)`` and its targets' points
+    ``(K, T, 3)`` (NaN for a target not measured there), stops in file order."""
+    assert sweep.target is not None
+    targets = sorted(set(sweep.target.tolist()))
+    keys: dict[tuple[str, int], int] = {}
+    first: list[int] = []
+    for i, key in enumerate(zip(sweep.pass_name.tolist(), sweep.step.tolist(), strict=True)):
+        if key not in keys:
+            keys[key] = len(first)
+            first.append(i)
+    points = np.full((len(first), len(targets), 3), np.nan)
+    for i, key in enumerate(zip(sweep.pass_name.tolist(), sweep.step.tolist(), strict=True)):
+        points[keys[key], targets.index(int(sweep.target[i]))] = sweep.points_mm[i]
+    return np.array(first, dtype=np.int64), points
+
+
+def _target_set_angles(sweep: JointSweep, reference: float, opt: ScaleOptions) -> _Angles:
+    """As :func:`_circle_angles` for T ≥ 2 reflectors: each stop's angle from the rigid
+    rotation of the target set (:func:`calibration.target_set_fit.fit_target_set`)."""
+    j = sweep.joint
+    first, points = _stop_sets(sweep)
+    pass_of = sweep.pass_name[first]
+    step_of = sweep.step[first]
+    passes = [p for p in PASSES if np.any(pass_of == p)]
+    parts = []
+    for p in passes:
+        idx = np.flatnonzero(pass_of == p)
+        idx = idx[np.argsort(step_of[idx], kind="stable")]
+        if idx.size < opt.min_stops_per_pass:
+            raise ScaleError(
+                f"joint {j}: {p} sweep has {idx.size} stops; "
+                f"at least {opt.min_stops_per_pass} are needed"
+            )
+        parts.append(idx[::-1] if p == "forward" else idx)  # increasing joint angle
+    stops = np.concatenate(parts)
+    pts = points[stops]
+    sigma = opt.tracker.sigma_mm(np.nan_to_num(pts.reshape(-1, 3))).reshape(pts.shape[:2])
+    pass_name = pass_of[stops]
+    dropped: list[tuple[int, str]] = []
+    pass_fits = {}
+    for p in passes:
+        m = np.flatnonzero(pass_name == p)
+        try:
+            pass_fits[p] = fit_target_set(pts[m], sigma[m], outlier_alpha=opt.outlier_alpha)
+        except CircleFitError as exc:
+            raise ScaleError(f"joint {j}: {p} sweep: {exc}") from exc
+    try:
+        common = fit_target_set(pts, sigma, outlier_alpha=opt.outlier_alpha)
+    except CircleFitError as exc:
+        raise ScaleError(f"joint {j}: common fit of the target set: {exc}") from exc
+    common = _orient_like(common, pass_fits[passes[0]].normal)
+    for k, t in common.outlier_points:
+        dropped.append((int(first[stops[k]]), f"target-set fit: wild point of target {t + 1}"))
+    inlier = common.inlier.copy()
+    theta = np.empty(stops.size)
+    for p in passes:
+        m = np.flatnonzero(pass_name == p)
+        theta[m] = _unwrap_inliers(common.angle_rad[m], inlier[m])
+    u_raw = signed_offset_counts(sweep.counts[first[stops]], reference)
+    if len(passes) == 2:
+        _same_turn(theta, pass_name, inlier, u_raw)
+    pass_fits = {p: _orient_like(c, common.normal) for p, c in pass_fits.items()}
+    return _Angles(
+        first[stops], pass_name, step_of[stops], u_raw, theta, inlier, common, pass_fits, dropped
+    )
+
+
+def _same_turn(
+    theta: FloatArray, pass_name: NDArray[np.str_], inlier: NDArray[np.bool_], u_raw: FloatArray
+) -> None:
+    """Put the backward sweep on the forward sweep's turn by matching counts (in place)."""
+    f = np.flatnonzero((pass_name == "forward") & inlier)
+    b = np.flatnonzero((pass_name == "backward") & inlier)
+    i, k = np.unravel_index(
+        np.argmin(np.abs(u_raw[f][:, None] - u_raw[b][None, :])), (f.size, b.size)
+    )
+    turns = np.round((theta[f[i]] - theta[b[k]]) / (2 * np.pi))
+    theta[pass_name == "backward"] += 2 * np.pi * turns
+
+
 def _circle_angles(sweep: JointSweep, reference: float, opt: ScaleOptions) -> _Angles:
+    if sweep.n_targets > 1:
+        return _target_set_angles(sweep, reference, opt)
     j = sweep.joint
     passes = [p for p in PASSES if np.any(sweep.pass_name == p)]
     if not passes:
@@ -607,14 +704,8 @@ def _circle_angles(sweep: JointSweep, reference: float, opt: ScaleOptions) -> _A
     for p in passes:
         m = np.flatnonzero(pass_name == p)
         theta[m] = _unwrap_inliers(full.angle_rad[m], inlier[m])
-    if len(passes) == 2:  # put the backward sweep on the forward sweep's turn
-        f = np.flatnonzero((pass_name == "forward") & inlier)
-        b = np.flatnonzero((pass_name == "backward") & inlier)
-        i, k = np.unravel_index(
-            np.argmin(np.abs(u_raw[f][:, None] - u_raw[b][None, :])), (f.size, b.size)
-        )
-        turns = np.round((theta[f[i]] - theta[b[k]]) / (2 * np.pi))
-        theta[pass_name == "backward"] += 2 * np.pi * turns
+    if len(passes) == 2:
+        _same_turn(theta, pass_name, inlier, u_raw)
     pass_circles = {p: _orient_like(c, full.normal) for p, c in pass_circles.items()}
     return _Angles(
         order, pass_name, sweep.step[order], u_raw, theta, inlier, full, pass_circles, dropped
@@ -765,12 +856,19 @@ def calibrate_joint(
     cov_theta0 = (final.cov_unit @ (white.apply(x_all[idx]).T @ wb))[0] @ b_all.T
     cov_theta0[idx] = (final.cov_unit @ x_all[idx].T)[0]  # used stops: V⁻¹·V = I
     var_stop = d_all + np.einsum("ij,ij->i", b_all, b_all) + final.cov_unit[0, 0] - 2 * cov_theta0
-    crb = crb_covariance(circle, theta[idx], x_all[idx], circle.point_sigma_mm[idx])
+    if isinstance(circle, CircleFit):
+        crb = crb_covariance(circle, theta[idx], x_all[idx], circle.point_sigma_mm[idx])
+        stored = replace(circle, inlier=inlier.copy())
+    else:  # a target set: its own bound; stops dropped by the relation are in `used`
+        crb = crb_covariance_targets(
+            circle, theta[idx], x_all[idx], circle.target_sigma_mm[idx], circle.point_inlier[idx]
+        )
+        stored = circle
     return JointScaleResult(
         joint=j,
         scale=scale,
         home=zero,
-        circle=replace(circle, inlier=inlier.copy()),
+        circle=stored,
         pass_circles=ang.pass_circles,
         tests=tuple(tests),
         pass_name=ang.pass_name,

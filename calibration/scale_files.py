@@ -7,7 +7,12 @@ and every error names the file, the row and the column:
   ``forward`` (positive limit → negative limit) or ``backward``, ``step`` the stop index
   from the start of the pass (0, 1, ...), ``counts`` the raw grating reading (integer,
   32-bit counter; negative values are taken as signed 32-bit), x, y, z the tracker target
-  (mm, tracker frame).
+  (mm, tracker frame). Optional ``g1_counts..gN_counts``: every joint's raw reading at
+  the stop (all N or none; the swept joint's equals ``counts``), for taking the other
+  joints' motion out through the kinematic chain. Optional ``target``: which reflector
+  (1, 2, ...) when the tracker measures several on the swept link, one row per stop and
+  target (the readings repeat); each stop's angle then comes from the rigid rotation of
+  the target set. Without it, one target.
 * ``home.csv``: ``joint,trial,counts``.
 * ``counts.csv`` (for ``twin scale-apply``): ``joint,counts`` and optionally
   ``direction`` (``positive``/``negative``/``unknown``, or ``backward``/``forward`` as in
@@ -53,6 +58,9 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 SWEEP_COLUMNS: tuple[str, ...] = ("joint", "pass", "step", "counts", "x_mm", "y_mm", "z_mm")
+#: Optional sweep.csv columns: every joint's reading at the stop, g1_counts..gN_counts.
+MAX_CHAIN_JOINTS = 32
+CHAIN_COLUMNS: tuple[str, ...] = tuple(f"g{i}_counts" for i in range(1, MAX_CHAIN_JOINTS + 1))
 HOME_COLUMNS: tuple[str, ...] = ("joint", "trial", "counts")
 COUNTS_COLUMNS: tuple[str, ...] = ("joint", "counts")
 SCALE_FORMAT = "twin-grating-scale/1"
@@ -220,9 +228,11 @@ def read_sweep_csv(
     min_stops_per_pass: int = MIN_STOPS_PER_PASS,
 ) -> SweepTable:
     """Read ``sweep.csv``; raises :class:`DataFileError` naming file, row and column."""
-    t = _read_csv(path, SWEEP_COLUMNS)
+    t = _read_csv(path, SWEEP_COLUMNS, optional=(*CHAIN_COLUMNS, "target"))
     if not t.rows:
         raise DataFileError(f"{t.path}: row 2: no data rows after the header")
+    chain_columns = _chain_columns(t, n_joints)
+    chain = np.empty((len(t.rows), len(chain_columns)), dtype=np.int64)
     n = len(t.rows)
     joint = np.empty(n, dtype=np.int64)
     step = np.empty(n, dtype=np.int64)
@@ -230,7 +240,10 @@ def read_sweep_csv(
     xyz = np.empty((n, 3))
     pass_name = np.empty(n, dtype=object)
     lines = np.empty(n, dtype=np.int64)
-    first: dict[tuple[int, str, int], int] = {}
+    has_target = "target" in t.index
+    target = np.ones(n, dtype=np.int64)
+    first: dict[tuple[int, str, int, int], int] = {}
+    stop_counts: dict[tuple[int, str, int], tuple[int, int]] = {}
     for k, (line, f) in enumerate(t.rows):
         lines[k] = line
         joint[k] = t.joint(line, f, n_joints)
@@ -241,24 +254,45 @@ def read_sweep_csv(
         step[k] = t.integer(line, f, "step", minimum=0)
         counts[k] = t.counts(line, f)
         xyz[k] = [t.real(line, f, c) for c in ("x_mm", "y_mm", "z_mm")]
-        key = (int(joint[k]), p, int(step[k]))
+        if chain_columns:
+            chain[k] = [t.counts(line, f, c) for c in chain_columns]
+            own = chain_columns[joint[k] - 1] if joint[k] <= len(chain_columns) else None
+            if own is None:
+                raise t.fail(line, "joint", f"joint {joint[k]} has no g{joint[k]}_counts column")
+            if chain[k, joint[k] - 1] != counts[k]:
+                raise t.fail(
+                    line, own, f"differs from 'counts' ({chain[k, joint[k] - 1]} != {counts[k]})"
+                )
+        if has_target:
+            target[k] = t.integer(line, f, "target", minimum=1)
+        key = (int(joint[k]), p, int(step[k]), int(target[k]))
         if key in first:
+            what = f" target {key[3]}" if has_target else ""
             raise t.fail(
-                line, "step", f"joint {key[0]} {p} step {key[2]} already given in row {first[key]}"
+                line,
+                "step",
+                f"joint {key[0]} {p} step {key[2]}{what} already given in row {first[key]}",
             )
         first[key] = line
+        seen = stop_counts.setdefault(key[:3], (int(counts[k]), line))
+        if seen[0] != counts[k]:
+            raise t.fail(
+                line, "counts", f"differs from the same stop's reading in row {seen[1]} "
+                f"({counts[k]} != {seen[0]}): the targets of a stop share its readings"
+            )  # fmt: skip
     pass_name = pass_name.astype(str)
     joints = {}
     for j in sorted(set(joint.tolist())):
         m = joint == j
         for p in PASSES:
             mp = m & (pass_name == p)
-            if 0 < mp.sum() < min_stops_per_pass:
+            n_stops = len(set(step[mp].tolist()))
+            if 0 < n_stops < min_stops_per_pass:
                 rows = lines[mp]
                 raise t.fail(
                     _row_span(rows),
                     "step",
-                    f"joint {j} {p} sweep has {mp.sum()} stops; a circle fit and the "
+                    f"joint {j} {p} sweep has {n_stops} stops; a circle fit and the "
                     f"relation need at least {min_stops_per_pass}",
                 )
         joints[j] = JointSweep(
@@ -268,8 +302,28 @@ def read_sweep_csv(
             counts=counts[m],
             points_mm=xyz[m],
             rows=lines[m],
+            chain_counts=chain[m] if chain_columns else None,
+            target=target[m] if has_target else None,
         )
     return SweepTable(t.path, joints)
+
+
+def _chain_columns(t: _Csv, n_joints: int | None) -> tuple[str, ...]:
+    """The ``g1_counts..gN_counts`` columns present: none, or exactly 1..N (N the robot's)."""
+    present = [c for c in CHAIN_COLUMNS if c in t.index]
+    if not present:
+        return ()
+    n = len(present)
+    expected = CHAIN_COLUMNS[:n]
+    if tuple(present) != expected or (n_joints is not None and n != n_joints):
+        want = n_joints if n_joints is not None else n
+        raise t.fail(
+            1,
+            present[0] if tuple(present) == expected else present[-1],
+            f"expected every joint's reading g1_counts..g{want}_counts or none, got "
+            f"{', '.join(present)}",
+        )
+    return expected
 
 
 def _row_span(rows: NDArray[np.int64]) -> str:

@@ -16,10 +16,45 @@ from typing import Any
 
 import numpy as np
 
+from calibration.chain_scale import ChainCorrection
+from calibration.circle_fit import CircleFit
 from calibration.grating_scale import ARCSEC_PER_DEG, JointScaleResult
 
 
-def joint_summary(r: JointScaleResult, counts_per_mm: float = 1000.0) -> dict[str, Any]:
+def _radius_std_mm(fit: Any) -> float:
+    """Standard deviation of a circle's radius (of the first target for a target set)."""
+    if isinstance(fit, CircleFit):
+        return float(fit.parameter_std[5])
+    return float(fit.parameter_std[list(fit.parameter_names).index("radius_0_mm")])
+
+
+def chain_summary(c: ChainCorrection | None, r: JointScaleResult) -> dict[str, Any]:
+    """What the whole-chain fit removed from one joint's map, beside the circle-only fit."""
+    if c is None:
+        return {
+            "whole_chain": False,
+            "circle_only_residual_rms_arcsec": r.residual_rms_arcsec,
+            "circle_only_terms": list(r.scale.terms),
+        }
+    out: dict[str, Any] = {
+        "whole_chain": True,
+        "circle_only_residual_rms_arcsec": c.circle_only_residual_arcsec,
+        "circle_only_terms": list(c.circle_only.scale.terms),
+        "upstream_motion_max_arcsec": {str(k): v for k, v in c.max_upstream_arcsec.items()},
+        "upstream_uncalibrated": list(c.missing),
+    }
+    if c.own_deflection_arcsec is not None:
+        out["modelled_own_deflection_rms_arcsec"] = c.own_deflection_arcsec[0]
+        out["modelled_own_deflection_max_arcsec"] = c.own_deflection_arcsec[1]
+        out["modelled_upstream_deflection_max_arcsec"] = {
+            str(k): v for k, v in (c.upstream_deflection_arcsec or {}).items()
+        }
+    return out
+
+
+def joint_summary(
+    r: JointScaleResult, counts_per_mm: float = 1000.0, chain: ChainCorrection | None = None
+) -> dict[str, Any]:
     """Plain numbers describing one joint's calibration (units in the key names)."""
     s = r.scale
     c = r.circle
@@ -28,7 +63,7 @@ def joint_summary(r: JointScaleResult, counts_per_mm: float = 1000.0) -> dict[st
     for name, pc in r.pass_circles.items():
         passes[name] = {
             "radius_mm": pc.radius_mm,
-            "radius_std_mm": float(pc.parameter_std[5]),
+            "radius_std_mm": _radius_std_mm(pc),
             "normal": [float(v) for v in pc.normal],
             "residual_rms_um": 1e3 * pc.residual_rms_mm,
             "points": pc.n_points,
@@ -40,7 +75,7 @@ def joint_summary(r: JointScaleResult, counts_per_mm: float = 1000.0) -> dict[st
         d_r = f.radius_mm - b.radius_mm
         agreement = {
             "radius_difference_um": 1e3 * d_r,
-            "radius_difference_sigma": d_r / math.hypot(f.parameter_std[5], b.parameter_std[5]),
+            "radius_difference_sigma": d_r / math.hypot(_radius_std_mm(f), _radius_std_mm(b)),
             "normal_angle_arcsec": math.degrees(
                 math.acos(min(1.0, abs(float(f.normal @ b.normal))))
             )
@@ -74,12 +109,14 @@ def joint_summary(r: JointScaleResult, counts_per_mm: float = 1000.0) -> dict[st
         "tracker_sigma_um": r.tracker_sigma_um,
         "circle": {
             "radius_mm": c.radius_mm,
-            "radius_std_mm": float(c.parameter_std[5]),
+            "radius_std_mm": _radius_std_mm(c),
             "centre_mm": [float(v) for v in c.centre_mm],
             "normal": [float(v) for v in c.normal],
             "residual_rms_um": 1e3 * c.residual_rms_mm,
             "points_used": c.n_inliers,
         },
+        "targets": getattr(c, "n_targets", 1),
+        "chain": chain_summary(chain, r),
         "pass_circles": passes,
         "pass_agreement": agreement,
         "tests": [
@@ -124,6 +161,32 @@ def _markdown(rows: Sequence[Mapping[str, Any]], robot: str | None) -> str:
             f"{', '.join(r['terms']) or '—'} | {r['residual_rms_deg']:.6f} | "
             f"{r['residual_rms_arcsec']:.2f} | {hyst} | {c['radius_mm']:.4f} | {normal} | "
             f"{c['residual_rms_um']:.1f} | {len(r['dropped'])} |"
+        )
+    out += ["", "## What the whole chain removed", ""]
+    out += [
+        "| joint | targets | circle-only rms ″ (terms) | whole-chain rms ″ (terms) | "
+        "upstream joints moved (max ″) | modelled deflection taken out: own rms/max ″, "
+        "upstream max ″ |",
+        "|---" * 6 + "|",
+    ]
+    for r in rows:
+        ch = r["chain"]
+        moved = ", ".join(
+            f"{k}: {v:.1f}" for k, v in ch.get("upstream_motion_max_arcsec", {}).items()
+        )
+        defl = "—"
+        if "modelled_own_deflection_rms_arcsec" in ch:
+            up = ", ".join(
+                f"{k}: {v:.1f}" for k, v in ch["modelled_upstream_deflection_max_arcsec"].items()
+            )
+            defl = (
+                f"{ch['modelled_own_deflection_rms_arcsec']:.1f}/"
+                f"{ch['modelled_own_deflection_max_arcsec']:.1f}; {up or '—'}"
+            )
+        out.append(
+            f"| {r['joint']} | {r['targets']} | {ch['circle_only_residual_rms_arcsec']:.2f} "
+            f"({', '.join(ch['circle_only_terms']) or '—'}) | {r['residual_rms_arcsec']:.2f} "
+            f"({', '.join(r['terms']) or '—'}) | {moved or '—'} | {defl} |"
         )
     out += ["", "## Term selection (nested F-tests)", ""]
     out += ["| joint | term | kept | F | dof | p | threshold |", "|---" * 7 + "|"]
@@ -216,7 +279,8 @@ def write_report(
     """Write ``report.md``, ``report.json`` and ``residuals.png`` into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rows = [joint_summary(r, counts_per_mm) for r in results]
+    chain = getattr(results, "chain", {})
+    rows = [joint_summary(r, counts_per_mm, chain.get(r.joint)) for r in results]
     paths = {"markdown": out / "report.md", "json": out / "report.json"}
     paths["markdown"].write_text(_markdown(rows, robot), encoding="utf-8")
     doc = {"robot": robot, "calibration": dict(metadata or {}), "joints": rows}
