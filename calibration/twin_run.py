@@ -1,11 +1,19 @@
-"""The twin on recorded (or collected live) streams: phases → files → calibrations → reports.
+"""The twin on recorded (or collected live) streams: phases → maps → campaign → twin.
 
-:func:`export_campaign` finds the campaign's phases in the streams, pairs tracker and
-grating samples, and writes the documented files (``home.csv``, ``sweep.csv``; then, with
-the scale calibration, ``scale.toml`` and ``campaign.csv``) plus ``phases.json`` (what was
-found, what was rejected and why, lost intervals). :func:`run_twin` continues with the
-identification and the closed loop (the library functions ``twin identify`` uses) and
-writes ``calibrated.toml`` and the report.
+The data flow one way, in memory, as typed values:
+
+1. :func:`measure_campaign`: the campaign's phases found in the streams, tracker and
+   grating samples paired per dwell → :class:`CampaignMeasurements` (sweeps with every
+   joint's reading at each stop, Home returns, poses);
+2. :func:`calibrate_twin`: grating scales in chain order (:mod:`calibration.chain_scale`),
+   the poses read through them (:func:`campaign_from_scales`), the identification and the
+   closed loop, whose gravity term knows the maps absorbed each swept link's deflection
+   in its sweep configuration (the link turns after its ring under its own weight, which
+   no grating sees); when the loop finds gravity deflection, the maps are refitted with
+   it taken out of the sweeps and everything downstream runs again: a joint fit of the
+   maps and the loop's gravity term;
+3. files only at the edges: :func:`export_campaign` (``twin export``) and :func:`run_twin`
+   (``twin run``) write them.
 
 Determinism: the same streams give bit-identical files. Nothing of the run's own clock goes
 into ``calibrated.toml``, ``report.json``, ``phases.json`` or the CSV files (the solver
@@ -24,30 +32,25 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
-from calibration.campaign_files import Campaign, read_campaign, write_campaign
+from calibration.campaign_files import Campaign, write_campaign
+from calibration.chain_scale import ScaleCampaignResult, calibrate_scales
 from calibration.description import RobotDescription, load_robot
 from calibration.errors import CalibrationError
-from calibration.grating_scale import COUNTER_MODULUS, ScaleOptions
+from calibration.grating_scale import COUNTER_MODULUS, JointSweep, ScaleOptions
 from calibration.pairing import PairingOptions, StopMeasurement, pair_dwell
-from calibration.phase_detection import PhaseOptions, Phases, find_phases
+from calibration.phase_detection import PhaseOptions, Phases, Pose, find_phases
 from calibration.scale_files import write_csv
 from calibration.streams import CellStreams
 
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 Say = Callable[[str], None]
 
 
 class TwinRunError(CalibrationError, ValueError):
     """The data do not hold what a calibration needs (named in the message)."""
-
-
-@dataclass
-class ExportResult:
-    out: Path
-    phases: Phases
-    measurements: dict[int, StopMeasurement]
-    files: dict[str, Path]
-    summary: dict[str, Any]
 
 
 def _quiet(_text: str) -> None:
@@ -58,23 +61,44 @@ def _counter(value: float) -> int:
     return int(np.rint(value)) % COUNTER_MODULUS
 
 
-def export_campaign(
+# -- 1. measurements ------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class CampaignMeasurements:
+    """What the streams hold of the calibration campaign, as typed values.
+
+    Sweeps per joint (rows in the order sweep.csv lists them, every joint's reading at
+    each stop), Home readings per joint, and the paired poses: names, sets, times from
+    the first dwell ``(m,)`` s, grating counts ``(m, n)``, tracker points ``(m, 3)`` mm and
+    encoder angles ``(m, n)`` deg (None without encoders). ``summary`` is phases.json.
+    """
+
+    robot: RobotDescription
+    phases: Phases
+    stops: dict[int, StopMeasurement]  # by dwell
+    sweeps: dict[int, JointSweep]
+    home_counts: dict[int, IntArray]
+    poses: tuple[Pose, ...]
+    pose_t_s: FloatArray
+    pose_counts: FloatArray
+    pose_points_mm: FloatArray
+    encoder_deg: FloatArray | None
+    summary: dict[str, Any]
+
+    @property
+    def n_joints(self) -> int:
+        return self.robot.n_joints
+
+
+def measure_campaign(
     streams: CellStreams,
     robot: RobotDescription,
-    out: str | Path,
     *,
     phase_options: PhaseOptions | None = None,
     pairing_options: PairingOptions | None = None,
-    scale_options: ScaleOptions | None = None,
     encoder_counts_per_rev: int = 131072,
     say: Say = _quiet,
-) -> ExportResult:
-    """Write ``home.csv``, ``sweep.csv``, ``scale.toml``, ``campaign.csv``, ``phases.json``."""
-    from calibration.cli_scale import calibrate_files
-    from calibration.scale_files import scale_document, write_scale_toml
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+) -> CampaignMeasurements:
+    """Find the phases in the streams and pair every stop and pose that needs a point."""
     g = streams.grating
     n = robot.n_joints
     if g.values.shape[1] != n:
@@ -91,7 +115,7 @@ def export_campaign(
     )
     popts = pairing_options or PairingOptions()
     needed = sorted({st.dwell for st in ph.sweeps} | {p.dwell for p in ph.poses})
-    meas = {
+    stops = {
         k: pair_dwell(ph.dwells[k], g, streams.tracker, streams.encoders, popts) for k in needed
     }
     rejected = [
@@ -103,46 +127,18 @@ def export_campaign(
             "beam_broken": m.n_rejected_beam,
             "moving": m.n_rejected_moving,
         }
-        for m in meas.values()
+        for m in stops.values()
         if not m.ok
     ]
     say(f"paired {len(needed) - len(rejected)} of {len(needed)} stops ({len(rejected)} lost)")
-    files = {
-        "home": out / "home.csv",
-        "sweep": out / "sweep.csv",
-        "scale": out / "scale.toml",
-        "campaign": out / "campaign.csv",
-        "phases": out / "phases.json",
-    }
-    write_csv(
-        files["home"],
-        ["joint", "trial", "counts"],
-        (
-            [h.joint, h.trial, _counter(ph.dwells[h.dwell].counts[h.joint - 1])]
-            for h in sorted(ph.home_returns, key=lambda h: (h.joint, h.trial))
-        ),
-    )
-    sweep_rows = []
-    for st in sorted(ph.sweeps, key=lambda x: (x.joint, x.pass_name != "forward", x.step)):
-        m = meas[st.dwell]
-        if not m.ok:
-            continue
-        sweep_rows.append(
-            [
-                st.joint,
-                st.pass_name,
-                st.step,
-                _counter(m.counts[st.joint - 1]),
-                *(f"{v:.6f}" for v in m.point_mm),
-            ]
-        )
-    if not sweep_rows:
+    sweeps = _sweeps(ph, stops)
+    if not sweeps:
         raise TwinRunError(f"{streams.source}: no sweep found (see phases.json)")
-    write_csv(
-        files["sweep"], ["joint", "pass", "step", "counts", "x_mm", "y_mm", "z_mm"], sweep_rows
-    )
-    sopts = scale_options or ScaleOptions()
-    say("scale calibration")
+    home: dict[int, list[int]] = {}
+    for h in sorted(ph.home_returns, key=lambda h: (h.joint, h.trial)):
+        home.setdefault(h.joint, []).append(_counter(ph.dwells[h.dwell].counts[h.joint - 1]))
+    poses = tuple(p for p in ph.poses if stops[p.dwell].ok)
+    t0 = int(ph.dwells[0].t0_ns)
     summary: dict[str, Any] = {
         "format": "twin-phases/1",
         "source": Path(streams.source).name,
@@ -157,70 +153,75 @@ def export_campaign(
         "stops_lost": rejected,
         "lost_intervals": [_with_seconds(x, g.t_ns[0]) for x in streams.lost()],
     }
-    files["phases"].write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-    results = calibrate_files(files["sweep"], files["home"], robot, sopts)
-    doc = scale_document(
-        results,
-        robot=robot.name,
-        metadata={"sweep_file": "sweep.csv", "home_file": "home.csv", "source": "twin export"},
-        counts_per_mm=sopts.counts_per_mm,
-    )
-    write_scale_toml(files["scale"], doc)
-    scales = {r.joint: r.scale for r in results}
-    missing = [j for j in range(1, n + 1) if j not in scales]
-    summary.update(
-        {
-            "scale": {
-                str(r.joint): {
-                    "counts_per_deg": round(r.scale.counts_per_deg, 6),
-                    "terms": list(r.scale.terms),
-                    "residual_rms_arcsec": round(r.residual_rms_arcsec, 4),
-                    "notes": list(r.notes),
-                }
-                for r in results
-            },
-            "uncalibrated_joints": missing,
-        }
-    )
-    if missing or not ph.poses:
-        files["phases"].write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-        what = f"joints {missing} have no sweep" if missing else "no poses found"
-        raise TwinRunError(f"{streams.source}: cannot write campaign.csv: {what}")
-    pose_ok = [p for p in ph.poses if meas[p.dwell].ok]
-    counts = np.array([meas[p.dwell].counts for p in pose_ok])
-    q_deg = np.column_stack([scales[j + 1].counts_to_joint_deg(counts[:, j]) for j in range(n)])
-    t0 = int(ph.dwells[0].t0_ns)
-    enc_deg = None
-    if streams.encoders is not None and all(
-        meas[p.dwell].encoder_counts is not None for p in pose_ok
+    encoder = None
+    if (
+        streams.encoders is not None
+        and poses
+        and all(stops[p.dwell].encoder_counts is not None for p in poses)
     ):
-        enc_deg, offsets = _encoder_deg(
-            ph, meas, streams, robot, scales, pose_ok, encoder_counts_per_rev
-        )
+        encoder, offsets = _encoder_deg(ph, stops, streams, robot, poses, encoder_counts_per_rev)
         summary["encoder_zero"] = "mean encoder reading over the Home returns = Home angle"
         summary["encoder_counts_per_rev"] = encoder_counts_per_rev
         summary["encoder_offset_deg"] = [round(float(v), 9) for v in offsets]
-    campaign = Campaign(
-        source=str(files["campaign"]),
-        pose=tuple(p.name for p in pose_ok),
-        set=tuple(p.set for p in pose_ok),
-        t_s=np.array([(meas[p.dwell].t_ns - t0) * 1e-9 for p in pose_ok]),
-        q_deg=q_deg,
-        xyz_mm=np.array([meas[p.dwell].point_mm for p in pose_ok]),
-        encoder_deg=enc_deg,
+    return CampaignMeasurements(
+        robot=robot,
+        phases=ph,
+        stops=stops,
+        sweeps=sweeps,
+        home_counts={j: np.array(c, dtype=np.int64) for j, c in home.items()},
+        poses=poses,
+        pose_t_s=np.array([(stops[p.dwell].t_ns - t0) * 1e-9 for p in poses]),
+        pose_counts=np.array([stops[p.dwell].counts for p in poses]).reshape(len(poses), n),
+        pose_points_mm=np.array([stops[p.dwell].point_mm for p in poses]).reshape(-1, 3),
+        encoder_deg=encoder,
+        summary=summary,
     )
-    write_campaign(files["campaign"], campaign)
-    summary["campaign"] = {
-        "identify": sum(p.set == "identify" for p in pose_ok),
-        "validate": sum(p.set == "validate" for p in pose_ok),
-        "t0_ns": t0,
-    }
-    files["phases"].write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-    say(
-        f"wrote {files['home'].name}, {files['sweep'].name}, {files['scale'].name}, "
-        f"{files['campaign'].name} ({len(pose_ok)} poses)"
+
+
+def _sweeps(ph: Phases, stops: dict[int, StopMeasurement]) -> dict[int, JointSweep]:
+    """Per joint, its paired sweep stops in sweep.csv's order (forward first, by step);
+    ``rows`` are the rows the stops have in sweep.csv."""
+    ordered = sorted(ph.sweeps, key=lambda x: (x.joint, x.pass_name != "forward", x.step))
+    ordered = [st for st in ordered if stops[st.dwell].ok]
+    out: dict[int, JointSweep] = {}
+    for j in sorted({st.joint for st in ordered}):
+        rows = [(i, st) for i, st in enumerate(ordered) if st.joint == j]
+        chain = np.array(
+            [[_counter(c) for c in stops[st.dwell].counts] for _, st in rows], dtype=np.int64
+        )
+        out[j] = JointSweep(
+            joint=j,
+            pass_name=np.array([st.pass_name for _, st in rows]),
+            step=np.array([st.step for _, st in rows], dtype=np.int64),
+            counts=chain[:, j - 1].copy(),
+            points_mm=np.array([stops[st.dwell].point_mm for _, st in rows]),
+            rows=np.array([i + 2 for i, _ in rows], dtype=np.int64),
+            chain_counts=chain,
+        )
+    return out
+
+
+def campaign_from_scales(
+    meas: CampaignMeasurements, scales: ScaleCampaignResult, source: str = "campaign.csv"
+) -> Campaign:
+    """The poses read through the scale maps: campaign.csv's rows, in memory."""
+    by_joint = {r.joint: r.scale for r in scales}
+    missing = [j for j in range(1, meas.n_joints + 1) if j not in by_joint]
+    if missing or not meas.poses:
+        what = f"joints {missing} have no sweep" if missing else "no poses found"
+        raise TwinRunError(f"cannot read the poses: {what}")
+    q = np.column_stack(
+        [by_joint[j + 1].counts_to_joint_deg(meas.pose_counts[:, j]) for j in range(meas.n_joints)]
     )
-    return ExportResult(out, ph, meas, files, summary)
+    return Campaign(
+        source=source,
+        pose=tuple(p.name for p in meas.poses),
+        set=tuple(p.set for p in meas.poses),
+        t_s=meas.pose_t_s,
+        q_deg=q,
+        xyz_mm=meas.pose_points_mm,
+        encoder_deg=meas.encoder_deg,
+    )
 
 
 def _with_seconds(entry: dict[str, Any], t0_ns: int) -> dict[str, Any]:
@@ -230,12 +231,20 @@ def _with_seconds(entry: dict[str, Any], t0_ns: int) -> dict[str, Any]:
     return e
 
 
-def _encoder_deg(ph, meas, streams, robot, scales, pose_ok, cpr):  # type: ignore[no-untyped-def]
+def _encoder_deg(
+    ph: Phases,
+    meas: dict[int, StopMeasurement],
+    streams: CellStreams,
+    robot: RobotDescription,
+    pose_ok: tuple[Pose, ...],
+    cpr: int,
+) -> tuple[FloatArray, FloatArray]:
     """Encoder joint angles (deg) of the poses; each joint's zero from the Home returns."""
     n = robot.n_joints
     gear = np.array([j.gear_ratio or 100.0 for j in robot.joints], dtype=float)
     raw = np.array([meas[p.dwell].encoder_counts for p in pose_ok]) / cpr * 360.0 / gear
     enc = streams.encoders
+    assert enc is not None
     offsets = np.zeros(n)
     for j in range(n):
         vals = []
@@ -254,7 +263,354 @@ def _encoder_deg(ph, meas, streams, robot, scales, pose_ok, cpr):  # type: ignor
     return raw + offsets[None, :], offsets
 
 
-# -- the whole run -----------------------------------------------------------------------
+# -- 2. the twin: maps and loop fitted jointly ----------------------------------------------
+@dataclass(frozen=True, eq=False)
+class TwinRound:
+    """One round of the joint fit: maps, the campaign read through them, the twin."""
+
+    scales: ScaleCampaignResult
+    campaign: Campaign
+    geometric: Any  # IdentificationResult
+    loop: Any  # ClosedLoopResult | None
+    deflection_rad: dict[int, FloatArray] | None  # taken out of each joint's sweep (S, n)
+
+    @property
+    def result(self) -> Any:
+        return self.geometric if self.loop is None else self.loop.result
+
+    def summary(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "deflection_taken_out_of_sweeps": self.deflection_rad is not None,
+            "scale_residual_rms_arcsec": {
+                str(r.joint): round(r.residual_rms_arcsec, 4) for r in self.scales
+            },
+            "scale_terms": {str(r.joint): list(r.scale.terms) for r in self.scales},
+        }
+        if self.deflection_rad is not None:
+            own = {
+                str(j): round(float(np.degrees(np.sqrt(np.mean(d[:, j - 1] ** 2))) * 3600), 3)
+                for j, d in self.deflection_rad.items()
+            }
+            out["own_deflection_taken_out_rms_arcsec"] = own
+        if self.loop is not None:
+            out["added"] = [st.label for st in self.loop.stages[2:]]
+            set_name = "validate" if "validate" in self.loop.final.errors_mm else "identify"
+            out["mean_ap_mm"] = {
+                st.label: round(st.mean_ap(set_name), 6) for st in self.loop.stages
+            }
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class TwinCalibration:
+    """The rounds of the joint fit (one, or two when gravity was found); the last is the
+    twin."""
+
+    rounds: tuple[TwinRound, ...]
+
+    @property
+    def final(self) -> TwinRound:
+        return self.rounds[-1]
+
+    def calibrated_description(self, robot: RobotDescription) -> RobotDescription:
+        final = self.final
+        if final.loop is not None:
+            return final.loop.calibrated_description(robot)
+        return replace(final.geometric.model.to_description(robot), effects=())
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "method": (
+                "round 1: scale maps in chain order, identification and closed loop with "
+                "the gravity term relative to each sweep's configuration; when it finds "
+                "gravity deflection, round 2 refits the maps with that deflection taken out "
+                "of the sweeps and runs the identification and the loop again"
+            ),
+            "rounds": [r.summary() for r in self.rounds],
+        }
+
+
+def calibrate_twin(
+    meas: CampaignMeasurements,
+    *,
+    effects: bool = True,
+    scale_options: ScaleOptions | None = None,
+    loop_settings: Any = None,
+    say: Say = _quiet,
+) -> TwinCalibration:
+    """Scale maps, identification and closed loop, fitted jointly (module docstring).
+
+    Round 1: maps in chain order, the poses read through them, the identification and the
+    closed loop, whose gravity term models each joint's deflection relative to its sweep
+    configuration, where the maps absorbed it
+    (:func:`~calibration.closed_loop.campaign_effect_data`): to first order the joint fit
+    of maps and gravity. When it finds gravity deflection, round 2 refits the maps with
+    that deflection taken out of the sweeps (every link's, upstream ones through the
+    chain), so that they read the rings, and runs the identification and the loop again:
+    that is the twin. A joint's share that depends on its own angle alone stays in its map
+    (the poses cannot tell the two apart), and a share the fit did not determine is shrunk
+    away (:func:`_sweep_deflections`). Further rounds would only redraw the estimate's
+    noise into the maps, so there are none.
+    """
+    from calibration.closed_loop import LoopSettings, run_closed_loop
+    from calibration.identification import identify
+    from calibration.kinematics import KinematicModel
+
+    robot = meas.robot
+    limits = [(j.lower_deg, j.upper_deg) for j in robot.joints]
+    start = "description" if robot.base is not None else "registration"
+    nominal = KinematicModel.from_description(robot)
+    settings = loop_settings or LoopSettings()
+
+    def one_round(deflection):  # type: ignore[no-untyped-def]
+        scales = calibrate_scales(
+            meas.sweeps, meas.home_counts, home_deg=robot.home, limits_deg=limits,
+            options=scale_options, link_rotations_rad=deflection,
+        )  # fmt: skip
+        campaign = campaign_from_scales(meas, scales)
+        idm = campaign.mask("identify")
+        geometric = identify(nominal, campaign.q_rad[idm], campaign.xyz_mm[idm], start=start)
+        loop = None
+        if effects:
+            loop = run_closed_loop(
+                robot, campaign, start=start, settings=settings, geometric=geometric,
+                say=say, sweep_referenced=deflection is None,
+            )  # fmt: skip
+        return TwinRound(scales, campaign, geometric, loop, deflection)
+
+    first = one_round(None)
+    idm = first.campaign.mask("identify")
+    say(f"identification: {int(idm.sum())} poses, validation {int((~idm).sum())}")
+    deflection = _sweep_deflections(meas, first)
+    if deflection is None:  # no gravity deflection found: nothing to take out
+        return TwinCalibration((first,))
+    say("closed loop found gravity deflection: refitting the scale maps without it")
+    second = one_round(deflection)
+    added = ", ".join(st.label for st in second.loop.stages[2:]) if second.loop else ""
+    say(f"joint fit: the twin adds {added or 'nothing'}")
+    return TwinCalibration((first, second))
+
+
+def _sweep_deflections(meas: CampaignMeasurements, rnd: TwinRound) -> dict[int, FloatArray] | None:
+    """The round's gravity deflection of every link ``(S, n)`` rad at each joint's sweep
+    stops (None when its loop found none).
+
+    Only what the poses can tell from the maps goes back into them: a moment whose effect
+    on joint j depends on q_j alone (it vanishes relative to j's sweep configuration, e.g.
+    link 2's own moment about joint 2 when joint 1 is vertical) is left in j's map, and
+    each joint's deflection is shrunk by its signal-to-noise ratio over the sweeps, by the
+    factor ``max(0, 1 − 1/SNR²)`` (positive-part James-Stein): a deflection within its own
+    standard error (a rigid joint's estimate is noise) is not taken out, a well determined
+    one nearly all of it, and nothing switches on and off between rounds.
+    """
+    from calibration.effect_library import (
+        KINDS,
+        EffectContext,
+        EffectData,
+        Kinematics,
+        split_values,
+    )
+
+    loop = rnd.loop
+    if loop is None:
+        return None
+    final = loop.final
+    gravity = [s for s in final.specs if s.kind == "gravity_deflection"]
+    if not gravity:
+        return None
+    spec = gravity[0]
+    index = list(final.specs).index(spec)
+    values = split_values(final.specs, final.result.effect_values)[index]
+    cov = _effect_covariance(final.result, index, final.specs)
+    kind = KINDS["gravity_deflection"]
+    robot = meas.robot
+    # which moments' share of each joint the poses see apart from that joint's own angle
+    q_poses = rnd.campaign.q_rad[rnd.campaign.mask("identify")]
+    ref_ctx = EffectContext(robot, EffectData(q_poses, sweep_reference=np.radians(robot.home)))
+    y_ref = kind.torque_regressor(ref_ctx, Kinematics.of(final.model, q_poses))
+    rms = np.sqrt(np.mean(y_ref**2, axis=0))
+    acting = rms > 1e-9 * max(float(rms.max(initial=0.0)), 1e-300)
+    by_joint = {r.joint: r.scale for r in rnd.scales}
+    sweeps: dict[int, tuple[FloatArray, FloatArray]] = {}
+    unit = np.eye(len(values))
+    for j, sweep in meas.sweeps.items():
+        assert sweep.chain_counts is not None
+        q = np.radians(
+            np.column_stack(
+                [
+                    by_joint[i + 1].counts_to_joint_deg(sweep.chain_counts[:, i])
+                    for i in range(meas.n_joints)
+                ]
+            )
+        )
+        ctx = EffectContext(robot, EffectData(q))
+        kin = Kinematics.of(final.model, q)
+        jac = np.stack(
+            [kind.joint_deflections_rad(spec, u, ctx, kin, acting) for u in unit], axis=2
+        )
+        sweeps[j] = (jac @ values, np.einsum("sjk,kl,sjl->sj", jac, cov, jac))
+    n = meas.n_joints
+    # the physical form's compliance ratios are held fixed in the fit: their own
+    # uncertainty (from the loop's profile of them) adds (d_j / ρ_j)²·var(ρ_j)
+    ratio_var = np.zeros(n)
+    if spec.parameter == "physical":
+        form = next(
+            (st.shape["gravity_form"] for st in loop.stages if "gravity_form" in st.shape), None
+        )
+        if form is not None:
+            for j, r, se in zip(
+                form["joints"], form["compliance_ratio"], form["compliance_ratio_se"], strict=True
+            ):
+                ratio_var[j - 1] = (se / r) ** 2 if r != 0 else np.inf
+    signal = np.zeros(n)
+    noise = np.zeros(n)
+    for value, var in sweeps.values():
+        signal += np.sum(value**2, axis=0)
+        noise += np.sum(var, axis=0) + np.sum(value**2, axis=0) * ratio_var
+    # positive-part shrinkage by the joint's signal-to-noise ratio over the sweeps
+    shrink = np.clip(1.0 - noise / np.maximum(signal, 1e-300), 0.0, 1.0)
+    return {j: value * shrink[None, :] for j, (value, _) in sweeps.items()}
+
+
+def _effect_covariance(result, index: int, specs) -> FloatArray:  # type: ignore[no-untyped-def]
+    """Covariance ``(k, k)`` of one effect's parameters (zero rows for held ones)."""
+    sizes = [len(s.parameter_names()) for s in specs]
+    start = result.n_geometric + sum(sizes[:index])
+    k = sizes[index]
+    full = np.zeros((len(result.free), len(result.free)))
+    idx = np.flatnonzero(result.free)
+    full[np.ix_(idx, idx)] = result.covariance
+    return full[start : start + k, start : start + k]
+
+
+# -- 3. files at the edge ---------------------------------------------------------------------
+@dataclass
+class ExportResult:
+    out: Path
+    measurements: CampaignMeasurements
+    scales: ScaleCampaignResult
+    files: dict[str, Path]
+    summary: dict[str, Any]
+
+    @property
+    def phases(self) -> Phases:
+        return self.measurements.phases
+
+
+def _write_campaign_files(
+    out: Path, meas: CampaignMeasurements, scales: ScaleCampaignResult, campaign: Campaign
+) -> tuple[dict[str, Path], dict[str, Any]]:
+    """home.csv, sweep.csv, scale.toml, campaign.csv and phases.json into ``out``."""
+    from calibration.scale_files import scale_document, write_scale_toml
+
+    out.mkdir(parents=True, exist_ok=True)
+    n = meas.n_joints
+    files = {
+        "home": out / "home.csv",
+        "sweep": out / "sweep.csv",
+        "scale": out / "scale.toml",
+        "campaign": out / "campaign.csv",
+        "phases": out / "phases.json",
+    }
+    write_csv(
+        files["home"],
+        ["joint", "trial", "counts"],
+        (
+            [j, t + 1, int(c)]
+            for j in sorted(meas.home_counts)
+            for t, c in enumerate(meas.home_counts[j])
+        ),
+    )
+    rows = []
+    for j in sorted(meas.sweeps):
+        sw = meas.sweeps[j]
+        assert sw.chain_counts is not None
+        for k in range(sw.n_stops):
+            rows.append(
+                [
+                    j,
+                    sw.pass_name[k],
+                    int(sw.step[k]),
+                    int(sw.counts[k]),
+                    *(f"{v:.6f}" for v in sw.points_mm[k]),
+                    *(int(c) for c in sw.chain_counts[k]),  # every joint: the chain's motion
+                ]
+            )
+    chain_columns = [f"g{i}_counts" for i in range(1, n + 1)]
+    write_csv(
+        files["sweep"],
+        ["joint", "pass", "step", "counts", "x_mm", "y_mm", "z_mm", *chain_columns],
+        rows,
+    )
+    sopts = ScaleOptions()
+    doc = scale_document(
+        scales,
+        robot=meas.robot.name,
+        metadata={"sweep_file": "sweep.csv", "home_file": "home.csv", "source": "twin"},
+        counts_per_mm=sopts.counts_per_mm,
+    )
+    write_scale_toml(files["scale"], doc)
+    write_campaign(files["campaign"], campaign)
+    summary = dict(meas.summary)
+    summary["scale"] = {
+        str(r.joint): {
+            "counts_per_deg": round(r.scale.counts_per_deg, 6),
+            "terms": list(r.scale.terms),
+            "residual_rms_arcsec": round(r.residual_rms_arcsec, 4),
+            "circle_only_residual_rms_arcsec": round(
+                scales.chain[r.joint].circle_only_residual_arcsec, 4
+            )
+            if r.joint in scales.chain
+            else round(r.residual_rms_arcsec, 4),
+            "notes": list(r.notes),
+        }
+        for r in scales
+    }
+    summary["uncalibrated_joints"] = [j for j in range(1, n + 1) if j not in meas.sweeps]
+    summary["campaign"] = {
+        "identify": sum(p.set == "identify" for p in meas.poses),
+        "validate": sum(p.set == "validate" for p in meas.poses),
+        "t0_ns": int(meas.phases.dwells[0].t0_ns),
+    }
+    files["phases"].write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    return files, summary
+
+
+def export_campaign(
+    streams: CellStreams,
+    robot: RobotDescription,
+    out: str | Path,
+    *,
+    phase_options: PhaseOptions | None = None,
+    pairing_options: PairingOptions | None = None,
+    scale_options: ScaleOptions | None = None,
+    encoder_counts_per_rev: int = 131072,
+    say: Say = _quiet,
+) -> ExportResult:
+    """Write ``home.csv``, ``sweep.csv``, ``scale.toml``, ``campaign.csv``, ``phases.json``
+    (the scale maps in chain order, without the loop's gravity feedback)."""
+    out = Path(out)
+    meas = measure_campaign(
+        streams,
+        robot,
+        phase_options=phase_options,
+        pairing_options=pairing_options,
+        encoder_counts_per_rev=encoder_counts_per_rev,
+        say=say,
+    )
+    say("scale calibration")
+    limits = [(j.lower_deg, j.upper_deg) for j in robot.joints]
+    scales = calibrate_scales(
+        meas.sweeps, meas.home_counts, home_deg=robot.home, limits_deg=limits,
+        options=scale_options,
+    )  # fmt: skip
+    campaign = campaign_from_scales(meas, scales)
+    files, summary = _write_campaign_files(out, meas, scales, campaign)
+    say(
+        f"wrote {files['home'].name}, {files['sweep'].name}, {files['scale'].name}, "
+        f"{files['campaign'].name} ({len(campaign)} poses)"
+    )
+    return ExportResult(out, meas, scales, files, summary)
 
 
 def _scrub(obj: Any) -> Any:
@@ -308,65 +664,45 @@ def run_twin(
     report: bool = True,
     say: Say = _quiet,
 ) -> dict[str, Any]:
-    """Export, scale calibration, identification + closed loop, reports; a run summary."""
-    from calibration.closed_loop import LoopSettings, run_closed_loop
-    from calibration.identification import identify
+    """Measurements, the twin (maps and loop fitted jointly), files and reports; a summary."""
     from calibration.identification_report import build_report, write_report
-    from calibration.kinematics import KinematicModel
+    from calibration.scale_report import write_report as write_scale_report
 
     started = time.perf_counter()
     desc = load_robot(robot) if isinstance(robot, str) else robot
     out = Path(out)
-    exp = export_campaign(streams, desc, out, say=say)
+    meas = measure_campaign(streams, desc, say=say)
     t_export = time.perf_counter() - started
-    limits = [(j.lower_deg, j.upper_deg) for j in desc.joints]
-    campaign = read_campaign(exp.files["campaign"], desc.n_joints, limits_deg=limits)
-    campaign = replace(campaign, source="campaign.csv")  # no run paths in the report
-    idm = campaign.mask("identify")
-    start = "description" if desc.base is not None else "registration"
-    say(f"identification: {int(idm.sum())} poses, validation {int((~idm).sum())}")
-    nominal = KinematicModel.from_description(desc)
-    geometric = identify(nominal, campaign.q_rad[idm], campaign.xyz_mm[idm], start=start)
-    loop = None
-    if effects:
-        say("closed loop: searching the residuals for effects the geometry lacks")
-        loop = run_closed_loop(
-            desc, campaign, start=start, settings=LoopSettings(), geometric=geometric, say=say
-        )
-        result = loop.result
-        calibrated = loop.calibrated_description(desc)
-    else:
-        result = geometric
-        calibrated = replace(result.model.to_description(desc), effects=())
+    say("scale calibration (chain order), identification and closed loop")
+    twin = calibrate_twin(meas, effects=effects, say=say)
+    final = twin.final
+    files, summary = _write_campaign_files(out, meas, final.scales, final.campaign)
+    calibrated = twin.calibrated_description(desc)
     calibrated_path = out / "calibrated.toml"
     calibrated.save(calibrated_path)
     doc, errors = build_report(
-        result,
+        final.result,
         desc,
-        campaign,
+        final.campaign,
         robot_source=desc.name if not isinstance(robot, str) else robot,
         calibrated_path="calibrated.toml",
-        closed_loop=loop,
+        closed_loop=final.loop,
     )
     doc["solver"]["point_weights"] = "none (all points weigh the same)"
     doc["twin_run"] = {
-        "phases": exp.summary["phases"],
-        "stops_lost": len(exp.summary["stops_lost"]),
-        "lost_intervals": exp.summary["lost_intervals"],
-        "recording_complete": exp.summary["recording_complete"],
+        "phases": summary["phases"],
+        "stops_lost": len(summary["stops_lost"]),
+        "lost_intervals": summary["lost_intervals"],
+        "recording_complete": summary["recording_complete"],
+        "joint_fit": twin.summary(),
     }
     report_dir = out / "report"
-    paths: list[Path] = []
     if report:
         say("writing the report (figures)")
-        paths = list(write_report(report_dir, doc, errors, closed_loop=loop))
-        scale_report = out / "scale-report"
-        from calibration.cli_scale import calibrate_files
-        from calibration.scale_report import write_report as write_scale_report
-
-        results = calibrate_files(exp.files["sweep"], exp.files["home"], desc, ScaleOptions())
-        write_scale_report(results, scale_report, robot=desc.name, metadata={"source": "twin run"})
-        paths.append(scale_report)
+        write_report(report_dir, doc, errors, closed_loop=final.loop)
+        write_scale_report(
+            final.scales, out / "scale-report", robot=desc.name, metadata={"source": "twin run"}
+        )
     report_dir.mkdir(parents=True, exist_ok=True)
     (report_dir / "report.json").write_text(
         json.dumps(_scrub(doc), indent=2, allow_nan=False) + "\n", encoding="utf-8"
@@ -376,11 +712,12 @@ def run_twin(
     run = {
         "calibrated": str(calibrated_path),
         "report": str(report_dir),
-        "files": {k: str(v) for k, v in exp.files.items()},
+        "files": {k: str(v) for k, v in files.items()},
         "stage_table": table,
+        "joint_fit_rounds": len(twin.rounds),
         "export_s": round(t_export, 3),
         "total_s": round(elapsed, 3),
-        "success": bool(result.success),
+        "success": bool(final.result.success),
     }
     (out / "run.json").write_text(json.dumps(run, indent=2) + "\n", encoding="utf-8")
     return run
