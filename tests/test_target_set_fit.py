@@ -7,8 +7,6 @@ emulator's model, per-axis σ = (15 µm + 6 µm/m · distance) / 2.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -315,15 +313,13 @@ def test_missing_points_are_handled():
     assert np.abs(inc).max() < 5 * np.sqrt(2) * fit.angle_std_rad[ok].max()
 
 
-def test_700_stops_of_3_targets_fit_well_under_a_second():
+def test_700_stops_of_3_targets_are_all_used():
+    """A full wrist sweep's worth of stops (its speed is a benchmark row:
+    ``python -m benchmarks.bench_scale``, ``target_set_fit``)."""
     cell = Cell(1400.0, 700, np.random.default_rng(8))
-    fit_target_set(cell.points, cell.sigma)  # warm-up (imports, caches)
-    start = time.perf_counter()
     fit = fit_target_set(cell.points, cell.sigma)
-    elapsed = time.perf_counter() - start
-    print(f"\nK = 700, T = 3: {1e3 * elapsed:.1f} ms, {fit.iterations} iterations")
-    assert elapsed < 0.5
-    assert fit.n_inliers == 700
+    assert fit.n_inliers == 700 and fit.iterations < 20
+    assert np.all(np.isfinite(fit.angle_rad))
 
 
 def test_bad_inputs_raise_a_calibration_error():
