@@ -152,6 +152,10 @@ class LinearizedModel:
     sigma2: float
     folds: list[NDArray[np.intp]]
     cv0: float
+    gram: FloatArray  # (p, p) JᵀJ
+    rhs: FloatArray  # (p,) Jᵀr
+    fold_gram: tuple[FloatArray, ...]  # per fold, its rows' JᵀJ
+    fold_rhs: tuple[FloatArray, ...]  # per fold, its rows' Jᵀr
 
     @classmethod
     def build(
@@ -164,7 +168,28 @@ class LinearizedModel:
         pose_fold = np.random.default_rng(seed).permutation(n_poses) % n_folds
         row_fold = np.repeat(pose_fold, 3)
         folds = [np.flatnonzero(row_fold == f) for f in range(n_folds)]
-        return cls(residual, j, basis, fit0, sigma2, folds, cv_sse(residual, j, folds))
+        return cls(
+            residual, j, basis, fit0, sigma2, folds, cv_sse(residual, j, folds),
+            j.T @ j, j.T @ residual,
+            tuple(j[f].T @ j[f] for f in folds), tuple(j[f].T @ residual[f] for f in folds),
+        )  # fmt: skip
+
+    def cv_sse_with(self, cols: FloatArray) -> float:
+        """:func:`cv_sse` of the model plus ``cols`` ``(3m, k)``, from the model's own
+        blocks computed once: only the candidate's cross blocks are new."""
+        j, r = self.jacobian, self.residual
+        jc, cc, cr = j.T @ cols, cols.T @ cols, cols.T @ r
+        gram = np.block([[self.gram, jc], [jc.T, cc]])
+        rhs = np.concatenate([self.rhs, cr])
+        total = 0.0
+        for f, fg, fr in zip(self.folds, self.fold_gram, self.fold_rhs, strict=True):
+            jf, cf, rf = j[f], cols[f], r[f]
+            jcf = jf.T @ cf
+            g = gram - np.block([[fg, jcf], [jcf.T, cf.T @ cf]])
+            coef, *_ = np.linalg.lstsq(g, rhs - np.concatenate([fr, cf.T @ rf]), rcond=None)
+            e = rf - jf @ coef[: j.shape[1]] - cf @ coef[j.shape[1] :]
+            total += float(e @ e)
+        return total
 
     @property
     def sse0(self) -> float:
@@ -216,7 +241,7 @@ def score_candidate(
     f_stat = ((lin.sse0 - sse1) / k_eff) / (sse1 / dof) if dof > 0 and sse1 > 0 else math.inf
     p_value = float(f_distribution.sf(f_stat, k_eff, dof)) if dof > 0 else 1.0
     p_adj = min(1.0, p_value * max(n_candidates, 1))
-    cv1 = cv_sse(lin.residual, np.hstack([lin.jacobian, ck]), lin.folds)
+    cv1 = lin.cv_sse_with(ck)
     gain = (lin.cv0 - cv1) / lin.sigma2
     score = gain - penalty * k_eff
     note = "" if k == cols.shape[1] else f"{cols.shape[1] - k} parameter(s) redundant"
@@ -227,18 +252,28 @@ def score_candidate(
 def principal_cosines(lin: LinearizedModel, a: FloatArray, b: FloatArray) -> FloatArray:
     """Cosines of the principal angles (largest first) between the column spaces of ``a``
     and ``b`` (each ``(3m, k)``) after the model's span is projected out of both."""
-    qa, qb = _orth(lin.perp(scaled(a))), _orth(lin.perp(scaled(b)))
+    return cosines_between(residual_basis(lin, a), residual_basis(lin, b))
+
+
+def residual_basis(lin: LinearizedModel, cols: FloatArray) -> FloatArray:
+    """Orthonormal basis ``(3m, r)`` of a candidate's columns with the model projected out."""
+    a = lin.perp(scaled(cols))
+    if a.size == 0:
+        return a
+    q, r = np.linalg.qr(a)
+    d = np.abs(np.diag(r))
+    keep = d > 1e-8 * max(float(d.max(initial=0.0)), 1e-300)
+    if keep.all():
+        return q
+    u, sv, _ = np.linalg.svd(a, full_matrices=False)  # rank-deficient: the robust way
+    return u[:, sv > 1e-8 * max(float(sv.max(initial=0.0)), 1e-300)]
+
+
+def cosines_between(qa: FloatArray, qb: FloatArray) -> FloatArray:
+    """Principal cosines (largest first) of two orthonormal bases."""
     if qa.shape[1] == 0 or qb.shape[1] == 0:
         return np.zeros(0)
     return np.clip(np.linalg.svd(qa.T @ qb, compute_uv=False), 0.0, 1.0)
-
-
-def _orth(a: FloatArray) -> FloatArray:
-    if a.size == 0:
-        return a
-    u, s, _ = np.linalg.svd(a, full_matrices=False)
-    keep = s > 1e-8 * max(float(s.max(initial=0.0)), 1e-300)
-    return u[:, keep]
 
 
 def contained_in(cosines: FloatArray, k_smaller: int) -> bool:
@@ -311,10 +346,11 @@ def competitors(
     """The ``top`` candidates closest to ``chosen`` (largest principal cosine) and the
     evidence that separated each from it."""
     rows = []
+    chosen_basis = residual_basis(lin, columns[chosen.spec])
     for s in scores:
         if s.spec == chosen.spec or s.n_parameters == 0:
             continue
-        cos = principal_cosines(lin, columns[chosen.spec], columns[s.spec])
+        cos = cosines_between(chosen_basis, residual_basis(lin, columns[s.spec]))
         if cos.size:
             rows.append((float(cos[0]), s, cos))
     rows.sort(key=lambda r: -r[0])
