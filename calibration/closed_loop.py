@@ -555,7 +555,8 @@ def _try_step(
         return new_specs, linear, {}
     phys_spec, fit = physical
     phys_specs = (*specs, phys_spec)
-    start = np.concatenate([result.effect_values, fit.moments])
+    own = len(phys_spec.names) - len(fit.moments)
+    start = np.concatenate([result.effect_values, fit.moments, np.zeros(own)])
     try:
         phys = problem.identify(phys_specs, start)
     except IdentificationError as exc:
@@ -580,13 +581,21 @@ def _physical_gravity(
     base = problem.ctx.base_moments
     names = base.names
     blocks: dict[int, FloatArray] = {}
+    own: list[int] = []  # counterbalance terms: a joint's own torque profile, not shared
     for c, term in enumerate(spec.names):
         joint, moment = term.split(".", 1)
+        if moment.startswith("counterbalance."):
+            own.append(c)
+            continue
         j = int(joint[5:])
         block = blocks.setdefault(j, np.zeros((cols.shape[0], len(names))))
         block[:, names.index(moment)] = cols[:, c]
     if len(blocks) < 1:
         return None
+    if own:  # fitted freely beside the shared moments: part of the model for the profile
+        lin = LinearizedModel.build(  # (folds unused by the profile)
+            lin.residual, np.hstack([lin.jacobian, cols[:, own]]), problem.m, len(lin.folds), 0
+        )
     fit = fit_physical_gravity(lin, blocks)
     if not fit.success or not np.all(np.isfinite(fit.ratios)):
         return None
@@ -594,7 +603,7 @@ def _physical_gravity(
         "gravity_deflection",
         parameter="physical",
         joints=fit.joints,
-        names=names,
+        names=names + tuple(spec.names[c] for c in own),
         shape=tuple(float(r) for r in fit.ratios),
     )
     return phys, fit
@@ -612,7 +621,7 @@ def _form_decision(
     sse_lin = _weighted_sse(linear)
     sse_phys = _weighted_sse(phys)
     k_lin = len(spec.names)
-    k_phys = len(phys_spec.names) + len(phys_spec.joints) - 1
+    k_phys = len(phys_spec.names) + len(phys_spec.joints) - 1  # moments, own terms, ratios
     dof = 3 * problem.m - int(np.count_nonzero(linear.free))
     d1 = max(k_lin - k_phys, 1)
     f_stat = ((sse_phys - sse_lin) / d1) / max(sse_lin / max(dof, 1), 1e-300)
@@ -635,7 +644,7 @@ def _form_decision(
             "joints": list(fit.joints),
             "compliance_ratio": [float(r) for r in fit.ratios],
             "compliance_ratio_se": [float(r) for r in fit.ratio_se],
-            "moments": list(phys_spec.names),
+            "moments": list(phys_spec.names[: len(fit.moments)]),
             "weighted_moment_urad": [float(w) for w in fit.moments],
             "weighted_moment_se_urad": [float(w) for w in fit.moment_se],
         }

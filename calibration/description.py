@@ -41,6 +41,9 @@ class JointDescription:
     gear_ratio: float | None = None
     mass_kg: float | None = None
     com_mm: tuple[float, float, float] | None = None
+    #: a spring or gas counterbalance acts on this joint (heavy arms, joint 2): the twin's
+    #: gravity term then allows it a torque profile of its own angle
+    counterbalance: bool = False
 
 
 @dataclass(frozen=True)
@@ -207,7 +210,7 @@ class _Table:
 
 
 _JOINT_REQUIRED = ("a_mm", "alpha_deg", "d_mm", "theta_offset_deg", "lower_deg", "upper_deg")
-_JOINT_KEYS = {*_JOINT_REQUIRED, "beta_deg", "gear_ratio", "mass_kg", "com_mm"}
+_JOINT_KEYS = {*_JOINT_REQUIRED, "beta_deg", "gear_ratio", "mass_kg", "com_mm", "counterbalance"}
 
 
 def _parse_joint(data: Any, source: str, index: int) -> JointDescription:
@@ -223,12 +226,16 @@ def _parse_joint(data: Any, source: str, index: int) -> JointDescription:
     if mass is not None and mass < 0:
         t.fail("mass_kg", "must not be negative")
     com = t.vector("com_mm", 3)
+    counterbalance = t.data.get("counterbalance", False)
+    if not isinstance(counterbalance, bool):
+        t.fail("counterbalance", f"expected true or false, got {counterbalance!r}")
     return JointDescription(
         **values,
         beta_deg=t.number("beta_deg", 0.0),
         gear_ratio=gear,
         mass_kg=mass,
         com_mm=com,  # type: ignore[arg-type]
+        counterbalance=counterbalance,
     )
 
 
@@ -308,7 +315,13 @@ def _to_document(desc: RobotDescription) -> dict[str, Any]:
     if desc.base is not None:
         doc["base"] = {f.name: getattr(desc.base, f.name) for f in fields(BaseDescription)}
     doc["joint"] = [
-        _drop_none({f.name: getattr(j, f.name) for f in fields(JointDescription)})
+        {
+            k: v
+            for k, v in _drop_none(
+                {f.name: getattr(j, f.name) for f in fields(JointDescription)}
+            ).items()
+            if k != "counterbalance" or v  # written only where there is one
+        }
         for j in desc.joints
     ]
     if desc.effects:

@@ -435,8 +435,34 @@ URAD = 1e-6
 GRAVITY_FORMS = ("linear", "physical")
 
 
+#: Orders of a counterbalance's torque profile beyond the first (which link 2's own
+#: moments already carry): a spring's torque is no pure sinusoid of the joint angle.
+COUNTERBALANCE_ORDERS = (2, 3)
+
+
+def counterbalance_terms(joint: int) -> tuple[str, ...]:
+    """Names of a counterbalance's profile terms on ``joint``: ``joint2.counterbalance.cos2``."""
+    return tuple(
+        f"joint{joint}.counterbalance.{f}{k}" for k in COUNTERBALANCE_ORDERS for f in ("cos", "sin")
+    )
+
+
+def _counterbalance_term(name: str) -> tuple[int, str, int] | None:
+    """``"joint2.counterbalance.cos2"`` -> (2, "cos", 2); None for other names."""
+    parts = name.split(".")
+    if len(parts) != 3 or parts[1] != "counterbalance" or not parts[0].startswith("joint"):
+        return None
+    f, k = parts[2][:3], parts[2][3:]
+    if f not in ("cos", "sin") or not k.isdigit() or not parts[0][5:].isdigit():
+        return None
+    return int(parts[0][5:]), f, int(k)
+
+
 def _joint_moment(name: str, kind: str, n_joints: int) -> tuple[int, str]:
     """``"joint3.link4.mx"`` -> (3, ``"link4.mx"``); errors name the term."""
+    cb = _counterbalance_term(name)
+    if cb is not None and 1 <= cb[0] <= n_joints:
+        return cb[0], name.split(".", 1)[1]
     head, _, moment = name.partition(".")
     if not (head.startswith("joint") and head[5:].isdigit()) or moment not in moment_names(
         n_joints
@@ -479,7 +505,9 @@ class GravityDeflection(EffectKind):
 
     def parameter_names(self, spec):
         if spec.parameter == "physical":
-            return tuple(f"{m}_weighted_urad" for m in spec.names)
+            return tuple(
+                f"{m}_urad" if _counterbalance_term(m) else f"{m}_weighted_urad" for m in spec.names
+            )
         return tuple(f"{n}_urad" for n in spec.names)
 
     @staticmethod
@@ -513,34 +541,61 @@ class GravityDeflection(EffectKind):
         y = self.torque_regressor(ctx, kin)
         if acting is not None:
             y = y * acting[None, :, :]
-        raw = moment_names(n)
+        per_term = self._joint_terms(spec, ctx, kin, y, own_angle=acting is None)
         out = np.zeros((len(kin.q_rad), n))
-        v = np.asarray(values, dtype=float) * URAD
-        if spec.parameter == "physical":
-            idx = [raw.index(m) for m in spec.names]
-            for j, rho in zip(spec.joints, spec.shape, strict=True):
-                out[:, j - 1] += rho * (y[:, j - 1, idx] @ v)
-            return out
-        for name, p in zip(spec.names, v, strict=True):
-            j, m = _joint_moment(name, self.kind, n)
-            out[:, j - 1] += y[:, j - 1, raw.index(m)] * p
+        for (j, col), p in zip(per_term, np.asarray(values, dtype=float) * URAD, strict=True):
+            if j == 0:  # a shared moment turns every joint by its ratio
+                out += col * p
+            else:
+                out[:, j - 1] += col * p
+        return out
+
+    def _joint_terms(
+        self,
+        spec: EffectSpec,
+        ctx: EffectContext,
+        kin: Kinematics,
+        y: FloatArray,
+        *,
+        own_angle: bool = True,
+    ) -> list[tuple[int, FloatArray]]:
+        """Per parameter, the joint it turns and by how much per unit: ``(joint, (r,))``
+        for a term of the linear form or a counterbalance term, ``(0, (r, n))`` for a
+        shared moment of the physical form (every joint by its ratio). A counterbalance
+        term depends on its joint's own angle alone: it vanishes relative to the sweep
+        configuration, and is dropped with ``own_angle=False``."""
+        n = kin.model.n_joints
+        raw = moment_names(n)
+        ref = ctx.data.sweep_reference is not None
+        out: list = []
+        for name in spec.names:
+            cb = _counterbalance_term(name)
+            if cb is not None:
+                j, f, k = cb
+                col = (np.cos if f == "cos" else np.sin)(k * kin.q_rad[:, j - 1])
+                out.append((j, col * 0.0 if ref or not own_angle else col))
+                continue
+            if spec.parameter == "physical":
+                m = raw.index(name)
+                per_joint = np.zeros((len(kin.q_rad), n))
+                for j, rho in zip(spec.joints, spec.shape, strict=True):
+                    per_joint[:, j - 1] = rho * y[:, j - 1, m]
+                out.append((0, per_joint))
+                continue
+            j, moment = _joint_moment(name, self.kind, n)
+            out.append((j, y[:, j - 1, raw.index(moment)]))
         return out
 
     def regressor(self, spec, ctx, sel, kin):
-        n = kin.model.n_joints
-        y = self.torque_regressor(ctx, kin) * URAD
-        raw = moment_names(n)
-        if spec.parameter == "physical":
-            idx = [raw.index(m) for m in spec.names]
-            out = np.zeros((len(kin.q_rad), 3, len(idx)))
-            for j, rho in zip(spec.joints, spec.shape, strict=True):
-                out += kin.joint_axis(j)[:, :, None] * (rho * y[:, j - 1, idx])[:, None, :]
-            return out
+        y = self.torque_regressor(ctx, kin)
         cols = []
-        for name in spec.names:
-            j, m = _joint_moment(name, self.kind, n)
-            cols.append(kin.joint_axis(j) * y[:, j - 1, raw.index(m)][:, None])
-        return np.stack(cols, axis=2)
+        for j, col in self._joint_terms(spec, ctx, kin, y):
+            if j == 0:  # a shared moment turns every joint by its ratio
+                theta = kin.jacobian[:, :, 3 : 5 * col.shape[1] : 5]  # ∂TCP/∂θ_j, (r, 3, n)
+                cols.append(np.einsum("rak,rk->ra", theta, col))
+            else:
+                cols.append(kin.joint_axis(j) * col[:, None])
+        return np.stack(cols, axis=2) * URAD
 
     def label(self, spec):
         joints = ", ".join(str(j) for j in spec.joints)
@@ -550,13 +605,19 @@ class GravityDeflection(EffectKind):
     def to_parameters(self, spec, values, n_joints):
         v = tuple(float(x) for x in values)
         if spec.parameter == "physical":
-            return {
+            cb = [i for i, m in enumerate(spec.names) if _counterbalance_term(m)]
+            moments = [i for i in range(len(spec.names)) if i not in cb]
+            out: dict[str, Any] = {
                 "form": "physical",
                 "joints": tuple(float(j) for j in spec.joints),
                 "compliance_ratio": tuple(float(r) for r in spec.shape),
-                "moments": spec.names,
-                "weighted_moment_urad": v,
+                "moments": tuple(spec.names[i] for i in moments),
+                "weighted_moment_urad": tuple(v[i] for i in moments),
             }
+            if cb:
+                out["counterbalance"] = tuple(spec.names[i] for i in cb)
+                out["counterbalance_urad"] = tuple(v[i] for i in cb)
+            return out
         return {"form": "linear", "terms": spec.names, "deflection_urad": v}
 
     def from_parameters(self, params, n_joints):
@@ -575,11 +636,23 @@ class GravityDeflection(EffectKind):
                 values
             )
         keys = {"form", "joints", "compliance_ratio", "moments", "weighted_moment_urad"}
-        _check_keys(params, keys, self.kind)
+        _check_keys(params, keys | {"counterbalance", "counterbalance_urad"}, self.kind)
         moments = _strings(params, "moments", self.kind)
         bad = [m for m in moments if m not in moment_names(n_joints)]
         if bad:
             raise EffectLibraryError(f"effect {self.kind!r}: unknown moment {bad[0]!r}")
+        cb: tuple[str, ...] = ()
+        cb_values = np.zeros(0)
+        if "counterbalance" in params or "counterbalance_urad" in params:
+            cb = _strings(params, "counterbalance", self.kind)
+            for t in cb:
+                term = _counterbalance_term(t)
+                if term is None or not 1 <= term[0] <= n_joints:
+                    raise EffectLibraryError(
+                        f"effect {self.kind!r}: counterbalance term {t!r} is not "
+                        "'jointJ.counterbalance.cosK' or '...sinK'"
+                    )
+            cb_values = _vector(params, "counterbalance_urad", self.kind, len(cb))
         joints_f = params.get("joints")
         if not isinstance(joints_f, tuple | list) or not joints_f:
             raise EffectLibraryError(f"effect {self.kind!r}: 'joints' must be joint numbers")
@@ -596,10 +669,10 @@ class GravityDeflection(EffectKind):
             self.kind,
             parameter="physical",
             joints=tuple(joints),
-            names=moments,
+            names=moments + cb,
             shape=tuple(float(r) for r in ratios),
         )
-        return spec, values
+        return spec, np.concatenate([values, cb_values])
 
     def evidence(self, spec, values, ctx, sel, kin):
         defl = self.joint_deflections_rad(spec, values, ctx, kin)
@@ -1079,6 +1152,9 @@ def gravity_candidate(ctx: EffectContext) -> EffectSpec | None:
     )
     if not names:
         return None
+    for j, joint in enumerate(ctx.description.joints, start=1):
+        if joint.counterbalance and j in base.loaded_joints:
+            names += counterbalance_terms(j)
     return EffectSpec(
         "gravity_deflection", parameter="linear", joints=base.loaded_joints, names=names
     )

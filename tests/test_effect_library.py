@@ -17,6 +17,7 @@ from calibration.effect_library import (
     EffectSpec,
     Kinematics,
     candidate_effects,
+    counterbalance_terms,
     from_description,
     gravity_candidate,
     regressor_matrix,
@@ -50,9 +51,10 @@ PHYSICAL = EffectSpec(
     names=base_moments(DESC).names,
     shape=(1.0, 0.7, 2.0, 1.5, 0.5),
 )
+PHYSICAL_CB = replace(PHYSICAL, names=PHYSICAL.names + counterbalance_terms(2))
 SPECS = [
     GRAVITY,
-    PHYSICAL,
+    PHYSICAL_CB,
     EffectSpec("gravity_compliance", joints=(2, 3, 5)),
     EffectSpec("joint_harmonic", joint=1, order=2),
     EffectSpec("lost_motion", joint=3),
@@ -103,7 +105,13 @@ def test_gravity_deflection_regressor_without_masses():
     y = raw_regressor(MODEL, Q)  # (N, n, 3n)
     names = [m for j in range(6) for m in (f"link{j + 1}.mx", f"link{j + 1}.my", f"link{j + 1}.mz")]
     r = KINDS["gravity_deflection"].regressor(GRAVITY, CTX, ALL, KIN)
-    assert r.shape == (40, 3, 30) and len(GRAVITY.names) == 30
+    # 30 joint-moment terms and, the preset declaring a counterbalance on joint 2, its
+    # torque profile's harmonics 2 and 3
+    assert r.shape == (40, 3, 34) and GRAVITY.names[30:] == counterbalance_terms(2)
+    for col, k, f in ((30, 2, np.cos), (33, 3, np.sin)):
+        dq = np.zeros_like(Q)
+        dq[:, 1] = f(k * Q[:, 1]) * 1e-6
+        np.testing.assert_allclose(r[:, :, col], _joint_shift(dq, eps=1.0), atol=1e-9)
     for col in (0, 9, 17, 29):
         joint, moment = GRAVITY.names[col].split(".", 1)
         j = int(joint[5:])
@@ -114,11 +122,11 @@ def test_gravity_deflection_regressor_without_masses():
     w = np.random.default_rng(4).normal(size=len(PHYSICAL.names))
     rho = dict(zip(PHYSICAL.joints, PHYSICAL.shape, strict=True))
     p = []
-    for term in GRAVITY.names:
+    for term in GRAVITY.names[:30]:
         joint, moment = term.split(".", 1)
         p.append(rho[int(joint[5:])] * w[PHYSICAL.names.index(moment)])
     phys = regressor_matrix([PHYSICAL], CTX, ALL, KIN) @ w
-    np.testing.assert_allclose(phys, r @ np.array(p), atol=1e-12)
+    np.testing.assert_allclose(phys, r[:, :, :30] @ np.array(p), atol=1e-12)
     # the mass model's compliance term is one point of the linear form
     compliance = np.array([0.0, 11.0, 95.0, 700.0, 400.0, 900.0])  # µrad/(kN·m)
     beta = base_moments(DESC).values_from_raw(raw_moments_from_masses(DESC), MODEL)
@@ -128,11 +136,17 @@ def test_gravity_deflection_regressor_without_masses():
         * 1e-6  # µrad/(kN·m) -> µrad/(N·mm)
         * STANDARD_GRAVITY_M_S2
         * beta[base_names.index(t.split(".", 1)[1])]
-        for t in GRAVITY.names
+        for t in GRAVITY.names[:30]
     ]
     spec = EffectSpec("gravity_compliance", joints=(1, 2, 3, 4, 5, 6))
     expected = regressor_matrix([spec], CTX, ALL, KIN) @ compliance
-    np.testing.assert_allclose(r @ np.array(p), expected, atol=1e-9 * np.abs(expected).max())
+    got = r[:, :, :30] @ np.array(p)
+    np.testing.assert_allclose(got, expected, atol=1e-9 * np.abs(expected).max())
+    # an arm without a declared counterbalance: the 30 terms alone
+    hp = load_robot("hp20d")
+    q_hp = sample_reachable_poses(hp, 10, np.random.default_rng(5))
+    hp_spec = gravity_candidate(EffectContext(hp, EffectData(q_hp)))
+    assert hp_spec is not None and len(hp_spec.names) == 30
 
 
 def test_length_scale_and_time_regressors():
@@ -202,6 +216,7 @@ def test_descriptions_round_trip_and_predict_applies_every_kind(tmp_path):
     assert "a_rate_mm_per_h" in text and "d_rate_mm_per_h" in text and "t0_s" in text
     assert 'form = "linear"' in text and '"joint2.link2.mx"' in text
     assert 'form = "physical"' in text and "compliance_ratio" in text
+    assert '"joint2.counterbalance.cos2"' in text and "counterbalance_urad" in text
     assert "a_final_mm" in text and "time_constant_s = 900.0" in text
     assert "t_min_s = 600.0" in text and "t_max_s = 3000.0" in text
     expected = tcp_positions(MODEL, Q)
@@ -277,7 +292,7 @@ def test_candidates():
     drift = {(s.joint, s.parameter) for s in specs if s.kind == "length_drift"}
     assert drift == {(1, "d"), (2, "a"), (3, "a"), (4, "a"), (4, "d"), (6, "d")}
     gravity = next(s for s in specs if s.kind == "gravity_deflection")
-    assert gravity.joints == (2, 3, 4, 5, 6) and len(gravity.parameter_names()) == 30
+    assert gravity.joints == (2, 3, 4, 5, 6) and len(gravity.parameter_names()) == 34
     assert "gravity_compliance" not in kinds  # the mass-model form only when named
     assert len(set(specs)) == len(specs)  # hashable and distinct
     # no times: no drift terms; no masses: the same gravity candidate; a restricted set
