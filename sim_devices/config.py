@@ -213,13 +213,14 @@ def _check(cfg: CellConfig, source: str) -> None:
     ):
         fail(f"[tracker].target must be 'program', 'tcp' or 'linkN', got {cfg.tracker.target!r}")
     und = cfg.effects.undeclared
-    if und.drift_parameter not in ("a", "d"):
-        fail(
-            f"[effects.undeclared].drift_parameter must be 'a' or 'd', got {und.drift_parameter!r}"
-        )
-    for key in ("cyclic_joint", "drift_joint"):
+    for key in ("drift_parameter", "lag_parameter"):
+        if getattr(und, key) not in ("a", "d"):
+            fail(f"[effects.undeclared].{key} must be 'a' or 'd', got {getattr(und, key)!r}")
+    for key in ("cyclic_joint", "drift_joint", "lag_joint"):
         if not 1 <= getattr(und, key) <= 6:
             fail(f"[effects.undeclared].{key} must be a joint number 1..6")
+    if und.lag_time_constant_s <= 0:
+        fail("[effects.undeclared].lag_time_constant_s must be positive")
     if und.cyclic_order < 1:
         fail("[effects.undeclared].cyclic_order must be at least 1")
     if und.tracker_scale and und.tracker_scale_drift_ppm_per_h != 0.0:

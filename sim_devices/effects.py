@@ -1,23 +1,31 @@
 """Effects of the emulated cell that nobody declares to the twin (all off by default).
 
-One physical implementation of each, shared by the static campaign generator
-(:mod:`sim_devices.pose_campaign`) and the live plant (:mod:`sim_devices.plant`):
+One physical implementation of each, shared by the pose campaign generator
+(:mod:`sim_devices.pose_campaign`), the static scale campaign
+(:mod:`sim_devices.scale_campaign`) and the live plant (:mod:`sim_devices.plant`):
 
 * **gravity deflection** downstream of the grating ring: the link and the output bearing
-  give under the gravity torque of everything outboard (links and payload), an extra
-  rotation ``tau_i / K_i`` about joint axis i *after* the ring the grating reads. (Gear
-  torsion sits before the ring: the gratings see it, the twin does not need it.)
+  give under the static load of everything outboard (links, payload, and on joint 2 of a
+  heavy arm the counterbalance; :class:`sim_devices.physical_arm.PhysicalArm`, the
+  emulator's own masses), an extra rotation ``tau_i / K_i`` about joint axis i *after*
+  the ring the grating reads. (Gear torsion sits before the ring: the gratings see it;
+  :mod:`sim_devices.gears`.)
 * **cyclic grating error** left after the scale calibration: joint j's reading is
   ``q + A·sin(k·q + phi)`` (k = 2: ovality of the ring).
 * **thermal drift** of a link length (``a`` or ``d`` of one joint) with campaign time,
   linear or approaching a final value exponentially.
+* **thermal lag**: a link length (its own joint and parameter) growing as
+  ``A·(1 − e^(−t/τ))`` from the campaign's start (the arm warming up).
 * **tracker scale error**: distance-proportional (about the tracker, the origin of the
   world frame), constant and/or drifting with time (air temperature).
 * **lost motion** downstream of the ring: joint j stands ``±w_j`` off depending on the
   direction it last moved in.
 
 Units are in the names; angles are radians inside the functions, degrees in the settings.
-The truth written for tests carries these settings and the derived stiffnesses.
+The functions take the emulator's arm; a :class:`RobotDescription` stands for an arm with
+exactly that description's mass model and no counterbalance (for checks against the twin's
+mass-model terms). The truth written for tests carries these settings and the derived
+stiffnesses (:func:`effects_document`).
 """
 
 from __future__ import annotations
@@ -29,8 +37,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.description import RobotDescription
-from calibration.kinematics import KinematicModel, tcp_positions
-from calibration.statics import MassModel, gravity_torques_nmm
+from calibration.kinematics import tcp_positions
+from sim_devices.physical_arm import PhysicalArm
 
 FloatArray = NDArray[np.float64]
 
@@ -39,12 +47,13 @@ EFFECT_NAMES: dict[str, str] = {
     "gravity_deflection": "link/bearing compliance after the grating ring under gravity",
     "grating_cyclic": "cyclic error of one joint's grating reading (harmonic of its angle)",
     "thermal_drift": "a link length growing with campaign time",
+    "thermal_lag": "a link length growing as A·(1 − exp(−t/τ)) from the campaign start",
     "tracker_scale": "distance-proportional tracker scale error (constant and/or drifting)",
     "lost_motion": "direction-dependent lost motion after the grating ring",
 }
 
-#: Poses the default stiffness is derived from (uniform within limits, fixed seed).
-_STIFFNESS_POSES = 400
+#: The emulator's arm, or a description standing for an arm with its mass model.
+ArmLike = PhysicalArm | RobotDescription
 
 
 @dataclass(frozen=True)
@@ -53,9 +62,10 @@ class UndeclaredEffects:
 
     ``deflection_stiffness_nmm_per_rad`` empty: each joint's stiffness is set so that its
     RMS deflection over the joint ranges is ``deflection_rms_deg`` (stiffness scales with
-    the load, as on real arms), and joints carrying less than 1 % of the largest RMS gravity
-    torque (joint 1 about the vertical, the flange) are rigid. A KR500-class arm then gets
-    1e10-9e10 N·mm/rad on axes 2-3, 1e9-2e9 on the wrist and tenths of a mm at the TCP.
+    the load, as on real arms), from the emulator's own torques (its masses and
+    counterbalance), and joints carrying less than 1 % of the largest RMS torque (joint 1
+    about the vertical, the flange) are rigid. A KR500-class arm then gets 1e10-1e11
+    N·mm/rad on axes 2-3, 1e9-2e9 on the wrist and tenths of a mm at the TCP.
     """
 
     gravity_deflection: bool = False
@@ -71,6 +81,11 @@ class UndeclaredEffects:
     drift_parameter: str = "a"  # "a" or "d" of that joint
     drift_mm_per_h: float = 0.15  # initial rate of growth
     drift_time_constant_s: float = 0.0  # 0: linear; > 0: exponential approach
+    thermal_lag: bool = False
+    lag_joint: int = 2  # 1-based
+    lag_parameter: str = "a"  # "a" or "d" of that joint
+    lag_mm: float = 0.15  # final growth A
+    lag_time_constant_s: float = 900.0  # τ
     tracker_scale: bool = False
     tracker_scale_ppm: float = 20.0
     tracker_scale_drift_ppm_per_h: float = 0.0
@@ -97,44 +112,60 @@ class UndeclaredEffects:
         return asdict(self)
 
 
-def deflection_stiffness_nmm_per_rad(
-    settings: UndeclaredEffects, truth: RobotDescription
-) -> FloatArray:
+def physical_arm(arm: ArmLike) -> PhysicalArm:
+    """The arm itself, or a description's mass model as an arm (no counterbalance)."""
+    return arm if isinstance(arm, PhysicalArm) else PhysicalArm.of_description(arm)
+
+
+def deflection_stiffness_nmm_per_rad(settings: UndeclaredEffects, arm: ArmLike) -> FloatArray:
     """Per-joint stiffness ``(n,)`` N·mm/rad of the compliance after the ring (inf: rigid)."""
-    n = truth.n_joints
+    body = physical_arm(arm)
+    n = body.n_joints
     if settings.deflection_stiffness_nmm_per_rad:
         return np.resize(np.asarray(settings.deflection_stiffness_nmm_per_rad, float), n)
-    rng = np.random.default_rng(0)
-    lo = np.radians([j.lower_deg for j in truth.joints])
-    hi = np.radians([j.upper_deg for j in truth.joints])
-    q = rng.uniform(lo, hi, size=(_STIFFNESS_POSES, n))
-    tau = gravity_torques_nmm(
-        KinematicModel.from_description(truth), MassModel.from_description(truth), q
-    )
+    tau = body.joint_torques_nmm(body.range_poses())
     rms = np.sqrt(np.mean(tau**2, axis=0))
     k = rms / np.radians(settings.deflection_rms_deg)
     k[rms < 0.01 * max(float(rms.max()), 1e-300)] = np.inf
     return k
 
 
+def with_derived_stiffness(settings: UndeclaredEffects, arm: ArmLike) -> UndeclaredEffects:
+    """``settings`` with the deflection stiffness derived once (not per evaluation)."""
+    if not settings.gravity_deflection or settings.deflection_stiffness_nmm_per_rad:
+        return settings
+    k = deflection_stiffness_nmm_per_rad(settings, arm)
+    return replace(settings, deflection_stiffness_nmm_per_rad=tuple(float(v) for v in k))
+
+
+def effects_document(settings: UndeclaredEffects, arm: ArmLike) -> dict[str, Any]:
+    """The settings for the truth file, with the derived stiffness (0 = rigid)."""
+    doc = settings.document()
+    doc["deflection_stiffness_nmm_per_rad"] = [
+        v if np.isfinite(v) else 0.0 for v in doc["deflection_stiffness_nmm_per_rad"]
+    ]
+    if settings.gravity_deflection:
+        k = deflection_stiffness_nmm_per_rad(settings, arm)
+        doc["derived_stiffness_nmm_per_rad"] = [float(v) if np.isfinite(v) else 0.0 for v in k]
+    return doc
+
+
 def link_rotation_rad(
     settings: UndeclaredEffects,
-    truth: RobotDescription,
+    arm: ArmLike,
     q_ring_rad: ArrayLike,
     direction: ArrayLike | None = None,
 ) -> FloatArray:
     """Rotation ``(N, n)`` rad of each link about its joint axis beyond the grating ring.
 
-    Gravity deflection (``tau / K`` at the ring angles, truth's mass model) plus lost
+    Gravity deflection (``tau / K`` at the ring angles, the arm's static load) plus lost
     motion (``w_j · direction_j``, direction ``(N, n)`` in {-1, 0, 1}: last motion).
     """
     q = np.atleast_2d(np.asarray(q_ring_rad, dtype=float))
     out = np.zeros_like(q)
     if settings.gravity_deflection:
-        tau = gravity_torques_nmm(
-            KinematicModel.from_description(truth), MassModel.from_description(truth), q
-        )
-        out += tau / deflection_stiffness_nmm_per_rad(settings, truth)
+        body = physical_arm(arm)
+        out += body.joint_torques_nmm(q) / deflection_stiffness_nmm_per_rad(settings, body)
     if settings.lost_motion and direction is not None:
         w = np.radians(np.resize(np.asarray(settings.lost_motion_deg, float), q.shape[1]))
         out += w * np.asarray(direction, dtype=float)
@@ -164,30 +195,75 @@ def length_drift_mm(settings: UndeclaredEffects, t_s: ArrayLike) -> FloatArray:
     return rate * t
 
 
-def true_tcp_mm(
+def length_lag_mm(settings: UndeclaredEffects, t_s: ArrayLike) -> FloatArray:
+    """Growth ``(N,)`` mm of the lagging link length: ``A·(1 − e^(−t/τ))``."""
+    t = np.asarray(t_s, dtype=float)
+    if not settings.thermal_lag:
+        return np.zeros_like(t)
+    return settings.lag_mm * (1.0 - np.exp(-t / settings.lag_time_constant_s))
+
+
+_PARAMETER_OFFSET = {"a": 0, "d": 2}  # position in a joint's 5 parameters (a, α, d, θ, β)
+
+
+def length_changes(settings: UndeclaredEffects, t_s: ArrayLike) -> list[tuple[int, FloatArray]]:
+    """The thermal length changes at times ``t_s`` ``(N,)``: (index in the model's
+    parameter vector, growth ``(N,)`` mm) for each active one."""
+    out = []
+    if settings.thermal_drift:
+        index = 5 * (settings.drift_joint - 1) + _PARAMETER_OFFSET[settings.drift_parameter]
+        out.append((index, length_drift_mm(settings, t_s)))
+    if settings.thermal_lag:
+        index = 5 * (settings.lag_joint - 1) + _PARAMETER_OFFSET[settings.lag_parameter]
+        out.append((index, length_lag_mm(settings, t_s)))
+    return out
+
+
+def true_point_mm(
     settings: UndeclaredEffects,
-    truth: RobotDescription,
+    arm: ArmLike,
+    link: int,
+    point_mm: ArrayLike,
     q_ring_rad: ArrayLike,
     t_s: ArrayLike,
     direction: ArrayLike | None = None,
 ) -> FloatArray:
-    """Physical TCP ``(N, 3)`` mm in the tracker frame at ring angles and times.
+    """Physical position ``(N, 3)`` mm, tracker frame, of a point fixed in link ``link``'s
+    frame (0-based; ``point_mm`` ``(3,)``) at ring angles ``(N, n)`` and times ``(N,)``.
 
-    The links stand at the ring angles plus :func:`link_rotation_rad`; the drifting length
-    adds along its own axis (a TCP is linear in every a and d, so this is exact).
+    Links 1..link+1 stand at the ring angles plus :func:`link_rotation_rad`; a changing
+    length upstream of the point adds along its own direction (a point is linear in every
+    a and d, so this is exact).
     """
+    body = physical_arm(arm)
     q = np.atleast_2d(np.asarray(q_ring_rad, dtype=float))
-    model = KinematicModel.from_description(truth)
-    q_link = q + link_rotation_rad(settings, truth, q, direction)
-    tcp = tcp_positions(model, q_link)
-    if settings.thermal_drift:
-        growth = length_drift_mm(settings, t_s)
-        x = model.parameter_vector()
-        index = 5 * (settings.drift_joint - 1) + {"a": 0, "d": 2}[settings.drift_parameter]
-        x[index] += 1.0
-        axis = tcp_positions(model.with_parameters(x), q_link) - tcp  # per mm of growth
-        tcp = tcp + growth[:, None] * axis
-    return tcp
+    q_link = q + link_rotation_rad(settings, body, q, direction)
+    sub = body.model.truncated(link + 1, tool_mm=point_mm)
+    q_sub = q_link[:, : link + 1]
+    pts = tcp_positions(sub, q_sub)
+    x = sub.parameter_vector()
+    for index, growth in length_changes(settings, np.broadcast_to(t_s, (len(q),))):
+        if index >= 5 * (link + 1):  # downstream of the point's link
+            continue
+        bumped = x.copy()
+        bumped[index] += 1.0
+        axis = tcp_positions(sub.with_parameters(bumped), q_sub) - pts  # per mm of growth
+        pts = pts + growth[:, None] * axis
+    return pts
+
+
+def true_tcp_mm(
+    settings: UndeclaredEffects,
+    arm: ArmLike,
+    q_ring_rad: ArrayLike,
+    t_s: ArrayLike,
+    direction: ArrayLike | None = None,
+) -> FloatArray:
+    """Physical TCP ``(N, 3)`` mm in the tracker frame at ring angles and times
+    (:func:`true_point_mm` of the tool point on the last link)."""
+    body = physical_arm(arm)
+    n = body.n_joints
+    return true_point_mm(settings, body, n - 1, body.model.tool_mm, q_ring_rad, t_s, direction)
 
 
 def tracker_reading_mm(

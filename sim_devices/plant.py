@@ -3,16 +3,18 @@
 The :class:`Plant` owns the truth (:class:`sim_devices.truth.TrueCell`), a robot program
 (:class:`sim_devices.motion.Trajectory`) and the effects of the cell's configuration. The
 controller servos the *motors* to the commanded joint vector ``q_cmd``; the joint
-*outputs*, which the gratings, the TCP and the tracker see, differ from it by torsion
-under gravity and payload (``tau / K``) and by gear backlash. Motor encoders read
+*outputs*, which the gratings, the TCP and the tracker see, differ from it by gear torsion
+under the arm's static load (``tau / K``) and by the backlash flank
+(:class:`sim_devices.gears.GearTrain`; tau from the emulator's own masses and
+counterbalance, :class:`sim_devices.physical_arm.PhysicalArm`). Motor encoders read
 ``gear_ratio · q_cmd``. All evaluations are vectorized over arrays of simulated times.
 
 The undeclared effects of ``[effects.undeclared]`` (:mod:`sim_devices.effects`, the same
-physics as the campaign generator): gravity deflection after the ring and the thermal link
-drift move the target (:meth:`Plant.target_mm`), the cyclic grating error changes the
-counts (:meth:`Plant.grating_counts`), a constant tracker scale error goes to the tracker
-model. The drift follows program time; a caller that does not pass the sample's time gets
-the clock's current time (the drift moves 4e-5 mm/s at 0.15 mm/h).
+physics as the campaign generators): gravity deflection after the ring and the thermal
+link drift and lag move the target (:meth:`Plant.target_mm`), the cyclic grating error
+changes the counts (:meth:`Plant.grating_counts`), a constant tracker scale error goes to
+the tracker model. Drift and lag follow program time; a caller that does not pass the
+sample's time gets the clock's current time (the drift moves 4e-5 mm/s at 0.15 mm/h).
 
 Which target the tracker measures (``[tracker] target``): ``"program"`` (default) follows
 the robot program — in the campaign the target fixed on link J during joint J's Home
@@ -32,22 +34,21 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.description import RobotDescription, load_robot
 from calibration.kinematics import KinematicModel, tcp_positions
-from calibration.statics import MassModel, gravity_torques_nmm
 from sim_devices.config import CellConfig
 from sim_devices.effects import (
-    deflection_stiffness_nmm_per_rad,
     grating_reading_rad,
-    length_drift_mm,
-    link_rotation_rad,
+    true_point_mm,
     true_tcp_mm,
+    with_derived_stiffness,
 )
+from sim_devices.gears import GearTrain
 from sim_devices.motion import Move, Trajectory, parse_target
 from sim_devices.truth import TrackerModel, TrueCell
 
@@ -127,18 +128,13 @@ class Plant:
         self.config = config
         self.clock = clock
         self.truth_model: KinematicModel = cell.model
-        self.masses = MassModel.from_description(cell.truth)
+        self.arm = cell.arm
         n = cell.truth.n_joints
         gears = [j.gear_ratio if j.gear_ratio else 100.0 for j in cell.truth.joints]
         self.gear_ratio = np.array(gears, dtype=float)
-        eff = config.effects
-        self.stiffness = np.resize(np.asarray(eff.stiffness_nmm_per_rad, float), n)
-        self.backlash_rad = np.radians(np.resize(np.asarray(eff.backlash_deg, float), n))
-        und = eff.undeclared
-        if und.gravity_deflection:  # derive the stiffness once, not per sample
-            k = deflection_stiffness_nmm_per_rad(und, cell.truth)
-            und = replace(und, deflection_stiffness_nmm_per_rad=tuple(float(v) for v in k))
-        self.undeclared = und
+        self.gears = GearTrain.of(config.effects, n)
+        # derive the deflection stiffness once, not per sample
+        self.undeclared = with_derived_stiffness(config.effects.undeclared, cell.arm)
         #: pinned target (``[tracker] target = "linkN"``), else None
         self.link_joint: int | None = None
         target = config.tracker.target
@@ -151,9 +147,6 @@ class Plant:
             j = parse_target(trajectory.target_of(k))
             if j is not None and not 0 <= j < n:
                 raise ValueError(f"program move {k}: target link:{j + 1}, robot has {n} joints")
-        self._link_models = [
-            self.truth_model.truncated(j + 1, tool_mm=cell.link_targets_mm[j]) for j in range(n)
-        ]
         self._blocks: dict[int, FloatArray] = {}
 
     @classmethod
@@ -189,23 +182,23 @@ class Plant:
 
     @property
     def _has_correction(self) -> bool:
-        eff = self.config.effects
-        return eff.torsion or eff.backlash
+        return self.gears.active
+
+    @property
+    def stiffness(self) -> FloatArray:
+        """Gear stiffness ``(n,)`` N·mm/rad."""
+        return self.gears.stiffness_nmm_per_rad
+
+    @property
+    def backlash_rad(self) -> FloatArray:
+        """Full backlash gap ``(n,)`` rad."""
+        return self.gears.backlash_rad
 
     def output_correction_exact(self, sim_s: ArrayLike) -> FloatArray:
-        """``q_out - q_cmd`` ``(N, n)`` rad: torsion under gravity plus backlash."""
+        """``q_out - q_cmd`` ``(N, n)`` rad: gear torsion under the arm's static load plus
+        the backlash flank (:meth:`GearTrain.ring_offset_rad`)."""
         q_cmd, _qd, direction = self.trajectory.evaluate(sim_s)
-        corr = np.zeros_like(q_cmd)
-        eff = self.config.effects
-        tau = gravity_torques_nmm(self.truth_model, self.masses, q_cmd)
-        if eff.torsion:
-            corr += tau / self.stiffness
-        if eff.backlash:
-            # the loaded gear flank: by the load torque's sign, by motion when unloaded
-            w = np.clip(np.abs(tau) / eff.backlash_torque_nmm, 0.0, 1.0)
-            side = w * np.sign(tau) + (1.0 - w) * direction
-            corr += 0.5 * self.backlash_rad * side
-        return corr
+        return self.gears.ring_offset_rad(self.arm.joint_torques_nmm(q_cmd), direction)
 
     def _correction(self, t: FloatArray) -> FloatArray:
         h = self.CORRECTION_STEP_S
@@ -256,23 +249,9 @@ class Plant:
 
     def link_target_mm(self, joint: int, q_out_rad: FloatArray, sim_s: ArrayLike) -> FloatArray:
         """True position ``(N, 3)`` of the target on link ``joint`` (0-based), with the
-        undeclared effects upstream of it (deflection after rings 1..joint+1, drift)."""
-        q = np.atleast_2d(q_out_rad)
-        und = self.undeclared
-        sub = self._link_models[joint]
-        q_link = q
-        if und.gravity_deflection:
-            q_link = q + link_rotation_rad(und, self.cell.truth, q)
-        q_link = q_link[:, : joint + 1]
-        pts = tcp_positions(sub, q_link)
-        index = 5 * (und.drift_joint - 1) + {"a": 0, "d": 2}[und.drift_parameter]
-        if und.thermal_drift and index < 5 * (joint + 1):
-            growth = length_drift_mm(und, np.broadcast_to(sim_s, (len(q),)))
-            x = sub.parameter_vector()
-            x[index] += 1.0
-            axis = tcp_positions(sub.with_parameters(x), q_link) - pts
-            pts = pts + growth[:, None] * axis
-        return pts
+        undeclared effects upstream of it (deflection after rings 1..joint+1, drift, lag)."""
+        target = self.cell.link_targets_mm[joint]
+        return true_point_mm(self.undeclared, self.arm, joint, target, q_out_rad, sim_s)
 
     def target_mm(self, q_out_rad: FloatArray, wall_s: ArrayLike | None = None) -> FloatArray:
         """True target positions ``(N, 3)`` in the tracker frame for joint outputs.
@@ -287,10 +266,10 @@ class Plant:
         pts = np.empty((len(q), 3))
         if tcp.any():
             qt = q[tcp]
-            if und.gravity_deflection or und.thermal_drift:
+            if und.gravity_deflection or und.thermal_drift or und.thermal_lag:
                 wall = self.clock.wall_s() if wall_s is None else wall_s
                 sim = np.broadcast_to(self.clock.sim_s(wall), (len(q),))[tcp]
-                pts[tcp] = true_tcp_mm(und, self.cell.truth, qt, sim)
+                pts[tcp] = true_tcp_mm(und, self.arm, qt, sim)
             else:
                 pts[tcp] = tcp_positions(self.truth_model, qt)
         if not tcp.all():

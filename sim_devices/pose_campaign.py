@@ -28,10 +28,11 @@ from sim_devices.effects import (
     EFFECT_NAMES,
     UndeclaredEffects,
     approach_direction,
-    deflection_stiffness_nmm_per_rad,
+    effects_document,
     grating_reading_rad,
     tracker_reading_mm,
     true_tcp_mm,
+    with_derived_stiffness,
 )
 from sim_devices.truth import TrueCell
 
@@ -156,6 +157,7 @@ class CampaignData:
     #: (m, 3) what a noise-free tracker reads: the true model's prediction of the points
     #: (tcp_true_mm with the tracker's own scale error); None: same as tcp_true_mm
     expected_mm: FloatArray | None = None
+    #: the settings used, with the derived deflection stiffness filled in
     effects: UndeclaredEffects = field(default_factory=UndeclaredEffects)
 
     @property
@@ -170,11 +172,7 @@ class CampaignData:
     def truth_document(self) -> dict[str, Any]:
         """The cell's truth plus the undeclared effects and their derived parameters."""
         doc = self.cell.truth_document()
-        eff = self.effects.document()
-        if self.effects.gravity_deflection:
-            k = deflection_stiffness_nmm_per_rad(self.effects, self.cell.truth)
-            eff["derived_stiffness_nmm_per_rad"] = [float(v) if np.isfinite(v) else 0.0 for v in k]
-        doc["undeclared_effects"] = eff
+        doc["undeclared_effects"] = effects_document(self.effects, self.cell.arm)
         return doc
 
     def write_truth(self, path: str | Path) -> None:
@@ -189,10 +187,11 @@ def generate_campaign(
 ) -> CampaignData:
     """Run an emulated campaign on ``cell``: identification poses then validation poses.
 
-    ``settings.effects`` switches on undeclared effects (:mod:`sim_devices.effects`). The
-    random draws are the same with and without them, so a campaign with an effect differs
-    from the clean one of the same seed by the effect alone (the tracker's noise σ is taken
-    at the effect-free point; sub-mm displacements change it by < 1e-9 mm).
+    ``settings.effects`` switches on undeclared effects (:mod:`sim_devices.effects`, on
+    the cell's own physical arm). The random draws are the same with and without them, so
+    a campaign with an effect differs from the clean one of the same seed by the effect
+    alone (the tracker's noise σ is taken at the effect-free point; sub-mm displacements
+    change it by < 1e-9 mm).
     """
     nominal = cell.nominal
     q_id = plan_identification_poses(nominal, settings.n_identify, rng, index=settings.selection)
@@ -207,7 +206,7 @@ def generate_campaign(
         again, ok_again = cell.tracker.measure(tcp[~ok], rng)
         measured[~ok] = again
         ok[~ok] = ok_again
-    eff = settings.effects
+    eff = with_derived_stiffness(settings.effects, cell.arm)
     grating = grating_reading_rad(eff, q_true) * (1.0 + 1e-6 * settings.grating_scale_error_ppm)
     grating = grating + np.radians(rng.normal(0.0, settings.grating_noise_deg, q_true.shape))
     dt = rng.uniform(*settings.pose_time_s, size=m)
@@ -215,7 +214,7 @@ def generate_campaign(
     direction = approach_direction(q_true)
     expected = None
     if eff.any_active:
-        tcp_physical = true_tcp_mm(eff, cell.truth, q_true, t_s, direction)
+        tcp_physical = true_tcp_mm(eff, cell.arm, q_true, t_s, direction)
         expected = tracker_reading_mm(eff, tcp_physical, t_s)
         measured = measured + (expected - tcp)
         tcp = tcp_physical

@@ -22,10 +22,15 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration.description import BaseDescription, RobotDescription, ToolDescription
 from calibration.kinematics import KinematicModel, nearly_parallel_joints, tcp_positions
+from sim_devices.arm_masses import ArmMasses, draw_arm_masses
+from sim_devices.physical_arm import PhysicalArm
 
 FloatArray = NDArray[np.float64]
 
 COUNTER_MODULUS = 2**32  # the reader's counters are 32-bit and wrap
+#: Second seed word of the arm's own masses: a stream of their own, so adding them left
+#: every earlier draw (geometry, strips, ...) of a seed as it was.
+MASS_STREAM = 0x6D617373
 
 
 @dataclass(frozen=True)
@@ -160,15 +165,27 @@ class TrackerModel:
         return measured, ok
 
 
+def with_masses(desc: RobotDescription, masses: ArmMasses) -> RobotDescription:
+    """``desc`` carrying ``masses`` (links and payload mass; the payload's centre of mass
+    has no place in a description and goes to the truth document)."""
+    joints = tuple(
+        replace(j, mass_kg=float(m), com_mm=tuple(float(v) for v in c))
+        for j, m, c in zip(desc.joints, masses.mass_kg, masses.com_mm, strict=True)
+    )
+    return replace(desc, joints=joints, tool=replace(desc.tool, mass_kg=masses.payload_kg))
+
+
 @dataclass(frozen=True)
 class TrueCell:
-    """The whole emulated truth of one cell: robot, strips, tracker, link targets."""
+    """The whole emulated truth of one cell: robot, strips, tracker, link targets, and the
+    physical arm (its own masses and counterbalance; ``truth`` carries the same masses)."""
 
     nominal: RobotDescription
     truth: RobotDescription
     strips: tuple[GratingStrip, ...]
     tracker: TrackerModel
     link_targets_mm: tuple[tuple[float, float, float], ...]  # per joint, in that joint's frame
+    arm: PhysicalArm
     seed: int = 0
     deviations: GeometryDeviations = field(default_factory=GeometryDeviations)
 
@@ -182,10 +199,14 @@ class TrueCell:
         tracker: TrackerModel | None = None,
         eccentricity_mm: float = 0.0,
         scale_error_ppm_sigma: float = 50.0,
+        counterbalance: bool | None = None,
     ) -> TrueCell:
         """Draw a reproducible true cell around ``nominal`` from ``seed``.
 
-        ``eccentricity_mm`` is the amplitude of each strip's cyclic error (0: none).
+        ``eccentricity_mm`` is the amplitude of each strip's cyclic error (0: none). The
+        arm's masses are drawn from their own stream ``[seed, MASS_STREAM]``
+        (:func:`sim_devices.arm_masses.draw_arm_masses`); ``counterbalance`` None gives
+        heavy arms one on joint 2 (:meth:`PhysicalArm.of`).
         """
         rng = np.random.default_rng(seed)
         dev = deviations or GeometryDeviations()
@@ -203,12 +224,16 @@ class TrueCell:
         )
         radii = default_strip_radii_mm(nominal)
         targets = tuple((1.5 * r + 100.0, 0.3 * r, 80.0) for r in radii)
+        tool = (truth.tool.x_mm, truth.tool.y_mm, truth.tool.z_mm)
+        masses = draw_arm_masses(nominal, tool, np.random.default_rng([seed, MASS_STREAM]))
+        truth = with_masses(truth, masses)
         return cls(
             nominal=nominal,
             truth=truth,
             strips=strips,
             tracker=tracker or TrackerModel(),
             link_targets_mm=targets,
+            arm=PhysicalArm.of(truth, masses, counterbalance=counterbalance),
             seed=seed,
             deviations=dev,
         )
@@ -236,6 +261,7 @@ class TrueCell:
             "tracker": asdict(self.tracker),
             "link_targets_mm": [list(t) for t in self.link_targets_mm],
             "deviations": asdict(self.deviations),
+            "physical_arm": self.arm.document(),
         }
 
     def write_truth(self, path: str | Path) -> None:

@@ -9,8 +9,7 @@ import pytest
 
 from calibration.campaign_files import read_campaign
 from calibration.description import load_robot
-from calibration.kinematics import KinematicModel, geometric_jacobian
-from calibration.statics import gravity_torques_for
+from calibration.kinematics import geometric_jacobian
 from sim_devices import pose_campaign
 from sim_devices.effects import (
     EFFECT_NAMES,
@@ -18,7 +17,9 @@ from sim_devices.effects import (
     approach_direction,
     deflection_stiffness_nmm_per_rad,
     grating_reading_rad,
+    length_changes,
     length_drift_mm,
+    length_lag_mm,
     link_rotation_rad,
     tracker_reading_mm,
 )
@@ -55,14 +56,14 @@ def test_gravity_deflection_moves_the_tcp_not_the_gratings(clean):
     np.testing.assert_allclose(shift, data.tcp_true_mm - clean.tcp_true_mm, atol=1e-12)
     ap = np.linalg.norm(shift, axis=1)
     assert 0.1 < np.sqrt(np.mean(ap**2)) < 0.8  # tenths of a mm for a KR500
-    # first order: the TCP moves by J · tau/K
-    truth = data.cell.truth
-    k = deflection_stiffness_nmm_per_rad(data.effects, truth)
+    # first order: the TCP moves by J · tau/K, tau the emulator's own (masses, counterbalance)
+    arm = data.cell.arm
+    k = deflection_stiffness_nmm_per_rad(data.effects, arm)
     assert np.isinf(k[0]) and np.isinf(k[5])  # vertical axis and flange carry ~no torque
     assert 1e10 < k[1] < 2e11 and 3e9 < k[2] < 1e11
-    dq = gravity_torques_for(truth, data.q_true_rad) / k
-    np.testing.assert_allclose(dq, link_rotation_rad(data.effects, truth, data.q_true_rad))
-    jac = geometric_jacobian(KinematicModel.from_description(truth), data.q_true_rad, frame="world")
+    dq = arm.joint_torques_nmm(data.q_true_rad) / k
+    np.testing.assert_allclose(dq, link_rotation_rad(data.effects, arm, data.q_true_rad))
+    jac = geometric_jacobian(arm.model, data.q_true_rad, frame="world")
     lin = np.einsum("pij,pj->pi", jac[:, :3], dq)
     assert np.max(np.abs(lin - shift)) < 0.01 * np.max(np.abs(shift)) + 1e-9
 
@@ -94,6 +95,27 @@ def test_thermal_drift_grows_along_the_link(clean):
     np.testing.assert_allclose(g, [0.0, 0.15 / 3600.0, 0.15 / 2.0], rtol=1e-3)
 
 
+def test_thermal_lag_approaches_its_final_growth(clean, tmp_path):
+    data = _with("thermal_lag")
+    t = data.campaign.t_s
+    growth = length_lag_mm(data.effects, t)
+    np.testing.assert_allclose(growth, 0.15 * (1.0 - np.exp(-t / 900.0)))
+    shift = data.tcp_true_mm - clean.tcp_true_mm
+    np.testing.assert_allclose(np.linalg.norm(shift, axis=1), growth, atol=1e-9)  # a2: a length
+    assert 0.0 < growth[-1] < 0.15 * t[-1] / 900.0  # below its initial slope: it bends
+    assert length_drift_mm(data.effects, t).max() == 0.0  # drift stays its own effect
+    both = _with("thermal_lag", "thermal_drift", lag_joint=3, lag_parameter="a")
+    assert len(length_changes(both.effects, t)) == 2
+    truth = tmp_path / "truth.toml"
+    args = ["--robot", "kr500", "--seed", "5", "--out", str(tmp_path / "c.csv")]
+    args += ["--identify", "10", "--validate", "5", "--selection", "none"]
+    rc = pose_campaign.main([*args, "--effect", "thermal_lag", "--truth", str(truth)])
+    assert rc == 0
+    eff = tomllib.loads(truth.read_text())["undeclared_effects"]
+    assert eff["thermal_lag"] and not eff["thermal_drift"]
+    assert (eff["lag_mm"], eff["lag_time_constant_s"], eff["lag_joint"]) == (0.15, 900.0, 2)
+
+
 def test_tracker_scale_is_about_the_tracker(clean):
     data = _with("tracker_scale", tracker_scale_drift_ppm_per_h=36.0)
     t = data.campaign.t_s
@@ -113,7 +135,7 @@ def test_lost_motion_follows_the_approach_direction(clean):
     q = data.q_true_rad
     direction = approach_direction(q)
     np.testing.assert_array_equal(direction[0], np.sign(q[0]))
-    rot = link_rotation_rad(data.effects, data.cell.truth, q, direction)
+    rot = link_rotation_rad(data.effects, data.cell.arm, q, direction)
     np.testing.assert_allclose(rot[:, 1], np.radians(0.003) * direction[:, 1])
     assert np.all(rot[:, 0] == 0.0)
     assert np.linalg.norm(data.tcp_true_mm - clean.tcp_true_mm, axis=1).max() > 0.05
@@ -158,19 +180,19 @@ def test_live_plant_shares_the_physics():
     text = (
         '[cell]\nprogram = "hold"\n[effects]\ntorsion = false\nbacklash = false\n'
         "[effects.undeclared]\ngravity_deflection = true\ngrating_cyclic = true\n"
-        "thermal_drift = true\ntracker_scale = true\n"
+        "thermal_drift = true\nthermal_lag = true\ntracker_scale = true\n"
     )
     cfg = CellConfig.loads(text)
     assert CellConfig.loads(cfg.dumps()) == cfg
     plant = Plant.from_config(cfg, SimClock(speed=1.0, t0_monotonic=0.0))
     off = Plant.from_config(CellConfig.loads(text.split("[effects.undeclared]")[0]))
     eff = cfg.effects.undeclared
-    truth = plant.cell.truth
+    arm = plant.cell.arm
     q = np.radians([[10.0, 20.0, -30.0, 40.0, 50.0, 60.0], [0.0, 60.0, -60.0, 0.0, 30.0, 0.0]])
     t = np.array([0.0, 1800.0])
     from sim_devices.effects import true_tcp_mm
 
-    np.testing.assert_allclose(plant.target_mm(q, t), true_tcp_mm(eff, truth, q, t), atol=1e-9)
+    np.testing.assert_allclose(plant.target_mm(q, t), true_tcp_mm(eff, arm, q, t), atol=1e-9)
     moved = plant.target_mm(q, t) - off.target_mm(q, t)
     assert 0.05 < np.abs(moved).max() < 2.0
     rng = np.random.default_rng(0)
@@ -185,6 +207,9 @@ def test_live_plant_shares_the_physics():
     for bad in (
         "lost_motion = true",
         "drift_parameter = 'b'",
+        "lag_parameter = 'alpha'",
+        "lag_joint = 7",
+        "lag_time_constant_s = 0.0",
         "tracker_scale_drift_ppm_per_h = 1.0",
     ):
         with pytest.raises(SimConfigError, match="undeclared"):

@@ -1,0 +1,107 @@
+"""Numbers of the emulator's physical arm, per preset: the figures in docs/emulator.md.
+
+    python -m sim_devices.physics_report [--robot kr500 ...] [--seed 1] [--poses 250]
+
+Per preset and seed: the arm's own masses against the description's, the counterbalance
+and its share of joint 2's RMS gravity torque, the after-ring deflection stiffness and the
+RMS deflection it gives at the TCP over random reachable poses, how far each joint held at
+Home turns during every other joint's sweep with gear torsion and backlash on (static
+scale campaign, the live plant's gears), and where the rings stand at the Home returns.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+
+import numpy as np
+
+from calibration.description import load_robot
+from sim_devices.effects import UndeclaredEffects, deflection_stiffness_nmm_per_rad
+from sim_devices.pose_campaign import CampaignSettings, generate_campaign
+from sim_devices.scale_campaign import CampaignOptions, run_campaign
+from sim_devices.truth import TrueCell
+
+ARCSEC_PER_RAD = 180.0 / np.pi * 3600.0
+
+
+def report(robot: str, seed: int, poses: int) -> list[str]:
+    """Lines of text for one preset and seed."""
+    nominal = load_robot(robot)
+    cell = TrueCell.create(nominal, seed)
+    arm = cell.arm
+    nom_kg = np.array([j.mass_kg or 0.0 for j in nominal.joints])
+    lines = [f"== {robot}, seed {seed}"]
+    lines.append(
+        f"links {arm.masses.arm_kg:.0f} kg (description {nom_kg.sum():.0f} kg), mass ratios "
+        + " ".join(f"{r:.2f}" for r in arm.masses.mass_kg / np.where(nom_kg > 0, nom_kg, 1))
+        + f"; payload {arm.masses.payload_kg:.1f} kg (description {nominal.tool.mass_kg} kg)"
+    )
+    cb = arm.counterbalance
+    if cb is None:
+        lines.append("counterbalance: none")
+    else:
+        theta = np.linspace(arm.lower_rad[1], arm.upper_rad[1], 301) + arm.model.theta_offset_rad[1]
+        force = cb.force_n(theta)
+        lines.append(
+            f"counterbalance: e {cb.anchor_radius_mm:.0f} mm, r {cb.attachment_radius_mm:.0f} mm, "
+            f"free length {cb.free_length_mm:.0f} mm, k {cb.stiffness_n_per_mm:.1f} N/mm, "
+            f"force {force.min() / 1e3:.1f}-{force.max() / 1e3:.1f} kN; "
+            f"cancels {100 * arm.counterbalance_share:.1f} % of joint 2's RMS gravity torque"
+        )
+    q = arm.range_poses()
+    rms_w = np.sqrt(np.mean(arm.weight_torques_nmm(q) ** 2, axis=0))
+    rms_t = np.sqrt(np.mean(arm.joint_torques_nmm(q) ** 2, axis=0))
+    lines.append(
+        "RMS torque over the ranges (kN·m), weights / with counterbalance: "
+        + " ".join(f"{w / 1e6:.2f}/{t / 1e6:.2f}" for w, t in zip(rms_w, rms_t, strict=True))
+    )
+    eff = UndeclaredEffects.named("gravity_deflection")
+    k = deflection_stiffness_nmm_per_rad(eff, arm)
+    k_desc = deflection_stiffness_nmm_per_rad(eff, nominal)
+    settings = CampaignSettings(n_identify=poses // 2, n_validate=poses - poses // 2)
+    rng_seed = [seed, 6]
+    soft = generate_campaign(cell, np.random.default_rng(rng_seed), replace(settings, effects=eff))
+    stiff = generate_campaign(cell, np.random.default_rng(rng_seed), settings)
+    ap = np.linalg.norm(soft.tcp_true_mm - stiff.tcp_true_mm, axis=1)
+    lines.append(
+        "after-ring stiffness (N·mm/rad, inf rigid): "
+        + " ".join(f"{v:.2e}" for v in k)
+        + " (from the description's masses: "
+        + " ".join(f"{v:.2e}" for v in k_desc)
+        + ")"
+    )
+    lines.append(
+        f"after-ring deflection at the TCP over {poses} reachable poses: "
+        f"RMS {np.sqrt(np.mean(ap**2)):.3f} mm, max {ap.max():.3f} mm"
+    )
+    camp = run_campaign(cell, CampaignOptions(torsion=True, backlash=True))
+    for j in range(2, nominal.n_joints + 1):
+        turn = camp.upstream_motion_rad(j)[: j - 1] * ARCSEC_PER_RAD
+        lines.append(
+            f"joint {j} sweep, joints 1..{j - 1} turn (peak to peak, arcsec): "
+            + " ".join(f"{v:.1f}" for v in turn)
+        )
+    ring = [camp.truth(j).home_ring_rad - camp.truth(j).home_rad for j in range(1, 7)]
+    lines.append(
+        "ring at the Home returns minus commanded Home (arcsec): "
+        + " ".join(f"{v * ARCSEC_PER_RAD:.1f}" for v in ring)
+    )
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m sim_devices.physics_report")
+    parser.add_argument("--robot", nargs="+", default=["kr500", "kr210_r3100", "hp20d"])
+    parser.add_argument("--seed", type=int, nargs="+", default=[1])
+    parser.add_argument("--poses", type=int, default=250, help="reachable poses (deflection)")
+    args = parser.parse_args(argv)
+    for robot in args.robot:
+        for seed in args.seed:
+            print("\n".join(report(robot, seed, args.poses)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
