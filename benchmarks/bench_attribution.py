@@ -53,7 +53,7 @@ CASES: dict[str, tuple[tuple[str, ...], dict[str, Any]]] = {
     "cyclic": (("grating_cyclic",), {}),
     "lag": (("thermal_lag",), {}),
     "drift": (("thermal_drift",), {}),
-    "gravity+cyclic": (("gravity_deflection", "grating_cyclic"), {"cyclic_joint": 4}),
+    "gravity+cyclic": (("gravity_deflection", "grating_cyclic"), {"cyclic_joint": 3}),
     "lag+gravity": (("thermal_lag", "gravity_deflection"), {}),
 }
 TIME_POLYNOMIALS = ("instrument_scale_drift", "cartesian_time")

@@ -60,6 +60,7 @@ import tomli_w
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.description import load_robot
+from calibration.grating_scale import JointSweep
 from sim_devices.config import EffectsSection
 from sim_devices.effects import (
     EFFECT_NAMES,
@@ -235,6 +236,28 @@ class ScaleCampaign:
     home_ring_rad: FloatArray | None = None  # (H, n) every joint's true ring angle
     home_t_s: FloatArray | None = None  # (H,)
     targets_mm: tuple[FloatArray, ...] = ()  # per swept joint in order: (T, 3) link frame
+
+    def joint_sweeps(self) -> dict[int, JointSweep]:
+        """The sweeps as the twin reads them from sweep.csv, in memory (per joint)."""
+        out = {}
+        for j in sorted(set(self.sweep_joint.tolist())):
+            m = self.sweep_joint == j
+            out[j] = JointSweep(
+                joint=j,
+                pass_name=self.sweep_pass[m],
+                step=self.sweep_step[m],
+                counts=self.sweep_counts[m],
+                points_mm=self.sweep_points_mm[m],
+                chain_counts=None
+                if not self.options.writes_all_counts
+                else self.sweep_all_counts[m],
+                target=self.sweep_target[m] if self.options.targets > 1 else None,
+            )
+        return out
+
+    def home_readings(self) -> dict[int, IntArray]:
+        """The Home returns' readings per joint, as home.csv gives them."""
+        return {int(j): self.home_counts[self.home_joint == j] for j in np.unique(self.home_joint)}
 
     def truth(self, joint: int) -> JointTruth:
         """The true relation of ``joint`` (1-based), with where its ring stood at Home."""

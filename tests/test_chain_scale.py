@@ -24,27 +24,6 @@ from sim_devices.truth import TrueCell
 ARCSEC = 3600.0
 
 
-def sweeps_of(camp: ScaleCampaign) -> dict[int, JointSweep]:
-    """The campaign's sweeps as the twin reads them from sweep.csv (in memory)."""
-    out = {}
-    for j in sorted(set(camp.sweep_joint.tolist())):
-        m = camp.sweep_joint == j
-        out[j] = JointSweep(
-            joint=j,
-            pass_name=camp.sweep_pass[m],
-            step=camp.sweep_step[m],
-            counts=camp.sweep_counts[m],
-            points_mm=camp.sweep_points_mm[m],
-            chain_counts=None if camp.sweep_all_counts is None else camp.sweep_all_counts[m],
-            target=camp.sweep_target[m] if camp.options.targets > 1 else None,
-        )
-    return out
-
-
-def home_of(camp: ScaleCampaign) -> dict[int, np.ndarray]:
-    return {j: camp.home_counts[camp.home_joint == j] for j in set(camp.home_joint.tolist())}
-
-
 def map_error_arcsec(camp: ScaleCampaign, result) -> float:
     """RMS over the stops of the map minus the true strip relation (from the Home ring)."""
     truth = camp.truth(result.joint)
@@ -71,7 +50,11 @@ def calibrated(robot: str, seed: int, chain: bool):
     desc = load_robot(robot)
     limits = [(j.lower_deg, j.upper_deg) for j in desc.joints]
     return calibrate_scales(
-        sweeps_of(camp), home_of(camp), home_deg=desc.home, limits_deg=limits, chain=chain
+        camp.joint_sweeps(),
+        camp.home_readings(),
+        home_deg=desc.home,
+        limits_deg=limits,
+        chain=chain,
     ).by_joint()
 
 
@@ -115,9 +98,9 @@ def test_a_modelled_deflection_after_the_rings_is_taken_out_too():
     cell = camp.cell
     desc = load_robot("kr500")
     limits = [(j.lower_deg, j.upper_deg) for j in desc.joints]
-    sweeps = sweeps_of(camp)
+    sweeps = camp.joint_sweeps()
     plain = calibrate_scales(
-        sweeps, home_of(camp), home_deg=desc.home, limits_deg=limits
+        sweeps, camp.home_readings(), home_deg=desc.home, limits_deg=limits
     ).by_joint()
     settings = with_derived_stiffness(eff, cell.arm)
     rotations = {}
@@ -125,7 +108,7 @@ def test_a_modelled_deflection_after_the_rings_is_taken_out_too():
         m = camp.sweep_joint == j
         rotations[j] = link_rotation_rad(settings, cell.arm, camp.sweep_ring_rad[m])
     fixed = calibrate_scales(
-        sweeps, home_of(camp), home_deg=desc.home, limits_deg=limits,
+        sweeps, camp.home_readings(), home_deg=desc.home, limits_deg=limits,
         link_rotations_rad=rotations,
     ).by_joint()  # fmt: skip
     for j in (3, 5):  # in units of each map's reported uncertainty
@@ -146,13 +129,13 @@ def test_three_reflectors_on_a_short_arc_through_sweep_csv(tmp_path):
         sweep = read_sweep_csv(paths["sweep"], n_joints=6).joints[2]
         assert sweep.n_targets == 3 and sweep.n_stops == 20
         truth = camp.truth(2)
-        res = calibrate_joint(sweep, home_of(camp)[2])
+        res = calibrate_joint(sweep, camp.home_readings()[2])
         first = sweep.target == 1
         single = JointSweep(
             2, sweep.pass_name[first], sweep.step[first], sweep.counts[first],
             sweep.points_mm[first],
         )  # fmt: skip
-        res1 = calibrate_joint(single, home_of(camp)[2])
+        res1 = calibrate_joint(single, camp.home_readings()[2])
         for r, out in ((res, three), (res1, one)):
             inc = np.diff(r.stop_angle_deg[r.pass_name == "forward"])
             true = np.diff(truth.angle_deg(r.stop_counts[r.pass_name == "forward"]))
