@@ -131,6 +131,19 @@ def default_strip_radii_mm(nominal: RobotDescription) -> list[float]:
     return [base_radii[min(i, len(base_radii) - 1)] * scale for i in range(nominal.n_joints)]
 
 
+#: The shortest distance of a link's reflector from its joint axis (mm): a wrist joint's
+#: is mounted on an extension bar, since each stop's angle noise is the tracker's noise
+#: over this radius (15-20 µm over 265 mm would be 3-4″ per stop on a KR500's flange).
+MIN_TARGET_RADIUS_MM = 500.0
+
+
+def link_target_mm(strip_radius_mm: float) -> tuple[float, float, float]:
+    """Where the scale campaign's reflector sits on a link, in the link's frame (mm): past
+    the ring, on a bar at least :data:`MIN_TARGET_RADIUS_MM` long."""
+    r = strip_radius_mm
+    return (max(1.5 * r + 100.0, MIN_TARGET_RADIUS_MM), 0.3 * r, 80.0)
+
+
 @dataclass(frozen=True)
 class TrackerModel:
     """A laser tracker at the origin of the world frame, measuring a spherical target.
@@ -223,7 +236,7 @@ class TrueCell:
             for r in default_strip_radii_mm(nominal)
         )
         radii = default_strip_radii_mm(nominal)
-        targets = tuple((1.5 * r + 100.0, 0.3 * r, 80.0) for r in radii)
+        targets = tuple(link_target_mm(r) for r in radii)
         tool = (truth.tool.x_mm, truth.tool.y_mm, truth.tool.z_mm)
         masses = draw_arm_masses(nominal, tool, np.random.default_rng([seed, MASS_STREAM]))
         truth = with_masses(truth, masses)
