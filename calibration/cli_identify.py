@@ -21,7 +21,16 @@ import numpy as np
 from calibration.campaign_files import read_campaign, read_joint_readings, write_points
 from calibration.description import RobotDescription, load_robot
 from calibration.errors import CalibrationError, DataFileError
-from calibration.identification import LOSSES, START_METHODS, identify, tracker_sigma_mm
+from calibration.identifiability import NO_EFFECT
+from calibration.identification import (
+    LOSSES,
+    RAN_AWAY,
+    START_METHODS,
+    IdentificationError,
+    IdentificationResult,
+    identify,
+    tracker_sigma_mm,
+)
 from calibration.kinematics import KinematicModel
 
 
@@ -149,12 +158,16 @@ def run_identify(args: argparse.Namespace) -> int:
         point_sigma_mm=point_sigma,
         progress=progress,
     )
+    _require_converged(result, "geometric")
     ana = result.identifiability
     say(
         f"identified {ana.rank} of {len(ana.parameter_names)} parameters "
         f"({len(ana.dropped)} dropped), condition number {ana.condition_number:.1f}; "
         f"{result.optimize_result.message}"
     )
+    for d in ana.dropped:
+        if d.reason.startswith((NO_EFFECT, RAN_AWAY)):
+            say(f"dropped {d.name}: {d.reason}")
     loop = None
     if args.no_effects:
         calibrated = replace(result.model.to_description(desc), effects=())
@@ -162,6 +175,7 @@ def run_identify(args: argparse.Namespace) -> int:
         loop = _closed_loop(args, desc, campaign, start, point_sigma, result, say)
         result = loop.result
         calibrated = loop.calibrated_description(desc)
+    _require_converged(result, "final")
     calibrated.save(args.out)
 
     from calibration.identification_report import build_report, write_report
@@ -202,10 +216,20 @@ def run_identify(args: argparse.Namespace) -> int:
         paths = write_report(args.report, doc, errors, closed_loop=loop)
         say(f"report written in {time.perf_counter() - started:.1f} s")
         print(f"wrote report to {args.report} ({len(paths)} files)")
-    if not result.success:
-        print(f"warning: {result.optimize_result.message}", file=sys.stderr)
-        return 1
     return 0
+
+
+def _require_converged(result: IdentificationResult, which: str) -> None:
+    """A fit that did not converge is an error (exit 2, nothing written). Converged: the
+    error norm's change fell to tol_mm, or no step of any damping lowers a finite error
+    norm (LM status −1). Not converged: the iteration limit. A fit that ran away beyond
+    repair has already raised in identify()."""
+    if not result.success:
+        opt = result.optimize_result
+        raise IdentificationError(
+            f"the {which} fit did not converge: {opt.message} (status {opt.status}, "
+            f"{opt.nit} iterations)"
+        )
 
 
 def _closed_loop(args, desc, campaign, start, point_sigma, geometric, say):  # type: ignore[no-untyped-def]

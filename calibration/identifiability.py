@@ -1,5 +1,13 @@
 """Which kinematic parameters the data can identify: column scaling, SVD, dropped set.
 
+A parameter whose column is negligible in absolute terms has *no effect on the measured
+positions* and is dropped first: a column in mm/rad below :data:`NO_EFFECT_TOL` of the
+arm's reach (mm), or one in mm/mm below :data:`NO_EFFECT_TOL` (see
+:func:`column_references`). Columns of other units (the closed loop's effect terms) only
+count as no effect when they are exactly zero. This test comes before the scaling, which
+would otherwise blow a column of rounding noise (e.g. ∂TCP/∂θ6 ≈ 1e-13 mm/rad with the
+tool on axis 6) up to RMS 1 and let it pass the rank test as a parameter.
+
 The stacked identification Jacobian ``(3m, 5n + 9)`` is scaled column by column (each
 column divided by its RMS, so parameters in mm and rad compare) and reduced to a square
 factor with the same Gram matrix (``S·Vᵀ`` of its SVD, through the eigen-decomposition of
@@ -16,7 +24,7 @@ its extreme singular values).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +45,14 @@ FloatArray = NDArray[np.float64]
 #: ones of a 100-pose campaign ~1e-2.
 DEFAULT_RTOL = 1e-6
 
+#: Absolute tolerance of the no-effect test: a column whose RMS is below this fraction of
+#: its reference (:func:`column_references`) does not move the TCP. Rounding noise of a
+#: vanishing column is ~1e-16 of the reach; a TCP 0.01 mm off an axis is ~2e-6 of it.
+NO_EFFECT_TOL = 1e-9
+
+#: Why a parameter whose column vanishes is dropped.
+NO_EFFECT = "no effect on the measured positions"
+
 
 class IdentifiabilityError(CalibrationError, ValueError):
     """The data identifies nothing, or the arguments have the wrong shape."""
@@ -48,7 +64,7 @@ class DroppedParameter:
 
     name: str
     index: int  # position in the full parameter vector
-    reason: str  # "no effect on the measured positions" or "redundant with ..."
+    reason: str  # NO_EFFECT, "redundant with ...", or why the caller excluded it
     redundant_with: tuple[str, ...] = ()
 
 
@@ -58,7 +74,7 @@ class IdentifiabilityAnalysis:
 
     parameter_names: tuple[str, ...]
     free: NDArray[np.bool_]  # (p,) True for identified parameters
-    column_scale: FloatArray  # (p,) RMS of each Jacobian column (1 for zero columns)
+    column_scale: FloatArray  # (p,) RMS of each Jacobian column (1 where NO_EFFECT)
     singular_values: FloatArray  # (k,) of the scaled Jacobian on the kept columns
     dropped: tuple[DroppedParameter, ...]
     rtol: float
@@ -95,12 +111,36 @@ class IdentifiabilityAnalysis:
         }
 
 
+def column_rms(jac: ArrayLike) -> FloatArray:
+    """RMS ``(p,)`` of each column of a stacked Jacobian ``(M, p)``, in its own units."""
+    a = np.asarray(jac, dtype=float)
+    return np.sqrt(np.einsum("ij,ij->j", a, a) / max(a.shape[0], 1))
+
+
 def column_scales(jac: ArrayLike) -> FloatArray:
     """RMS of each column of a stacked Jacobian ``(M, p)``; zero columns get scale 1."""
-    a = np.asarray(jac, dtype=float)
-    scale = np.sqrt(np.mean(a * a, axis=0))
+    scale = column_rms(jac)
     scale[scale == 0.0] = 1.0
     return scale
+
+
+def arm_reach_mm(model: KinematicModel) -> float:
+    """Σ|a| + Σ|d| + |tool| (mm): a bound on the TCP's distance from the robot's base
+    frame, hence on any ∂TCP/∂angle of the arm (mm/rad)."""
+    links = np.sum(np.abs(model.a_mm)) + np.sum(np.abs(model.d_mm))
+    return float(links + np.linalg.norm(model.tool_mm))
+
+
+def column_references(model: KinematicModel, n_extra: int = 0) -> FloatArray:
+    """Column RMS ``(5n + 9 + n_extra,)`` of a parameter with a full effect on the TCP.
+
+    The arm's reach (mm/rad) for an angle, 1 (mm/mm) for a length; 0 for the ``n_extra``
+    parameters appended after the geometry (effect terms, arbitrary units), so that only
+    an exactly zero column of theirs counts as no effect.
+    """
+    reach = arm_reach_mm(model)
+    geometric = [reach if name.endswith("_rad") else 1.0 for name in model.parameter_names()]
+    return np.concatenate([geometric, np.zeros(n_extra)])
 
 
 def default_priority(model: KinematicModel) -> list[int]:
@@ -137,11 +177,18 @@ def analyze_identifiability(
     priority: Sequence[int] | None = None,
     rtol: float = DEFAULT_RTOL,
     fixed: Sequence[int] = (),
+    references: ArrayLike | None = None,
+    excluded: Mapping[int, str] | None = None,
 ) -> IdentifiabilityAnalysis:
     """Decide the identifiable parameters from a Jacobian ``(m, 3, p)`` or ``(M, p)``.
 
     ``priority`` lists parameter indices in the order they should be kept (default: index
     order); ``fixed`` are indices the caller holds fixed whatever the data says.
+    ``references`` ``(p,)`` gives the column RMS of a full effect per parameter
+    (:func:`column_references`; default 0: only exactly zero columns have no effect); a
+    column below :data:`NO_EFFECT_TOL` of it is dropped as :data:`NO_EFFECT`.
+    ``excluded`` maps indices to the reason the caller drops them for (e.g. they ran away
+    in an earlier fit); the rank test then decides the others without them.
     """
     a = np.asarray(jac, dtype=float)
     if a.ndim == 3:
@@ -154,12 +201,19 @@ def analyze_identifiability(
     order = list(range(p)) if priority is None else [int(i) for i in priority]
     if sorted(order) != list(range(p)):
         raise IdentifiabilityError("priority must be a permutation of the parameter indices")
-    scale = column_scales(a)
+    ref_rms = np.zeros(p) if references is None else np.asarray(references, dtype=float)
+    if ref_rms.shape != (p,):
+        raise IdentifiabilityError(f"references must have shape ({p},), got {ref_rms.shape}")
+    rms = column_rms(a)
+    no_effect = (rms == 0.0) | (rms < NO_EFFECT_TOL * ref_rms)
+    scale = np.where(no_effect, 1.0, column_scales(a))
     scaled = a / scale
+    scaled[:, no_effect] = 0.0  # rounding noise must not enter the Gram factor
     r = _gram_factor(scaled)
     norms = np.linalg.norm(r, axis=0)
     ref = max(float(norms.max(initial=0.0)), 1e-300)
     fixed_set = {int(i) for i in fixed}
+    excluded_why = {int(i): str(why) for i, why in (excluded or {}).items()}
 
     basis = np.zeros((r.shape[0], 0))
     kept: list[int] = []
@@ -169,10 +223,11 @@ def analyze_identifiability(
         if j in fixed_set:
             dropped.append(DroppedParameter(parameter_names[j], j, "held fixed by the caller"))
             continue
-        if norms[j] <= rtol * ref:
-            dropped.append(
-                DroppedParameter(parameter_names[j], j, "no effect on the measured positions")
-            )
+        if j in excluded_why:
+            dropped.append(DroppedParameter(parameter_names[j], j, excluded_why[j]))
+            continue
+        if no_effect[j] or norms[j] <= rtol * ref:
+            dropped.append(DroppedParameter(parameter_names[j], j, NO_EFFECT))
             continue
         resid = col - basis @ (basis.T @ col)
         resid = resid - basis @ (basis.T @ resid)  # re-orthogonalize
@@ -236,5 +291,9 @@ def analyze_model(
     """Identifiability of ``model``'s parameters from TCP positions at joint vectors ``q``."""
     _, jac = identification_jacobian(model, np.atleast_2d(np.asarray(q_rad, dtype=float)))
     return analyze_identifiability(
-        jac, model.parameter_names(), priority=default_priority(model), rtol=rtol
+        jac,
+        model.parameter_names(),
+        priority=default_priority(model),
+        rtol=rtol,
+        references=column_references(model),
     )

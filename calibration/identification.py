@@ -10,6 +10,11 @@ when it falls, and stop when successive error norms differ by at most ``tol_mm``
 iteration runs on the identifiable parameters only (see :mod:`calibration.identifiability`),
 in column-scaled units so that one μ suits mm and rad alike.
 
+Every accepted iterate is watched: a free parameter whose column collapses or that runs
+away (non-finite, an angle beyond ±π from its start, a length beyond the arm's reach) is
+dropped with its reason and the fit starts again from the start point without it, at most
+:data:`MAX_RESTARTS` times; what cannot be resolved raises :class:`IdentificationError`.
+
 Non-geometric effect terms (the closed loop's, :mod:`calibration.closed_loop`) join the
 problem as :class:`EffectTerms`: k parameters ``c`` appended to the geometric vector, the
 predicted point being ``tcp(model, q) + R(model, q, ...)·c`` with the effects' analytic
@@ -37,8 +42,13 @@ from scipy.stats import chi2
 from calibration.errors import CalibrationError
 from calibration.identifiability import (
     DEFAULT_RTOL,
+    NO_EFFECT,
     IdentifiabilityAnalysis,
+    IdentifiabilityError,
     analyze_identifiability,
+    arm_reach_mm,
+    column_references,
+    column_rms,
     default_priority,
 )
 from calibration.kinematics import (
@@ -62,6 +72,7 @@ LOSSES: dict[str, Callable[[FloatArray], FloatArray]] = {
 START_METHODS = ("description", "registration")
 
 TERMINATION_MESSAGES = {
+    -2: "the residuals were not finite at any damping: the iteration ran away",
     -1: "the step could not reduce the error: damping limit reached",
     0: "the maximum number of iterations was reached",
     1: "change of the error norm <= tol_mm",
@@ -73,7 +84,8 @@ OUTLIER_PROBABILITY = 1e-3
 
 
 class IdentificationError(CalibrationError, ValueError):
-    """The identification cannot run: too few poses, bad shapes, unknown option."""
+    """The identification cannot run (too few poses, bad shapes, unknown option) or its fit
+    ran away beyond repair."""
 
 
 ProgressCallback = Callable[[int, float, float], None]  # (iteration, error norm mm, damping)
@@ -207,6 +219,11 @@ def predicted_points(
 
 
 # -- the solver ------------------------------------------------------------------------
+#: A check of each accepted iterate: (iteration, x, residuals, Jacobian) -> None. It may
+#: raise to end the iteration (identify() drops parameters that ran away through it).
+IterateWatch = Callable[[int, FloatArray, FloatArray, FloatArray], None]
+
+
 def levenberg_marquardt(
     fun: Callable[..., FloatArray],
     jac: Callable[..., FloatArray],
@@ -216,12 +233,18 @@ def levenberg_marquardt(
     x_scale: ArrayLike | None = None,
     settings: LMSettings = LMSettings(),
     progress: ProgressCallback | None = None,
+    watch: IterateWatch | None = None,
 ) -> OptimizeResult:
     """Minimize ``½‖fun(x, *args)‖²`` by the source's Levenberg-Marquardt iteration.
 
     ``x_scale`` (k,) gives the characteristic size of each variable; the damping acts on
-    ``x / x_scale``. Returns a :class:`scipy.optimize.OptimizeResult` with x, cost, fun,
-    jac, grad, optimality, nfev, njev, nit, status, message, success and ``mu``.
+    ``x / x_scale``. ``watch`` sees the start point and every accepted iterate; what it
+    raises ends the iteration and propagates. Returns a :class:`scipy.optimize.OptimizeResult`
+    with x, cost, fun, jac, grad, optimality, nfev, njev, nit, status, message, success and
+    ``mu``. ``success``: converged (status 1 or 2), or status −1 (no step of any damping
+    lowers the error) at a finite error norm: the last accepted point has the smallest
+    norm seen and no descent step is left at the solver's resolution. Status 0 (iteration
+    limit) and −2 (non-finite residuals at every damping) are failures.
     """
     x = np.array(x0, dtype=float)
     scale = np.ones_like(x) if x_scale is None else np.asarray(x_scale, dtype=float)
@@ -232,6 +255,8 @@ def levenberg_marquardt(
     mu = settings.mu0
     status = 0
     nit = 0
+    if watch is not None:
+        watch(0, x, f, j)
     if progress is not None:
         progress(0, norm, mu)
     for nit in range(1, settings.max_iterations + 1):
@@ -242,6 +267,7 @@ def levenberg_marquardt(
         a = js.T @ js
         g = js.T @ f
         accepted = False
+        norm_new = math.inf
         while mu <= settings.mu_max:
             try:
                 step = -np.linalg.solve(a + mu * np.eye(len(x)), g) * scale
@@ -260,12 +286,14 @@ def levenberg_marquardt(
                 break  # at the minimum: a step changes the error norm by <= tol_mm
             mu *= settings.increase
         if not accepted:
-            status = 1 if norm_new - norm <= settings.tol_mm else -1
+            status = _rejected_status(norm, norm_new, settings.tol_mm)
             break
         change = norm - norm_new
         x, f, norm = x_new, f_new, norm_new
         j = jac(x, *args)
         njev += 1
+        if watch is not None:
+            watch(nit, x, f, j)
         if progress is not None:
             progress(nit, norm, mu)
         if change <= settings.tol_mm:
@@ -285,8 +313,16 @@ def levenberg_marquardt(
         mu=mu,
         status=status,
         message=TERMINATION_MESSAGES[status],
-        success=status > 0,
+        success=status > 0 or (status == -1 and math.isfinite(norm)),
     )
+
+
+def _rejected_status(norm: float, norm_new: float, tol_mm: float) -> int:
+    """Status when no trial step was accepted: 1 at the minimum (the last trial changed
+    the norm by <= tol_mm), −2 when its residuals were not finite, else −1."""
+    if norm_new - norm <= tol_mm:
+        return 1
+    return -1 if math.isfinite(norm_new) else -2
 
 
 def tracker_sigma_mm(
@@ -358,9 +394,10 @@ class IdentificationResult:
         return self.parameter_vector() - self.start_vector()
 
     def standard_errors(self) -> FloatArray:
-        """Standard errors, full vector (mm, rad); NaN for dropped parameters."""
+        """Standard errors, full vector (mm, rad, effect units); NaN exactly for the dropped
+        parameters (held at their start value), finite for every identified one."""
         se = np.full(len(self.parameter_names), np.nan)
-        se[self.free] = np.sqrt(np.diag(self.covariance))
+        se[self.free] = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
         return se
 
     def residuals_mm(self, q_rad: ArrayLike, measured_mm: ArrayLike) -> FloatArray:
@@ -450,6 +487,220 @@ def base_start_from_registration(
     return model.with_parameters(x)
 
 
+#: Restarts from the start point after dropping parameters that ran away, before giving up.
+MAX_RESTARTS = 3
+
+#: A free column whose RMS falls below this fraction of its start value has collapsed.
+COLLAPSE_RATIO = 1e-6
+
+#: Why a parameter is dropped during the iterations (details follow in parentheses).
+COLLAPSED = NO_EFFECT + " during the iterations"
+RAN_AWAY = "ran away during the iterations"
+
+
+class _RunAway(Exception):
+    """Raised by :class:`_Watch`: free parameters (full-vector index -> reason) to drop."""
+
+    def __init__(self, reasons: dict[int, str]) -> None:
+        super().__init__("; ".join(reasons.values()))
+        self.reasons = reasons
+
+
+@dataclass(frozen=True, eq=False)
+class _Problem:
+    """The identification data at its start point, where every (re)start begins."""
+
+    nominal: KinematicModel
+    q: FloatArray  # (m, n) rad
+    meas: FloatArray  # (m, 3) mm
+    prior: FloatArray  # (m,) relative point weights, mean 1
+    effects: EffectTerms | None
+    x_start: FloatArray  # (p,) full start vector, geometry then effects (mm, rad, ...)
+    jac_start: FloatArray  # (m, 3, p) unweighted Jacobian at the start point
+    column_sq_start: FloatArray  # (m, p) per pose, Σ over x, y, z of jac_start²
+    max_move: FloatArray  # (p,) largest credible |x − x_start| (see _credible_moves)
+
+
+def _credible_moves(start: KinematicModel, meas: FloatArray, n_effects: int) -> FloatArray:
+    """Largest credible |identified − start| ``(5n + 9 + n_effects,)`` (rad, mm).
+
+    π for an angle; the arm's reach for a length of the arm or tool; for the base
+    translation the reach plus the farthest point from the start base (every point lies
+    within reach of the true base); no limit for effect parameters (arbitrary units).
+    """
+    reach = arm_reach_mm(start)
+    far = float(np.max(np.linalg.norm(meas - start.base_mm, axis=1)))
+    moves = [
+        math.pi if n.endswith("_rad") else reach + far if n.startswith("base.") else reach
+        for n in start.parameter_names()
+    ]
+    return np.concatenate([moves, np.full(n_effects, np.inf)])
+
+
+@dataclass(frozen=True)
+class _Watch:
+    """Checks every accepted LM iterate of one run for free parameters that ran away
+    (non-finite, or moved beyond credibility) or whose column collapsed."""
+
+    names: tuple[str, ...]  # (k,) free parameter names
+    index: NDArray[np.intp]  # (k,) their positions in the full vector
+    x_start: FloatArray  # (k,) at the start point
+    max_move: FloatArray  # (k,)
+    start_rms: FloatArray  # (k,) column RMS of this run's weighted Jacobian at the start
+
+    def __call__(self, nit: int, x: FloatArray, f: FloatArray, j: FloatArray) -> None:
+        why = self.reasons(nit, x, j)
+        if not why and not np.all(np.isfinite(f)):
+            raise IdentificationError(f"the residuals are not finite at iteration {nit}")
+        if why:
+            raise _RunAway({int(self.index[i]): r for i, r in why.items()})
+
+    def reasons(self, nit: int, x: FloatArray, j: FloatArray) -> dict[int, str]:
+        """Free position -> why it must go, for the iterate ``x`` ``(k,)`` with the
+        weighted Jacobian ``j`` ``(3m, k)``."""
+        why: dict[int, str] = {}
+        bad = ~np.isfinite(x) | ~np.all(np.isfinite(j), axis=0)
+        for i in np.flatnonzero(bad):
+            why[i] = f"{RAN_AWAY} (non-finite value or column at iteration {nit})"
+        move = np.abs(x - self.x_start)
+        for i in np.flatnonzero(move > self.max_move):
+            why.setdefault(i, _moved(self.names[i], move[i], self.max_move[i], nit))
+        ratio = column_rms(j) / self.start_rms
+        for i in np.flatnonzero(ratio < COLLAPSE_RATIO):
+            why.setdefault(
+                i,
+                f"{COLLAPSED} (its column fell to {ratio[i]:.1e} of its start RMS by "
+                f"iteration {nit})",
+            )
+        return why
+
+
+def _moved(name: str, move: float, limit: float, nit: int) -> str:
+    if name.endswith("_rad"):
+        return (
+            f"{RAN_AWAY} (moved {math.degrees(move):.3g}° from its start by iteration "
+            f"{nit}, beyond ±180°)"
+        )
+    return (
+        f"{RAN_AWAY} (moved {move:.4g} mm from its start by iteration {nit}, beyond {limit:.0f} mm)"
+    )
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """One LM fit with its robust-loss reweighting (IRLS)."""
+
+    result: OptimizeResult  # of the last LM run (x: free parameters)
+    weights: FloatArray  # (m,) final robust-loss weights
+    sw_last: FloatArray  # (m,) √(prior · weights) of the last LM run
+    f_scale_mm: float | None
+    irls: int
+
+
+def _robust_fit(
+    problem: _Problem,
+    analysis: IdentifiabilityAnalysis,
+    *,
+    loss: str,
+    f_scale_mm: float | None,
+    max_irls: int,
+    settings: LMSettings,
+    record: ProgressCallback,
+) -> _Fit:
+    """LM on the free parameters of ``analysis`` from the start point, reweighted by the
+    robust loss; raises :class:`_RunAway` through the watch."""
+    m = len(problem.q)
+    free_idx = analysis.free_indices
+    x_scale = 1.0 / analysis.column_scale[free_idx]
+    names = tuple(analysis.parameter_names[i] for i in free_idx)
+    column_sq = problem.column_sq_start[:, free_idx]
+    weights = np.ones(m)
+    x = problem.x_start[free_idx]
+    sw_last = np.ones(m)
+    result: OptimizeResult | None = None
+    scale_used = f_scale_mm
+    irls = 0
+    while irls < (max_irls if loss != "linear" else 1):
+        irls += 1
+        sw = np.sqrt(problem.prior * weights)
+        args = (
+            problem.x_start,
+            free_idx,
+            problem.nominal,
+            problem.q,
+            problem.meas,
+            sw,
+            problem.effects,
+        )
+        start_rms = np.sqrt(sw**2 @ column_sq / (3 * m))  # same weights as this run
+        watch = _Watch(
+            names, free_idx, problem.x_start[free_idx], problem.max_move[free_idx], start_rms
+        )
+        result = levenberg_marquardt(
+            position_residuals,
+            position_residual_jacobian,
+            x,
+            args=args,
+            x_scale=x_scale,
+            settings=settings,
+            progress=record,
+            watch=watch,
+        )
+        if result.status == -2:
+            raise IdentificationError(result.message)
+        x = result.x
+        sw_last = sw
+        if loss == "linear":
+            break
+        # 3-D residuals in units of the reference σ's pose (prior-weighted, not robust)
+        dist = np.linalg.norm(result.fun.reshape(-1, 3), axis=1) / np.sqrt(
+            np.maximum(weights, 1e-300)
+        )
+        if f_scale_mm is None:
+            # 3 σ per axis, σ from the median 3-D distance (median of Maxwell = 1.538 σ)
+            scale_used = 3.0 * float(np.median(dist)) / 1.538
+        new_w = LOSSES[loss](dist / max(scale_used or 1e-12, 1e-12))
+        converged = np.max(np.abs(new_w - weights)) < 1e-3
+        weights = new_w
+        if converged:
+            break
+    assert result is not None
+    return _Fit(result, weights, sw_last, scale_used, irls)
+
+
+def _fit_dropping_runaways(
+    analyze: Callable[[dict[int, str]], IdentifiabilityAnalysis],
+    fit: Callable[[IdentifiabilityAnalysis], _Fit],
+) -> tuple[IdentifiabilityAnalysis, _Fit]:
+    """Fit; while parameters run away or lose their effect, drop them (named, with the
+    reason) and fit again from the start point, at most :data:`MAX_RESTARTS` times."""
+    excluded: dict[int, str] = {}
+    for _ in range(MAX_RESTARTS + 1):
+        analysis = analyze(excluded)
+        try:
+            return analysis, fit(analysis)
+        except _RunAway as exc:
+            excluded.update(exc.reasons)
+            last = exc
+    names = analysis.parameter_names
+    detail = "; ".join(f"{names[i]} {why}" for i, why in last.reasons.items())
+    raise IdentificationError(
+        f"the fit ran away, still after {MAX_RESTARTS} restart(s) without the parameters "
+        f"concerned: {detail}"
+    )
+
+
+def _scaled_covariance(js: FloatArray) -> FloatArray:
+    """``(JsᵀJs)⁻¹`` ``(k, k)`` of a column-scaled Jacobian ``(3m, k)`` from the Gram
+    matrix's eigen-decomposition: symmetric with a non-negative diagonal even where
+    rounding leaves the Gram matrix slightly indefinite (a pseudo-inverse can then give a
+    negative variance, hence a NaN standard error). Directions whose eigenvalue is below
+    1e-15 of the largest are left out, as ``pinv`` does."""
+    w, v = np.linalg.eigh(js.T @ js)
+    keep = w > 1e-15 * max(float(w.max(initial=0.0)), 0.0)
+    return (v[:, keep] / w[keep]) @ v[:, keep].T
+
+
 def identify(
     nominal: KinematicModel,
     q_rad: ArrayLike,
@@ -512,26 +763,25 @@ def identify(
     start_model = (
         base_start_from_registration(nominal, q, meas) if start == "registration" else nominal
     )
-    jac0 = stacked_jacobian(start_model, q, effects)
-    analysis = analyze_identifiability(
-        jac0,
-        names,
-        priority=default_priority(nominal) + list(range(p_geo, len(names))),
-        rtol=rtol,
-        fixed=[names.index(f) for f in fixed],
-    )
-    free_idx = analysis.free_indices
-    k = len(free_idx)
-    if 3 * len(q) <= k:
-        raise IdentificationError(
-            f"{len(q)} poses give {3 * len(q)} equations for {k} identifiable parameters"
-        )
-    x_full = start_model.parameter_vector()
+    x_start = start_model.parameter_vector()
     if effects is not None:
-        x_full = np.concatenate([x_full, effects.start_vector()])
-    x_scale = 1.0 / analysis.column_scale[free_idx]
-
-    weights = np.ones(len(q))
+        x_start = np.concatenate([x_start, effects.start_vector()])
+    n_effects = len(names) - p_geo
+    jac_start = stacked_jacobian(start_model, q, effects)
+    problem = _Problem(
+        nominal=nominal,
+        q=q,
+        meas=meas,
+        prior=prior,
+        effects=effects,
+        x_start=x_start,
+        jac_start=jac_start,
+        column_sq_start=np.einsum("mip,mip->mp", jac_start, jac_start),
+        max_move=_credible_moves(start_model, meas, n_effects),
+    )
+    priority = default_priority(nominal) + list(range(p_geo, len(names)))
+    references = column_references(nominal, n_effects)
+    fixed_idx = [names.index(f) for f in fixed]
     history: list[tuple[int, float, float]] = []
 
     def record(it: int, norm: float, mu: float) -> None:
@@ -539,56 +789,57 @@ def identify(
         if progress is not None:
             progress(it, norm, mu)
 
-    x = x_full[free_idx]
-    sw_last = np.ones(len(q))
-    result: OptimizeResult | None = None
-    scale_used = f_scale_mm
-    irls = 0
-    while irls < (max_irls if loss != "linear" else 1):
-        irls += 1
-        sw = np.sqrt(prior * weights)
-        args = (x_full, free_idx, nominal, q, meas, sw, effects)
-        result = levenberg_marquardt(
-            position_residuals,
-            position_residual_jacobian,
-            x,
-            args=args,
-            x_scale=x_scale,
-            settings=settings,
-            progress=record,
-        )
-        x = result.x
-        sw_last = sw
-        if loss == "linear":
-            break
-        # 3-D residuals in units of the reference σ's pose (prior-weighted, not robust)
-        dist = np.linalg.norm(result.fun.reshape(-1, 3), axis=1) / np.sqrt(
-            np.maximum(weights, 1e-300)
-        )
-        if f_scale_mm is None:
-            # 3 σ per axis, σ from the median 3-D distance (median of Maxwell = 1.538 σ)
-            scale_used = 3.0 * float(np.median(dist)) / 1.538
-        new_w = LOSSES[loss](dist / max(scale_used or 1e-12, 1e-12))
-        if np.max(np.abs(new_w - weights)) < 1e-3:
-            weights = new_w
-            break
-        weights = new_w
-    assert result is not None
+    def analyze(excluded: dict[int, str]) -> IdentifiabilityAnalysis:
+        try:
+            analysis = analyze_identifiability(
+                problem.jac_start,
+                names,
+                priority=priority,
+                rtol=rtol,
+                fixed=fixed_idx,
+                references=references,
+                excluded=excluded,
+            )
+        except IdentifiabilityError as exc:
+            if not excluded:
+                raise
+            raise IdentificationError(
+                f"nothing left to identify without the parameters that ran away: {exc}"
+            ) from None
+        if 3 * len(q) <= analysis.rank:
+            raise IdentificationError(
+                f"{len(q)} poses give {3 * len(q)} equations for {analysis.rank} "
+                "identifiable parameters"
+            )
+        return analysis
 
-    final = _full_vector(x, x_full, free_idx)
+    def fit(analysis: IdentifiabilityAnalysis) -> _Fit:
+        return _robust_fit(
+            problem,
+            analysis,
+            loss=loss,
+            f_scale_mm=f_scale_mm,
+            max_irls=max_irls,
+            settings=settings,
+            record=record,
+        )
+
+    analysis, done = _fit_dropping_runaways(analyze, fit)
+    result, weights = done.result, done.weights
+    free_idx = analysis.free_indices
+    k = len(free_idx)
+    final = _full_vector(result.x, x_start, free_idx)
     model = nominal.with_parameters(final[:p_geo])
     effect_values = final[p_geo:]
     sw = np.sqrt(prior * weights)
     resid = predicted_points(model, q, effects, effect_values) - meas
     # the solver's last Jacobian is at x, weighted with the weights of its last run
-    jw = result.jac * (sw / np.maximum(sw_last, 1e-300)).repeat(3)[:, None]
+    jw = result.jac * (sw / np.maximum(done.sw_last, 1e-300)).repeat(3)[:, None]
     dof = max(3 * len(q) - k, 1)
     wsum = float(np.sum((resid * sw[:, None]) ** 2))
     sigma2 = wsum / dof * len(q) / max(float(np.sum(weights)), 1e-300)
-    js = jw / analysis.column_scale[free_idx]
-    cov_s = np.linalg.pinv(js.T @ js)
     d = 1.0 / analysis.column_scale[free_idx]
-    covariance = sigma2 * cov_s * np.outer(d, d)
+    covariance = sigma2 * _scaled_covariance(jw * d) * np.outer(d, d)
     sigma = math.sqrt(sigma2)
     dist = np.linalg.norm(resid, axis=1) * np.sqrt(prior)
     # robust per-axis σ for the outlier test: the median of a Maxwell distance is 1.538 σ,
@@ -605,10 +856,10 @@ def identify(
         pose_weights=weights,
         outliers=dist > threshold,
         loss=loss,
-        f_scale_mm=scale_used if loss != "linear" else None,
+        f_scale_mm=done.f_scale_mm if loss != "linear" else None,
         optimize_result=result,
         elapsed_s=time.perf_counter() - started,
-        irls_iterations=irls,
+        irls_iterations=done.irls,
         history=history,
         reference_sigma_mm=reference_sigma,
         effects=effects,

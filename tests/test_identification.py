@@ -9,12 +9,21 @@ import pytest
 from scipy.optimize import OptimizeResult, least_squares
 from scipy.stats import chi2
 
-from calibration.description import load_robot
-from calibration.identifiability import analyze_model
+from calibration import identifiability, identification
+from calibration.description import RobotDescription, load_robot
+from calibration.identifiability import (
+    NO_EFFECT,
+    analyze_identifiability,
+    analyze_model,
+    column_references,
+)
 from calibration.identification import (
+    COLLAPSED,
+    RAN_AWAY,
     IdentificationError,
     LMSettings,
     identify,
+    levenberg_marquardt,
     position_residual_jacobian,
     position_residuals,
     tracker_sigma_mm,
@@ -316,6 +325,133 @@ def test_rigid_registration_recovers_a_transform():
         rigid_registration(line, line)
     with pytest.raises(RegistrationError, match="at least 3"):
         rigid_registration(src[:2], src[:2])
+
+
+# -- parameters without effect, and fits that run away (issue 17) -----------------------------
+def tool_on_last_axis() -> RobotDescription:
+    """The kr500 preset with its tool on axis 6 (x = y = 0), as hand-written files have it:
+    ∂TCP/∂θ6 = z6 × (p − o6) vanishes at the start point."""
+    desc = load_robot("kr500")
+    return replace(desc, tool=replace(desc.tool, x_mm=0.0, y_mm=0.0))
+
+
+@pytest.fixture(scope="module")
+def on_axis():
+    desc = tool_on_last_axis()
+    return desc, emulated_campaign(desc, 1, CampaignSettings())
+
+
+def identify_campaign(desc: RobotDescription, data, **kwargs):
+    c = data.campaign
+    idm = c.mask("identify")
+    return identify(KinematicModel.from_description(desc), c.q_rad[idm], c.xyz_mm[idm], **kwargs)
+
+
+def validation_ratio(data, model: KinematicModel) -> float:
+    """Validation mean AP of ``model`` over that of the true model, on the same points."""
+    c = data.campaign
+    vm = c.mask("validate")
+    after = np.linalg.norm(c.xyz_mm[vm] - tcp_positions(model, c.q_rad[vm]), axis=1)
+    true = np.linalg.norm(c.xyz_mm[vm] - data.true_prediction_mm[vm], axis=1)
+    return float(after.mean() / true.mean())
+
+
+def assert_finite_standard_errors(result) -> None:
+    se = result.standard_errors()
+    assert np.all(np.isfinite(se[result.free])) and np.all(se[result.free] > 0)
+    assert np.all(np.isnan(se[~result.free]))  # NaN means dropped, nothing else
+    assert all(
+        (r["standard_error"] is not None) == r["identified_from_data"]
+        for r in result.parameter_table()
+    )
+
+
+def test_tool_on_the_last_axis_drops_the_joint6_offset(on_axis):
+    desc, data = on_axis
+    result = identify_campaign(desc, data)
+    reasons = {d.name: d.reason for d in result.identifiability.dropped}
+    assert result.success, result.optimize_result.message
+    assert reasons["joint6.theta_offset_rad"] == "no effect on the measured positions"
+    assert np.all(np.isfinite(result.parameter_vector()))
+    assert_finite_standard_errors(result)
+    assert validation_ratio(data, result.model) <= 1.1
+
+
+def test_vanishing_columns_are_judged_in_their_units():
+    """Rounding noise in an angle's column (mm/rad) is no effect; an effect term's column
+    (arbitrary units) is only no effect when exactly zero, else scaled like any other."""
+    model = KinematicModel.from_description(load_robot("kr500"))
+    rng = np.random.default_rng(0)
+    geo = rng.normal(size=(60, model.n_parameters))
+    noise = 1e-13 * rng.normal(size=60)
+    i = model.parameter_names().index("joint6.theta_offset_rad")
+    geo[:, i] = noise
+    extra = np.column_stack([noise, np.zeros(60)])  # two effect columns
+    jac = np.column_stack([geo, extra])
+    names = [*model.parameter_names(), "e1_mm", "e2_mm"]
+    refs = column_references(model, n_extra=2)
+    ana = analyze_identifiability(jac, names, references=refs)
+    reasons = {d.name: d.reason for d in ana.dropped}
+    assert reasons == {"joint6.theta_offset_rad": NO_EFFECT, "e2_mm": NO_EFFECT}
+    assert ana.column_scale[i] == 1.0
+    # without references (the old rule), the noise column is scaled up and kept
+    assert analyze_identifiability(jac, names).free[i]
+
+
+def test_a_parameter_that_runs_away_is_dropped_and_the_fit_restarts(on_axis, monkeypatch):
+    """Without the start-point test, θ6 runs away in the first step: it is dropped, named,
+    and the fit starts again without it."""
+    desc, data = on_axis
+    monkeypatch.setattr(identifiability, "NO_EFFECT_TOL", 0.0)
+    result = identify_campaign(desc, data)
+    reasons = {d.name: d.reason for d in result.identifiability.dropped}
+    assert reasons["joint6.theta_offset_rad"].startswith(RAN_AWAY)
+    assert "beyond ±180°" in reasons["joint6.theta_offset_rad"]
+    assert [h[0] for h in result.history].count(0) == 2  # the start and one restart
+    assert result.success
+    assert_finite_standard_errors(result)
+    assert validation_ratio(data, result.model) <= 1.1
+    monkeypatch.setattr(identification, "MAX_RESTARTS", 0)
+    with pytest.raises(IdentificationError, match=r"joint6\.theta_offset_rad ran away"):
+        identify_campaign(desc, data)
+
+
+def test_a_column_that_collapses_during_the_iterations_is_dropped(monkeypatch):
+    data = emulated_campaign("kr500", 2, CampaignSettings(selection=None, n_validate=40))
+    desc = data.cell.nominal
+    nominal = KinematicModel.from_description(desc)
+    target = nominal.parameter_names().index("joint2.a_mm")
+
+    def collapsing(x_free, x_full, free_idx, *rest):
+        """The real Jacobian, with joint2.a_mm's column gone once the fit has moved."""
+        jac = position_residual_jacobian(x_free, x_full, free_idx, *rest)
+        if target in free_idx and not np.array_equal(x_free, x_full[free_idx]):
+            jac[:, list(free_idx).index(target)] *= 1e-8
+        return jac
+
+    monkeypatch.setattr(identification, "position_residual_jacobian", collapsing)
+    result = identify_campaign(desc, data)
+    reasons = {d.name: d.reason for d in result.identifiability.dropped}
+    assert reasons["joint2.a_mm"].startswith(COLLAPSED)
+    assert result.success and not result.free[target]
+    assert_finite_standard_errors(result)
+
+
+def test_lm_status_says_converged_or_failed():
+    one = np.array([[1.0]])
+    # a kink at the start: no step of any damping lowers the finite error norm: converged
+    kink = levenberg_marquardt(lambda x: np.array([1.0 + 1e9 * abs(x[0])]), lambda x: one, [0.0])
+    assert kink.status == -1 and kink.success
+    # residuals not finite away from the start at any damping: ran away
+    cliff = levenberg_marquardt(
+        lambda x: np.array([1.0 if x[0] == 0.0 else np.nan]), lambda x: one, [0.0]
+    )
+    assert cliff.status == -2 and not cliff.success
+    # the iteration limit before convergence
+    short = levenberg_marquardt(
+        lambda x: x - 5.0, lambda x: one, [0.0], settings=LMSettings(max_iterations=1)
+    )
+    assert short.status == 0 and not short.success
 
 
 @pytest.mark.slow

@@ -10,9 +10,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from calibration import identifiability, identification
 from calibration.campaign_files import read_campaign, read_points, write_campaign
 from calibration.cli import main
 from calibration.description import EffectDescription, load_robot
+from calibration.identification import LMSettings
 from calibration.identification_report import COMPONENTS, REPORT_FILES, STATISTICS
 from calibration.model_effects import ModelEffectError, predict_tcp
 from sim_devices import pose_campaign
@@ -291,3 +293,82 @@ def test_effect_options_are_checked(campaign, tmp_path, capsys):
     rc = main(["identify", "--robot", "kr500", "--data", str(path), "--out", str(out),
                "--quiet", "--effect-kinds", "lost_motion"])  # fmt: skip
     assert rc == 0
+
+
+# -- parameters without effect, and failed fits (issue 17) -------------------------------------
+def _strict_json(text: str) -> dict:
+    def no_constant(name: str) -> None:
+        raise ValueError(f"report.json holds {name}")
+
+    return json.loads(text, parse_constant=no_constant)
+
+
+@pytest.fixture(scope="module")
+def on_axis_campaign(tmp_path_factory):
+    """A description with the tool on axis 6 (x = y = 0) and a campaign on a cell drawn
+    around it."""
+    tmp = tmp_path_factory.mktemp("on_axis")
+    desc = load_robot("kr500")
+    desc = replace(desc, tool=replace(desc.tool, x_mm=0.0, y_mm=0.0))
+    robot = tmp / "robot.toml"
+    desc.save(robot)
+    data = emulated_campaign(desc, 1, CampaignSettings(n_validate=60))
+    path = tmp / "campaign.csv"
+    write_campaign(path, data.campaign)
+    return robot, path, data
+
+
+def test_tool_on_the_last_axis_through_the_cli(on_axis_campaign, tmp_path, capsys):
+    robot, path, data = on_axis_campaign
+    out, rep = tmp_path / "cal.toml", tmp_path / "rep"
+    rc = main(["identify", "--robot", str(robot), "--data", str(path), "--out", str(out),
+               "--report", str(rep), "--no-effects"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "dropped joint6.theta_offset_rad: no effect on the measured positions" in err
+    doc = _strict_json((rep / "report.json").read_text())
+    dropped = {d["name"]: d["reason"] for d in doc["identifiability"]["dropped"]}
+    assert dropped["joint6.theta_offset_rad"] == "no effect on the measured positions"
+    for p in doc["parameters"]:
+        assert (p["standard_error"] is not None) == p["identified_from_data"], p["name"]
+    vm = data.campaign.mask("validate")
+    pred = predict_tcp(load_robot(out), data.campaign.q_rad[vm])
+    after = np.linalg.norm(pred - data.campaign.xyz_mm[vm], axis=1).mean()
+    true = np.linalg.norm(data.true_prediction_mm[vm] - data.campaign.xyz_mm[vm], axis=1).mean()
+    assert after <= 1.1 * true
+
+
+def _never_converging(monkeypatch) -> str:
+    """The LM stopped after one iteration, far from converged."""
+    real = identification.levenberg_marquardt
+
+    def one_iteration(*args, **kwargs):
+        return real(*args, **{**kwargs, "settings": LMSettings(max_iterations=1)})
+
+    monkeypatch.setattr(identification, "levenberg_marquardt", one_iteration)
+    return "the geometric fit did not converge: the maximum number of iterations was reached"
+
+
+def _running_away(monkeypatch) -> str:
+    """θ6 kept at the start point (no start-point test) runs away; no restart allowed."""
+    monkeypatch.setattr(identifiability, "NO_EFFECT_TOL", 0.0)
+    monkeypatch.setattr(identification, "MAX_RESTARTS", 0)
+    return "joint6.theta_offset_rad ran away during the iterations"
+
+
+@pytest.mark.parametrize("failure", [_never_converging, _running_away])
+def test_a_failed_fit_writes_nothing_and_exits_2(
+    failure, on_axis_campaign, tmp_path, capsys, monkeypatch
+):
+    robot, path, _ = on_axis_campaign
+    reason = failure(monkeypatch)
+    out, rep = tmp_path / "cal.toml", tmp_path / "rep"
+    rc = main(["identify", "--robot", str(robot), "--data", str(path), "--out", str(out),
+               "--report", str(rep), "--quiet"])  # fmt: skip
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert rc == 2
+    assert len(lines) == 1 and lines[0].startswith("twin identify: error: "), captured.err
+    assert reason in lines[0]
+    assert not out.exists() and not rep.exists()
+    assert "wrote" not in captured.out
