@@ -258,7 +258,7 @@ def _closed_loop(args, desc, campaign, start, point_sigma, geometric, say):  # t
 
 
 def run_predict(args: argparse.Namespace) -> int:
-    from calibration.model_effects import predict_tcp
+    from calibration.model_effects import predict_tcp, times_outside_span
 
     desc = load_robot(args.model)
     readings = read_joint_readings(
@@ -266,6 +266,14 @@ def run_predict(args: argparse.Namespace) -> int:
     )
     points = predict_tcp(desc, np.radians(readings.q_deg), readings.t_s)
     write_points(args.out, readings.pose, points)
+    outside, span = times_outside_span(desc, readings.t_s)
+    if outside and span is not None:
+        print(
+            f"twin predict: warning: {outside} row(s) outside the campaign's time span "
+            f"[{span[0]:.0f}, {span[1]:.0f}] s: the drift terms are held at their value at "
+            "the nearer end (a polynomial in time is never extrapolated)",
+            file=sys.stderr,
+        )
     if readings.skipped:
         print(f"twin predict: skipped {len(readings.skipped)} bad row(s)", file=sys.stderr)
         for s in readings.skipped[:10]:

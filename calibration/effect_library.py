@@ -63,6 +63,7 @@ from calibration.gravity_regressor import (
     BaseMoments,
     base_moments,
     gravity_of,
+    link_rotations,
     moment_names,
     raw_regressor,
 )
@@ -511,20 +512,59 @@ class GravityDeflection(EffectKind):
         return tuple(f"{n}_urad" for n in spec.names)
 
     @staticmethod
-    def torque_regressor(ctx: EffectContext, kin: Kinematics) -> FloatArray:
-        """``Ŷ`` ``(r, n, 3n)`` at the poses of ``kin``; with a sweep reference in the data,
-        joint j's row less its value in j's sweep configuration (the reference with joint j
-        at its reading): what a sweep-calibrated map has not absorbed."""
-        y = raw_regressor(kin.model, kin.q_rad, ctx.gravity)
+    def _plain(spec: EffectSpec, gravity: FloatArray, model: KinematicModel, q: FloatArray):
+        """Joint deflections per unit parameter ``(r, n, P)`` at poses ``q`` (before the
+        µrad scale), the plain regressor with no sweep reference."""
+        n = model.n_joints
+        y = raw_regressor(model, q, gravity)
+        raw = moment_names(n)
+        out = np.zeros((len(q), n, len(spec.names)))
+        ratio = dict(zip(spec.joints, spec.shape, strict=False))
+        for p, name in enumerate(spec.names):
+            cb = _counterbalance_term(name)
+            if cb is not None:
+                j, f, k = cb
+                out[:, j - 1, p] = (np.cos if f == "cos" else np.sin)(k * q[:, j - 1])
+            elif spec.parameter == "physical":
+                m = raw.index(name)
+                for j, rho in ratio.items():
+                    out[:, j - 1, p] = rho * y[:, j - 1, m]
+            else:
+                j, moment = _joint_moment(name, "gravity_deflection", n)
+                out[:, j - 1, p] = y[:, j - 1, raw.index(moment)]
+        return out
+
+    def deflection_jacobian(
+        self, spec: EffectSpec, ctx: EffectContext, kin: Kinematics
+    ) -> FloatArray:
+        """``D`` ``(r, n, P)``: each joint's deflection per unit of each parameter (×1e-6
+        rad for µrad values) at the poses of ``kin``.
+
+        With a sweep reference in the data, joint j's row is less what j's map absorbed in
+        its sweep (the reference with joint j at its reading): the deflection of every link
+        i ≤ j there, turned into an angle about axis j by ``z_i·z_j`` (a rotation about a
+        parallel upstream axis shows in j's circle one to one, about a perpendicular one
+        it only tilts the circle). A term of joint j's own angle alone vanishes.
+        """
+        d = self._plain(spec, ctx.gravity, kin.model, kin.q_rad)
         ref = ctx.data.sweep_reference
         if ref is None:
-            return y
+            return d
         n = kin.model.n_joints
+        home = np.asarray(ref, dtype=float)
+        z = link_rotations(kin.model, home[None, :])[0, :, :, 2]  # axes at the reference
+        seen = np.tril(z @ z.T).T  # [i, j] = z_i·z_j for i ≤ j
+        scale = np.sqrt(np.mean(d * d, axis=0))  # (n, P) before the subtraction
         for j in range(n):
-            q = np.broadcast_to(np.asarray(ref, dtype=float), kin.q_rad.shape).copy()
-            q[:, j] = kin.q_rad[:, j]
-            y[:, j] -= raw_regressor(kin.model, q, ctx.gravity)[:, j]
-        return y
+            qs = np.broadcast_to(home, kin.q_rad.shape).copy()
+            qs[:, j] = kin.q_rad[:, j]
+            absorbed = self._plain(spec, ctx.gravity, kin.model, qs)
+            d[:, j] -= np.einsum("i,rip->rp", seen[: j + 1, j], absorbed[:, : j + 1])
+        # what cancels (a term of the joint's own angle alone) cancels to rounding, ~1e-16
+        # of the plain term: make it exactly zero, or it would pass for a parameter
+        gone = np.sqrt(np.mean(d * d, axis=0)) <= 1e-9 * scale
+        d[:, gone] = 0.0
+        return d
 
     def joint_deflections_rad(
         self,
@@ -535,67 +575,17 @@ class GravityDeflection(EffectKind):
         acting: NDArray[np.bool_] | None = None,
     ) -> FloatArray:
         """Each joint's deflection ``(r, n)`` rad at the poses of ``kin`` (relative to the
-        sweep configuration when the data carry a sweep reference); ``acting`` ``(n, 3n)``
-        keeps only some moments' share of each joint's deflection."""
-        n = kin.model.n_joints
-        y = self.torque_regressor(ctx, kin)
+        sweep configuration when the data carry a sweep reference); ``acting`` ``(n, P)``
+        keeps only some parameters' share of each joint's deflection."""
+        d = self.deflection_jacobian(spec, ctx, kin)
         if acting is not None:
-            y = y * acting[None, :, :]
-        per_term = self._joint_terms(spec, ctx, kin, y, own_angle=acting is None)
-        out = np.zeros((len(kin.q_rad), n))
-        for (j, col), p in zip(per_term, np.asarray(values, dtype=float) * URAD, strict=True):
-            if j == 0:  # a shared moment turns every joint by its ratio
-                out += col * p
-            else:
-                out[:, j - 1] += col * p
-        return out
-
-    def _joint_terms(
-        self,
-        spec: EffectSpec,
-        ctx: EffectContext,
-        kin: Kinematics,
-        y: FloatArray,
-        *,
-        own_angle: bool = True,
-    ) -> list[tuple[int, FloatArray]]:
-        """Per parameter, the joint it turns and by how much per unit: ``(joint, (r,))``
-        for a term of the linear form or a counterbalance term, ``(0, (r, n))`` for a
-        shared moment of the physical form (every joint by its ratio). A counterbalance
-        term depends on its joint's own angle alone: it vanishes relative to the sweep
-        configuration, and is dropped with ``own_angle=False``."""
-        n = kin.model.n_joints
-        raw = moment_names(n)
-        ref = ctx.data.sweep_reference is not None
-        out: list = []
-        for name in spec.names:
-            cb = _counterbalance_term(name)
-            if cb is not None:
-                j, f, k = cb
-                col = (np.cos if f == "cos" else np.sin)(k * kin.q_rad[:, j - 1])
-                out.append((j, col * 0.0 if ref or not own_angle else col))
-                continue
-            if spec.parameter == "physical":
-                m = raw.index(name)
-                per_joint = np.zeros((len(kin.q_rad), n))
-                for j, rho in zip(spec.joints, spec.shape, strict=True):
-                    per_joint[:, j - 1] = rho * y[:, j - 1, m]
-                out.append((0, per_joint))
-                continue
-            j, moment = _joint_moment(name, self.kind, n)
-            out.append((j, y[:, j - 1, raw.index(moment)]))
-        return out
+            d = d * acting[None, :, :]
+        return d @ (np.asarray(values, dtype=float) * URAD)
 
     def regressor(self, spec, ctx, sel, kin):
-        y = self.torque_regressor(ctx, kin)
-        cols = []
-        for j, col in self._joint_terms(spec, ctx, kin, y):
-            if j == 0:  # a shared moment turns every joint by its ratio
-                theta = kin.jacobian[:, :, 3 : 5 * col.shape[1] : 5]  # ∂TCP/∂θ_j, (r, 3, n)
-                cols.append(np.einsum("rak,rk->ra", theta, col))
-            else:
-                cols.append(kin.joint_axis(j) * col[:, None])
-        return np.stack(cols, axis=2) * URAD
+        d = self.deflection_jacobian(spec, ctx, kin)  # (r, n, P)
+        theta = kin.jacobian[:, :, 3 : 5 * d.shape[1] : 5]  # ∂TCP/∂θ_j, (r, 3, n)
+        return np.einsum("rak,rkp->rap", theta, d) * URAD
 
     def label(self, spec):
         joints = ", ".join(str(j) for j in spec.joints)

@@ -182,10 +182,21 @@ def fit_physical_gravity(
     rho, w = _rank_one(p, acting, joints, ref, start_ratios)
     free = [i for i in range(len(joints)) if i != ref]
 
+    # a moment with no column left once the model is projected out (one whose effect the
+    # geometry takes up entirely) is not determined: it starts and stays at 0, else it would
+    # be held at an arbitrary value
+    raw = sum(np.linalg.norm(blocks[j], axis=0) for j in joints)
+    seen = sum(np.linalg.norm(perp[j], axis=0) for j in joints)
+    undetermined = seen <= 1e-6 * raw  # the relative tolerance of the loop's rank test
+    w[undetermined] = 0.0
+    keep = np.flatnonzero(~undetermined)
+
     def unpack(x: FloatArray) -> tuple[FloatArray, FloatArray]:
         r = np.ones(len(joints))
         r[free] = x[: len(free)]
-        return r, x[len(free) :]
+        ww = np.zeros(b)
+        ww[keep] = x[len(free) :]
+        return r, ww
 
     def residual(x: FloatArray) -> FloatArray:
         r, ww = unpack(x)
@@ -197,9 +208,9 @@ def fit_physical_gravity(
             np.column_stack([perp[joints[i]] @ ww for i in free]) if free else np.zeros((len(y), 0))
         )
         d_w = sum(r[i] * perp[j] for i, j in enumerate(joints))
-        return np.hstack([d_rho, d_w])
+        return np.hstack([d_rho, d_w[:, keep]])
 
-    x0 = np.concatenate([rho[free], w])
+    x0 = np.concatenate([rho[free], w[keep]])
     sol = least_squares(residual, x0, jac=jacobian, method="lm", xtol=1e-12, ftol=1e-12)
     rho_hat, w_hat = unpack(sol.x)
     sse = float(sol.fun @ sol.fun)
@@ -209,8 +220,10 @@ def fit_physical_gravity(
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     ratio_se = np.zeros(len(joints))
     ratio_se[free] = se[: len(free)]
+    moment_se = np.zeros(b)  # an undetermined moment is held at 0
+    moment_se[keep] = se[len(free) :]
     return PhysicalGravityFit(
-        joints, joints[ref], rho_hat, ratio_se, w_hat, se[len(free) :], sse, bool(sol.success)
+        joints, joints[ref], rho_hat, ratio_se, w_hat, moment_se, sse, bool(sol.success)
     )
 
 

@@ -427,8 +427,8 @@ def _sweep_deflections(meas: CampaignMeasurements, rnd: TwinRound) -> dict[int, 
     # which moments' share of each joint the poses see apart from that joint's own angle
     q_poses = rnd.campaign.q_rad[rnd.campaign.mask("identify")]
     ref_ctx = EffectContext(robot, EffectData(q_poses, sweep_reference=np.radians(robot.home)))
-    y_ref = kind.torque_regressor(ref_ctx, Kinematics.of(final.model, q_poses))
-    rms = np.sqrt(np.mean(y_ref**2, axis=0))
+    d_ref = kind.deflection_jacobian(spec, ref_ctx, Kinematics.of(final.model, q_poses))
+    rms = np.sqrt(np.mean(d_ref**2, axis=0))  # (n, P): what the poses see apart from maps
     acting = rms > 1e-9 * max(float(rms.max(initial=0.0)), 1e-300)
     by_joint = {r.joint: r.scale for r in rnd.scales}
     sweeps: dict[int, tuple[FloatArray, FloatArray]] = {}

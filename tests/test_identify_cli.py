@@ -171,6 +171,48 @@ def test_unknown_effect_kind_is_a_clear_error(tmp_path, capsys):
     assert rc == 2 and "unknown effect kind 'joint_compliance'" in capsys.readouterr().err
 
 
+def test_predict_holds_a_drift_at_the_campaign_span_and_says_so(tmp_path, capsys):
+    """A linear drift identified over [0, 3600] s: rows at 7200 s get the drift's value at
+    3600 s, and a warning says how many rows were outside; rows inside: no warning."""
+    drift = EffectDescription(
+        "length_drift",
+        {"joint": 2.0, "a_rate_mm_per_h": 0.2, "t0_s": 0.0, "t_min_s": 0.0, "t_max_s": 3600.0},
+    )
+    model = tmp_path / "m.toml"
+    replace(load_robot("kr500"), effects=(drift,)).save(model)
+    rows = ["pose,t_s," + ",".join(f"q{i}_deg" for i in range(1, 7))]
+    rows += [f"{k},{t},10,20,-30,40,50,60" for k, t in enumerate((1800, 3600, 7200, 9000))]
+    joints = tmp_path / "j.csv"
+    joints.write_text("\n".join(rows) + "\n")
+    points = tmp_path / "p.csv"
+    rc = main(["predict", "--model", str(model), "--data", str(joints), "--out", str(points)])
+    err = capsys.readouterr().err
+    assert rc == 0 and "2 row(s) outside the campaign's time span [0, 3600] s" in err
+    _, xyz = read_points(points)
+    np.testing.assert_allclose(xyz[2], xyz[1], atol=1e-9)  # held, not extrapolated
+    np.testing.assert_allclose(xyz[3], xyz[1], atol=1e-9)
+    assert np.linalg.norm(xyz[1] - xyz[0]) > 0.05  # within the span it drifts (0.1 mm)
+    joints.write_text("\n".join(rows[:3]) + "\n")
+    main(["predict", "--model", str(model), "--data", str(joints), "--out", str(points)])
+    assert "outside" not in capsys.readouterr().err
+
+
+def test_twin_robot_checks_effect_tables_as_predict_does(tmp_path, capsys):
+    """`twin robot` rejects exactly what `twin predict` rejects, naming the table and key."""
+    bad = EffectDescription("joint_harmonic", {"joint": 1.0, "order": 2.0, "sin_deg": 0.0})
+    path = tmp_path / "m.toml"
+    replace(load_robot("kr500"), effects=(bad,)).save(path)
+    assert main(["robot", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "[[effect]] #1" in err and "cos_deg" in err
+    good = EffectDescription(
+        "joint_harmonic", {"joint": 1.0, "order": 2.0, "sin_deg": 0.0, "cos_deg": 0.001}
+    )
+    replace(load_robot("kr500"), effects=(good,)).save(path)
+    assert main(["robot", str(path)]) == 0
+    assert "effects: cyclic error of joint 1 (harmonic 2)" in capsys.readouterr().out
+
+
 def test_campaign_generator_command(tmp_path):
     out = tmp_path / "campaign.csv"
     truth = tmp_path / "truth.toml"
@@ -242,10 +284,10 @@ def test_loop_names_the_effect_and_predict_applies_it(tmp_path):
     proc = twin("identify", "--robot", "hp20d", "--data", str(camp), "--out", str(out),
                 "--report", str(rep))  # fmt: skip
     assert proc.returncode == 0, proc.stderr
-    assert "closed loop: added gravity compliance" in proc.stderr
+    assert "closed loop: added gravity deflection" in proc.stderr
     cal = load_robot(out)
-    assert [e.kind for e in cal.effects] == ["gravity_compliance"]
-    assert "compliance_urad_per_knm" in out.read_text()
+    assert [e.kind for e in cal.effects] == ["gravity_deflection"]
+    assert 'form = "physical"' in out.read_text() and "compliance_ratio" in out.read_text()
     doc = json.loads((rep / "report.json").read_text())
     stages = doc["closed_loop"]["stages"]
     assert [s["stage"] for s in stages] == ["nominal", "geometric", "effect"]
@@ -253,15 +295,19 @@ def test_loop_names_the_effect_and_predict_applies_it(tmp_path):
         for comp in COMPONENTS:
             assert {"max", "min", "mean", "std"} <= set(st["sets"]["validate"][comp])
     eff = stages[2]["effect"]
-    assert eff["kind"] == "gravity_compliance" and not eff["generic"]
-    assert all(p["standard_error"] > 0 for p in eff["parameters"][:2])
+    assert eff["kind"] == "gravity_deflection" and not eff["generic"]
+    assert "physical priority" in eff["why_chosen"] and eff["competitors"]
+    assert eff["shape"]["gravity_form"]["kept"] == "physical"
+    determined = [p for p in eff["parameters"] if p["standard_error"] is not None]
+    assert len(determined) >= 8 and all(p["standard_error"] > 0 for p in determined)
     assert (rep / eff["evidence_plot"]).stat().st_size > 0
     ap = [s["sets"]["validate"]["AP"]["mean"] for s in stages]
     assert ap[0] > ap[1] > 2 * ap[2]
     assert doc["sets"]["validate"]["after"]["AP"]["mean"] == pytest.approx(ap[2])
     md = (rep / "report.md").read_text()
-    assert "### Stages" in md and "3. Added gravity compliance" in md
-    assert md.count("| + gravity compliance") == 4  # one row per component table
+    assert "### Stages" in md and "3. Added gravity deflection" in md
+    assert md.count("| + gravity deflection") == 4  # one row per component table
+    assert "Why this effect: physical priority" in md and "Compliance ratios" in md
     # predict applies the effect: its points give the loop's validation errors
     points = tmp_path / "points.csv"
     proc = twin("predict", "--model", str(out), "--data", str(camp), "--out", str(points))
