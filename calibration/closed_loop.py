@@ -634,10 +634,17 @@ def _form_decision(
         else f"linear form kept: the joints do not share the same moments (F = {f_stat:.2f}, "
         f"p = {p:.2g} < {PHYSICAL_FORM_ALPHA})"
     )
+    stated = problem.ctx.description.base is not None and (
+        problem.ctx.description.base.gravity is not None
+    )
     return {
         "gravity_form": {
             "kept": kept,
             "reason": reason,
+            "gravity_direction": [float(v) for v in problem.ctx.gravity],
+            "gravity_source": "the description's [base] gravity"
+            if stated
+            else "−z of the robot base frame (floor mounting, the default)",
             "f_statistic": float(f_stat),
             "p_value": p,
             "reference_joint": fit.reference,

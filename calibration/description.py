@@ -58,7 +58,8 @@ class ToolDescription:
 
 @dataclass(frozen=True)
 class BaseDescription:
-    """Robot base pose in the instrument frame: mm and fixed-axis XYZ degrees."""
+    """Robot base pose in the instrument frame: mm and fixed-axis XYZ degrees; optionally
+    the direction of gravity in the robot base frame (None: −z, a floor-mounted arm)."""
 
     x_mm: float = 0.0
     y_mm: float = 0.0
@@ -66,6 +67,11 @@ class BaseDescription:
     rx_deg: float = 0.0
     ry_deg: float = 0.0
     rz_deg: float = 0.0
+    gravity: tuple[float, float, float] | None = None
+
+    @property
+    def pose(self) -> tuple[float, float, float, float, float, float]:
+        return (self.x_mm, self.y_mm, self.z_mm, self.rx_deg, self.ry_deg, self.rz_deg)
 
 
 #: An ``[[effect]]`` value: a number, a name, or an array of numbers or of names.
@@ -291,9 +297,12 @@ def _parse(doc: dict[str, Any], source: str) -> RobotDescription:
     base = None
     if "base" in doc:
         bt = _Table(doc["base"], source, "[base]")
-        keys = [f.name for f in fields(BaseDescription)]
-        bt.check_keys(set(keys))
-        base = BaseDescription(**{k: bt.number(k) for k in keys})
+        keys = [f.name for f in fields(BaseDescription) if f.name != "gravity"]
+        bt.check_keys({*keys, "gravity"})
+        gravity = bt.vector("gravity", 3)
+        if gravity is not None and not any(gravity):
+            bt.fail("gravity", "must be a direction, not [0, 0, 0]")
+        base = BaseDescription(**{k: bt.number(k) for k in keys}, gravity=gravity)  # type: ignore[arg-type]
     raw_effects = doc.get("effect", [])
     if not isinstance(raw_effects, list):
         top.fail("effect", "expected [[effect]] tables")
@@ -313,7 +322,9 @@ def _to_document(desc: RobotDescription) -> dict[str, Any]:
         doc["home_deg"] = list(desc.home_deg)
     doc["tool"] = _drop_none({f.name: getattr(desc.tool, f.name) for f in fields(ToolDescription)})
     if desc.base is not None:
-        doc["base"] = {f.name: getattr(desc.base, f.name) for f in fields(BaseDescription)}
+        doc["base"] = _drop_none(
+            {f.name: getattr(desc.base, f.name) for f in fields(BaseDescription)}
+        )
     doc["joint"] = [
         {
             k: v

@@ -572,7 +572,9 @@ def _shape_markdown(shape: Mapping[str, Any]) -> list[str]:
         )
         lines += [
             "",
-            f"Gravity form: {form['reason']}. Compliance ratios (joint "
+            f"Gravity form: {form['reason']}. Gravity along "
+            f"({', '.join(f'{v:g}' for v in form.get('gravity_direction', ()))}) of the robot "
+            f"base frame: {form.get('gravity_source', '')}. Compliance ratios (joint "
             f"{form['reference_joint']} = 1): {ratios}. Compliance-weighted moments (µrad: "
             f"the reference joint's deflection from that moment alone, lever horizontal): "
             f"{moments}.",

@@ -123,7 +123,9 @@ class KinematicModel:
         return replace(
             template,
             joints=joints,
-            base=BaseDescription(bx, by, bz, rx, ry, rz),
+            base=BaseDescription(
+                bx, by, bz, rx, ry, rz, template.base.gravity if template.base else None
+            ),
             tool=ToolDescription(tx, ty, tz, template.tool.mass_kg),
         )
 

@@ -71,6 +71,7 @@ def true_description(
     base = BaseDescription(
         *(getattr(guess, k) + rng.normal(0, dev.base_mm) for k in ("x_mm", "y_mm", "z_mm")),
         *(getattr(guess, k) + rng.normal(0, dev.base_deg) for k in ("rx_deg", "ry_deg", "rz_deg")),
+        guess.gravity,
     )
     t = nominal.tool
     tool = ToolDescription(

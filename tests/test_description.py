@@ -191,7 +191,7 @@ def test_description_error_is_a_calibration_and_value_error():
     ("effect", "fragments"),
     [
         ({"width_rad": 1e-4}, ["[[effect]] #1", "key 'kind'", "missing"]),
-        ({"kind": "backlash", "width_rad": "wide"}, ["[[effect]] #1", "key 'width_rad'"]),
+        ({"kind": "backlash", "width_rad": {"a": 1}}, ["[[effect]] #1", "key 'width_rad'"]),
         ({"kind": "backlash", "widths_rad": [1e-4, "x"]}, ["[[effect]] #1", "key 'widths_rad'"]),
     ],
 )

@@ -3,10 +3,12 @@ physics), [[effect]] tables, candidates, and `predict_tcp` applying every kind."
 
 from __future__ import annotations
 
+import tomllib
 from dataclasses import replace
 
 import numpy as np
 import pytest
+import tomli_w
 
 from calibration.description import EffectDescription, RobotDescription, load_robot
 from calibration.effect_library import (
@@ -147,6 +149,32 @@ def test_gravity_deflection_regressor_without_masses():
     q_hp = sample_reachable_poses(hp, 10, np.random.default_rng(5))
     hp_spec = gravity_candidate(EffectContext(hp, EffectData(q_hp)))
     assert hp_spec is not None and len(hp_spec.names) == 30
+
+
+def test_gravity_direction_comes_from_the_description(tmp_path):
+    """`[base] gravity` (a direction in the robot base frame, any length) turns the
+    regressor; a ceiling mount's is the floor's negated; [0, 0, 0] is rejected."""
+    ceiling = replace(DESC, base=replace(DESC.base, gravity=(0.0, 0.0, 2.0)))
+    path = tmp_path / "ceiling.toml"
+    ceiling.save(path)
+    back = RobotDescription.load(path)
+    assert back.base.gravity == (0.0, 0.0, 2.0)
+    ctx = EffectContext(back, CTX.data)
+    np.testing.assert_allclose(ctx.gravity, [0.0, 0.0, 1.0])
+    np.testing.assert_allclose(
+        raw_regressor(MODEL, Q, ctx.gravity), -raw_regressor(MODEL, Q), atol=1e-15
+    )
+    # the calibrated description keeps it
+    assert KinematicModel.from_description(back).to_description(back).base.gravity == (
+        0.0,
+        0.0,
+        2.0,
+    )
+    doc = tomllib.loads(path.read_text())
+    doc["base"]["gravity"] = [0.0, 0.0, 0.0]
+    path.write_text(tomli_w.dumps(doc))
+    with pytest.raises(ValueError, match=r"\[base\]: key 'gravity': must be a direction"):
+        RobotDescription.load(path)
 
 
 def test_length_scale_and_time_regressors():
