@@ -65,7 +65,11 @@ def test_replay_gives_bit_identical_model_and_report(tmp_path):
     rounds = report["twin_run"]["joint_fit"]["rounds"]
     assert len(rounds) == 2 and rounds[1]["deflection_taken_out_of_sweeps"]
     assert rounds[1]["added"] == [s["label"] for s in stages if "effect" in s]
-    assert all("nonlinear" not in terms for terms in rounds[1]["scale_terms"].values())
+    # every map the strip's, but joint 2's: its counterbalance's torque depends on its own
+    # angle alone, so the deflection that torque causes is the same at every pose and stays
+    # in its map (docs/scale-calibration.md)
+    terms = rounds[1]["scale_terms"]
+    assert all("nonlinear" not in t for j, t in terms.items() if j != "2"), terms
 
 
 def _drop_slice(src: Path, dst: Path, device: str, t_from_s: float, t_to_s: float) -> int:
