@@ -396,23 +396,21 @@ def run_closed_loop(
         if chosen.spec in profiles:
             shape["time_constant"] = profiles[chosen.spec].as_dict()
         step = _try_step(problem, result, specs, chosen.spec, lin, columns, settings, tell)
-        if isinstance(step, str):
-            rejected.append(Rejected(chosen.label, step))
-            set_aside.add(chosen.spec)
-            tell(f"closed loop: set aside {chosen.label}: {step}")
-            if len(rejected) >= settings.max_rejected:
-                last_round = scores
-                break
-            continue
-        new_specs, new_result, form_info = step
-        shape.update(form_info)
-        errors = problem.errors(new_result.model, new_specs, new_result.effect_values)
+        errors: dict[str, FloatArray] = {}
+        why = step if isinstance(step, str) else ""
         previous = stages[-1]
         set_name = _set_name(contexts)
-        before = previous.mean_ap(set_name)
-        after = float(np.linalg.norm(errors[set_name], axis=1).mean())
-        if settings.validation_guard and set_name == "validate" and after > before:
-            why = f"the validation mean AP rose from {before:.4f} to {after:.4f} mm: step undone"
+        if not why:
+            new_specs, new_result, form_info = step
+            shape.update(form_info)
+            errors = problem.errors(new_result.model, new_specs, new_result.effect_values)
+            before = previous.mean_ap(set_name)
+            after = float(np.linalg.norm(errors[set_name], axis=1).mean())
+            if settings.validation_guard and set_name == "validate" and after > before:
+                why = (
+                    f"the validation mean AP rose from {before:.4f} to {after:.4f} mm: step undone"
+                )
+        if why:
             rejected.append(Rejected(chosen.label, why))
             set_aside.add(chosen.spec)
             tell(f"closed loop: set aside {chosen.label}: {why}")

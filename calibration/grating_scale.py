@@ -596,18 +596,7 @@ def _target_set_angles(sweep: JointSweep, reference: float, opt: ScaleOptions) -
     first, points = _stop_sets(sweep)
     pass_of = sweep.pass_name[first]
     step_of = sweep.step[first]
-    passes = [p for p in PASSES if np.any(pass_of == p)]
-    parts = []
-    for p in passes:
-        idx = np.flatnonzero(pass_of == p)
-        idx = idx[np.argsort(step_of[idx], kind="stable")]
-        if idx.size < opt.min_stops_per_pass:
-            raise ScaleError(
-                f"joint {j}: {p} sweep has {idx.size} stops; "
-                f"at least {opt.min_stops_per_pass} are needed"
-            )
-        parts.append(idx[::-1] if p == "forward" else idx)  # increasing joint angle
-    stops = np.concatenate(parts)
+    passes, stops = _by_angle(pass_of, step_of, j, opt)
     pts = points[stops]
     sigma = opt.tracker.sigma_mm(np.nan_to_num(pts.reshape(-1, 3))).reshape(pts.shape[:2])
     pass_name = pass_of[stops]
@@ -653,24 +642,32 @@ def _same_turn(
     theta[pass_name == "backward"] += 2 * np.pi * turns
 
 
+def _by_angle(
+    pass_name: NDArray[np.str_], step: IntArray, joint: int, opt: ScaleOptions
+) -> tuple[list[str], IntArray]:
+    """The passes present, and the stops in order of increasing commanded angle (forward
+    reversed, then backward); a pass with too few stops is an error."""
+    passes = [p for p in PASSES if np.any(pass_name == p)]
+    if not passes:
+        raise ScaleError(f"joint {joint}: no sweep stops")
+    parts = []
+    for p in passes:
+        idx = np.flatnonzero(pass_name == p)
+        idx = idx[np.argsort(step[idx], kind="stable")]
+        if idx.size < opt.min_stops_per_pass:
+            raise ScaleError(
+                f"joint {joint}: {p} sweep has {idx.size} stops; "
+                f"at least {opt.min_stops_per_pass} are needed"
+            )
+        parts.append(idx[::-1] if p == "forward" else idx)  # increasing joint angle
+    return passes, np.concatenate(parts)
+
+
 def _circle_angles(sweep: JointSweep, reference: float, opt: ScaleOptions) -> _Angles:
     if sweep.n_targets > 1:
         return _target_set_angles(sweep, reference, opt)
     j = sweep.joint
-    passes = [p for p in PASSES if np.any(sweep.pass_name == p)]
-    if not passes:
-        raise ScaleError(f"joint {j}: no sweep stops")
-    parts = []
-    for p in passes:
-        idx = np.flatnonzero(sweep.pass_name == p)
-        idx = idx[np.argsort(sweep.step[idx], kind="stable")]
-        if idx.size < opt.min_stops_per_pass:
-            raise ScaleError(
-                f"joint {j}: {p} sweep has {idx.size} stops; "
-                f"at least {opt.min_stops_per_pass} are needed"
-            )
-        parts.append(idx[::-1] if p == "forward" else idx)  # increasing joint angle
-    order = np.concatenate(parts)
+    passes, order = _by_angle(sweep.pass_name, sweep.step, j, opt)
     pass_name = sweep.pass_name[order]
     points = sweep.points_mm[order]
     sigma = opt.tracker.sigma_mm(points)
