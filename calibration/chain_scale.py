@@ -32,6 +32,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from calibration.description import RobotDescription
 from calibration.grating_scale import (
     JointScaleResult,
     JointSweep,
@@ -39,6 +40,7 @@ from calibration.grating_scale import (
     ScaleOptions,
     calibrate_joint,
 )
+from calibration.gravity_regressor import base_moments
 
 FloatArray = NDArray[np.float64]
 
@@ -210,3 +212,45 @@ def _note(
     if missing:
         text += f"; joints {', '.join(map(str, missing))} uncalibrated, not taken out"
     return text
+
+
+def with_load_notes(
+    scales: ScaleCampaignResult, robot: RobotDescription, *, deflection_taken_out: bool
+) -> ScaleCampaignResult:
+    """Say, per joint, what of its map could be load rather than strip.
+
+    A sweep alone cannot tell a strip's first harmonic (eccentricity) from the swept link's
+    deflection under its own weight after the ring: both are a first harmonic of the joint's
+    angle. Where gravity loads the joint (its row of the gravity regressor is not empty),
+    the note says so, and whether the closed loop's modelled deflection was taken out of
+    the sweeps (``twin run``). A declared counterbalance's torque depends on the joint's
+    own angle alone: what it deflects is the same at every pose, no campaign can tell it
+    from the strip, and it stays in the map (its non-linear terms may be that load).
+    """
+    base = base_moments(robot)
+    loaded = set(base.loaded_joints)
+    out = []
+    for r in scales.results:
+        notes = list(r.notes)
+        j = r.joint
+        if j in loaded and deflection_taken_out:
+            notes.append(
+                "load: the closed loop's modelled gravity deflection after the rings was taken "
+                "out of this sweep; what depends on this joint's angle alone stays in the map"
+            )
+        elif j in loaded:
+            notes.append(
+                "load: gravity loads this joint in its sweep; its first harmonic (cyclic term) "
+                "may be this link's deflection under its own weight as much as strip "
+                "eccentricity (a sweep alone cannot tell; twin run separates them with the "
+                "closed loop's gravity term)"
+            )
+        if robot.joints[j - 1].counterbalance:
+            terms = [t for t in r.scale.terms if t in ("cyclic", "nonlinear")]
+            notes.append(
+                "load: the declared counterbalance's torque depends on this joint's angle "
+                "alone; the deflection it causes after the ring stays in this map "
+                + (f"(the kept {' and '.join(terms)} term(s) may be that load)" if terms else "")
+            )
+        out.append(replace(r, notes=tuple(notes)))
+    return ScaleCampaignResult(tuple(out), scales.chain)

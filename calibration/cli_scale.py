@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.chain_scale import ScaleCampaignResult, calibrate_scales
+from calibration.chain_scale import ScaleCampaignResult, calibrate_scales, with_load_notes
 from calibration.description import RobotDescription, load_robot
 from calibration.errors import DataFileError
 from calibration.grating_scale import (
@@ -112,7 +112,7 @@ def calibrate_files(
                     f"but no sweep in {sweep.path}"
                 )
     try:
-        return calibrate_scales(
+        result = calibrate_scales(
             sweep.joints,
             home.counts if home is not None else None,
             home_deg=robot.home if robot is not None else None,
@@ -121,6 +121,9 @@ def calibrate_files(
         )
     except ScaleError as exc:
         raise ScaleError(f"{sweep.path}: {exc}") from exc
+    if robot is None:
+        return result
+    return with_load_notes(result, robot, deflection_taken_out=False)
 
 
 def run_scale(args: argparse.Namespace) -> int:

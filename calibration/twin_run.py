@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.campaign_files import Campaign, write_campaign
-from calibration.chain_scale import ScaleCampaignResult, calibrate_scales
+from calibration.chain_scale import ScaleCampaignResult, calibrate_scales, with_load_notes
 from calibration.description import RobotDescription, load_robot
 from calibration.errors import CalibrationError
 from calibration.grating_scale import COUNTER_MODULUS, JointSweep, ScaleOptions
@@ -367,6 +367,7 @@ def calibrate_twin(
             meas.sweeps, meas.home_counts, home_deg=robot.home, limits_deg=limits,
             options=scale_options, link_rotations_rad=deflection,
         )  # fmt: skip
+        scales = with_load_notes(scales, robot, deflection_taken_out=deflection is not None)
         campaign = campaign_from_scales(meas, scales)
         idm = campaign.mask("identify")
         geometric = identify(nominal, campaign.q_rad[idm], campaign.xyz_mm[idm], start=start)

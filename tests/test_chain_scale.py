@@ -13,7 +13,7 @@ from functools import cache
 import numpy as np
 import pytest
 
-from calibration.chain_scale import JointAxis, calibrate_scales, undo_upstream
+from calibration.chain_scale import JointAxis, calibrate_scales, undo_upstream, with_load_notes
 from calibration.description import load_robot
 from calibration.grating_scale import JointSweep, calibrate_joint
 from calibration.scale_files import read_sweep_csv
@@ -144,3 +144,29 @@ def test_three_reflectors_on_a_short_arc_through_sweep_csv(tmp_path):
     rms3 = float(np.sqrt(np.mean(np.concatenate(three) ** 2)))
     print(f"\n4° arc, 10 stops: increment error one target {rms1:.1f}″, three {rms3:.1f}″")
     assert rms1 > 3 * rms3
+
+
+def test_maps_say_what_could_be_load():
+    """twin scale with a description: a gravity-loaded joint's map says its first harmonic
+    may be load; a declared counterbalance's joint says what stays in its map; joint 1
+    (vertical axis) says nothing of load."""
+    res = with_load_notes(
+        calibrated_campaign("kr500", 1), load_robot("kr500"), deflection_taken_out=False
+    )
+    notes = {r.joint: " ".join(r.notes) for r in res}
+    assert "load" not in notes[1]
+    assert "gravity loads this joint" in notes[3]
+    assert "counterbalance" in notes[2] and "counterbalance" not in notes[3]
+    after = with_load_notes(
+        calibrated_campaign("kr500", 1), load_robot("kr500"), deflection_taken_out=True
+    )
+    assert "was taken out of this sweep" in " ".join(after.results[2].notes)
+
+
+def calibrated_campaign(robot: str, seed: int):
+    camp = campaign(robot, seed)
+    desc = load_robot(robot)
+    limits = [(j.lower_deg, j.upper_deg) for j in desc.joints]
+    return calibrate_scales(
+        camp.joint_sweeps(), camp.home_readings(), home_deg=desc.home, limits_deg=limits
+    )
