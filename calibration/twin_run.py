@@ -48,6 +48,10 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 Say = Callable[[str], None]
 
+#: The joint fit's rounds at most: round 1 (maps from the sweeps as they are) and up to two
+#: more with the loop's modelled gravity deflection taken out of the sweeps.
+MAX_ROUNDS = 3
+
 
 class TwinRunError(CalibrationError, ValueError):
     """The data do not hold what a calibration needs (named in the message)."""
@@ -303,7 +307,7 @@ class TwinRound:
 
 @dataclass(frozen=True, eq=False)
 class TwinCalibration:
-    """The rounds of the joint fit (one, or two when gravity was found); the last is the
+    """The rounds of the joint fit (one, or more when gravity was found); the last is the
     twin."""
 
     rounds: tuple[TwinRound, ...]
@@ -323,8 +327,10 @@ class TwinCalibration:
             "method": (
                 "round 1: scale maps in chain order, identification and closed loop with "
                 "the gravity term relative to each sweep's configuration; when it finds "
-                "gravity deflection, round 2 refits the maps with that deflection taken out "
-                "of the sweeps and runs the identification and the loop again"
+                "gravity deflection, the next round refits the maps with that deflection "
+                "taken out of the sweeps and runs the identification and the loop again, "
+                "once more while the loop still finds a harmonic of a gravity-loaded joint "
+                f"(at most {MAX_ROUNDS} rounds)"
             ),
             "rounds": [r.summary() for r in self.rounds],
         }
@@ -346,11 +352,14 @@ def calibrate_twin(
     (:func:`~calibration.closed_loop.campaign_effect_data`): to first order the joint fit
     of maps and gravity. When it finds gravity deflection, round 2 refits the maps with
     that deflection taken out of the sweeps (every link's, upstream ones through the
-    chain), so that they read the rings, and runs the identification and the loop again:
-    that is the twin. A joint's share that depends on its own angle alone stays in its map
-    (the poses cannot tell the two apart), and a share the fit did not determine is shrunk
-    away (:func:`_sweep_deflections`). Further rounds would only redraw the estimate's
-    noise into the maps, so there are none.
+    chain), so that they read the rings, and runs the identification and the loop again.
+    A joint's share that depends on its own angle alone stays in its map (the poses cannot
+    tell the two apart), and a share the fit did not determine is shrunk away
+    (:func:`_sweep_deflections`). When that round's loop still finds a harmonic of a
+    gravity-loaded joint beside the gravity term (load its map still carries), its own
+    gravity deflection goes back into the sweeps once more (at most :data:`MAX_ROUNDS`
+    rounds); otherwise a further round would only redraw the estimate's noise into the
+    maps. The last round is the twin.
     """
     from calibration.closed_loop import LoopSettings, run_closed_loop
     from calibration.identification import identify
@@ -386,10 +395,34 @@ def calibrate_twin(
     if deflection is None:  # no gravity deflection found: nothing to take out
         return TwinCalibration((first,))
     say("closed loop found gravity deflection: refitting the scale maps without it")
-    second = one_round(deflection)
-    added = ", ".join(st.label for st in second.loop.stages[2:]) if second.loop else ""
-    say(f"joint fit: the twin adds {added or 'nothing'}")
-    return TwinCalibration((first, second))
+    rounds = [first]
+    while True:
+        current = one_round(deflection)
+        rounds.append(current)
+        added = ", ".join(st.label for st in current.loop.stages[2:]) if current.loop else ""
+        say(f"joint fit round {len(rounds)}: the twin adds {added or 'nothing'}")
+        if len(rounds) >= MAX_ROUNDS or not _load_left_in_maps(current, robot):
+            break
+        refined = _sweep_deflections(meas, current)
+        if refined is None:
+            break
+        deflection = refined
+    return TwinCalibration(tuple(rounds))
+
+
+def _load_left_in_maps(rnd: TwinRound, robot: RobotDescription) -> bool:
+    """Whether the round's loop still found a harmonic of a gravity-loaded joint's own
+    angle beside the gravity term: what the maps still carry of the load (the round's
+    gravity deflection then goes back into the sweeps once more)."""
+    from calibration.gravity_regressor import base_moments
+
+    if rnd.loop is None:
+        return False
+    loaded = set(base_moments(robot).loaded_joints)
+    specs = rnd.loop.final.specs
+    return any(s.kind == "gravity_deflection" for s in specs) and any(
+        s.kind in ("joint_harmonic", "link_harmonic") and s.joint in loaded for s in specs
+    )
 
 
 def _sweep_deflections(meas: CampaignMeasurements, rnd: TwinRound) -> dict[int, FloatArray] | None:
