@@ -22,7 +22,10 @@ the counter value and the tracker point at every stop. Steps:
    the sweep. θ₀ is the circle frame's arbitrary origin and is not part of the relation,
    which is zero at the zero. This two-step estimate equals, to first order, the maximum
    likelihood fit of the relation straight to the 3-D points (profiling the circle out
-   of a linear Gaussian model gives exactly this covariance).
+   of a linear Gaussian model gives exactly this covariance), and it chooses the terms.
+   With one target the chosen relation is then refined by that joint fit
+   (:mod:`calibration.relation_to_points`): on a short arc the two-step scale is biased
+   by about half its standard deviation, the joint fit's is not.
 5. **Model selection** with nested-model F-tests (exact for this linear Gaussian model
    with unknown noise level), each at ``alpha / m`` (Bonferroni over the ``m`` candidate
    terms, so a strip with none of the effects gets any extra term with probability
@@ -30,7 +33,8 @@ the counter value and the tracker point at every stop. Steps:
    tested against the terms already kept, then a backward check of every kept term
    against the final model. The order matters on short arcs, where a first harmonic and
    a cubic are nearly the same curve: the physically expected eccentricity goes first.
-6. **Uncertainty**: the GLS covariance of the relation (noise level from its residuals),
+6. **Uncertainty**: the covariance of the published relation (noise level from its
+   residuals: the joint fit's three coordinates with one target, the GLS angles with several),
    the zero's standard deviation, and for every candidate term *not* kept the change the
    term would have made to the relation (a correction not applied enters the
    uncertainty with its estimated size, GUM F.2.4.5). The last part matters on short
@@ -56,6 +60,7 @@ from scipy import stats
 
 from calibration.circle_fit import CircleFit, CircleFitError, fit_circle_3d
 from calibration.errors import CalibrationError
+from calibration.relation_to_points import fit_relation_to_points
 from calibration.target_set_fit import TargetSetFit, crb_covariance_targets, fit_target_set
 
 FloatArray = NDArray[np.float64]
@@ -389,7 +394,7 @@ class JointScaleResult:
     residual_deg: FloatArray  # (S,) circle angle minus relation (NaN for dropped stops)
     used: NDArray[np.bool_]  # (S,) stops used in the relation
     dropped: tuple[tuple[int, str], ...]  # (index in the JointSweep, reason with pass/step/row)
-    variance_factor: float  # GLS s² (tracker noise relative to the weights)
+    variance_factor: float  # s² of the published relation (tracker noise relative to its model)
     crb_covariance_rad2: FloatArray  # (p, p) bound on the relation coefficients (rad units)
     notes: tuple[str, ...] = ()
 
@@ -844,9 +849,15 @@ def calibrate_joint(
 
     kept, tests = _select_terms(usable, fit_terms, opt.alpha / max(len(usable), 1))
     final = fit_terms(kept)
-    scale = _publish(j, zero, final, kept, tests, basis, fit_terms, home_deg)
     x_all = design(kept)
-    resid = theta - x_all @ final.beta
+    published, theta_pub = final, theta
+    if isinstance(circle, CircleFit):  # one target: the joint fit, unbiased on short arcs
+        ml = fit_relation_to_points(circle, x_all, final.beta, inlier)
+        if ml is not None:
+            published = _Gls(ml.beta, ml.cov_unit, ml.rss, ml.rank, ml.n)
+            theta_pub = theta + np.angle(np.exp(1j * (ml.angle_rad - circle.angle_rad)))
+    scale = _publish(j, zero, published, final, kept, tests, basis, fit_terms, home_deg)
+    resid = theta_pub - x_all @ published.beta
     # angle of each stop from Home by the circle, θ_k − θ̂₀, and its standard deviation:
     # var = V_kk + var(θ̂₀) − 2 cov(θ̂₀, θ_k), cov(θ̂₀, θ_k) = [Cov·Xᵀ·V⁻¹·V]₀ₖ
     wb = white.apply(b_all[idx])
@@ -871,12 +882,12 @@ def calibrate_joint(
         pass_name=ang.pass_name,
         step=ang.step,
         offset_counts=u,
-        stop_angle_deg=np.degrees(theta - final.beta[0]),
+        stop_angle_deg=np.degrees(theta_pub - published.beta[0]),
         stop_angle_std_deg=np.degrees(np.sqrt(final.s2 * np.maximum(var_stop, 0.0))),
         residual_deg=np.where(inlier, np.degrees(resid), np.nan),
         used=inlier.copy(),
         dropped=tuple((i, why + _stop_label(sweep, i)) for i, why in dropped),
-        variance_factor=final.s2,
+        variance_factor=published.s2,
         crb_covariance_rad2=crb,
         notes=tuple(notes),
     )
@@ -917,16 +928,22 @@ def _publish(
     joint: int,
     zero: HomeZero,
     fit: _Gls,
+    narrow: _Gls,
     kept: Sequence[str],
     tests: Sequence[TermTest],
     basis: RelationBasis,
     fit_terms,
     home_deg: float | None,
 ) -> GratingScale:
-    """The relation in degrees (all columns are angle per unit, so rad → deg throughout)."""
+    """The relation in degrees (all columns are angle per unit, so rad → deg throughout).
+
+    ``fit`` is the published relation; ``narrow`` the two-step fit of the same terms, which
+    each term not kept is measured against (its ``wide`` fit is two-step too).
+    """
     deg2 = math.degrees(1.0) ** 2
     names, _ = basis.columns(np.zeros(1), np.zeros(1), kept)
     coefficients = {n: math.degrees(b) for n, b in zip(names, fit.beta[1:], strict=True)}
+    narrow_coef = {n: math.degrees(b) for n, b in zip(names, narrow.beta[1:], strict=True)}
     unmodelled = {}
     for test in tests:
         if test.kept:
@@ -934,11 +951,11 @@ def _publish(
         wide = fit_terms([*kept, test.term])
         wide_names, _ = basis.columns(np.zeros(1), np.zeros(1), [*kept, test.term])
         narrow_cov = np.zeros_like(wide.cov_unit)
-        narrow_cov[: fit.cov_unit.shape[0], : fit.cov_unit.shape[0]] = fit.cov_unit
+        narrow_cov[: narrow.cov_unit.shape[0], : narrow.cov_unit.shape[0]] = narrow.cov_unit
         unmodelled[test.term] = UnmodelledTerm(
             p_value=test.p_value,
             delta={
-                n: math.degrees(b) - coefficients.get(n, 0.0)
+                n: math.degrees(b) - narrow_coef.get(n, 0.0)
                 for n, b in zip(wide_names, wide.beta[1:], strict=True)
             },
             delta_covariance_deg2=wide.s2 * (wide.cov_unit - narrow_cov)[1:, 1:] * deg2,
