@@ -52,8 +52,29 @@ class CircleFitError(CalibrationError, ValueError):
     """The points do not determine a circle (too few, non-finite, or collinear)."""
 
 
+class FactoredAngleCovariance:
+    """Angles whose covariance is ``diag(d) + B·Bᵀ`` (:meth:`angle_covariance_factors`):
+    independent tangential noise plus a low-rank part shared through the fitted axis. The
+    angle origin moves with the axis, so the covariance is meaningful for angle
+    *differences*; a common offset is arbitrary."""
+
+    def angle_covariance_factors(self) -> tuple[FloatArray, FloatArray]:
+        raise NotImplementedError
+
+    def angle_covariance_rad2(self) -> FloatArray:
+        """Covariance of all angles, ``(N, N)`` rad²."""
+        d, b = self.angle_covariance_factors()
+        return np.diag(d) + b @ b.T
+
+    @property
+    def angle_std_rad(self) -> FloatArray:
+        """Standard deviation of every angle, ``(N,)`` rad."""
+        d, b = self.angle_covariance_factors()
+        return np.sqrt(d + np.einsum("ij,ij->i", b, b))
+
+
 @dataclass(frozen=True, eq=False)
-class CircleFit:
+class CircleFit(FactoredAngleCovariance):
     """A 3-D circle fitted to N points, with the angle of every point about its axis.
 
     The angle of a point is measured in the circle's plane from ``axis_u`` towards
@@ -169,23 +190,6 @@ class CircleFit:
         w, e = np.linalg.eigh(self.parameter_covariance)
         root = e * np.sqrt(np.clip(w, 0.0, None))
         return tangential, self.angle_jacobian() @ root
-
-    def angle_covariance_rad2(self) -> FloatArray:
-        """Covariance of all N angles, ``(N, N)`` rad².
-
-        Tangential noise (independent, ``σ_k² / r_k²``) plus the part shared through the
-        centre and normal errors (``G · C · Gᵀ``). The angle origin ``axis_u`` moves with
-        the normal, so the covariance is meaningful for angle *differences*; a common
-        offset is arbitrary.
-        """
-        d, b = self.angle_covariance_factors()
-        return np.diag(d) + b @ b.T
-
-    @property
-    def angle_std_rad(self) -> FloatArray:
-        """Standard deviation of every angle, ``(N,)`` rad (see :meth:`angle_covariance_rad2`)."""
-        d, b = self.angle_covariance_factors()
-        return np.sqrt(d + np.einsum("ij,ij->i", b, b))
 
     def flipped(self) -> CircleFit:
         """The same circle with the normal reversed: every angle changes sign."""

@@ -103,7 +103,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
-from calibration.circle_fit import MIN_POINTS, CircleFit, CircleFitError, fit_circle_3d
+from calibration.circle_fit import (
+    MIN_POINTS,
+    CircleFit,
+    CircleFitError,
+    FactoredAngleCovariance,
+    fit_circle_3d,
+)
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -489,7 +495,7 @@ def _reject_wild(
 
 
 @dataclass(frozen=True, eq=False)
-class TargetSetFit:
+class TargetSetFit(FactoredAngleCovariance):
     """The rotation of a set of T targets about one axis at K stops (see the module doc).
 
     Fields mirror :class:`~calibration.circle_fit.CircleFit` where grating_scale uses it:
@@ -694,16 +700,6 @@ class TargetSetFit:
         val, vec = np.linalg.eigh(self.parameter_covariance)
         root = vec * np.sqrt(np.clip(val, 0.0, None))
         return d, self.angle_sensitivity() @ root
-
-    def angle_covariance_rad2(self) -> FloatArray:
-        """Covariance of all K angles, ``(K, K)`` rad² (meaningful for differences)."""
-        d, b = self.angle_covariance_factors()
-        return np.diag(d) + b @ b.T
-
-    @property
-    def angle_std_rad(self) -> FloatArray:
-        d, b = self.angle_covariance_factors()
-        return np.sqrt(d + np.einsum("ij,ij->i", b, b))
 
     def flipped(self) -> TargetSetFit:
         """The same fit with the normal reversed: every angle, phase and height changes sign."""
