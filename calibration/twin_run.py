@@ -330,6 +330,7 @@ class TwinCalibration:
                 "gravity deflection, the next round refits the maps with that deflection "
                 "taken out of the sweeps and runs the identification and the loop again, "
                 "once more while the loop still finds a harmonic of a gravity-loaded joint "
+                "or the deflection moved beyond twice its standard error "
                 f"(at most {MAX_ROUNDS} rounds)"
             ),
             "rounds": [r.summary() for r in self.rounds],
@@ -357,9 +358,11 @@ def calibrate_twin(
     tell the two apart), and a share the fit did not determine is shrunk away
     (:func:`_sweep_deflections`). When that round's loop still finds a harmonic of a
     gravity-loaded joint beside the gravity term (load its map still carries), its own
-    gravity deflection goes back into the sweeps once more (at most :data:`MAX_ROUNDS`
-    rounds); otherwise a further round would only redraw the estimate's noise into the
-    maps. The last round is the twin.
+    gravity deflection goes back into the sweeps once more, and so it does while the
+    deflection itself still moves between rounds by more than twice its standard error
+    (a first round whose maps carried the load can give a gravity term that lends one
+    joint another's deflection; at most :data:`MAX_ROUNDS` rounds); otherwise a further
+    round would only redraw the estimate's noise into the maps. The last round is the twin.
     """
     from calibration.closed_loop import LoopSettings, run_closed_loop
     from calibration.identification import identify
@@ -391,9 +394,10 @@ def calibrate_twin(
     first = one_round(None)
     idm = first.campaign.mask("identify")
     say(f"identification: {int(idm.sum())} poses, validation {int((~idm).sum())}")
-    deflection = _sweep_deflections(meas, first)
-    if deflection is None:  # no gravity deflection found: nothing to take out
+    found = _sweep_deflections(meas, first)
+    if found is None:  # no gravity deflection found: nothing to take out
         return TwinCalibration((first,))
+    deflection, _ = found
     say("closed loop found gravity deflection: refitting the scale maps without it")
     rounds = [first]
     while True:
@@ -401,13 +405,29 @@ def calibrate_twin(
         rounds.append(current)
         added = ", ".join(st.label for st in current.loop.stages[2:]) if current.loop else ""
         say(f"joint fit round {len(rounds)}: the twin adds {added or 'nothing'}")
-        if len(rounds) >= MAX_ROUNDS or not _load_left_in_maps(current, robot):
+        if len(rounds) >= MAX_ROUNDS:
             break
         refined = _sweep_deflections(meas, current)
         if refined is None:
             break
-        deflection = refined
+        moved = _deflection_moved(deflection, *refined)
+        if not (moved or _load_left_in_maps(current, robot)):
+            break
+        if moved:
+            say(f"joint fit: the deflection of joint(s) {', '.join(map(str, moved))} moved "
+                "beyond its noise: once more")  # fmt: skip
+        deflection = refined[0]
     return TwinCalibration(tuple(rounds))
+
+
+def _deflection_moved(
+    old: dict[int, FloatArray], new: dict[int, FloatArray], noise: FloatArray
+) -> list[int]:
+    """Joints (1-based) whose deflection over all sweeps moved between rounds by more than
+    twice its standard error (sum of squares over the stops against ``4·noise``, ``noise``
+    ``(n,)`` the summed variance): the maps and the gravity term have not settled."""
+    change = sum(np.sum((new[j] - old[j]) ** 2, axis=0) for j in new)
+    return [int(i) + 1 for i in np.flatnonzero(change > 4.0 * noise)]
 
 
 def _load_left_in_maps(rnd: TwinRound, robot: RobotDescription) -> bool:
@@ -425,9 +445,12 @@ def _load_left_in_maps(rnd: TwinRound, robot: RobotDescription) -> bool:
     )
 
 
-def _sweep_deflections(meas: CampaignMeasurements, rnd: TwinRound) -> dict[int, FloatArray] | None:
+def _sweep_deflections(
+    meas: CampaignMeasurements, rnd: TwinRound
+) -> tuple[dict[int, FloatArray], FloatArray] | None:
     """The round's gravity deflection of every link ``(S, n)`` rad at each joint's sweep
-    stops (None when its loop found none).
+    stops, and per joint its variance summed over all sweeps' stops ``(n,)`` (None when
+    the round's loop found no gravity deflection).
 
     Only what the poses can tell from the maps goes back into them: a moment whose effect
     on joint j depends on q_j alone (it vanishes relative to j's sweep configuration, e.g.
@@ -503,7 +526,7 @@ def _sweep_deflections(meas: CampaignMeasurements, rnd: TwinRound) -> dict[int, 
         noise += np.sum(var, axis=0) + np.sum(value**2, axis=0) * ratio_var
     # positive-part shrinkage by the joint's signal-to-noise ratio over the sweeps
     shrink = np.clip(1.0 - noise / np.maximum(signal, 1e-300), 0.0, 1.0)
-    return {j: value * shrink[None, :] for j, (value, _) in sweeps.items()}
+    return {j: value * shrink[None, :] for j, (value, _) in sweeps.items()}, noise
 
 
 def _effect_covariance(result, index: int, specs) -> FloatArray:  # type: ignore[no-untyped-def]

@@ -117,3 +117,20 @@ def test_a_tracker_dropout_still_calibrates_and_reports_the_lost_interval(tmp_pa
     report = json.loads((tmp_path / "out" / "report" / "report.json").read_text())
     assert report["twin_run"]["lost_intervals"][0]["device"] == "tracker"
     assert run["success"]
+
+
+def test_the_joint_fit_goes_on_while_the_deflection_moves_beyond_its_noise():
+    """Round 1's gravity term can lend one joint another's deflection (its maps carried the
+    load); the next round's differs by far more than its noise, and the maps are refitted
+    once more. Within twice the standard error nothing moves."""
+    import numpy as np
+
+    from calibration.twin_run import _deflection_moved
+
+    old = {1: np.zeros((4, 3)), 2: np.zeros((5, 3))}
+    noise = np.full(3, 1e-10)  # summed variance per joint over the 9 stops (rad²)
+    within = {j: np.full_like(d, 1.9 * np.sqrt(1e-10 / 9)) for j, d in old.items()}
+    assert _deflection_moved(old, within, noise) == []
+    beyond = {j: d.copy() for j, d in within.items()}
+    beyond[2][:, 2] = 3e-5  # joint 3 moved by 6″ at every stop of joint 2's sweep
+    assert _deflection_moved(old, beyond, noise) == [3]
