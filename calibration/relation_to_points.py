@@ -35,14 +35,14 @@ Units: mm, radians. Shapes: ``(K, T, 3)`` points, ``(K, T)`` per point, ``(K, q)
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from calibration.circle_fit import CircleFit, _tilted_normal
-from calibration.target_set_fit import TargetSetFit
+from calibration.target_set_fit import TargetSetFit, TargetSetGeometry
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -73,59 +73,40 @@ class StopPoints:
     """The points of a sweep's stops and the structure to start from.
 
     ``points_mm`` ``(K, T, 3)``, ``sigma_mm`` ``(K, T)`` per-axis weights, ``used``
-    ``(K, T)`` the points in the fit. The start: axis point, unit normal and angle origin
-    ``axis_u`` ``(3,)``; heights, radii and phases ``(T,)`` (``[0]`` of height and phase 0).
+    ``(K, T)`` the points in the fit; ``start`` the axis and the targets about it, heights
+    from the axis point (``height_mm[0] = phase_rad[0] = 0``).
     """
 
     points_mm: FloatArray
     sigma_mm: FloatArray
     used: BoolArray
-    centre_mm: FloatArray
-    normal: FloatArray
-    axis_u: FloatArray
-    height_mm: FloatArray
-    radii_mm: FloatArray
-    phase_rad: FloatArray
+    start: TargetSetGeometry
 
     @classmethod
     def of(cls, fit: CircleFit | TargetSetFit, stop_inlier: BoolArray) -> StopPoints:
         """From the angle fit a sweep's stops came from; ``stop_inlier`` ``(K,)`` the stops
         the relation uses."""
         if isinstance(fit, CircleFit):
-            return cls(
-                fit.points_mm[:, None, :],
-                fit.sigma_mm[:, None],
-                stop_inlier[:, None].copy(),
-                fit.centre_mm,
-                fit.normal,
-                fit.axis_u,
+            start = TargetSetGeometry(
+                fit.centre_mm, fit.normal, fit.axis_u, np.zeros(1), np.array([fit.radius_mm]),
                 np.zeros(1),
-                np.array([fit.radius_mm]),
-                np.zeros(1),
-            )
-        h = fit.height_mm
-        return cls(
-            fit.points_mm,
-            fit.sigma_mm,
-            fit.point_inlier & stop_inlier[:, None],
-            fit.centre_mm + h[0] * fit.normal,
-            fit.normal,
-            fit.axis_u,
-            h - h[0],
-            fit.radii_mm,
-            fit.phase_rad,
-        )
+            )  # fmt: skip
+            pts, sigma = fit.points_mm[:, None, :], fit.sigma_mm[:, None]
+            return cls(pts, sigma, stop_inlier[:, None], start)
+        g = fit.geometry
+        start = replace(g, centre_mm=g.centre_mm + g.height_mm[0] * g.normal,
+                        height_mm=g.height_mm - g.height_mm[0])  # fmt: skip
+        return cls(fit.points_mm, fit.sigma_mm, fit.point_inlier & stop_inlier[:, None], start)
 
     @property
     def n_targets(self) -> int:
-        return int(self.radii_mm.shape[0])
+        return self.start.n_targets
 
     # -- the model --------------------------------------------------------------------------
     def _unpack(self, x: FloatArray):
         t = self.n_targets
-        u0 = self.axis_u
-        v0 = np.cross(self.normal, u0)
-        n = _tilted_normal(self.normal, u0, v0, x[3], x[4])
+        u0, v0 = self.start.axis_u, self.start.axis_v
+        n = _tilted_normal(self.start.normal, u0, v0, x[3], x[4])
         a = u0 - (u0 @ n) * n
         a /= np.linalg.norm(a)
         b = np.cross(n, a)
@@ -135,15 +116,9 @@ class StopPoints:
         return x[:3], n, a, b, radii, height, phase, x[3 + 3 * t :]
 
     def _start(self, beta0: FloatArray) -> FloatArray:
+        g = self.start
         return np.concatenate(
-            [
-                self.centre_mm,
-                [0.0, 0.0],
-                self.radii_mm,
-                self.height_mm[1:],
-                self.phase_rad[1:],
-                beta0,
-            ]
+            [g.centre_mm, [0.0, 0.0], g.radii_mm, g.height_mm[1:], g.phase_rad[1:], beta0]
         )
 
     def _positions(self, x: FloatArray, design: FloatArray) -> FloatArray:
