@@ -312,6 +312,22 @@ def test_a_tangential_wild_point_is_caught_by_the_relation():
     assert np.abs(z_scores(camp, r)).max() < Z_LIMIT
 
 
+def test_without_the_joint_fit_the_two_step_relation_is_published_and_said(monkeypatch):
+    """Should the fit to the points not converge, the relation to the stop angles (first
+    order the same) is published, and the map's notes say so."""
+    import calibration.relation_to_points as relation_to_points
+
+    desc, camp, results = campaign("kr500", 0)
+    monkeypatch.setattr(relation_to_points.StopPoints, "fit", lambda *a, **k: None)
+    r = calibrate(camp, desc, 3)
+    assert any("did not converge" in n for n in r.notes)
+    joint = results[3]
+    counts = camp.sweep_counts[camp.sweep_joint == 3]
+    diff = r.scale.counts_to_angle_deg(counts) - joint.scale.counts_to_angle_deg(counts)
+    assert np.max(np.abs(diff / joint.scale.angle_std_deg(counts))) < 0.5
+    assert np.max(np.abs(z_scores(camp, r))) < Z_LIMIT
+
+
 # -- API and errors ----------------------------------------------------------------------------
 def test_scale_api_and_errors():
     _, camp, results = campaign("kr500", 0)
