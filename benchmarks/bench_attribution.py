@@ -228,7 +228,7 @@ def run_case(robot: str, case: str, masses: str, seed: int) -> Outcome:
     res = run_closed_loop(desc, data.campaign)
     elapsed = time.perf_counter() - started
     v = verdict(case, res, desc)
-    final = float(np.linalg.norm(res.final.errors_mm["validate"], axis=1).mean())
+    final = res.final.mean_ap("validate")
     return Outcome(
         robot, case, masses, seed, v["named"], v["look_alike"], tuple(v["added"]), final,
         family_validation_mm(data), elapsed,

@@ -121,25 +121,6 @@ def keep_columns(basis_q: FloatArray, cols: FloatArray, rtol: float) -> NDArray[
     return keep
 
 
-def cv_sse(residual: FloatArray, design: FloatArray, tests: list[NDArray[np.intp]]) -> float:
-    """Held-out sum of squared errors of the least-squares fit of ``residual`` on
-    ``design`` ``(N, q)``, each fold refitted without its test rows.
-
-    The training normal equations are the full ones minus the test rows', so a fold costs
-    ``O(N_test·q²)`` whatever the number of poses; a ``(q, q)`` least-squares solve keeps
-    nearly dependent columns harmless.
-    """
-    gram = design.T @ design
-    rhs = design.T @ residual
-    total = 0.0
-    for test in tests:
-        a, r = design[test], residual[test]
-        coef, *_ = np.linalg.lstsq(gram - a.T @ a, rhs - a.T @ r, rcond=None)
-        e = r - a @ coef
-        total += float(e @ e)
-    return total
-
-
 @dataclass(frozen=True, eq=False)
 class LinearizedModel:
     """The current model at its solution: orthonormal basis of its scaled columns, the
@@ -168,15 +149,24 @@ class LinearizedModel:
         pose_fold = np.random.default_rng(seed).permutation(n_poses) % n_folds
         row_fold = np.repeat(pose_fold, 3)
         folds = [np.flatnonzero(row_fold == f) for f in range(n_folds)]
+        gram, rhs = j.T @ j, j.T @ residual
+        fold_gram = tuple(j[f].T @ j[f] for f in folds)
+        fold_rhs = tuple(j[f].T @ residual[f] for f in folds)
+        cv0 = 0.0
+        for f, fg, fr in zip(folds, fold_gram, fold_rhs, strict=True):
+            coef, *_ = np.linalg.lstsq(gram - fg, rhs - fr, rcond=None)
+            e = residual[f] - j[f] @ coef
+            cv0 += float(e @ e)
         return cls(
-            residual, j, basis, fit0, sigma2, folds, cv_sse(residual, j, folds),
-            j.T @ j, j.T @ residual,
-            tuple(j[f].T @ j[f] for f in folds), tuple(j[f].T @ residual[f] for f in folds),
+            residual, j, basis, fit0, sigma2, folds, cv0, gram, rhs, fold_gram, fold_rhs
         )  # fmt: skip
 
     def cv_sse_with(self, cols: FloatArray) -> float:
-        """:func:`cv_sse` of the model plus ``cols`` ``(3m, k)``, from the model's own
-        blocks computed once: only the candidate's cross blocks are new."""
+        """Held-out sum of squared errors of the model plus ``cols`` ``(3m, k)``, each fold
+        refitted without its test rows. The training normal equations are the full ones
+        minus the test rows', so a fold costs ``O(N_test·q²)`` whatever the number of poses;
+        the model's own blocks are computed once, only the candidate's cross blocks are new;
+        a ``(q, q)`` least-squares solve keeps nearly dependent columns harmless."""
         j, r = self.jacobian, self.residual
         jc, cc, cr = j.T @ cols, cols.T @ cols, cols.T @ r
         gram = np.block([[self.gram, jc], [jc.T, cc]])
@@ -199,9 +189,9 @@ class LinearizedModel:
         """``cols`` with the model's span projected out."""
         return cols - self.basis @ (self.basis.T @ cols)
 
-    def sse_with(self, cols: FloatArray) -> float:
-        """Residual SSE with extra columns ``(3m, k)`` added to the model."""
-        perp = self.perp(cols)
+    def sse_with_perp(self, perp: FloatArray) -> float:
+        """Residual SSE with extra columns added to the model, given them with the model's
+        span projected out (:meth:`perp`) ``(3m, k)``."""
         coef, *_ = np.linalg.lstsq(perp, self.fit0, rcond=None)
         e = self.fit0 - perp @ coef
         return float(e @ e)
@@ -235,7 +225,7 @@ def score_candidate(
             "a combination of the parameters already in the model", in_model,
         )  # fmt: skip
     ck = cs[:, keep]
-    sse1 = lin.sse_with(ck)
+    sse1 = lin.sse_with_perp(perp_all[:, keep])
     k_eff = k + extra_parameters
     dof = len(lin.residual) - lin.jacobian.shape[1] - k_eff
     f_stat = ((lin.sse0 - sse1) / k_eff) / (sse1 / dof) if dof > 0 and sse1 > 0 else math.inf
@@ -322,8 +312,9 @@ def choose(
     ranked = sorted((s for s in scores if s.significant), key=lambda s: -s.score)
     best = ranked[0]
     prior = [s for s in ranked if priority(s.spec) < priority(best.spec)]
+    best_basis = residual_basis(lin, columns[best.spec]) if prior else None
     for other in prior:  # by score
-        cos = principal_cosines(lin, columns[best.spec], columns[other.spec])
+        cos = cosines_between(best_basis, residual_basis(lin, columns[other.spec]))
         if contained_in(cos, best.n_parameters):
             reason = (
                 f"physical priority: {best.label} (score {best.score:.1f}) lies within "

@@ -65,7 +65,9 @@ from calibration.effect_library import (
     Kinematics,
     candidate_effects,
     check_kinds,
+    counterbalance_term,
     effect_terms,
+    joint_moment,
     predict_points,
     regressor_matrix,
     split_values,
@@ -84,12 +86,10 @@ from calibration.identification import (
     ProgressCallback,
     base_start_from_registration,
     identify,
-    stacked_jacobian,
 )
 from calibration.kinematics import KinematicModel
 
 FloatArray = NDArray[np.float64]
-Profile = TimeConstantProfile
 
 CRITERION = (
     "a candidate is added when its 5-fold cross-validated error reduction on the "
@@ -171,7 +171,12 @@ class Stage:
         return split_values(self.specs, se)[self.specs.index(spec)]
 
     def mean_ap(self, set_name: str) -> float:
-        return float(np.linalg.norm(self.errors_mm[set_name], axis=1).mean())
+        return mean_ap_mm(self.errors_mm[set_name])
+
+
+def mean_ap_mm(errors_mm: FloatArray) -> float:
+    """Mean absolute positioning error of point errors ``(m, 3)`` mm."""
+    return float(np.linalg.norm(errors_mm, axis=1).mean())
 
 
 @dataclass(frozen=True)
@@ -274,16 +279,17 @@ class _Problem:
     ) -> tuple[LinearizedModel, FloatArray, Kinematics]:
         """The model at its solution, weighted like the fit; the weights ``(m,)``."""
         model, values = result.model, result.effect_values
-        terms = effect_terms(specs, self.ctx) if specs else None
-        q = self.ctx.data.q_rad
+        kin = Kinematics.of(model, self.ctx.data.q_rad)
         sw = np.sqrt(self.prior * result.pose_weights)
         pred = predict_points(model, specs, values, self.ctx)
         residual = ((pred - self.meas) * sw[:, None]).ravel()
-        jac = stacked_jacobian(model, q, terms)[:, :, result.free] * sw[:, None, None]
+        effects = regressor_matrix(specs, self.ctx, slice(0, self.m), kin)
+        jac = np.concatenate([kin.jacobian, effects], axis=2)[:, :, result.free]
+        jac = jac * sw[:, None, None]
         lin = LinearizedModel.build(
             residual, jac.reshape(-1, jac.shape[-1]), self.m, settings.folds, settings.fold_seed
         )
-        return lin, sw, Kinematics.of(model, q)
+        return lin, sw, kin
 
     def columns(self, spec: EffectSpec, sw: FloatArray, kin: Kinematics) -> FloatArray:
         """A candidate's weighted regressor ``(3m, k)``."""
@@ -371,6 +377,7 @@ def run_closed_loop(
     last_round: list[CandidateScore] = []
     rejected: list[Rejected] = []
     set_aside: set[EffectSpec] = set()
+    set_name = _set_name(contexts)
     tell(f"closed loop: {len(library)} candidate effects")
     while len(specs) < settings.max_effects:
         offered = [s for s in library if s not in specs and s not in set_aside]
@@ -395,17 +402,16 @@ def run_closed_loop(
         shape: dict[str, Any] = {}
         if chosen.spec in profiles:
             shape["time_constant"] = profiles[chosen.spec].as_dict()
-        step = _try_step(problem, result, specs, chosen.spec, lin, columns, settings, tell)
+        step = _try_step(problem, result, specs, chosen.spec, lin, columns, tell)
         errors: dict[str, FloatArray] = {}
         why = step if isinstance(step, str) else ""
         previous = stages[-1]
-        set_name = _set_name(contexts)
         if not why:
             new_specs, new_result, form_info = step
             shape.update(form_info)
             errors = problem.errors(new_result.model, new_specs, new_result.effect_values)
             before = previous.mean_ap(set_name)
-            after = float(np.linalg.norm(errors[set_name], axis=1).mean())
+            after = mean_ap_mm(errors[set_name])
             if settings.validation_guard and set_name == "validate" and after > before:
                 why = (
                     f"the validation mean AP rose from {before:.4f} to {after:.4f} mm: step undone"
@@ -467,12 +473,10 @@ def _with_span(spec: EffectSpec, span: tuple[float, ...]) -> EffectSpec:
 
 
 def _same_slot(spec: EffectSpec, specs: tuple[EffectSpec, ...]) -> bool:
-    """Whether the model already has this term in another form (a lag for a drift)."""
-    return any(
-        s.kind == spec.kind and s.joint == spec.joint and s.parameter == spec.parameter
-        and s.order == spec.order and s.kind == "length_drift"
-        for s in specs
-    )  # fmt: skip
+    """Whether the model already has this term in another form (a lag for a drift, the
+    physical form of a gravity term)."""
+    slot = KINDS[spec.kind].slot(spec)
+    return any(KINDS[s.kind].slot(s) == slot for s in specs)
 
 
 def _score_round(
@@ -535,7 +539,6 @@ def _try_step(
     spec: EffectSpec,
     lin: LinearizedModel,
     columns: dict[EffectSpec, FloatArray],
-    settings: LoopSettings,
     tell: Callable[[str], None],
 ) -> tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str:
     """Re-identify with ``spec`` added (a gravity term in the form the data supports);
@@ -548,7 +551,7 @@ def _try_step(
         return f"re-identification failed: {exc}"
     if spec.kind != "gravity_deflection" or spec.parameter == "physical":
         return new_specs, linear, {}
-    physical = _physical_gravity(problem, result, specs, spec, lin, columns[spec])
+    physical = _physical_gravity(problem, spec, lin, columns[spec])
     if physical is None:
         return new_specs, linear, {}
     phys_spec, fit = physical
@@ -569,8 +572,6 @@ def _try_step(
 
 def _physical_gravity(
     problem: _Problem,
-    result: IdentificationResult,
-    specs: tuple[EffectSpec, ...],
     spec: EffectSpec,
     lin: LinearizedModel,
     cols: FloatArray,
@@ -580,12 +581,12 @@ def _physical_gravity(
     names = base.names
     blocks: dict[int, FloatArray] = {}
     own: list[int] = []  # counterbalance terms: a joint's own torque profile, not shared
+    n_joints = problem.ctx.description.n_joints
     for c, term in enumerate(spec.names):
-        joint, moment = term.split(".", 1)
-        if moment.startswith("counterbalance."):
+        if counterbalance_term(term) is not None:
             own.append(c)
             continue
-        j = int(joint[5:])
+        j, moment = joint_moment(term, spec.kind, n_joints)
         block = blocks.setdefault(j, np.zeros((cols.shape[0], len(names))))
         block[:, names.index(moment)] = cols[:, c]
     if len(blocks) < 1:

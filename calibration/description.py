@@ -69,10 +69,6 @@ class BaseDescription:
     rz_deg: float = 0.0
     gravity: tuple[float, float, float] | None = None
 
-    @property
-    def pose(self) -> tuple[float, float, float, float, float, float]:
-        return (self.x_mm, self.y_mm, self.z_mm, self.rx_deg, self.ry_deg, self.rz_deg)
-
 
 #: An ``[[effect]]`` value: a number, a name, or an array of numbers or of names.
 EffectValue = float | str | tuple[float, ...] | tuple[str, ...]

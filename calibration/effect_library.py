@@ -308,6 +308,11 @@ class EffectKind(ABC):
     needs_direction: bool = False
     description: str = ""
 
+    def slot(self, spec: EffectSpec) -> tuple[Any, ...]:
+        """What the term is attached to, whatever its form (a model holds one term per
+        slot: a drift and its lag form, a gravity term's linear and physical forms)."""
+        return (spec.kind, spec.joint, spec.order, spec.parameter)
+
     @abstractmethod
     def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]: ...
 
@@ -448,7 +453,7 @@ def counterbalance_terms(joint: int) -> tuple[str, ...]:
     )
 
 
-def _counterbalance_term(name: str) -> tuple[int, str, int] | None:
+def counterbalance_term(name: str) -> tuple[int, str, int] | None:
     """``"joint2.counterbalance.cos2"`` -> (2, "cos", 2); None for other names."""
     parts = name.split(".")
     if len(parts) != 3 or parts[1] != "counterbalance" or not parts[0].startswith("joint"):
@@ -459,9 +464,9 @@ def _counterbalance_term(name: str) -> tuple[int, str, int] | None:
     return int(parts[0][5:]), f, int(k)
 
 
-def _joint_moment(name: str, kind: str, n_joints: int) -> tuple[int, str]:
+def joint_moment(name: str, kind: str, n_joints: int) -> tuple[int, str]:
     """``"joint3.link4.mx"`` -> (3, ``"link4.mx"``); errors name the term."""
-    cb = _counterbalance_term(name)
+    cb = counterbalance_term(name)
     if cb is not None and 1 <= cb[0] <= n_joints:
         return cb[0], name.split(".", 1)[1]
     head, _, moment = name.partition(".")
@@ -504,10 +509,13 @@ class GravityDeflection(EffectKind):
         "(compliance × a torque linear in the links' first mass moments; no masses needed)"
     )
 
+    def slot(self, spec):
+        return (spec.kind,)  # the whole arm; ``parameter`` is the form
+
     def parameter_names(self, spec):
         if spec.parameter == "physical":
             return tuple(
-                f"{m}_urad" if _counterbalance_term(m) else f"{m}_weighted_urad" for m in spec.names
+                f"{m}_urad" if counterbalance_term(m) else f"{m}_weighted_urad" for m in spec.names
             )
         return tuple(f"{n}_urad" for n in spec.names)
 
@@ -521,7 +529,7 @@ class GravityDeflection(EffectKind):
         out = np.zeros((len(q), n, len(spec.names)))
         ratio = dict(zip(spec.joints, spec.shape, strict=False))
         for p, name in enumerate(spec.names):
-            cb = _counterbalance_term(name)
+            cb = counterbalance_term(name)
             if cb is not None:
                 j, f, k = cb
                 out[:, j - 1, p] = (np.cos if f == "cos" else np.sin)(k * q[:, j - 1])
@@ -530,7 +538,7 @@ class GravityDeflection(EffectKind):
                 for j, rho in ratio.items():
                     out[:, j - 1, p] = rho * y[:, j - 1, m]
             else:
-                j, moment = _joint_moment(name, "gravity_deflection", n)
+                j, moment = joint_moment(name, "gravity_deflection", n)
                 out[:, j - 1, p] = y[:, j - 1, raw.index(moment)]
         return out
 
@@ -595,7 +603,7 @@ class GravityDeflection(EffectKind):
     def to_parameters(self, spec, values, n_joints):
         v = tuple(float(x) for x in values)
         if spec.parameter == "physical":
-            cb = [i for i, m in enumerate(spec.names) if _counterbalance_term(m)]
+            cb = [i for i, m in enumerate(spec.names) if counterbalance_term(m)]
             moments = [i for i in range(len(spec.names)) if i not in cb]
             out: dict[str, Any] = {
                 "form": "physical",
@@ -620,7 +628,7 @@ class GravityDeflection(EffectKind):
         if form == "linear":
             _check_keys(params, {"form", "terms", "deflection_urad"}, self.kind)
             terms = _strings(params, "terms", self.kind)
-            joints = sorted({_joint_moment(t, self.kind, n_joints)[0] for t in terms})
+            joints = sorted({joint_moment(t, self.kind, n_joints)[0] for t in terms})
             values = _vector(params, "deflection_urad", self.kind, len(terms))
             return EffectSpec(self.kind, parameter="linear", joints=tuple(joints), names=terms), (
                 values
@@ -636,7 +644,7 @@ class GravityDeflection(EffectKind):
         if "counterbalance" in params or "counterbalance_urad" in params:
             cb = _strings(params, "counterbalance", self.kind)
             for t in cb:
-                term = _counterbalance_term(t)
+                term = counterbalance_term(t)
                 if term is None or not 1 <= term[0] <= n_joints:
                     raise EffectLibraryError(
                         f"effect {self.kind!r}: counterbalance term {t!r} is not "

@@ -23,7 +23,7 @@ implicitly (projected out) and the result is the same to first order as a joint 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -155,7 +155,6 @@ class PhysicalGravityFit:
 def fit_physical_gravity(
     lin: LinearizedModel,
     blocks: dict[int, FloatArray],
-    start_ratios: Sequence[float] | None = None,
 ) -> PhysicalGravityFit:
     """Fit ``Σ_j ρ_j·C_j·w`` to the model's residual, ``C_j`` ``(3m, b)`` the weighted
     columns of joint j per base moment (zero where a moment does not act on it).
@@ -179,7 +178,7 @@ def fit_physical_gravity(
         pos += len(acting[j])
     shift = [float(np.linalg.norm(perp[j] @ p[i])) for i, j in enumerate(joints)]
     ref = int(np.argmax(shift))
-    rho, w = _rank_one(p, acting, joints, ref, start_ratios)
+    rho, w = _rank_one(p, acting, joints, ref)
     free = [i for i in range(len(joints)) if i != ref]
 
     # a moment with no column left once the model is projected out (one whose effect the
@@ -232,11 +231,9 @@ def _rank_one(
     acting: dict[int, NDArray[np.intp]],
     joints: tuple[int, ...],
     ref: int,
-    start_ratios: Sequence[float] | None,
 ) -> tuple[FloatArray, FloatArray]:
     """``p_jk ≈ ρ_j·w_k`` over the acting entries (alternating least squares, ρ_ref = 1)."""
-    rho = np.ones(len(joints)) if start_ratios is None else np.asarray(start_ratios, float)
-    rho = rho / rho[ref]
+    rho = np.ones(len(joints))
     w = np.zeros(p.shape[1])
     for _ in range(50):
         for k in range(p.shape[1]):

@@ -38,7 +38,6 @@ from calibration.kinematics import KinematicModel
 
 FloatArray = NDArray[np.float64]
 
-STANDARD_GRAVITY_M_S2 = 9.80665
 #: Gravity along −z of the robot base frame: a floor-mounted arm.
 FLOOR_GRAVITY = (0.0, 0.0, -1.0)
 MOMENT_AXES = ("x", "y", "z")
@@ -157,15 +156,6 @@ class BaseMoments:
         """1-based joints that gravity can load."""
         return tuple(j + 1 for j, cols in enumerate(self.per_joint) if cols)
 
-    @property
-    def n_linear(self) -> int:
-        """Parameters of the linear form (one per joint and acting moment): 30 for a 6R arm."""
-        return sum(len(c) for c in self.per_joint)
-
-    def regressor(self, model: KinematicModel, q_rad: ArrayLike) -> FloatArray:
-        """``Ŷ`` restricted to the base moments, ``(N, n, b)``."""
-        return raw_regressor(model, q_rad, self.gravity)[:, :, self.raw_index]
-
     def values_from_raw(self, raw_kgmm: ArrayLike, model: KinematicModel) -> FloatArray:
         """Base moments ``(b,)`` kg·mm giving the same torques as raw moments ``(3n,)``."""
         q = _selection_poses_for(model)
@@ -204,29 +194,7 @@ def base_moments(description: RobotDescription, gravity: ArrayLike | None = None
 def gravity_of(description: RobotDescription) -> FloatArray:
     """Gravity direction in the robot base frame: the description's, else −z (floor)."""
     base = description.base
-    stated = getattr(base, "gravity", None) if base is not None else None
-    return unit_gravity(stated)
-
-
-def base_moments_from_names(
-    names: Sequence[str], description: RobotDescription, gravity: ArrayLike | None = None
-) -> BaseMoments:
-    """The base moments a calibrated model names (per-joint subsets recomputed)."""
-    n = description.n_joints
-    known = moment_names(n)
-    unknown = [m for m in names if m not in known]
-    if unknown:
-        raise GravityRegressorError(
-            f"unknown moment {unknown[0]!r} (expected link1..link{n} with mx, my or mz)"
-        )
-    g = unit_gravity(gravity if gravity is not None else gravity_of(description))
-    model = KinematicModel.from_description(description)
-    q = _selection_poses(description)
-    idx = [known.index(m) for m in names]
-    y = raw_regressor(model, q, g)[:, :, idx]
-    order = sorted(range(len(idx)), key=lambda i: _preferred_order(n).index(idx[i]))
-    per_joint = tuple(tuple(sorted(_greedy_span(y[:, j, :], order))) for j in range(n))
-    return BaseMoments(tuple(names), per_joint, tuple(float(v) for v in g))
+    return unit_gravity(base.gravity if base is not None else None)
 
 
 def raw_moments_from_masses(description: RobotDescription) -> FloatArray | None:

@@ -206,7 +206,7 @@ def analyze_identifiability(
         raise IdentifiabilityError(f"references must have shape ({p},), got {ref_rms.shape}")
     rms = column_rms(a)
     no_effect = (rms == 0.0) | (rms < NO_EFFECT_TOL * ref_rms)
-    scale = np.where(no_effect, 1.0, column_scales(a))
+    scale = np.where(no_effect, 1.0, rms)
     scaled = a / scale
     scaled[:, no_effect] = 0.0  # rounding noise must not enter the Gram factor
     r = _gram_factor(scaled)

@@ -26,13 +26,13 @@ from calibration.effect_library import (
     to_descriptions,
 )
 from calibration.gravity_regressor import (
-    STANDARD_GRAVITY_M_S2,
     base_moments,
     raw_moments_from_masses,
     raw_regressor,
 )
 from calibration.kinematics import KinematicModel, flange_poses, tcp_positions
 from calibration.model_effects import ModelEffectError, predict_tcp
+from calibration.statics import STANDARD_GRAVITY_M_S2
 from sim_devices.effects import UndeclaredEffects, true_tcp_mm
 from sim_devices.pose_campaign import sample_reachable_poses
 
