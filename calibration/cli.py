@@ -12,6 +12,7 @@ import importlib
 import sys
 
 from calibration.errors import CalibrationError
+from edges.command import run_command, take_debug_flag
 
 # subcommand name -> (module providing register(), one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -30,7 +31,9 @@ def build_parser(command: str | None) -> argparse.ArgumentParser:
         prog="twin",
         description="The robot's digital twin: calibration and identification.",
         epilog="commands:\n"
-        + "\n".join(f"  {name:<12} {text}" for name, (_, text) in SUBCOMMANDS.items()),
+        + "\n".join(f"  {name:<12} {text}" for name, (_, text) in SUBCOMMANDS.items())
+        + "\n\nexit status: 0 done, 1 done but failed a check, 2 bad input (one line says "
+        "what), 70 a bug (--debug shows the traceback)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -43,14 +46,15 @@ def build_parser(command: str | None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    argv, debug = take_debug_flag(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
     args = build_parser(command).parse_args(argv)
-    try:
-        return int(args.func(args))
-    except CalibrationError as exc:
-        print(f"twin {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    return run_command(
+        f"twin {args.command}",
+        lambda: args.func(args),
+        user_errors=(CalibrationError,),
+        debug=debug,
+    )
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ from typing import Any
 
 from daq.config import DaqConfig, ZenohConfig, load
 from daq.errors import DaqError
+from edges.command import run_command, take_debug_flag
 
 COMMANDS: dict[str, str] = {
     "run": "the acquisition daemon (no --config: the emulated default cell, recorded)",
@@ -206,50 +207,48 @@ def _schema(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_command(args: argparse.Namespace) -> int:
+    if args.command == "run":
+        from daq.daemon import main_run
+
+        return main_run(args)
+    if getattr(args, "realtime_priority", 0):
+        from daq.scheduling import set_realtime
+
+        set_realtime(args.realtime_priority, "--realtime-priority")
+    if args.command == "record":
+        from daq.recording import main_record
+
+        return main_record(args, sink_zenoh(args))
+    if args.command == "replay":
+        from daq.replay import main_replay
+
+        return main_replay(args, resolve(args).zenoh)
+    if args.command == "recover":
+        from daq.recording import main_recover
+
+        return main_recover(args)
+    if args.command == "info":
+        from daq.recording import main_info
+
+        return main_info(args)
+    if args.command == "echo":
+        from daq.echo import main_echo
+
+        return main_echo(args, sink_zenoh(args))
+    return _schema(args)
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv, debug = take_debug_flag(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.WARNING - 10 * min(args.verbose, 2),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    try:
-        if args.command == "run":
-            from daq.daemon import main_run
-
-            return main_run(args)
-        if getattr(args, "realtime_priority", 0):
-            from daq.scheduling import set_realtime
-
-            set_realtime(args.realtime_priority, "--realtime-priority")
-        if args.command == "record":
-            from daq.recording import main_record
-
-            return main_record(args, sink_zenoh(args))
-        if args.command == "replay":
-            from daq.replay import main_replay
-
-            zc = resolve(args).zenoh
-            return main_replay(args, zc)
-        if args.command == "recover":
-            from daq.recording import main_recover
-
-            return main_recover(args)
-        if args.command == "info":
-            from daq.recording import main_info
-
-            return main_info(args)
-        if args.command == "echo":
-            from daq.echo import main_echo
-
-            return main_echo(args, sink_zenoh(args))
-        if args.command == "schema":
-            return _schema(args)
-    except DaqError as exc:
-        print(f"daq {args.command}: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    return 2
+    return run_command(
+        f"daq {args.command}", lambda: _run_command(args), user_errors=(DaqError,), debug=debug
+    )
 
 
 if __name__ == "__main__":

@@ -26,6 +26,8 @@ from typing import Any
 
 import tomli_w
 
+from calibration.errors import CalibrationError
+from edges.command import run_command, take_debug_flag
 from sim_devices.config import CellConfig
 from sim_devices.errors import SimError
 from sim_devices.plant import Plant, SimClock
@@ -273,15 +275,17 @@ def main(argv: list[str] | None = None) -> int:
     t.set_defaults(func=cmd_truth)
     d = sub.add_parser("default-config", help="print the default cell.toml")
     d.set_defaults(func=cmd_default_config)
+    argv, debug = take_debug_flag(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=getattr(args, "log_level", "WARNING"), stream=sys.stderr, format="%(message)s"
     )
-    try:
-        return int(args.func(args))
-    except SimError as exc:
-        print(f"sim-cell: {exc}", file=sys.stderr)
-        return 2
+    return run_command(
+        f"sim-cell {args.command}",
+        lambda: args.func(args),
+        user_errors=(SimError, CalibrationError),
+        debug=debug,
+    )
 
 
 if __name__ == "__main__":

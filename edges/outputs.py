@@ -1,0 +1,183 @@
+"""Outputs written atomically, together, and only after the run succeeded.
+
+A command declares its outputs up front (``OutputSet.file`` for a file, ``.directory``
+for a directory of files) and writes them to the staging paths it gets back. The staging
+area is a hidden sibling (``.NAME.partial-XXXX``) in the nearest existing directory above
+the target, so the final moves are renames on one file system. When the run ends
+without an exception, :meth:`OutputSet.commit` checks every destination and then moves
+every file into place (``os.replace``, directories created as needed); when it raises,
+the staging area is removed and the targets are as they were.
+
+Refused before anything runs: an output that is one of the run's inputs (same file, by
+device and inode, through any symlink or relative path), a file output whose path is a
+directory (or the reverse), a place where no directory can be made or written. A
+``kill -9`` mid-run leaves a ``.NAME.partial-XXXX`` directory beside the target, never a
+half-written target.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+PARTIAL = ".partial-"
+
+
+@dataclass(frozen=True)
+class _Staged:
+    target: Path  # where it goes
+    staged: Path  # where the run writes it
+    root: Path  # the staging directory to remove afterwards
+    is_dir: bool
+    option: str
+
+
+def _identity(path: Path) -> tuple[int, int] | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _existing_ancestor(path: Path) -> Path:
+    for parent in path.absolute().parents:
+        if parent.exists():
+            return parent
+    return Path("/")
+
+
+class OutputSet:
+    """The outputs of one run. ``inputs``: every file the run reads (``None`` skipped);
+    ``error``: the package's error class (called with a one-line message)."""
+
+    def __init__(
+        self,
+        inputs: Iterable[str | Path | None] = (),
+        *,
+        error: Callable[[str], Exception] = ValueError,
+    ) -> None:
+        self._error = error
+        self._inputs: dict[tuple[int, int], str] = {}
+        for p in inputs:
+            if p is None or str(p) in ("", "-"):
+                continue
+            ident = _identity(Path(p))
+            if ident is not None:
+                self._inputs[ident] = str(p)
+        self._staged: list[_Staged] = []
+        self._done = False
+
+    # -- declaring -------------------------------------------------------------------
+    def file(self, target: str | Path, option: str = "--out") -> Path:
+        """The path to write the file ``target`` to."""
+        return self._stage(Path(target), option, is_dir=False)
+
+    def directory(self, target: str | Path, option: str = "--out") -> Path:
+        """The directory to write the files meant for directory ``target`` into."""
+        return self._stage(Path(target), option, is_dir=True)
+
+    def final(self, staged: str | Path) -> Path:
+        """Where a path under a staging path will be once committed (for messages and
+        documents that name their own files)."""
+        p = Path(staged)
+        for s in self._staged:
+            if p == s.staged or s.staged in p.parents:
+                return s.target / p.relative_to(s.staged)
+        return p
+
+    def _refuse_input(self, target: Path, option: str) -> None:
+        ident = _identity(target)
+        if ident is not None and ident in self._inputs:
+            raise self._error(
+                f"{option} {target}: is an input of this run ({self._inputs[ident]}); "
+                "choose another output path"
+            )
+
+    def _stage(self, target: Path, option: str, *, is_dir: bool) -> Path:
+        if str(target) in ("", "."):
+            target = Path(".")
+        self._refuse_input(target, option)
+        if target.exists() or target.is_symlink():
+            if is_dir and not target.is_dir():
+                raise self._error(f"{option} {target}: exists and is not a directory")
+            if not is_dir and target.is_dir():
+                raise self._error(f"{option} {target}: is a directory, expected a file path")
+        for s in self._staged:
+            if s.target.absolute() == target.absolute():
+                raise self._error(f"{option} {target}: also given as {s.option}")
+        anchor = _existing_ancestor(target)
+        if not anchor.is_dir():
+            raise self._error(f"{option} {target}: {anchor} is not a directory")
+        name = target.absolute().name or "out"
+        try:
+            root = Path(tempfile.mkdtemp(prefix=f".{name}{PARTIAL}", dir=anchor))
+        except OSError as exc:
+            raise self._error(
+                f"{option} {target}: cannot write in {anchor}: {exc.strerror or exc}"
+            ) from None
+        staged = root / target.absolute().relative_to(anchor)
+        try:
+            (staged if is_dir else staged.parent).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            shutil.rmtree(root, ignore_errors=True)
+            raise self._error(f"{option} {target}: cannot stage: {exc.strerror or exc}") from None
+        self._staged.append(_Staged(target, staged, root, is_dir, option))
+        return staged
+
+    # -- ending ----------------------------------------------------------------------
+    def _moves(self) -> list[tuple[Path, Path, str]]:
+        moves: list[tuple[Path, Path, str]] = []
+        for s in self._staged:
+            if not s.is_dir:
+                if s.staged.exists():
+                    moves.append((s.staged, s.target, s.option))
+                continue
+            for dirpath, _dirs, files in os.walk(s.staged):
+                for f in sorted(files):
+                    src = Path(dirpath) / f
+                    moves.append((src, s.target / src.relative_to(s.staged), s.option))
+        return moves
+
+    def commit(self) -> list[Path]:
+        """Move every staged file into place (all destinations checked first); the
+        final paths, in order."""
+        if self._done:
+            return []
+        moves = self._moves()
+        for _src, dst, option in moves:
+            self._refuse_input(dst, option)
+            if dst.is_dir() and not dst.is_symlink():
+                raise self._error(f"{option}: {dst} is a directory, cannot write a file there")
+        written: list[Path] = []
+        for src, dst, option in moves:
+            try:
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(src, dst)
+            except OSError as exc:
+                raise self._error(f"{option} {dst}: cannot write: {exc.strerror or exc}") from None
+            written.append(dst)
+        self.discard()
+        return written
+
+    def discard(self) -> None:
+        """Remove the staging areas (the targets are untouched)."""
+        self._done = True
+        for s in self._staged:
+            shutil.rmtree(s.root, ignore_errors=True)
+
+    def __enter__(self) -> OutputSet:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        if exc_type is None:
+            try:
+                self.commit()
+            finally:
+                self.discard()
+        else:
+            self.discard()
