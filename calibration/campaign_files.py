@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.errors import DataFileError
+from edges.inputs import read_input_bytes
 
 FloatArray = NDArray[np.float64]
 
@@ -123,14 +124,12 @@ class _RowError(Exception):
 def _read_table(path: str | Path) -> tuple[str, list[str], list[tuple[int, list[str]]]]:
     """Header and (line number, fields) of every non-blank row of a CSV file."""
     source = str(path)
-    try:
-        raw = Path(path).read_bytes()
-    except OSError as exc:
-        raise DataFileError(f"{source}: cannot read: {exc}") from exc
+    raw = read_input_bytes(path, error=DataFileError)
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        raise DataFileError(f"{source}: not UTF-8 text: {exc}") from exc
+        line = raw[: exc.start].count(b"\n") + 1
+        raise DataFileError(f"{source}: line {line}: not UTF-8 text (byte {exc.start})") from None
     if "\x00" in text:
         raise DataFileError(f"{source}: contains NUL bytes: not a CSV text file")
     reader = csv.reader(io.StringIO(text, newline=""), strict=True)

@@ -13,6 +13,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
+
+from edges.outputs import OutputSet
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -42,21 +45,28 @@ def progress(command: str, quiet: bool):  # type: ignore[no-untyped-def]
 
 
 def run_export(args: argparse.Namespace) -> int:
+    from calibration.cli_identify import OptionError
     from calibration.description import load_robot
+    from calibration.errors import OutputFileError
     from calibration.streams import read_recording_streams
     from calibration.twin_run import export_campaign
 
     say = progress("export", args.quiet)
-    say(f"reading {args.replay}")
-    streams = read_recording_streams(args.replay)
-    res = export_campaign(
-        streams,
-        load_robot(args.robot),
-        args.out,
-        encoder_counts_per_rev=args.encoder_counts_per_rev,
-        say=say,
-    )
+    if args.encoder_counts_per_rev < 1:
+        raise OptionError(
+            f"--encoder-counts-per-rev: need a whole number >= 1, got {args.encoder_counts_per_rev}"
+        )
+    robot_file = args.robot if Path(args.robot).exists() else None
+    with OutputSet([args.replay, robot_file], error=OutputFileError) as outputs:
+        staged = outputs.directory(args.out, "--out")
+        robot = load_robot(args.robot)
+        say(f"reading {args.replay}")
+        streams = read_recording_streams(args.replay)
+        res = export_campaign(
+            streams, robot, staged, encoder_counts_per_rev=args.encoder_counts_per_rev, say=say
+        )
+        written = {name: outputs.final(path) for name, path in res.files.items()}
     print(json.dumps(res.summary["phases"]))
-    for name, path in res.files.items():
+    for name, path in written.items():
         print(f"wrote {name}: {path}")
     return 0

@@ -15,12 +15,13 @@ import argparse
 import sys
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
 from calibration.campaign_files import read_campaign, read_joint_readings, write_points
-from calibration.description import RobotDescription, load_robot
-from calibration.errors import CalibrationError, DataFileError
+from calibration.description import RobotDescription
+from calibration.errors import CalibrationError, DataFileError, OutputFileError
 from calibration.identifiability import NO_EFFECT
 from calibration.identification import (
     LOSSES,
@@ -32,6 +33,13 @@ from calibration.identification import (
     tracker_sigma_mm,
 )
 from calibration.kinematics import KinematicModel
+from calibration.model_effects import load_checked_robot
+from calibration.unit_plausibility import (
+    OVERRIDE,
+    check_campaign_units,
+    check_joint_angle_units,
+)
+from edges.outputs import OutputSet
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -82,6 +90,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=1e-3,
         help="family-wise false-positive probability of one search round (default 1e-3)",
     )
+    p.add_argument(
+        OVERRIDE,
+        action="store_true",
+        help="do not refuse tracker points or joint angles that look like other units "
+        "(metres, radians; see docs/identification.md)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=run_identify)
 
@@ -95,7 +109,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--data", required=True, help="joints.csv: pose,t_s,q1_deg..qN_deg")
     q.add_argument("--out", required=True, help="points.csv to write")
     q.add_argument("--skip-bad", action="store_true", help="skip bad rows (counted on stderr)")
+    q.add_argument(
+        OVERRIDE, action="store_true", help="do not refuse joint angles that look like radians"
+    )
     q.set_defaults(func=run_predict)
+
+
+#: Fewer distinct identification poses cannot determine the base and tool (registration
+#: needs 4 non-coplanar points); the method's campaigns have 100 (docs/identification.md).
+MIN_DISTINCT_POSES = 4
 
 
 def _limits(desc: RobotDescription) -> list[tuple[float, float]]:
@@ -116,15 +138,62 @@ def _mpe(text: str) -> tuple[float, float]:
     return a, b
 
 
+def _check_options(args: argparse.Namespace) -> None:
+    """Option values a parser cannot judge, refused before anything is read or fitted."""
+    f = args.f_scale_mm
+    if f is not None and not (np.isfinite(f) and f > 0):
+        raise OptionError(f"--f-scale-mm: need a finite scale > 0 mm, got {f}")
+    if not 0.0 < args.effects_alpha < 1.0:
+        raise OptionError(f"--effects-alpha: need 0 < A < 1, got {args.effects_alpha}")
+    if args.tracker_mpe_um:
+        _mpe(args.tracker_mpe_um)
+    _loop_settings(args)
+
+
+def _loop_settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    from calibration.closed_loop import LoopSettings
+
+    kinds = None
+    if args.effect_kinds:
+        kinds = tuple(k.strip() for k in args.effect_kinds.split(",") if k.strip())
+    try:
+        return LoopSettings(alpha=args.effects_alpha, kinds=kinds)
+    except ValueError as exc:
+        raise OptionError(f"--effect-kinds: {exc}") from None
+
+
+def _robot_file(name: str) -> str | None:
+    """The robot description's path when it is a file (a preset name is not an input)."""
+    return name if Path(name).exists() else None
+
+
 def run_identify(args: argparse.Namespace) -> int:
     def say(text: str) -> None:
         if not args.quiet:
             print(f"twin identify: {text}", file=sys.stderr, flush=True)
 
-    desc = load_robot(args.robot)
+    _check_options(args)
+    with OutputSet([args.data, _robot_file(args.robot)], error=OutputFileError) as outputs:
+        out_path = outputs.file(args.out, "--out")
+        report_dir = outputs.directory(args.report, "--report") if args.report else None
+        lines = _identify(args, out_path, report_dir, say)
+    for line in lines:
+        print(line)
+    return 0
+
+
+def _identify(args, out_path, report_dir, say) -> list[str]:  # type: ignore[no-untyped-def]
+    """The identification, writing to the staged ``out_path`` and ``report_dir``; the
+    lines to print once the outputs are in place."""
+    desc = load_checked_robot(args.robot)
     campaign = read_campaign(
         args.data, desc.n_joints, limits_deg=_limits(desc), skip_bad=args.skip_bad
     )
+    nominal = KinematicModel.from_description(desc)
+    if not args.no_unit_check:
+        check_campaign_units(
+            str(args.data), campaign.q_deg, campaign.xyz_mm, nominal, _limits(desc)
+        )
     if campaign.skipped:
         say(f"skipped {len(campaign.skipped)} bad row(s)")
         for s in campaign.skipped[:10]:
@@ -132,6 +201,12 @@ def run_identify(args: argparse.Namespace) -> int:
     idm = campaign.mask("identify")
     if not idm.any():
         raise DataFileError(f"{args.data}: no rows with set 'identify'")
+    distinct = len(np.unique(np.round(campaign.q_deg[idm], 6), axis=0))
+    if distinct < MIN_DISTINCT_POSES:
+        raise DataFileError(
+            f"{args.data}: only {distinct} distinct pose(s) among the 'identify' rows; the "
+            f"geometry needs at least {MIN_DISTINCT_POSES} (the method uses 100)"
+        )
     start = args.start
     if start == "auto":
         start = "description" if desc.base is not None else "registration"
@@ -139,7 +214,6 @@ def run_identify(args: argparse.Namespace) -> int:
         f"{int(idm.sum())} identification and {int(campaign.mask('validate').sum())} "
         f"validation poses; base start: {start}"
     )
-    nominal = KinematicModel.from_description(desc)
     point_sigma = None
     if args.tracker_mpe_um:
         mpe_um, mpe_um_per_m = _mpe(args.tracker_mpe_um)
@@ -148,16 +222,19 @@ def run_identify(args: argparse.Namespace) -> int:
     def progress(it: int, norm: float, mu: float) -> None:
         say(f"LM iteration {it}: error norm {norm:.6f} mm, damping {mu:.1e}")
 
-    result = identify(
-        nominal,
-        campaign.q_rad[idm],
-        campaign.xyz_mm[idm],
-        start=start,
-        loss=args.loss,
-        f_scale_mm=args.f_scale_mm,
-        point_sigma_mm=point_sigma,
-        progress=progress,
-    )
+    try:
+        result = identify(
+            nominal,
+            campaign.q_rad[idm],
+            campaign.xyz_mm[idm],
+            start=start,
+            loss=args.loss,
+            f_scale_mm=args.f_scale_mm,
+            point_sigma_mm=point_sigma,
+            progress=progress,
+        )
+    except CalibrationError as exc:  # the data cannot be fitted: say which data
+        raise IdentificationError(f"{args.data}: {exc}") from None
     _require_converged(result, "geometric")
     ana = result.identifiability
     say(
@@ -176,7 +253,7 @@ def run_identify(args: argparse.Namespace) -> int:
         result = loop.result
         calibrated = loop.calibrated_description(desc)
     _require_converged(result, "final")
-    calibrated.save(args.out)
+    calibrated.save(out_path)
 
     from calibration.identification_report import build_report, write_report
 
@@ -193,30 +270,31 @@ def run_identify(args: argparse.Namespace) -> int:
         if args.tracker_mpe_um
         else "none (all points weigh the same)"
     )
+    lines = []
     if loop is not None:
         set_name = "validate" if "validate" in loop.final.errors_mm else "identify"
         for st in doc["closed_loop"]["stages"]:
             ap = st["sets"][set_name]["AP"]
-            print(f"stage {st['label']}: {set_name} mean AP {ap['mean']:.4f} mm")
+            lines.append(f"stage {st['label']}: {set_name} mean AP {ap['mean']:.4f} mm")
         for c in doc["closed_loop"]["stopped"]["not_identifiable"]:
-            print(f"not identifiable: {c['effect']}")
+            lines.append(f"not identifiable: {c['effect']}")
     for name, s in doc["sets"].items():
         b, a = s["before"]["AP"], s["after"]["AP"]
-        print(
+        lines.append(
             f"{name}: mean AP {b['mean']:.4f} -> {a['mean']:.4f} mm, "
             f"max {b['max']:.4f} -> {a['max']:.4f} mm ({s['n_poses']} poses)"
         )
     if doc["outlier_poses"]:
-        print(f"outlier poses: {', '.join(doc['outlier_poses'])}")
+        lines.append(f"outlier poses: {', '.join(doc['outlier_poses'])}")
     if campaign.skipped:
-        print(f"skipped {len(campaign.skipped)} bad row(s)")
-    print(f"wrote {args.out}")
-    if args.report:
+        lines.append(f"skipped {len(campaign.skipped)} bad row(s)")
+    lines.append(f"wrote {args.out}")
+    if report_dir is not None:
         started = time.perf_counter()
-        paths = write_report(args.report, doc, errors, closed_loop=loop)
+        paths = write_report(report_dir, doc, errors, closed_loop=loop)
         say(f"report written in {time.perf_counter() - started:.1f} s")
-        print(f"wrote report to {args.report} ({len(paths)} files)")
-    return 0
+        lines.append(f"wrote report to {args.report} ({len(paths)} files)")
+    return lines
 
 
 def _require_converged(result: IdentificationResult, which: str) -> None:
@@ -233,17 +311,9 @@ def _require_converged(result: IdentificationResult, which: str) -> None:
 
 
 def _closed_loop(args, desc, campaign, start, point_sigma, geometric, say):  # type: ignore[no-untyped-def]
-    from calibration.closed_loop import LoopSettings, run_closed_loop
+    from calibration.closed_loop import run_closed_loop
 
-    kinds = None
-    if args.effect_kinds:
-        kinds = tuple(k.strip() for k in args.effect_kinds.split(",") if k.strip())
-    if not 0.0 < args.effects_alpha < 1.0:
-        raise OptionError(f"--effects-alpha: need 0 < A < 1, got {args.effects_alpha}")
-    try:
-        settings = LoopSettings(alpha=args.effects_alpha, kinds=kinds)
-    except ValueError as exc:
-        raise OptionError(f"--effect-kinds: {exc}") from None
+    settings = _loop_settings(args)
     return run_closed_loop(
         desc,
         campaign,
@@ -260,12 +330,16 @@ def _closed_loop(args, desc, campaign, start, point_sigma, geometric, say):  # t
 def run_predict(args: argparse.Namespace) -> int:
     from calibration.model_effects import predict_tcp, times_outside_span
 
-    desc = load_robot(args.model)
-    readings = read_joint_readings(
-        args.data, desc.n_joints, limits_deg=_limits(desc), skip_bad=args.skip_bad
-    )
-    points = predict_tcp(desc, np.radians(readings.q_deg), readings.t_s)
-    write_points(args.out, readings.pose, points)
+    with OutputSet([args.data, args.model], error=OutputFileError) as outputs:
+        out_path = outputs.file(args.out, "--out")
+        desc = load_checked_robot(args.model)
+        readings = read_joint_readings(
+            args.data, desc.n_joints, limits_deg=_limits(desc), skip_bad=args.skip_bad
+        )
+        if not args.no_unit_check:
+            check_joint_angle_units(str(args.data), readings.q_deg, _limits(desc))
+        points = predict_tcp(desc, np.radians(readings.q_deg), readings.t_s)
+        write_points(out_path, readings.pose, points)
     outside, span = times_outside_span(desc, readings.t_s)
     if outside and span is not None:
         print(

@@ -6,9 +6,11 @@ import argparse
 
 import numpy as np
 
-from calibration.description import load_robot, preset_names
+from calibration.description import preset_names
+from calibration.errors import OutputFileError
 from calibration.kinematics import KinematicModel, tcp_positions
-from calibration.model_effects import description_effects
+from calibration.model_effects import description_effects, load_checked_robot
+from edges.outputs import OutputSet
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,15 +24,18 @@ def run(args: argparse.Namespace) -> int:
     if args.robot is None:
         print("\n".join(preset_names()))
         return 0
-    desc = load_robot(args.robot)
-    specs, _ = description_effects(desc)  # [[effect]] tables checked as `twin predict` does
-    model = KinematicModel.from_description(desc)
-    home_tcp = tcp_positions(model, np.radians(desc.home))
+    with OutputSet([args.robot], error=OutputFileError) as outputs:
+        out_path = outputs.file(args.out, "--out") if args.out else None
+        desc = load_checked_robot(args.robot)  # [[effect]] tables as `twin predict` reads them
+        specs, _ = description_effects(desc)
+        model = KinematicModel.from_description(desc)
+        home_tcp = tcp_positions(model, np.radians(desc.home))
+        if out_path is not None:
+            desc.save(out_path)
     print(f"{desc.name}: {desc.n_joints} joints, Home {list(desc.home)} deg")
     if specs:
         print(f"effects: {'; '.join(s.label for s in specs)}")
     print(f"Home TCP in the instrument frame: {np.round(home_tcp, 3).tolist()} mm")
-    if args.out:
-        desc.save(args.out)
+    if out_path is not None:
         print(f"wrote {args.out}")
     return 0

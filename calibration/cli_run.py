@@ -9,9 +9,13 @@ See docs/twin-run.md.
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 from calibration.cli_export import progress
+from calibration.errors import DataFileError, OutputFileError
+from edges.inputs import MAX_TOML_BYTES, read_input_bytes
+from edges.outputs import OutputSet
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -69,33 +73,55 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_run)
 
 
+def _earlier_run(from_dir: str) -> dict:  # type: ignore[type-arg]
+    """run.json of an earlier ``twin run --out DIR`` (the files it names must exist)."""
+    path = Path(from_dir) / "run.json"
+    raw = read_input_bytes(path, limit=MAX_TOML_BYTES, error=DataFileError)
+    try:
+        run = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise DataFileError(f"{path}: not the run.json of a twin run: {exc}") from None
+    need = {"calibrated": str, "files": dict}
+    for key, kind in need.items():
+        if not isinstance(run, dict) or not isinstance(run.get(key), kind):
+            raise DataFileError(f"{path}: key '{key}': missing or not a {kind.__name__}")
+    for key in ("scale", "phases"):
+        if not isinstance(run["files"].get(key), str):
+            raise DataFileError(f"{path}: key 'files.{key}': missing or not a path")
+    for name in (run["calibrated"], run["files"]["scale"], run["files"]["phases"]):
+        if not Path(name).is_file():
+            raise DataFileError(f"{path}: names {name}, which is not there any more")
+    return run
+
+
 def run_run(args: argparse.Namespace) -> int:
     from calibration.twin_run import run_twin
 
     say = progress("run", args.quiet)
     live = None
     if args.from_dir:
-        import json
-
         from calibration.live_twin import LiveTwin
 
-        run = json.loads((Path(args.from_dir) / "run.json").read_text(encoding="utf-8"))
+        run = _earlier_run(args.from_dir)
         live = LiveTwin(args, say)
         try:
             return live.publish(run, Path(args.out))
         finally:
             live.close()
-    if args.replay:
-        from calibration.streams import read_recording_streams
-
-        say(f"reading {args.replay}")
-        streams = read_recording_streams(args.replay)
-    else:
-        from calibration.live_twin import LiveTwin
-
-        live = LiveTwin(args, say)
-        streams = live.collect()
+    robot_file = args.robot if Path(args.robot).exists() else None
+    outputs = OutputSet([args.replay, robot_file], error=OutputFileError)
     try:
+        staged = outputs.directory(args.out, "--out")
+        if args.replay:
+            from calibration.streams import read_recording_streams
+
+            say(f"reading {args.replay}")
+            streams = read_recording_streams(args.replay)
+        else:
+            from calibration.live_twin import LiveTwin
+
+            live = LiveTwin(args, say)
+            streams = live.collect()
         run = run_twin(
             streams,
             args.robot,
@@ -103,7 +129,9 @@ def run_run(args: argparse.Namespace) -> int:
             effects=not args.no_effects,
             report=not args.no_report,
             say=say,
+            write_to=staged,
         )
+        outputs.commit()  # before publishing: the live twin is built from these files
         print(run["stage_table"])
         print(f"calibrated model: {run['calibrated']}")
         print(f"report: {run['report']}/report.md (scale: {args.out}/scale-report/report.md)")
@@ -112,5 +140,6 @@ def run_run(args: argparse.Namespace) -> int:
             return live.publish(run, Path(args.out))
         return 0 if run["success"] else 1
     finally:
+        outputs.discard()
         if live is not None:
             live.close()

@@ -23,6 +23,8 @@ from typing import Any
 import tomli_w
 
 from calibration.errors import DescriptionError
+from edges.command import one_line
+from edges.inputs import MAX_TOML_BYTES, read_input_bytes
 
 PRESET_PACKAGE = "calibration.presets"
 
@@ -111,10 +113,13 @@ class RobotDescription:
     def load(cls, path: str | Path) -> RobotDescription:
         """Read a description file; errors name the file, table and key."""
         path = Path(path)
+        raw = read_input_bytes(path, limit=MAX_TOML_BYTES, error=DescriptionError)
         try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise DescriptionError(f"{path}: cannot read robot description: {exc}") from exc
+            text = raw.decode("utf-8-sig")
+        except UnicodeDecodeError as exc:
+            raise DescriptionError(
+                f"{path}: not UTF-8 text (byte {exc.start}): not a robot description"
+            ) from None
         return cls.loads(text, source=str(path))
 
     @classmethod
@@ -122,7 +127,7 @@ class RobotDescription:
         try:
             doc = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
-            raise DescriptionError(f"{source}: not valid TOML: {exc}") from exc
+            raise DescriptionError(f"{source}: not valid TOML: {one_line(str(exc))}") from None
         return _parse(doc, source)
 
     def dumps(self) -> str:

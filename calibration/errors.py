@@ -17,3 +17,7 @@ class DataFileError(CalibrationError, ValueError):
 
 class KinematicsError(CalibrationError, ValueError):
     """Bad arguments to a kinematics function (shapes, joint count)."""
+
+
+class OutputFileError(CalibrationError, ValueError):
+    """An output path is refused: it is an input, a directory, or cannot be written."""

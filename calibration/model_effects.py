@@ -17,10 +17,12 @@ starting at Home (lost motion).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.description import RobotDescription
+from calibration.description import RobotDescription, load_robot
 from calibration.effect_library import (
     KINDS,
     EffectContext,
@@ -60,6 +62,18 @@ def description_effects(
         specs.append(spec)
         values.append(np.asarray(v, dtype=float))
     return tuple(specs), (np.concatenate(values) if values else np.zeros(0))
+
+
+def load_checked_robot(name_or_path: str | Path) -> RobotDescription:
+    """:func:`~calibration.description.load_robot`, with its ``[[effect]]`` tables checked
+    as :func:`predict_tcp` reads them (so every command refuses the same files); errors
+    name the file."""
+    desc = load_robot(name_or_path)
+    try:
+        description_effects(desc)
+    except ModelEffectError as exc:
+        raise ModelEffectError(f"{name_or_path}: {exc}") from None
+    return desc
 
 
 def predict_tcp(

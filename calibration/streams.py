@@ -228,18 +228,28 @@ def read_recording_streams(path: str | Path) -> CellStreams:
         raise StreamError(str(exc)) from exc
     builders: dict[str, StreamBuilder] = {}
     schemas: dict[str, StreamSchema] = {}
-    for m in rec.messages_iter():
-        if m.channel.message_encoding != "daq.columnar.v1" or m.schema is None:
-            continue
-        b = builders.get(m.topic)
-        if b is None:
-            doc = json.loads(m.schema.data)
-            if stream_kind(c["name"] for c in doc["columns"]) not in KINDS:
+    m = None
+    try:
+        for m in rec.messages_iter():
+            if m.channel.message_encoding != "daq.columnar.v1" or m.schema is None:
                 continue
-            b = builders[m.topic] = StreamBuilder(m.topic, doc)
-            schemas[m.topic] = StreamSchema.loads(m.schema.data)
-        _header, cols = decode(schemas[m.topic], m.data)
-        b.add(m.sequence, cols)
+            b = builders.get(m.topic)
+            if b is None:
+                doc = json.loads(m.schema.data)
+                if stream_kind(c["name"] for c in doc["columns"]) not in KINDS:
+                    continue
+                b = builders[m.topic] = StreamBuilder(m.topic, doc)
+                schemas[m.topic] = StreamSchema.loads(m.schema.data)
+            _header, cols = decode(schemas[m.topic], m.data)
+            b.add(m.sequence, cols)
+    except DaqError as exc:
+        raise StreamError(f"{path}: {exc}") from None
+    except (ValueError, KeyError, TypeError, IndexError) as exc:  # a schema or batch that
+        # passed the CRC but is not what daq writes (hand-made or foreign files)
+        where = f"channel {m.topic!r}, message {m.sequence}" if m is not None else "schema"
+        raise StreamError(f"{path}: {where}: not a daq.columnar.v1 batch: {exc}") from None
+    if rec.messages == 0 and rec.truncated:
+        raise StreamError(f"{path}: not a readable MCAP recording ({rec.error or 'no records'})")
     note = (
         f"truncated recording ({rec.error}); read up to the last complete chunk"
         if (rec.truncated)

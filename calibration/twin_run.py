@@ -720,22 +720,31 @@ def run_twin(
     effects: bool = True,
     report: bool = True,
     say: Say = _quiet,
+    write_to: str | Path | None = None,
 ) -> dict[str, Any]:
-    """Measurements, the twin (maps and loop fitted jointly), files and reports; a summary."""
+    """Measurements, the twin (maps and loop fitted jointly), files and reports; a summary.
+
+    ``out``: the output directory the documents name; ``write_to``: where the files are
+    written now (a staging directory moved to ``out`` afterwards; default ``out``)."""
     from calibration.identification_report import build_report, write_report
     from calibration.scale_report import write_report as write_scale_report
 
     started = time.perf_counter()
     desc = load_robot(robot) if isinstance(robot, str) else robot
     out = Path(out)
+    dest = Path(write_to) if write_to is not None else out
+
+    def named(path: Path) -> str:
+        return str(out / path.relative_to(dest))
+
     meas = measure_campaign(streams, desc, say=say)
     t_export = time.perf_counter() - started
     say("scale calibration (chain order), identification and closed loop")
     twin = calibrate_twin(meas, effects=effects, say=say)
     final = twin.final
-    files, summary = _write_campaign_files(out, meas, final.scales, final.campaign)
+    files, summary = _write_campaign_files(dest, meas, final.scales, final.campaign)
     calibrated = twin.calibrated_description(desc)
-    calibrated_path = out / "calibrated.toml"
+    calibrated_path = dest / "calibrated.toml"
     calibrated.save(calibrated_path)
     doc, errors = build_report(
         final.result,
@@ -753,12 +762,12 @@ def run_twin(
         "recording_complete": summary["recording_complete"],
         "joint_fit": twin.summary(),
     }
-    report_dir = out / "report"
+    report_dir = dest / "report"
     if report:
         say("writing the report (figures)")
         write_report(report_dir, doc, errors, closed_loop=final.loop)
         write_scale_report(
-            final.scales, out / "scale-report", robot=desc.name, metadata={"source": "twin run"}
+            final.scales, dest / "scale-report", robot=desc.name, metadata={"source": "twin run"}
         )
     report_dir.mkdir(parents=True, exist_ok=True)
     (report_dir / "report.json").write_text(
@@ -767,14 +776,14 @@ def run_twin(
     table = stage_table(doc)
     elapsed = time.perf_counter() - started
     run = {
-        "calibrated": str(calibrated_path),
-        "report": str(report_dir),
-        "files": {k: str(v) for k, v in files.items()},
+        "calibrated": named(calibrated_path),
+        "report": named(report_dir),
+        "files": {k: named(v) for k, v in files.items()},
         "stage_table": table,
         "joint_fit_rounds": len(twin.rounds),
         "export_s": round(t_export, 3),
         "total_s": round(elapsed, 3),
         "success": bool(final.result.success),
     }
-    (out / "run.json").write_text(json.dumps(run, indent=2) + "\n", encoding="utf-8")
+    (dest / "run.json").write_text(json.dumps(run, indent=2) + "\n", encoding="utf-8")
     return run

@@ -29,7 +29,8 @@ PARTIAL = ".partial-"
 
 @dataclass(frozen=True)
 class _Staged:
-    target: Path  # where it goes
+    target: Path  # where it goes (absolute, lexically normal)
+    shown: Path  # as the user gave it (messages, final())
     staged: Path  # where the run writes it
     root: Path  # the staging directory to remove afterwards
     is_dir: bool
@@ -45,7 +46,7 @@ def _identity(path: Path) -> tuple[int, int] | None:
 
 
 def _existing_ancestor(path: Path) -> Path:
-    for parent in path.absolute().parents:
+    for parent in path.parents:
         if parent.exists():
             return parent
     return Path("/")
@@ -87,46 +88,47 @@ class OutputSet:
         p = Path(staged)
         for s in self._staged:
             if p == s.staged or s.staged in p.parents:
-                return s.target / p.relative_to(s.staged)
+                return s.shown / p.relative_to(s.staged)
         return p
 
-    def _refuse_input(self, target: Path, option: str) -> None:
+    def _refuse_input(self, target: Path, option: str, shown: Path | None = None) -> None:
         ident = _identity(target)
         if ident is not None and ident in self._inputs:
             raise self._error(
-                f"{option} {target}: is an input of this run ({self._inputs[ident]}); "
+                f"{option} {shown or target}: is an input of this run ({self._inputs[ident]}); "
                 "choose another output path"
             )
 
     def _stage(self, target: Path, option: str, *, is_dir: bool) -> Path:
-        if str(target) in ("", "."):
-            target = Path(".")
-        self._refuse_input(target, option)
+        # lexically normal and absolute: 'sub/../data.csv' is data.csv even when 'sub'
+        # does not exist (the file system would refuse to resolve it, and then create it)
+        shown, target = target, Path(os.path.abspath(target))
+        self._refuse_input(target, option, shown)
         if target.exists() or target.is_symlink():
             if is_dir and not target.is_dir():
-                raise self._error(f"{option} {target}: exists and is not a directory")
+                raise self._error(f"{option} {shown}: exists and is not a directory")
             if not is_dir and target.is_dir():
-                raise self._error(f"{option} {target}: is a directory, expected a file path")
+                raise self._error(f"{option} {shown}: is a directory, expected a file path")
         for s in self._staged:
-            if s.target.absolute() == target.absolute():
-                raise self._error(f"{option} {target}: also given as {s.option}")
+            if s.target == target:
+                raise self._error(f"{option} {shown}: also given as {s.option}")
         anchor = _existing_ancestor(target)
         if not anchor.is_dir():
-            raise self._error(f"{option} {target}: {anchor} is not a directory")
-        name = target.absolute().name or "out"
+            raise self._error(f"{option} {shown}: {anchor} is not a directory")
+        name = target.name or "out"
         try:
             root = Path(tempfile.mkdtemp(prefix=f".{name}{PARTIAL}", dir=anchor))
         except OSError as exc:
             raise self._error(
-                f"{option} {target}: cannot write in {anchor}: {exc.strerror or exc}"
+                f"{option} {shown}: cannot write in {anchor}: {exc.strerror or exc}"
             ) from None
-        staged = root / target.absolute().relative_to(anchor)
+        staged = root / target.relative_to(anchor)
         try:
             (staged if is_dir else staged.parent).mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             shutil.rmtree(root, ignore_errors=True)
-            raise self._error(f"{option} {target}: cannot stage: {exc.strerror or exc}") from None
-        self._staged.append(_Staged(target, staged, root, is_dir, option))
+            raise self._error(f"{option} {shown}: cannot stage: {exc.strerror or exc}") from None
+        self._staged.append(_Staged(target, shown, staged, root, is_dir, option))
         return staged
 
     # -- ending ----------------------------------------------------------------------
