@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -179,10 +178,9 @@ class LiveTwin:
         period_start = time.monotonic()
         samples_period = 0
         started = time.monotonic()
-        stop = threading.Event()
         joints = np.arange(1, n + 1)
         home = np.array(desc.home, dtype=float)
-        while not stop.is_set():
+        while True:
             if args.publish_s and time.monotonic() - started >= args.publish_s:
                 break
             # drain what has arrived and evaluate the grating samples in one call: the

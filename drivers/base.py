@@ -24,7 +24,6 @@ from __future__ import annotations
 import abc
 import contextlib
 import logging
-import math
 import random
 import threading
 import time
@@ -499,12 +498,3 @@ class Driver(abc.ABC):
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.url} {self._state}>"
-
-
-def seconds_left(deadline_ns: int) -> float:
-    """Seconds until ``deadline_ns`` (``time.monotonic_ns``), never negative."""
-    return max(0.0, (deadline_ns - time.monotonic_ns()) / 1e9)
-
-
-def finite_or_nan(x: float) -> float:
-    return x if math.isfinite(x) else math.nan
