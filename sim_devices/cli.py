@@ -6,6 +6,10 @@
 * ``sim-cell truth [--config cell.toml] --out truth.toml`` writes the truth file.
 * ``sim-cell default-config`` prints the default cell's configuration (all keys).
 
+A mistake in the options or the config is one line on stderr and exit 2, before any device
+starts; a truth file is written atomically and never over an input (``--truth`` onto the
+``--config`` file is refused). ``--debug`` anywhere shows tracebacks.
+
 Everything listens on 127.0.0.1 only; no broadcast, no multicast.
 """
 
@@ -21,14 +25,16 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import tomli_w
 
 from calibration.errors import CalibrationError
-from edges.command import run_command, take_debug_flag
-from sim_devices.config import CellConfig
+from edges.command import one_line, os_error_text, run_command, take_debug_flag
+from edges.outputs import OutputSet
+from sim_devices.config import CellConfig, OptionParser, load_cell, number_option
 from sim_devices.errors import SimError
 from sim_devices.plant import Plant, SimClock
 
@@ -141,10 +147,22 @@ class Cell:
 
 
 def _load(path: str | None) -> CellConfig:
-    return CellConfig.load(path) if path else CellConfig()
+    """The cell configuration of ``--config`` (None: the default cell), checked against
+    its robot."""
+    if path is not None and not path.strip():
+        raise SimError("--config: empty path; give a cell.toml or leave the option out")
+    return load_cell(path)
+
+
+def _inputs(args: argparse.Namespace, config: CellConfig) -> list[str | None]:
+    """The files a run reads (an output may be none of them)."""
+    robot = config.cell.robot
+    return [args.config, robot if Path(robot).exists() else None]
 
 
 KINDS = ("grating", "tracker", "encoders")
+#: the configuration key of each device kind's listening port, for a bind error's hint
+PORT_KEYS = {"tracker": ("tracker", "tcp_port"), "encoders": ("encoders", "socketcand_port")}
 
 
 def _only(config: CellConfig, kind: str) -> CellConfig:
@@ -158,13 +176,31 @@ def _only(config: CellConfig, kind: str) -> CellConfig:
 
 
 def _child(config: CellConfig, run_dir: Path, t0: float, conn: Any) -> None:
-    """One device kind in its own process (its own GIL); stops on SIGTERM."""
+    """One device kind in its own process (its own GIL); stops on SIGTERM.
+
+    Sends ``("ok", records)`` once the devices listen, or ``("user", text)`` /
+    ``("bug", text)`` when they could not start (a port in use, a pty refused: the user's
+    to fix; anything else a bug), then the device statistics when stopped."""
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides
-    cell = Cell(config, run_dir, t0)
+    cell: Cell | None = None
     try:
-        conn.send(cell.start())
+        cell = Cell(config, run_dir, t0)
+        records = cell.start()
+    except Exception as exc:
+        if cell is not None:
+            cell.stop()
+        if isinstance(exc, OSError):
+            conn.send(("user", os_error_text(exc)))
+        elif isinstance(exc, SimError | CalibrationError):
+            conn.send(("user", one_line(str(exc))))
+        else:
+            conn.send(("bug", f"{type(exc).__name__}: {one_line(str(exc))}"))
+        conn.close()
+        return
+    try:
+        conn.send(("ok", records))
         stop.wait()
     finally:
         cell.stop()
@@ -178,21 +214,92 @@ def _child(config: CellConfig, run_dir: Path, t0: float, conn: Any) -> None:
         conn.close()
 
 
+def _started(kind: str, conn: Any, config: CellConfig, source: str) -> list[dict[str, Any]]:
+    """The records of device process ``kind`` once it listens; its start error otherwise
+    (:class:`SimError` for the user's: a port in use, a pty refused)."""
+    if not conn.poll(60):
+        raise RuntimeError(f"device process {kind} did not start within 60 s")
+    try:
+        status, payload = conn.recv()
+    except EOFError:
+        raise RuntimeError(f"device process {kind} ended before it started") from None
+    if status == "ok":
+        return list(payload)
+    if status == "user":
+        hint = ""
+        if kind in PORT_KEYS:
+            table, key = PORT_KEYS[kind]
+            hint = f" ([{table}] {key} = {getattr(getattr(config, table), key)})"
+        raise SimError(f"{source}: the {kind} device could not start: {payload}{hint}")
+    raise RuntimeError(f"device process {kind}: {payload}")
+
+
+def _run_dir(config: CellConfig, source: str) -> Path:
+    run_dir = Path(config.cell.run_dir)
+    where = f"{source}: [cell]: key 'run_dir'"
+    if run_dir.exists() and not run_dir.is_dir():
+        raise SimError(f"{where}: {run_dir} exists and is not a directory")
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SimError(f"{where}: cannot create {run_dir}: {exc.strerror or exc}") from None
+    return run_dir
+
+
+def _stage_truth(outputs: OutputSet, plant_config: CellConfig, path: str, option: str) -> None:
+    """The truth document staged for ``path`` (it appears when ``outputs`` commits)."""
+    staged = outputs.file(path, option)  # refused (an input, a directory) before any work
+    staged.write_text(
+        tomli_w.dumps(Plant.from_config(plant_config).truth_document()), encoding="utf-8"
+    )
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
+    """Start the devices; the truth file (``--truth`` or ``[cell] truth_file``) appears
+    once every device listens, before they are announced on stdout, and not at all when
+    one could not start."""
     import multiprocessing
 
     config = _load(args.config)
-    tmp = None
-    if config.cell.run_dir:
-        run_dir = Path(config.cell.run_dir)
-        run_dir.mkdir(parents=True, exist_ok=True)
-    else:
-        tmp = tempfile.TemporaryDirectory(prefix="sim-cell-")
-        run_dir = Path(tmp.name)
+    source = args.config or "default cell config"
+    if args.truth is not None and not args.truth.strip():
+        raise SimError("--truth: empty path; give a file to write")
     truth_path = args.truth or config.cell.truth_file
-    if truth_path:
-        plant = Plant.from_config(config)
-        Path(truth_path).write_text(tomli_w.dumps(plant.truth_document()), encoding="utf-8")
+    truth_option = "--truth" if args.truth else f"{source}: [cell]: key 'truth_file':"
+    with OutputSet(inputs=_inputs(args, config), error=SimError) as outputs:
+        if truth_path:
+            _stage_truth(outputs, config, truth_path, truth_option)
+        tmp = None
+        made = False
+        if config.cell.run_dir:
+            made = not Path(config.cell.run_dir).exists()
+            run_dir = _run_dir(config, source)
+        else:
+            tmp = tempfile.TemporaryDirectory(prefix="sim-cell-")
+            run_dir = Path(tmp.name)
+        try:
+            ctx = multiprocessing.get_context("fork")
+            return _serve(config, run_dir, args.duration, source, ctx, outputs.commit)
+        except BaseException:
+            if made:  # a run that failed leaves no directory it made (only if empty)
+                with contextlib.suppress(OSError):
+                    run_dir.rmdir()
+            raise
+        finally:
+            if tmp is not None:
+                tmp.cleanup()
+
+
+def _serve(
+    config: CellConfig,
+    run_dir: Path,
+    duration: float,
+    source: str,
+    ctx: Any,
+    on_started: Callable[[], object],
+) -> int:
+    """Run the device processes until ``duration`` (0: a signal); ``on_started`` runs once
+    all of them listen, before they are announced."""
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: Any) -> None:
@@ -201,9 +308,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     t0 = time.monotonic()
-    ctx = multiprocessing.get_context("fork")
     children = []
     summary: dict[str, Any] = {"kind": "summary"}
+    started = False
     try:
         for kind in KINDS:
             if not getattr(config, kind).enabled:
@@ -214,15 +321,18 @@ def cmd_serve(args: argparse.Namespace) -> int:
             )
             proc.start()
             children.append((kind, proc, parent_conn))
-        for kind, _proc, conn in children:
-            if not conn.poll(60):
-                raise SimError(f"device process {kind} did not start")
-            for rec in conn.recv():
-                # the truth clock's origin on the host's CLOCK_MONOTONIC: device time
-                # t_us of a sample latched at wall second w is clock.device_us(w), and w is
-                # seconds since this instant (what a test compares mapped timestamps with)
-                print(json.dumps({**rec, "t0_monotonic_ns": round(t0 * 1e9)}), flush=True)
-        end = time.monotonic() + args.duration if args.duration else None
+        # every device listens before any is announced: a reader never sees half a cell
+        records = [
+            rec for kind, _p, conn in children for rec in _started(kind, conn, config, source)
+        ]
+        on_started()
+        started = True
+        for rec in records:
+            # the truth clock's origin on the host's CLOCK_MONOTONIC: device time
+            # t_us of a sample latched at wall second w is clock.device_us(w), and w is
+            # seconds since this instant (what a test compares mapped timestamps with)
+            print(json.dumps({**rec, "t0_monotonic_ns": round(t0 * 1e9)}), flush=True)
+        end = time.monotonic() + duration if duration else None
         while not stop.is_set():
             if end is not None and time.monotonic() >= end:
                 break
@@ -235,23 +345,24 @@ def cmd_serve(args: argparse.Namespace) -> int:
             if proc.is_alive():
                 os.kill(proc.pid, signal.SIGTERM)
         for kind, proc, conn in children:
-            if conn.poll(10):
+            if started and conn.poll(10):
                 with contextlib.suppress(EOFError):
                     summary[kind] = conn.recv()
             proc.join(5)
             if proc.is_alive():
                 proc.kill()
         summary["cpu_s_parent"] = time.process_time()
-        print(json.dumps(summary), file=sys.stderr, flush=True)
-        if tmp is not None:
-            tmp.cleanup()
+        if started:
+            print(json.dumps(summary), file=sys.stderr, flush=True)
     return 0
 
 
 def cmd_truth(args: argparse.Namespace) -> int:
+    if not args.out.strip():
+        raise SimError("--out: empty path; give the truth file to write")
     config = _load(args.config)
-    plant = Plant.from_config(config)
-    Path(args.out).write_text(tomli_w.dumps(plant.truth_document()), encoding="utf-8")
+    with OutputSet(inputs=_inputs(args, config), error=SimError) as outputs:
+        _stage_truth(outputs, config, args.out, "--out")
     return 0
 
 
@@ -260,14 +371,22 @@ def cmd_default_config(_args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="sim-cell", description=__doc__.splitlines()[0])
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OptionParser(prog="sim-cell", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("serve", help="start the emulated devices")
     p.add_argument("--config", help="cell.toml (default: the built-in default cell)")
-    p.add_argument("--duration", type=float, default=0.0, help="stop after S seconds (0: never)")
+    p.add_argument(
+        "--duration",
+        type=number_option(0.0, what="s; 0: until SIGINT/SIGTERM"),
+        default=0.0,
+        help="stop after S seconds (0: never)",
+    )
     p.add_argument("--truth", help="also write the truth file here")
-    p.add_argument("--log-level", default="WARNING")
+    p.add_argument("--log-level", default="WARNING", type=str.upper, choices=LOG_LEVELS)
     p.set_defaults(func=cmd_serve)
     t = sub.add_parser("truth", help="write the truth file")
     t.add_argument("--config")
@@ -275,8 +394,12 @@ def main(argv: list[str] | None = None) -> int:
     t.set_defaults(func=cmd_truth)
     d = sub.add_parser("default-config", help="print the default cell.toml")
     d.set_defaults(func=cmd_default_config)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
     argv, debug = take_debug_flag(sys.argv[1:] if argv is None else argv)
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=getattr(args, "log_level", "WARNING"), stream=sys.stderr, format="%(message)s"
     )

@@ -1,21 +1,36 @@
-"""The emulated cell's configuration (``cell.toml``): devices, effects and injected faults.
+"""The emulated cell's configuration (``cell.toml``): devices, effects and injected faults;
+and the checked option values of the sim commands (``sim-cell``, the generators).
 
 Every table is a dataclass below; keys are checked against its fields (unknown keys are
 errors that list the allowed ones). All keys are optional: an empty file is the default
 cell. Units are in the key names. See docs/protocols.md for an annotated example.
+
+Every value is checked when the file is read: its type, that a number is finite (TOML
+allows ``nan`` and ``inf``), and its range (:data:`RANGES`). A mistake is one line, a
+:class:`~sim_devices.errors.SimConfigError` naming the file, the table and the key
+(``cell.toml: [grating]: key 'rate_hz': must be in 1..20000, got 0.0``). The file is read
+bounded (:data:`edges.inputs.MAX_TOML_BYTES`); UTF-8 with or without a byte-order mark,
+LF or CRLF line ends. What needs the robot (joint numbers, per-joint lists) is checked by
+:func:`check_for_robot` once the robot is loaded.
 """
 
 from __future__ import annotations
 
+import argparse
+import math
+import re
 import tomllib
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import tomli_w
 
+from edges.command import one_line
+from edges.inputs import MAX_TOML_BYTES, read_input_bytes
 from sim_devices.effects import EFFECT_NAMES, UndeclaredEffects
-from sim_devices.errors import SimConfigError
+from sim_devices.errors import SimConfigError, SimError
 
 
 @dataclass(frozen=True)
@@ -112,6 +127,124 @@ class TrackerSection:
     humidity_pct: float = 45.0
 
 
+# -- value ranges -----------------------------------------------------------------------
+@dataclass(frozen=True)
+class Range:
+    """Allowed values of a number (each element of a list): ``lo..hi`` (None: unbounded),
+    ``lo`` itself excluded when ``lo_open``; ``inf``: +inf allowed (NaN never is);
+    ``empty``: a list may be empty; ``what``: what the number is, for the message."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    inf: bool = False
+    empty: bool = True
+    what: str = ""
+
+    def describe(self) -> str:
+        """The allowed values in words (``in 0..1 (what)``; ``finite`` when unbounded)."""
+        if self.lo is not None and self.hi is not None and not self.lo_open:
+            text = f"in {_num(self.lo)}..{_num(self.hi)}"
+        elif self.lo is not None and self.hi is not None:
+            text = f"> {_num(self.lo)} and <= {_num(self.hi)}"
+        elif self.lo is not None:
+            text = f"{'>' if self.lo_open else '>='} {_num(self.lo)}"
+        elif self.hi is not None:
+            text = f"<= {_num(self.hi)}"
+        else:
+            text = "finite"
+        return text + (f" ({self.what})" if self.what else "")
+
+    def refusal(self, v: float) -> str:
+        """Why ``v`` is refused, for a message (``must be ...``)."""
+        text = self.describe()
+        if isinstance(v, float) and not math.isfinite(v) and not self.inf:
+            text = text.removeprefix("finite").lstrip()
+            sep = " " if text.startswith("(") else ", "
+            return "must be a finite number" + (f"{sep}{text}" if text else "")
+        return f"must be {text}"
+
+    def admits(self, v: float) -> bool:
+        if isinstance(v, float) and (math.isnan(v) or (math.isinf(v) and not (self.inf and v > 0))):
+            return False
+        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
+            return False
+        return self.hi is None or v <= self.hi or (self.inf and math.isinf(v))
+
+
+def _num(v: float) -> str:
+    return str(int(v)) if float(v).is_integer() and abs(v) < 1e15 else f"{v:g}"
+
+
+FINITE = Range()
+POSITIVE = Range(0.0, lo_open=True)
+NON_NEGATIVE = Range(0.0)
+PROBABILITY = Range(0.0, 1.0)
+TIME_OR_NEVER = Range(what="s since start; < 0: never")
+PPM = Range(-1000.0, 1000.0, what="ppm; a crystal drifts by tens")
+PORT = Range(0, 65535, what="0: any free port")
+MAX_SEED = 2**32 - 1
+SEED = Range(0, MAX_SEED)
+
+#: ``table.key`` (dotted as in the file) -> its allowed values; numbers without an entry
+#: must be finite.
+RANGES: dict[str, Range] = {
+    "cell.seed": SEED,
+    "cell.speed": Range(0.0, 1000.0, lo_open=True, what="program seconds per wall second"),
+    "cell.eccentricity_mm": Range(0.0, 1.0, what="mm; a strip's mounting eccentricity is µm"),
+    "effects.stiffness_nmm_per_rad": Range(0.0, lo_open=True, empty=False, what="N·mm/rad"),
+    "effects.backlash_deg": Range(0.0, 10.0, empty=False, what="deg, full gap"),
+    "effects.backlash_torque_nmm": POSITIVE,
+    "effects.sag_mm_per_m2": NON_NEGATIVE,
+    "effects.undeclared.deflection_stiffness_nmm_per_rad": Range(
+        0.0, lo_open=True, inf=True, what="N·mm/rad, inf: rigid"
+    ),
+    "effects.undeclared.deflection_rms_deg": POSITIVE,
+    "effects.undeclared.cyclic_joint": Range(1, 64, what="a joint number"),
+    "effects.undeclared.cyclic_order": Range(1, 1000),
+    "effects.undeclared.drift_joint": Range(1, 64, what="a joint number"),
+    "effects.undeclared.drift_time_constant_s": Range(0.0, what="0: linear"),
+    "effects.undeclared.lag_joint": Range(1, 64, what="a joint number"),
+    "effects.undeclared.lag_time_constant_s": POSITIVE,
+    "effects.undeclared.lost_motion_deg": Range(0.0, 10.0, what="deg, half width"),
+    "grating.unit_id": Range(1, 247, what="a Modbus unit id"),
+    "grating.rate_hz": Range(1.0, 20000.0),
+    "grating.buffer_samples": Range(1, 1_000_000),
+    "grating.clock_ppm": PPM,
+    "grating.clock_start_us": Range(0, 2**32 - 1, what="the 32-bit device clock"),
+    "grating.counter_offset_counts": Range(
+        -(2**32 - 1), 2**32 - 1, what="counts, added modulo 2^32"
+    ),
+    "grating.noise_counts": NON_NEGATIVE,
+    "grating.faults.crc_error_probability": PROBABILITY,
+    "grating.faults.garbage_probability": PROBABILITY,
+    "grating.faults.truncate_probability": PROBABILITY,
+    "grating.faults.exception_probability": PROBABILITY,
+    "grating.faults.silent_probability": PROBABILITY,
+    "grating.faults.silent_after_s": TIME_OR_NEVER,
+    "grating.faults.silent_for_s": NON_NEGATIVE,
+    "grating.faults.restart_after_s": TIME_OR_NEVER,
+    "encoders.node_ids": Range(1, 127, empty=False, what="CANopen node ids"),
+    "encoders.counts_per_rev": Range(1, 2**31, what="counts per revolution"),
+    "encoders.turns": Range(1, 2**31),
+    "encoders.heartbeat_ms": Range(0, 65535, what="CANopen 0x1017, 0: off"),
+    "encoders.socketcand_port": PORT,
+    "encoders.clock_ppm": PPM,
+    "encoders.stop_heartbeat_node": Range(0, 127, what="0: none"),
+    "encoders.stop_heartbeat_after_s": TIME_OR_NEVER,
+    "encoders.stop_heartbeat_for_s": NON_NEGATIVE,
+    "tracker.tcp_port": PORT,
+    "tracker.internal_rate_hz": Range(1.0, 100000.0),
+    "tracker.clock_ppm": PPM,
+    "tracker.beam_breaks_per_min": Range(0.0, 600.0),
+    "tracker.beam_break_duration_s": NON_NEGATIVE,
+    "tracker.reset_after_s": TIME_OR_NEVER,
+    "tracker.temperature_c": Range(-50.0, 80.0, what="°C, air"),
+    "tracker.pressure_hpa": Range(300.0, 1200.0, what="hPa, air"),
+    "tracker.humidity_pct": Range(0.0, 100.0),
+}
+
+
 @dataclass(frozen=True)
 class CellConfig:
     cell: CellSection = field(default_factory=CellSection)
@@ -122,19 +255,30 @@ class CellConfig:
 
     @classmethod
     def load(cls, path: str | Path) -> CellConfig:
+        """Read ``cell.toml`` (bounded); every error a :class:`SimConfigError` naming it."""
+        source = str(path)
+        raw = read_input_bytes(path, limit=MAX_TOML_BYTES, error=SimConfigError)
+        if b"\x00" in raw:
+            raise SimConfigError(f"{source}: contains NUL bytes: not a TOML text file")
         try:
-            text = Path(path).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise SimConfigError(f"{path}: cannot read cell config: {exc}") from exc
-        return cls.loads(text, source=str(path))
+            text = raw.decode("utf-8-sig")
+        except UnicodeDecodeError as exc:
+            line = raw[: exc.start].count(b"\n") + 1
+            raise SimConfigError(
+                f"{source}: line {line}: not UTF-8 text (byte {exc.start}): not a cell config"
+            ) from None
+        return cls.loads(text, source=source)
 
     @classmethod
     def loads(cls, text: str, source: str = "<string>") -> CellConfig:
+        """Parse and check the text of a ``cell.toml`` (``source`` names it in messages)."""
         try:
-            doc = tomllib.loads(text)
+            doc = tomllib.loads(text.removeprefix("\ufeff"))
         except tomllib.TOMLDecodeError as exc:
-            raise SimConfigError(f"{source}: not valid TOML: {exc}") from exc
-        cfg = _build(cls, doc, source, "top level")
+            raise SimConfigError(f"{source}: not valid TOML: {one_line(str(exc))}") from None
+        except RecursionError:
+            raise SimConfigError(f"{source}: not valid TOML: nested too deeply") from None
+        cfg = _build(cls, doc, source, ())
         _check(cfg, source)
         return cfg
 
@@ -145,43 +289,65 @@ class CellConfig:
         return tomli_w.dumps(self.to_document())
 
 
-def _build(cls: type, data: Any, source: str, where: str) -> Any:
+def _where(path: tuple[str, ...]) -> str:
+    return f"[{'.'.join(path)}]" if path else "top level"
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _build(cls: type, data: Any, source: str, path: tuple[str, ...]) -> Any:
     if not isinstance(data, dict):
-        raise SimConfigError(f"{source}: {where}: expected a table")
+        raise SimConfigError(f"{source}: {_where(path)}: expected a table, got {_short(data)}")
     known = {f.name: f for f in fields(cls)}
     unknown = sorted(set(data) - set(known))
     if unknown:
+        what = "table" if not path else "key"
         raise SimConfigError(
-            f"{source}: {where}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(known))})"
+            f"{source}: {_where(path)}: unknown {what} {unknown[0]!r} "
+            f"(allowed: {', '.join(sorted(known))})"
         )
     kwargs: dict[str, Any] = {}
     defaults = cls()
     for name, value in data.items():
         default = getattr(defaults, name)
-        loc = f"{where}.{name}" if where != "top level" else f"[{name}]"
         if hasattr(default, "__dataclass_fields__"):
-            kwargs[name] = _build(type(default), value, source, loc)
+            kwargs[name] = _build(type(default), value, source, (*path, name))
         else:
-            kwargs[name] = _coerce(default, value, source, loc)
+            kwargs[name] = _coerce(default, value, source, path, name)
     return cls(**kwargs)
 
 
-def _coerce(default: Any, value: Any, source: str, loc: str) -> Any:
+def _coerce(default: Any, value: Any, source: str, path: tuple[str, ...], key: str) -> Any:
+    loc = f"{source}: {_where(path)}: key {key!r}"
+    rng = RANGES.get(".".join((*path, key)), FINITE)
+
     def bad(expected: str) -> SimConfigError:
-        return SimConfigError(f"{source}: {loc}: expected {expected}, got {value!r}")
+        return SimConfigError(f"{loc}: expected {expected}, got {_short(value)}")
+
+    def number(v: Any, integer: bool, what: str = "") -> float:
+        if isinstance(v, bool) or not isinstance(v, int if integer else int | float):
+            raise bad(what or ("an integer" if integer else "a number"))
+        given = v
+        if not integer:
+            try:
+                v = float(v)  # an integer of 400 digits is no float
+            except OverflowError:
+                v = math.inf if v > 0 else -math.inf
+        if not rng.admits(v):
+            raise SimConfigError(f"{loc}: {rng.refusal(v)}, got {_short(given)}")
+        return v
 
     if isinstance(default, bool):
         if not isinstance(value, bool):
             raise bad("true or false")
         return value
     if isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise bad("an integer")
-        return value
+        return number(value, True)
     if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise bad("a number")
-        return float(value)
+        return number(value, False)
     if isinstance(default, str):
         if not isinstance(value, str):
             raise bad("a string")
@@ -189,51 +355,207 @@ def _coerce(default: Any, value: Any, source: str, loc: str) -> Any:
     if isinstance(default, tuple):
         if not isinstance(value, list):
             raise bad("an array")
-        return tuple(value)
-    raise bad(type(default).__name__)
+        if not value and not rng.empty:
+            raise SimConfigError(f"{loc}: must not be empty")
+        integer = key in _INT_LISTS
+        kind = "an array of integers" if integer else "an array of numbers"
+        return tuple(number(v, integer, kind) for v in value)
+    raise bad(type(default).__name__)  # pragma: no cover - every field type is above
+
+
+_INT_LISTS = {"node_ids", "counter_offset_counts"}
 
 
 def _check(cfg: CellConfig, source: str) -> None:
-    def fail(msg: str) -> None:
-        raise SimConfigError(f"{source}: {msg}")
+    def fail(where: str, key: str, msg: str) -> None:
+        raise SimConfigError(f"{source}: [{where}]: key {key!r}: {msg}")
 
     if cfg.cell.program not in PROGRAMS:
-        fail(f"[cell].program must be one of {', '.join(PROGRAMS)}, got {cfg.cell.program!r}")
-    if cfg.cell.speed <= 0:
-        fail("[cell].speed must be positive")
-    if not 1 <= cfg.grating.unit_id <= 247:
-        fail("[grating].unit_id must be in 1..247")
-    if not 1.0 <= cfg.grating.rate_hz <= 20000.0:
-        fail("[grating].rate_hz must be in 1..20000")
+        fail("cell", "program", f"must be one of {', '.join(PROGRAMS)}, got {cfg.cell.program!r}")
+    if not cfg.cell.robot.strip():
+        fail("cell", "robot", "must name a preset or a robot description file")
     ids = cfg.encoders.node_ids
-    if len(set(ids)) != len(ids) or not all(1 <= i <= 127 for i in ids):
-        fail("[encoders].node_ids must be distinct CANopen node ids in 1..127")
-    if cfg.tracker.target not in ("tcp", "program") and not (
-        cfg.tracker.target.startswith("link") and cfg.tracker.target[4:].isdigit()
+    if len(set(ids)) != len(ids):
+        dup = next(i for i in ids if ids.count(i) > 1)
+        fail("encoders", "node_ids", f"node id {dup} given twice (ids must be distinct)")
+    stop = cfg.encoders.stop_heartbeat_node
+    if stop and stop not in ids:
+        fail("encoders", "stop_heartbeat_node", f"{stop} is not one of node_ids {list(ids)}")
+    if not cfg.encoders.channel.strip():
+        fail("encoders", "channel", "must not be empty")
+    if cfg.encoders.counts_per_rev * cfg.encoders.turns > 2**32:
+        fail("encoders", "turns", "counts_per_rev × turns must fit the 32-bit position value")
+    t = cfg.tracker.target
+    if t not in ("tcp", "program") and not (
+        t.startswith("link") and t[4:].isdigit() and t[4:].isascii() and int(t[4:]) >= 1
     ):
-        fail(f"[tracker].target must be 'program', 'tcp' or 'linkN', got {cfg.tracker.target!r}")
+        fail("tracker", "target", f"must be 'program', 'tcp' or 'linkN' (N >= 1), got {t!r}")
     und = cfg.effects.undeclared
     for key in ("drift_parameter", "lag_parameter"):
         if getattr(und, key) not in ("a", "d"):
-            fail(f"[effects.undeclared].{key} must be 'a' or 'd', got {getattr(und, key)!r}")
-    for key in ("cyclic_joint", "drift_joint", "lag_joint"):
-        if not 1 <= getattr(und, key) <= 6:
-            fail(f"[effects.undeclared].{key} must be a joint number 1..6")
-    if und.lag_time_constant_s <= 0:
-        fail("[effects.undeclared].lag_time_constant_s must be positive")
-    if und.cyclic_order < 1:
-        fail("[effects.undeclared].cyclic_order must be at least 1")
+            fail("effects.undeclared", key, f"must be 'a' or 'd', got {getattr(und, key)!r}")
     if und.tracker_scale and und.tracker_scale_drift_ppm_per_h != 0.0:
         fail(
-            "[effects.undeclared].tracker_scale_drift_ppm_per_h is for the campaign generator; "
-            "the live tracker drifts through tracker_temperature_drift_k_per_h and "
-            "tracker_scale_ppm_per_k"
+            "effects.undeclared",
+            "tracker_scale_drift_ppm_per_h",
+            "is for the campaign generator; the live tracker drifts through "
+            "[effects] tracker_temperature_drift_k_per_h and tracker_scale_ppm_per_k",
         )
     if und.lost_motion:
         fail(
-            "[effects.undeclared].lost_motion is for the campaign generator only "
-            f"(live effects: {', '.join(n for n in EFFECT_NAMES if n != 'lost_motion')})"
+            "effects.undeclared",
+            "lost_motion",
+            "is for the campaign generator only "
+            f"(live effects: {', '.join(n for n in EFFECT_NAMES if n != 'lost_motion')})",
         )
-    for name, p in asdict(cfg.grating.faults).items():
-        if name.endswith("probability") and not 0.0 <= p <= 1.0:
-            fail(f"[grating.faults].{name} must be in [0, 1]")
+
+
+def check_for_robot(cfg: CellConfig, n_joints: int, source: str) -> None:
+    """What needs the robot's joint count: joint numbers within 1..n, the tracker's pinned
+    link, per-joint lists of one value (all joints) or one per joint (a list left at its
+    default is resized as before), no more node ids or counter offsets than joints."""
+
+    def fail(where: str, key: str, msg: str) -> None:
+        raise SimConfigError(f"{source}: [{where}]: key {key!r}: {msg}")
+
+    t = cfg.tracker.target
+    if t.startswith("link") and int(t[4:]) > n_joints:
+        fail("tracker", "target", f"{t}: the robot has {n_joints} joints")
+    und = cfg.effects.undeclared
+    for key in ("cyclic_joint", "drift_joint", "lag_joint"):
+        if getattr(und, key) > n_joints:
+            fail(
+                "effects.undeclared",
+                key,
+                f"joint {getattr(und, key)}: the robot has {n_joints} joints",
+            )
+    per_joint = [
+        ("effects", "stiffness_nmm_per_rad", cfg.effects, EffectsSection()),
+        ("effects", "backlash_deg", cfg.effects, EffectsSection()),
+        ("effects.undeclared", "deflection_stiffness_nmm_per_rad", und, UndeclaredEffects()),
+    ]
+    for where, key, section, default in per_joint:
+        values = getattr(section, key)
+        if values == getattr(default, key) or len(values) in (0, 1, n_joints):
+            continue
+        fail(
+            where, key, f"{len(values)} values: give 1 (every joint) or {n_joints} (one per joint)"
+        )
+    for where, key, values in (
+        ("encoders", "node_ids", cfg.encoders.node_ids),
+        ("grating", "counter_offset_counts", cfg.grating.counter_offset_counts),
+    ):
+        if len(values) > n_joints:
+            fail(where, key, f"{len(values)} values for a robot of {n_joints} joints")
+
+
+def load_cell(path: str | None) -> CellConfig:
+    """The configuration in ``path`` (None: the default cell), checked against its robot
+    (:func:`check_for_robot`; a robot that cannot be loaded is named with its key)."""
+    cfg = CellConfig.load(path) if path else CellConfig()
+    source = path or "default cell config"
+    check_for_robot(
+        cfg, robot_option(cfg.cell.robot, f"{source}: [cell]: key 'robot':").n_joints, source
+    )
+    return cfg
+
+
+# -- command-line options ---------------------------------------------------------------
+class OptionParser(argparse.ArgumentParser):
+    """``argparse`` whose usage errors are one line: ``PROG: error: MESSAGE (see PROG
+    --help)``, exit 2, like every other user mistake."""
+
+    def error(self, message: str) -> Any:
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
+
+
+def number_option(
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    lo_open: bool = False,
+    what: str = "",
+) -> Callable[[str], float]:
+    """An ``argparse`` ``type=``: a finite float in ``lo..hi`` (``lo`` excluded when
+    ``lo_open``); ``nan``, ``inf`` and values outside are refused naming the range."""
+    rng = Range(lo, hi, lo_open=lo_open, what=what)
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not rng.admits(v):
+            raise argparse.ArgumentTypeError(f"{rng.refusal(v)}, got {text!r}")
+        return v
+
+    parse.__name__ = "number"
+    return parse
+
+
+def integer_option(
+    lo: int | None = None, hi: int | None = None, what: str = ""
+) -> Callable[[str], int]:
+    """An ``argparse`` ``type=``: an integer in ``lo..hi``."""
+    rng = Range(lo, hi, what=what)
+
+    def parse(text: str) -> int:
+        if not re.fullmatch(r"[+-]?[0-9]+", text.strip()):
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}")
+        v = int(text)
+        if not rng.admits(v):
+            raise argparse.ArgumentTypeError(f"must be {rng.describe()}, got {text!r}")
+        return v
+
+    parse.__name__ = "integer"
+    return parse
+
+
+SEED_OPTION = integer_option(0, MAX_SEED, "a seed")
+#: The most poses, stops or points a generator option may ask for (a typo of 1e6 would
+#: otherwise run for hours).
+MAX_COUNT = 100_000
+
+
+def joint_list(text: str) -> tuple[int, ...]:
+    """An ``argparse`` ``type=``: joint numbers ``1,2,3`` (1-based, distinct, at least
+    one); whether they exist on the robot is :func:`check_joints`'s job."""
+    items = [t.strip() for t in text.split(",")]
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected joint numbers like 1,2,3, got nothing")
+    out: list[int] = []
+    for item in items:
+        if not item.isascii() or not item.isdigit():
+            whole = f" in {text!r}" if item != text.strip() else ""
+            raise argparse.ArgumentTypeError(
+                f"expected joint numbers like 1,2,3, got {item!r}{whole}"
+            )
+        j = int(item)
+        if j < 1:
+            raise argparse.ArgumentTypeError(f"joint {j}: joints are numbered from 1")
+        if j in out:
+            raise argparse.ArgumentTypeError(f"joint {j} given twice in {text!r}")
+        out.append(j)
+    return tuple(out)
+
+
+def check_joints(joints: tuple[int, ...] | None, n_joints: int, option: str) -> None:
+    """Refuse a joint number the robot does not have (``option`` names the option)."""
+    for j in joints or ():
+        if j > n_joints:
+            raise SimError(f"{option}: joint {j}: the robot has joints 1..{n_joints}")
+
+
+def robot_option(name: str, prefix: str = "--robot") -> Any:
+    """The robot description ``name`` (preset or file), its errors a :class:`SimError`
+    starting with ``prefix`` (the option, or file and key)."""
+    from calibration.description import load_robot
+    from calibration.errors import CalibrationError
+
+    try:
+        return load_robot(name)
+    except CalibrationError as exc:
+        text = one_line(str(exc))
+        if not text.startswith(str(name)):
+            text = f"{name}: {text}"
+        raise SimError(f"{prefix} {text}") from None

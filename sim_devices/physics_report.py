@@ -18,7 +18,11 @@ from dataclasses import replace
 import numpy as np
 
 from calibration.description import load_robot
+from calibration.errors import CalibrationError
+from edges.command import run_command, take_debug_flag
+from sim_devices.config import SEED_OPTION, OptionParser, integer_option, robot_option
 from sim_devices.effects import UndeclaredEffects, deflection_stiffness_nmm_per_rad
+from sim_devices.errors import SimError
 from sim_devices.pose_campaign import CampaignSettings, generate_campaign
 from sim_devices.scale_campaign import CampaignOptions, run_campaign
 from sim_devices.truth import TrueCell
@@ -91,16 +95,54 @@ def report(robot: str, seed: int, poses: int) -> list[str]:
     return lines
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m sim_devices.physics_report")
-    parser.add_argument("--robot", nargs="+", default=["kr500", "kr210_r3100", "hp20d"])
-    parser.add_argument("--seed", type=int, nargs="+", default=[1])
-    parser.add_argument("--poses", type=int, default=250, help="reachable poses (deflection)")
-    args = parser.parse_args(argv)
-    for robot in args.robot:
-        for seed in args.seed:
-            print("\n".join(report(robot, seed, args.poses)))
+#: The most reachable poses of the deflection figure (drawn with a pool of 5 per pose).
+MAX_POSES = 10_000
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The report's options, each checked as it is parsed."""
+    parser = OptionParser(prog="python -m sim_devices.physics_report")
+    parser.add_argument(
+        "--robot", nargs="+", default=["kr500", "kr210_r3100", "hp20d"], help="presets or files"
+    )
+    parser.add_argument("--seed", type=SEED_OPTION, nargs="+", default=[1])
+    parser.add_argument(
+        "--poses",
+        type=integer_option(2, MAX_POSES, "reachable poses"),
+        default=250,
+        help=f"reachable poses (deflection), 2..{MAX_POSES}",
+    )
+    return parser
+
+
+def _run(args: argparse.Namespace) -> int:
+    for robot in args.robot:  # every robot checked before any work
+        nominal = robot_option(robot)
+        if nominal.n_joints != 6:
+            raise SimError(
+                f"--robot {robot}: the report is for 6-joint arms, this one has {nominal.n_joints}"
+            )
+    text = [
+        line
+        for robot in args.robot
+        for seed in args.seed
+        for line in report(robot, seed, args.poses)
+    ]
+    print("\n".join(text))
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The command line (stdout only, printed once every report is done): a user's mistake
+    is one line on stderr and exit 2 (:func:`edges.command.run_command`)."""
+    argv, debug = take_debug_flag(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    return run_command(
+        "python -m sim_devices.physics_report",
+        lambda: _run(args),
+        user_errors=(SimError, CalibrationError),
+        debug=debug,
+    )
 
 
 if __name__ == "__main__":

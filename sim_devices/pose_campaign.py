@@ -22,8 +22,12 @@ from numpy.typing import NDArray
 
 from calibration.campaign_files import Campaign, write_campaign
 from calibration.description import RobotDescription, load_robot
+from calibration.errors import CalibrationError
 from calibration.kinematics import KinematicModel, flange_poses, tcp_positions
 from calibration.pose_selection import OBSERVABILITY_INDICES, select_poses_for_model
+from edges.command import run_command, take_debug_flag
+from edges.outputs import OutputSet
+from sim_devices.config import SEED_OPTION, OptionParser, integer_option, robot_option
 from sim_devices.effects import (
     EFFECT_NAMES,
     UndeclaredEffects,
@@ -34,6 +38,7 @@ from sim_devices.effects import (
     true_tcp_mm,
     with_derived_stiffness,
 )
+from sim_devices.errors import SimError
 from sim_devices.truth import TrueCell
 
 FloatArray = NDArray[np.float64]
@@ -108,7 +113,12 @@ def sample_reachable_poses(
         have += len(out[-1])
         if have >= n:
             return np.concatenate(out)
-    raise RuntimeError(f"could not find {n} reachable poses (workspace too tight?)")
+    raise SimError(
+        f"robot {description.name!r}: could not find {n} reachable measuring poses in 1000 "
+        f"batches: is its TCP above the floor ({workspace.floor_mm:g} mm) and within the "
+        f"tracker's range ({workspace.tracker_min_mm / 1000:g}..{workspace.tracker_max_mm / 1000:g}"
+        " m from the origin) in enough of its joint space?"
+    )
 
 
 def plan_identification_poses(
@@ -176,8 +186,11 @@ class CampaignData:
         return doc
 
     def write_truth(self, path: str | Path) -> None:
-        """Write the truth for tests (the twin never reads this file); 0 stiffness = rigid."""
-        Path(path).write_text(tomli_w.dumps(self.truth_document()), encoding="utf-8")
+        """Write the truth for tests (the twin never reads this file); 0 stiffness = rigid.
+        Atomic: the file appears whole or not at all."""
+        text = tomli_w.dumps(self.truth_document())
+        with OutputSet(error=SimError) as outputs:
+            outputs.file(path, "--truth").write_text(text, encoding="utf-8")
 
 
 def generate_campaign(
@@ -255,16 +268,32 @@ def emulated_campaign(
     return generate_campaign(cell, np.random.default_rng([seed, 6]), settings)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+#: The most identification or validation poses (a candidate pool of 5 per pose is drawn
+#: in batches of 4×: more would take minutes and gigabytes).
+MAX_POSES = 10_000
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The generator's options, each checked as it is parsed (counts in range)."""
+    parser = OptionParser(
         prog="python -m sim_devices.pose_campaign",
         description="Write an emulated identification campaign (campaign.csv).",
     )
     parser.add_argument("--robot", default="kr500", help="preset name or robot .toml")
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--seed", type=SEED_OPTION, default=1)
     parser.add_argument("--out", required=True, help="campaign.csv to write")
-    parser.add_argument("--identify", type=int, default=100, help="identification poses")
-    parser.add_argument("--validate", type=int, default=150, help="validation poses")
+    parser.add_argument(
+        "--identify",
+        type=integer_option(1, MAX_POSES, "identification poses"),
+        default=100,
+        help=f"identification poses, 1..{MAX_POSES}",
+    )
+    parser.add_argument(
+        "--validate",
+        type=integer_option(0, MAX_POSES, "validation poses"),
+        default=150,
+        help=f"validation poses, 0..{MAX_POSES}",
+    )
     parser.add_argument(
         "--selection",
         default="O1",
@@ -281,7 +310,14 @@ def main(argv: list[str] | None = None) -> int:
         help="switch on an effect the twin is not told about, at its default strength "
         "(repeatable): " + "; ".join(f"{k}: {v}" for k, v in EFFECT_NAMES.items()),
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def _run(args: argparse.Namespace) -> int:
+    for option, path in (("--out", args.out), ("--truth", args.truth)):
+        if path is not None and not path.strip():
+            raise SimError(f"{option}: empty path; give a file to write")
+    nominal = robot_option(args.robot)
     settings = CampaignSettings(
         n_identify=args.identify,
         n_validate=args.validate,
@@ -289,12 +325,29 @@ def main(argv: list[str] | None = None) -> int:
         encoders=not args.no_encoders,
         effects=UndeclaredEffects.named(*args.effect),
     )
-    data = emulated_campaign(args.robot, args.seed, settings)
-    write_campaign(args.out, data.campaign)
-    if args.truth:
-        data.write_truth(args.truth)
+    robot_file = args.robot if Path(args.robot).exists() else None
+    with OutputSet(inputs=[robot_file], error=SimError) as outputs:
+        out = outputs.file(args.out, "--out")
+        truth = outputs.file(args.truth, "--truth") if args.truth else None
+        data = emulated_campaign(nominal, args.seed, settings)
+        write_campaign(out, data.campaign)
+        if truth is not None:
+            data.write_truth(truth)
     print(f"wrote {args.out}: {len(data.campaign)} poses", file=sys.stderr)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The command line: a user's mistake is one line on stderr and exit 2
+    (:func:`edges.command.run_command`); ``--debug`` shows tracebacks."""
+    argv, debug = take_debug_flag(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    return run_command(
+        "python -m sim_devices.pose_campaign",
+        lambda: _run(args),
+        user_errors=(SimError, CalibrationError),
+        debug=debug,
+    )
 
 
 if __name__ == "__main__":

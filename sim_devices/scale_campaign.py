@@ -53,15 +53,26 @@ import math
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import tomli_w
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.description import load_robot
-from calibration.grating_scale import JointSweep
-from sim_devices.config import EffectsSection
+from calibration.errors import CalibrationError
+from edges.command import run_command, take_debug_flag
+from edges.outputs import OutputSet
+from sim_devices.config import (
+    MAX_COUNT,
+    SEED_OPTION,
+    EffectsSection,
+    OptionParser,
+    check_joints,
+    integer_option,
+    joint_list,
+    number_option,
+    robot_option,
+)
 from sim_devices.effects import (
     EFFECT_NAMES,
     UndeclaredEffects,
@@ -71,6 +82,7 @@ from sim_devices.effects import (
     true_point_mm,
     with_derived_stiffness,
 )
+from sim_devices.errors import SimError
 from sim_devices.gears import GearTrain
 from sim_devices.sweep_plan import (
     commanded_stops_deg,
@@ -79,6 +91,9 @@ from sim_devices.sweep_plan import (
     target_set_mm,
 )
 from sim_devices.truth import COUNTER_MODULUS, GratingStrip, TrueCell
+
+if TYPE_CHECKING:  # the twin's fit module (scipy.stats: half a second) only when used
+    from calibration.grating_scale import JointSweep
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -239,6 +254,8 @@ class ScaleCampaign:
 
     def joint_sweeps(self) -> dict[int, JointSweep]:
         """The sweeps as the twin reads them from sweep.csv, in memory (per joint)."""
+        from calibration.grating_scale import JointSweep
+
         out = {}
         for j in sorted(set(self.sweep_joint.tolist())):
             m = self.sweep_joint == j
@@ -345,14 +362,19 @@ class ScaleCampaign:
         return doc
 
     def write(self, out_dir: str | Path) -> dict[str, Path]:
-        """Write ``home.csv``, ``sweep.csv`` and ``truth.toml`` into ``out_dir``."""
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        paths = {"home": out / "home.csv", "sweep": out / "sweep.csv", "truth": out / "truth.toml"}
-        paths["home"].write_text(self.home_csv(), encoding="utf-8")
-        paths["sweep"].write_text(self.sweep_csv(), encoding="utf-8")
-        paths["truth"].write_text(tomli_w.dumps(self.truth_document()), encoding="utf-8")
-        return paths
+        """Write ``home.csv``, ``sweep.csv`` and ``truth.toml`` into ``out_dir`` (created):
+        the three appear together or, on any error, none of them
+        (:class:`edges.outputs.OutputSet`); files of the same names are replaced."""
+        texts = {
+            "home": ("home.csv", self.home_csv()),
+            "sweep": ("sweep.csv", self.sweep_csv()),
+            "truth": ("truth.toml", tomli_w.dumps(self.truth_document())),
+        }
+        with OutputSet(error=SimError) as outputs:
+            staged = outputs.directory(out_dir, "--out")
+            for name, text in texts.values():
+                (staged / name).write_text(text, encoding="utf-8")
+        return {key: Path(out_dir) / name for key, (name, _text) in texts.items()}
 
 
 def _toml_ready(value: Any) -> Any:
@@ -587,24 +609,49 @@ def run_campaign(
     )
 
 
-def _joint_list(text: str) -> tuple[int, ...]:
-    return tuple(int(t) for t in text.split(",") if t.strip())
+#: The most reflectors on one link (a polygon of side ``target_spacing_mm``).
+MAX_TARGETS = 12
+#: The most stops of one pass (10 000 stops × 12 reflectors × 2 passes × 6 joints is
+#: 1.4 million sweep rows already).
+MAX_STOPS = 10_000
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+def build_parser() -> argparse.ArgumentParser:
+    """The generator's options; every value is checked as it is parsed (finite, in range,
+    joint lists well formed) and against the robot in :func:`main`."""
+    parser = OptionParser(
         prog="python -m sim_devices.scale_campaign",
         description="Write home.csv, sweep.csv and truth.toml of an emulated scale campaign.",
     )
     parser.add_argument("--robot", default="kr500", help="preset name or description file")
-    parser.add_argument("--seed", type=int, default=1, help="seed of the true cell")
-    parser.add_argument("--out", required=True, help="output directory")
-    parser.add_argument("--eccentricity-mm", type=float, default=0.0, help="strip cyclic error")
-    parser.add_argument("--hysteresis-counts", type=float, default=0.0)
-    parser.add_argument("--settling-deg", type=float, default=0.0)
-    parser.add_argument("--wild-points", type=int, default=0, help="wild tracker points/joint")
-    parser.add_argument("--joints", type=_joint_list, default=None, help="e.g. 1,2,3")
-    parser.add_argument("--no-home", type=_joint_list, default=(), help="joints without home")
+    parser.add_argument("--seed", type=SEED_OPTION, default=1, help="seed of the true cell")
+    parser.add_argument("--out", required=True, help="output directory (created)")
+    parser.add_argument(
+        "--eccentricity-mm",
+        type=number_option(0.0, 1.0, what="mm"),
+        default=0.0,
+        help="strip cyclic error amplitude, 0..1 mm",
+    )
+    parser.add_argument(
+        "--hysteresis-counts",
+        type=number_option(-1e4, 1e4, what="counts"),
+        default=0.0,
+        help="backward-minus-forward reading offset, counts",
+    )
+    parser.add_argument(
+        "--settling-deg",
+        type=number_option(0.0, 10.0, what="deg, 1 sigma"),
+        default=0.0,
+        help="1 sigma of the true angle at each Home return, deg",
+    )
+    parser.add_argument(
+        "--wild-points",
+        type=integer_option(0, MAX_COUNT),
+        default=0,
+        help="wild tracker points per joint",
+    )
+    parser.add_argument("--joints", type=joint_list, default=None, help="e.g. 1,2,3")
+    parser.add_argument("--no-home", type=joint_list, default=(), help="joints without home")
     parser.add_argument(
         "--torsion", action="store_true", help="gear torsion of every joint (live plant's)"
     )
@@ -621,29 +668,75 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--all-counts", action="store_true", help="write g1_counts..gN_counts in any case"
     )
-    parser.add_argument("--targets", type=int, default=1, help="reflectors on the swept link")
-    parser.add_argument("--arc-deg", type=float, default=None, help="arc centred on Home")
-    parser.add_argument("--stops-per-arc", type=int, default=None, help="stops along the arc")
-    args = parser.parse_args(argv)
-    cell = TrueCell.create(load_robot(args.robot), args.seed, eccentricity_mm=args.eccentricity_mm)
-    options = CampaignOptions(
-        settling_deg=args.settling_deg,
-        hysteresis_counts=args.hysteresis_counts,
-        wild_points=args.wild_points,
-        joints=args.joints,
-        joints_without_home=args.no_home,
-        torsion=args.torsion,
-        backlash=args.backlash,
-        effects=UndeclaredEffects.named(*args.effect),
-        all_counts=args.all_counts,
-        targets=args.targets,
-        arc_deg=args.arc_deg,
-        stops_per_arc=args.stops_per_arc,
+    parser.add_argument(
+        "--targets",
+        type=integer_option(1, MAX_TARGETS),
+        default=1,
+        help=f"reflectors on the swept link, 1..{MAX_TARGETS}",
     )
-    paths = run_campaign(cell, options).write(args.out)
+    parser.add_argument(
+        "--arc-deg",
+        type=number_option(0.0, 720.0, lo_open=True, what="deg"),
+        default=None,
+        help="arc centred on Home, deg (clipped to the joint's range)",
+    )
+    parser.add_argument(
+        "--stops-per-arc",
+        type=integer_option(2, MAX_STOPS),
+        default=None,
+        help=f"stops along the arc, 2..{MAX_STOPS}",
+    )
+    return parser
+
+
+def _run(args: argparse.Namespace) -> int:
+    if not args.out.strip():
+        raise SimError("--out: empty path; give the output directory")
+    nominal = robot_option(args.robot)
+    n = nominal.n_joints
+    check_joints(args.joints, n, "--joints")
+    check_joints(args.no_home, n, "--no-home")
+    swept = args.joints or tuple(range(1, n + 1))
+    for j in args.no_home:
+        if j not in swept:
+            raise SimError(
+                f"--no-home: joint {j} is not swept (--joints {','.join(map(str, swept))})"
+            )
+    robot_file = args.robot if Path(args.robot).exists() else None
+    with OutputSet(inputs=[robot_file], error=SimError) as outputs:
+        staged = outputs.directory(args.out, "--out")
+        cell = TrueCell.create(nominal, args.seed, eccentricity_mm=args.eccentricity_mm)
+        options = CampaignOptions(
+            settling_deg=args.settling_deg,
+            hysteresis_counts=args.hysteresis_counts,
+            wild_points=args.wild_points,
+            joints=args.joints,
+            joints_without_home=args.no_home,
+            torsion=args.torsion,
+            backlash=args.backlash,
+            effects=UndeclaredEffects.named(*args.effect),
+            all_counts=args.all_counts,
+            targets=args.targets,
+            arc_deg=args.arc_deg,
+            stops_per_arc=args.stops_per_arc,
+        )
+        paths = run_campaign(cell, options).write(staged)
     for p in paths.values():
-        print(p)
+        print(outputs.final(p))
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The command line: a user's mistake is one line on stderr and exit 2
+    (:func:`edges.command.run_command`); ``--debug`` shows tracebacks."""
+    argv, debug = take_debug_flag(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    return run_command(
+        "python -m sim_devices.scale_campaign",
+        lambda: _run(args),
+        user_errors=(SimError, CalibrationError),
+        debug=debug,
+    )
 
 
 if __name__ == "__main__":

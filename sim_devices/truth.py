@@ -279,5 +279,11 @@ class TrueCell:
         }
 
     def write_truth(self, path: str | Path) -> None:
-        """Write the truth for tests (the twin never reads this file)."""
-        Path(path).write_text(tomli_w.dumps(self.truth_document()), encoding="utf-8")
+        """Write the truth for tests (the twin never reads this file); atomic: the file
+        appears whole or not at all (:class:`edges.outputs.OutputSet`)."""
+        from edges.outputs import OutputSet
+        from sim_devices.errors import SimError
+
+        text = tomli_w.dumps(self.truth_document())
+        with OutputSet(error=SimError) as outputs:
+            outputs.file(path, "truth").write_text(text, encoding="utf-8")

@@ -173,7 +173,7 @@ def test_generator_command_writes_effects_into_the_truth(tmp_path):
 
 def test_live_plant_shares_the_physics():
     """The live cell's plant applies the same effects as the campaign generator."""
-    from sim_devices.config import CellConfig
+    from sim_devices.config import CellConfig, check_for_robot
     from sim_devices.errors import SimConfigError
     from sim_devices.plant import Plant, SimClock
 
@@ -213,4 +213,5 @@ def test_live_plant_shares_the_physics():
         "tracker_scale_drift_ppm_per_h = 1.0",
     ):
         with pytest.raises(SimConfigError, match="undeclared"):
-            CellConfig.loads(text + bad + "\n")
+            # joint numbers are checked against the robot once it is known
+            check_for_robot(CellConfig.loads(text + bad + "\n"), 6, "<string>")
