@@ -17,6 +17,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from typing import Any
@@ -45,6 +46,7 @@ class EmulatedCell:
         self.listen = listen
         self.rate_hz = rate_hz
         self.proc: subprocess.Popen[str] | None = None
+        self._stderr: Any = None  # the cell's stderr (a temporary file)
         self.records: list[dict[str, Any]] = []
         self.devices: list[dict[str, Any]] = []
         self._lines: queue.Queue[str | None] = queue.Queue()
@@ -67,8 +69,11 @@ class EmulatedCell:
         self._lines.put(None)
 
     def start(self) -> dict[str, Any]:
+        # stderr to a file, not a pipe: nobody drains it while the cell runs, and its last
+        # line is the reason when the cell could not start
+        self._stderr = tempfile.TemporaryFile(mode="w+", prefix="sim-cell-")  # noqa: SIM115 - closed in close()
         self.proc = subprocess.Popen(
-            self._command(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+            self._command(), stdout=subprocess.PIPE, stderr=self._stderr, text=True
         )
         threading.Thread(target=self._pump, name="sim-cell-stdout", daemon=True).start()
         deadline = time.monotonic() + START_TIMEOUT_S
@@ -84,7 +89,10 @@ class EmulatedCell:
                 if line is None:
                     if self.records:
                         break
-                    raise DaqError(f"sim-cell serve exited ({self.proc.poll()}) before starting")
+                    raise DaqError(
+                        f"sim-cell serve exited ({self.proc.poll()}) before starting"
+                        + self._last_error()
+                    )
                 line = line.strip()
                 if line.startswith("{"):
                     self.records.append(json.loads(line))
@@ -92,6 +100,15 @@ class EmulatedCell:
             self.close()
             raise
         return self.document()
+
+    def _last_error(self) -> str:
+        """``: <the cell's last stderr line>`` (empty when it said nothing)."""
+        try:
+            self._stderr.seek(0)
+            lines = [ln.strip() for ln in self._stderr.read().splitlines() if ln.strip()]
+        except (OSError, ValueError):
+            return ""
+        return f": {lines[-1]}" if lines else ""
 
     @property
     def t0_monotonic_ns(self) -> int | None:
@@ -153,6 +170,8 @@ class EmulatedCell:
         if self._closed:
             return
         self._closed = True
+        if self._stderr is not None:
+            self._stderr.close()
         proc = self.proc
         if proc is None or proc.poll() is not None:
             return
