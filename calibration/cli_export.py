@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
+from edges.command import progress
 from edges.outputs import OutputSet
 
 
@@ -36,22 +36,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_export)
 
 
-def progress(command: str, quiet: bool):  # type: ignore[no-untyped-def]
-    def say(text: str) -> None:
-        if not quiet:
-            print(f"twin {command}: {text}", file=sys.stderr, flush=True)
-
-    return say
-
-
 def run_export(args: argparse.Namespace) -> int:
-    from calibration.cli_identify import OptionError
     from calibration.description import load_robot
-    from calibration.errors import OutputFileError
+    from calibration.errors import OptionError, OutputFileError
     from calibration.streams import read_recording_streams
     from calibration.twin_run import export_campaign
 
-    say = progress("export", args.quiet)
+    say = progress("twin export", args.quiet)
     if args.encoder_counts_per_rev < 1:
         raise OptionError(
             f"--encoder-counts-per-rev: need a whole number >= 1, got {args.encoder_counts_per_rev}"

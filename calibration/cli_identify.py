@@ -21,7 +21,7 @@ import numpy as np
 
 from calibration.campaign_files import read_campaign, read_joint_readings, write_points
 from calibration.description import RobotDescription
-from calibration.errors import CalibrationError, DataFileError, OutputFileError
+from calibration.errors import CalibrationError, DataFileError, OptionError, OutputFileError
 from calibration.identifiability import NO_EFFECT
 from calibration.identification import (
     LOSSES,
@@ -122,10 +122,6 @@ MIN_DISTINCT_POSES = 4
 
 def _limits(desc: RobotDescription) -> list[tuple[float, float]]:
     return [(j.lower_deg, j.upper_deg) for j in desc.joints]
-
-
-class OptionError(CalibrationError, ValueError):
-    """A command-line option has a malformed value."""
 
 
 def _mpe(text: str) -> tuple[float, float]:

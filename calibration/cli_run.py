@@ -12,8 +12,8 @@ import argparse
 import json
 from pathlib import Path
 
-from calibration.cli_export import progress
 from calibration.errors import DataFileError, OutputFileError
+from edges.command import progress
 from edges.inputs import MAX_TOML_BYTES, read_input_bytes
 from edges.outputs import OutputSet
 
@@ -97,7 +97,7 @@ def _earlier_run(from_dir: str) -> dict:  # type: ignore[type-arg]
 def run_run(args: argparse.Namespace) -> int:
     from calibration.twin_run import run_twin
 
-    say = progress("run", args.quiet)
+    say = progress("twin run", args.quiet)
     live = None
     if args.from_dir:
         from calibration.live_twin import LiveTwin

@@ -21,3 +21,7 @@ class KinematicsError(CalibrationError, ValueError):
 
 class OutputFileError(CalibrationError, ValueError):
     """An output path is refused: it is an input, a directory, or cannot be written."""
+
+
+class OptionError(CalibrationError, ValueError):
+    """A command-line option has a malformed value (the message names the option)."""

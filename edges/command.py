@@ -29,6 +29,16 @@ def take_debug_flag(argv: Sequence[str]) -> tuple[list[str], bool]:
     return rest, len(rest) != len(argv)
 
 
+def progress(prog: str, quiet: bool = False) -> Callable[[str], None]:
+    """A ``say(text)`` that prints ``PROG: text`` on stderr (nothing when ``quiet``)."""
+
+    def say(text: str) -> None:
+        if not quiet:
+            print(f"{prog}: {text}", file=sys.stderr, flush=True)
+
+    return say
+
+
 def one_line(text: str) -> str:
     """A message on one line (a multi-line exception text joined with ' | ')."""
     parts = [p.strip() for p in str(text).splitlines() if p.strip()]
