@@ -251,7 +251,7 @@ def read_recording_streams(path: str | Path) -> CellStreams:
     if rec.messages == 0 and rec.truncated:
         raise StreamError(f"{path}: not a readable MCAP recording ({rec.error or 'no records'})")
     note = (
-        f"truncated recording ({rec.error}); read up to the last complete chunk"
+        f"damaged recording ({rec.error}); damaged regions skipped, every whole chunk read"
         if (rec.truncated)
         else ""
     )

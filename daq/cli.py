@@ -5,8 +5,8 @@ Commands (docs/daq.md)::
     daq run [--config cell.toml] [--duration S] [--record [PATH]]   the daemon
     daq record KEYEXPR -o FILE.mcap [--duration S]                   zenoh -> MCAP
     daq replay FILE.mcap [--speed X | --fast] [--loop] [--start S] [--topic EXPR]
-    daq recover FILE.mcap [-o OUT.mcap]                              rewrite a truncated file
-    daq info FILE.mcap                                               channels and counts (streams)
+    daq recover FILE.mcap [-o OUT.mcap | --in-place]                 a damaged file's readable part
+    daq info FILE.mcap                                               channels, counts, damage
     daq echo KEYEXPR [--stats [--stats-window S]] [--jsonl FILE] [--duration S]   look at a key
     daq schema KEY                                                   the JSON schema of a key
 
@@ -17,6 +17,10 @@ zenoh settings: ``--config`` file's ``[zenoh]`` table, ``DAQ_ZENOH_*`` variables
 ``--mode/--listen/--connect`` arguments, in rising precedence. Sources (``run``,
 ``replay``) listen on ``tcp/127.0.0.1:7447`` by default; sinks (``echo``, ``record``,
 ``schema``) connect there and listen nowhere.
+
+Options are checked as they are parsed: a mistake is one line on stderr naming the
+option, exit 2 (``--speed 0``, ``--start -5``, ``--count 0``, ``--duration nan``, a key
+expression zenoh refuses).
 """
 
 from __future__ import annotations
@@ -24,23 +28,121 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
+import os
+import re
 import sys
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
-from daq.config import DaqConfig, ZenohConfig, load
+from daq.config import ENDPOINT_RE, DaqConfig, ZenohConfig, load
 from daq.errors import DaqError
-from edges.command import run_command, take_debug_flag
+from edges.command import one_line, run_command, take_debug_flag
 
 COMMANDS: dict[str, str] = {
     "run": "the acquisition daemon (no --config: the emulated default cell, recorded)",
     "record": "record zenoh keys to an MCAP file",
     "replay": "republish an MCAP recording over zenoh",
-    "recover": "rewrite a truncated MCAP recording whole",
-    "info": "list the channels and message counts of an MCAP file (streaming)",
+    "recover": "write the readable part of a damaged MCAP recording as a whole file",
+    "info": "channels, message counts and damage of an MCAP file (streaming)",
     "echo": "subscribe to a key expression and print or summarise batches",
     "schema": "print the JSON schema of a key (zenoh query <key>/@schema)",
 }
+
+
+class OptionParser(argparse.ArgumentParser):
+    """``argparse`` whose usage errors are one line, ``PROG: error: MESSAGE (see PROG
+    --help)``, exit 2, like every other user mistake (its subcommands' parsers too)."""
+
+    def error(self, message: str) -> Any:
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
+
+
+def number(
+    lo: float | None = None, *, above: bool = False, hi: float | None = None
+) -> Callable[[str], float]:
+    """An ``argparse`` ``type=``: a finite float >= ``lo`` (> ``lo`` when ``above``), <=
+    ``hi``; ``nan``, ``inf`` and values outside are refused naming the bound."""
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+        if lo is not None and (v <= lo if above else v < lo):
+            raise argparse.ArgumentTypeError(
+                f"must be {'>' if above else '>='} {lo:g}, got {text!r}"
+            )
+        if hi is not None and v > hi:
+            raise argparse.ArgumentTypeError(f"must be <= {hi:g}, got {text!r}")
+        return v
+
+    parse.__name__ = "number"
+    return parse
+
+
+def integer(lo: int, hi: int | None = None) -> Callable[[str], int]:
+    """An ``argparse`` ``type=``: an integer in ``lo..hi``."""
+
+    def parse(text: str) -> int:
+        if not re.fullmatch(r"\s*[+-]?[0-9]+\s*", text):
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}")
+        v = int(text)
+        if v < lo or (hi is not None and v > hi):
+            rng = f">= {lo}" if hi is None else f"{lo}-{hi}"
+            raise argparse.ArgumentTypeError(f"must be {rng}, got {text!r}")
+        return v
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def key_expr(text: str) -> str:
+    """An ``argparse`` ``type=``: a key expression zenoh accepts (``cell/**``)."""
+    import zenoh
+
+    try:
+        zenoh.KeyExpr(text)
+    except Exception as exc:
+        why = re.sub(r" at \S+:\d+\.?$", "", str(exc).strip())  # zenoh's source location
+        raise argparse.ArgumentTypeError(f"not a valid key expression: {why}") from None
+    return text
+
+
+def endpoint(text: str) -> str:
+    """An ``argparse`` ``type=``: a zenoh endpoint ``<protocol>/<address>`` (``none``:
+    an empty list)."""
+    if text != "none" and not ENDPOINT_RE.fullmatch(text):
+        raise argparse.ArgumentTypeError(
+            f"expected <protocol>/<address> (tcp/127.0.0.1:7447) or none, got {text!r}"
+        )
+    return text
+
+
+def path_text(text: str) -> str:
+    """An ``argparse`` ``type=``: a path, not empty."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path")
+    return text
+
+
+def record_path(text: str) -> str:
+    """An ``argparse`` ``type=``: a recording path, ``{cell}`` and ``{start}`` allowed."""
+    from daq.config import path_template
+
+    if not text:
+        return text  # --record with no path: the configured one
+    try:
+        return path_template(text, "path")
+    except DaqError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("path: ")) from None
+
+
+POSITIVE_S = number(0.0, above=True)
+NONNEGATIVE_S = number(0.0)
 
 
 def _whole_seconds(text: str) -> int:
@@ -56,8 +158,12 @@ def _whole_seconds(text: str) -> int:
 def _zenoh_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("zenoh")
     g.add_argument("--mode", choices=("peer", "client", "router"), help="zenoh mode")
-    g.add_argument("--listen", action="append", metavar="ENDPOINT", help="listen endpoint")
-    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="connect endpoint")
+    g.add_argument(
+        "--listen", type=endpoint, action="append", metavar="ENDPOINT", help="listen endpoint"
+    )
+    g.add_argument(
+        "--connect", type=endpoint, action="append", metavar="ENDPOINT", help="connect endpoint"
+    )
 
 
 def _zenoh_overrides(args: argparse.Namespace) -> dict[str, Any]:
@@ -95,7 +201,7 @@ def sink_zenoh(args: argparse.Namespace) -> ZenohConfig:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OptionParser(
         prog="daq",
         description="Acquisition daemon: timestamped samples over zenoh, MCAP recording, replay.",
     )
@@ -103,60 +209,91 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("run", help=COMMANDS["run"])
-    p.add_argument("--config", help="cell TOML (default: $DAQ_CONFIG, else the emulated cell)")
-    p.add_argument("--duration", type=float, help="stop by itself after S seconds")
     p.add_argument(
-        "--record", nargs="?", const="", metavar="PATH", help="record to MCAP (PATH optional)"
+        "--config", type=path_text, help="cell TOML (default: $DAQ_CONFIG, else the emulated cell)"
+    )
+    p.add_argument("--duration", type=POSITIVE_S, help="stop by itself after S seconds")
+    p.add_argument(
+        "--record",
+        nargs="?",
+        const="",
+        type=record_path,
+        metavar="PATH",
+        help="record to MCAP (PATH optional; {cell} and {start} are filled in)",
     )
     p.add_argument("--no-record", action="store_true", help="do not record (emulated cell)")
-    p.add_argument("--sim-config", help="emulated cell TOML for sim-cell (no --config only)")
     p.add_argument(
-        "--rate", type=float, default=1000.0, help="emulated tracker/encoder rate, Hz (1000)"
+        "--sim-config", type=path_text, help="emulated cell TOML for sim-cell (no --config only)"
+    )
+    p.add_argument(
+        "--rate",
+        type=number(0.0, above=True, hi=100_000.0),
+        default=1000.0,
+        help="emulated tracker/encoder rate, Hz (1000)",
     )
     p.add_argument("--cell", help="cell name (key chunk)")
     _zenoh_args(p)
 
     p = sub.add_parser("record", help=COMMANDS["record"])
-    p.add_argument("key", nargs="?", default="cell/**", help="key expression (default cell/**)")
-    p.add_argument("-o", "--output", required=True, help="MCAP file to write")
-    p.add_argument("--config", help="take zenoh settings from this cell TOML")
-    p.add_argument("--duration", type=float, help="stop after S seconds")
+    p.add_argument(
+        "key", nargs="?", type=key_expr, default="cell/**", help="key expression (cell/**)"
+    )
+    p.add_argument("-o", "--output", type=path_text, required=True, help="MCAP file to write")
+    p.add_argument("--config", type=path_text, help="take zenoh settings from this cell TOML")
+    p.add_argument("--duration", type=POSITIVE_S, help="stop after S seconds")
     _realtime_arg(p)
     _zenoh_args(p)
 
     p = sub.add_parser("replay", help=COMMANDS["replay"])
-    p.add_argument("file", help="MCAP recording")
+    p.add_argument("file", type=path_text, help="MCAP recording")
     speed = p.add_mutually_exclusive_group()
-    speed.add_argument("--speed", type=float, default=1.0, help="×N of real time (default 1)")
+    speed.add_argument("--speed", type=POSITIVE_S, default=1.0, help="×N of real time (default 1)")
     speed.add_argument("--fast", action="store_true", help="as fast as possible")
     p.add_argument("--loop", action="store_true", help="start over at the end")
-    p.add_argument("--start", type=float, default=0.0, help="skip the first S seconds")
-    p.add_argument("--topic", action="append", help="key expression filter (repeatable)")
-    p.add_argument("--duration", type=float, help="stop after S seconds of wall time")
+    p.add_argument("--start", type=NONNEGATIVE_S, default=0.0, help="skip the first S seconds")
+    p.add_argument(
+        "--topic", type=key_expr, action="append", help="key expression filter (repeatable)"
+    )
+    p.add_argument("--duration", type=POSITIVE_S, help="stop after S seconds of wall time")
     p.add_argument(
         "--wait-subscribers",
-        type=float,
+        type=NONNEGATIVE_S,
         default=0.0,
         metavar="S",
         help="wait up to S seconds for a matching subscriber before starting",
     )
-    p.add_argument("--config", help="take zenoh settings from this cell TOML")
+    p.add_argument("--config", type=path_text, help="take zenoh settings from this cell TOML")
     _zenoh_args(p)
 
     p = sub.add_parser("recover", help=COMMANDS["recover"])
-    p.add_argument("file")
-    p.add_argument("-o", "--output", help="output (default: rewrite FILE in place)")
+    p.add_argument("file", type=path_text)
+    out = p.add_mutually_exclusive_group()
+    out.add_argument(
+        "-o", "--output", type=path_text, help="output (default: FILE.recovered.mcap beside FILE)"
+    )
+    out.add_argument(
+        "--in-place",
+        action="store_true",
+        help="replace FILE, keeping the original as FILE.bak",
+    )
 
     p = sub.add_parser("info", help=COMMANDS["info"])
-    p.add_argument("file")
+    p.add_argument("file", type=path_text)
 
     p = sub.add_parser("echo", help=COMMANDS["echo"])
-    p.add_argument("key", nargs="?", default="cell/**")
-    p.add_argument("--config", help="take zenoh settings from this cell TOML")
-    p.add_argument("--duration", type=float)
-    p.add_argument("--count", type=int, help="stop after N batches")
-    p.add_argument("--idle", type=float, help="stop after S seconds without data (once started)")
-    p.add_argument("--jsonl", metavar="FILE", help="write every batch as JSON lines ('-': stdout)")
+    p.add_argument("key", nargs="?", type=key_expr, default="cell/**")
+    p.add_argument("--config", type=path_text, help="take zenoh settings from this cell TOML")
+    p.add_argument("--duration", type=POSITIVE_S, help="stop after S seconds")
+    p.add_argument("--count", type=integer(1), help="stop after N batches")
+    p.add_argument(
+        "--idle", type=POSITIVE_S, help="stop after S seconds without data (once started)"
+    )
+    p.add_argument(
+        "--jsonl",
+        type=path_text,
+        metavar="FILE",
+        help="write every batch as JSON lines ('-': stdout)",
+    )
     p.add_argument("--stats", action="store_true", help="print a JSON summary at the end")
     p.add_argument(
         "--stats-window",
@@ -170,9 +307,9 @@ def build_parser() -> argparse.ArgumentParser:
     _zenoh_args(p)
 
     p = sub.add_parser("schema", help=COMMANDS["schema"])
-    p.add_argument("key", help="a data key or a key expression (cell/**)")
-    p.add_argument("--config", help="take zenoh settings from this cell TOML")
-    p.add_argument("--timeout", type=float, default=2.0)
+    p.add_argument("key", type=key_expr, help="a data key or a key expression (cell/**)")
+    p.add_argument("--config", type=path_text, help="take zenoh settings from this cell TOML")
+    p.add_argument("--timeout", type=POSITIVE_S, default=2.0, help="seconds to wait (2)")
     _zenoh_args(p)
     return parser
 
@@ -180,7 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _realtime_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--realtime-priority",
-        type=int,
+        type=integer(0, 99),
         default=0,
         metavar="N",
         help="run under SCHED_FIFO priority N (1-99; 0: normal); a subscriber on the "
@@ -211,6 +348,12 @@ def _run_command(args: argparse.Namespace) -> int:
     if args.command == "run":
         from daq.daemon import main_run
 
+        if args.record and "{" not in args.record:
+            # a recording is written as it runs, not staged: its place is checked first
+            from daq.recording import check_stream_output
+
+            inputs = [args.config, args.sim_config, os.environ.get("DAQ_CONFIG")]
+            check_stream_output(args.record, "--record", inputs, create_dirs=True)
         return main_run(args)
     if getattr(args, "realtime_priority", 0):
         from daq.scheduling import set_realtime

@@ -27,11 +27,17 @@ from pathlib import Path
 from typing import Any
 
 from daq.errors import ConfigError
+from edges.inputs import MAX_TOML_BYTES, read_input_bytes
 
 ENV_PREFIX = "DAQ_"
 ENV_CONFIG = "DAQ_CONFIG"
+#: the largest ``[recording] chunk_size_bytes`` (the reader loads one chunk at a time and
+#: refuses records over ``daq.recording.MAX_RECORD_BYTES``, 256 MiB)
+MAX_CHUNK_BYTES = 64 << 20
 #: characters allowed in a name that becomes one chunk of a zenoh key expression
 NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
+#: a zenoh endpoint: ``<protocol>/<address>[?<metadata>][#<config>]``
+ENDPOINT_RE = re.compile(r"^[A-Za-z0-9+_-]+/\S+$")
 #: channel names the daemon uses itself under each device's key
 RESERVED_CHANNELS = ("health",)
 
@@ -212,7 +218,7 @@ def _bool_or_auto(v: Any, where: str) -> bool | str:
 
 
 def _choice(v: Any, where: str, table: Mapping[str, str]) -> str:
-    if v not in table:
+    if not isinstance(v, str) or v not in table:
         raise ConfigError(f"{where}: must be one of {', '.join(table)}, got {v!r}")
     return str(v)
 
@@ -223,6 +229,17 @@ def _strings(v: Any, where: str) -> tuple[str, ...]:
     if not isinstance(v, list) or not all(isinstance(s, str) and s for s in v):
         raise ConfigError(f"{where}: expected a list of strings, got {_typename(v)} {v!r}")
     return tuple(v)
+
+
+def _endpoints(v: Any, where: str) -> tuple[str, ...]:
+    out = _strings(v, where)
+    for e in out:
+        if not ENDPOINT_RE.fullmatch(e):
+            raise ConfigError(
+                f"{where}: {e!r} is not a zenoh endpoint (<protocol>/<address>, e.g. "
+                "tcp/127.0.0.1:7447)"
+            )
+    return out
 
 
 def _check_keys(doc: Mapping[str, Any], allowed: set[str], where: str) -> None:
@@ -261,8 +278,8 @@ def _parse_zenoh(t: Mapping[str, Any], w: _Where) -> ZenohConfig:
     d = ZenohConfig()
     mode = _choice(t.get("mode", d.mode), w("[zenoh]", "mode"), ZENOH_MODES)
     listen_default: tuple[str, ...] = d.listen if mode != "client" else ()
-    listen = _strings(t.get("listen", list(listen_default)), w("[zenoh]", "listen"))
-    connect = _strings(t.get("connect", list(d.connect)), w("[zenoh]", "connect"))
+    listen = _endpoints(t.get("listen", list(listen_default)), w("[zenoh]", "listen"))
+    connect = _endpoints(t.get("connect", list(d.connect)), w("[zenoh]", "connect"))
     if mode == "client" and not connect:
         raise ConfigError(f"{w('[zenoh]', 'connect')}: mode 'client' needs a router endpoint")
     extra = t.get("extra", {})
@@ -334,12 +351,26 @@ def _parse_publish(t: Mapping[str, Any], w: _Where) -> PublishConfig:
     )
 
 
+def path_template(v: Any, where: str) -> str:
+    """A recording path that may hold ``{cell}`` and ``{start}`` (and nothing else in
+    braces; ``{{`` is a literal brace)."""
+    s = _string(v, where)
+    try:
+        s.format(cell="cell", start="20260101T000000Z")
+    except (KeyError, IndexError, ValueError, AttributeError) as exc:
+        why = f"unknown placeholder {{{exc.args[0]}}}" if isinstance(exc, KeyError) else str(exc)
+        raise ConfigError(
+            f"{where}: {s!r}: {why} (allowed: {{cell}}, {{start}}; '{{{{' for a brace)"
+        ) from None
+    return s
+
+
 def _parse_recording(t: Mapping[str, Any], w: _Where) -> RecordingConfig:
     _check_keys(t, _keys_of(RecordingConfig), f"{w.source}: [recording]")
     d = RecordingConfig()
     return RecordingConfig(
         enabled=_bool(t.get("enabled", d.enabled), w("[recording]", "enabled")),
-        path=_string(t.get("path", d.path), w("[recording]", "path")),
+        path=path_template(t.get("path", d.path), w("[recording]", "path")),
         compression=_choice(
             t.get("compression", d.compression), w("[recording]", "compression"), COMPRESSIONS
         ),
@@ -347,6 +378,7 @@ def _parse_recording(t: Mapping[str, Any], w: _Where) -> RecordingConfig:
             t.get("chunk_size_bytes", d.chunk_size_bytes),
             w("[recording]", "chunk_size_bytes"),
             minimum=1024,
+            maximum=MAX_CHUNK_BYTES,
         ),
         chunk_interval_s=_number(
             t.get("chunk_interval_s", d.chunk_interval_s),
@@ -462,8 +494,36 @@ def parse(
 def _env_value(raw: str) -> Any:
     try:
         return tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
+    except (tomllib.TOMLDecodeError, RecursionError):
         return raw
+
+
+def _toml(text: str, source: str) -> dict[str, Any]:
+    """A TOML document, or a :class:`ConfigError` naming ``source`` and the line."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{source}: not valid TOML: arrays or tables nested too deeply") from None
+
+
+def decode_text(data: bytes, source: str) -> str:
+    """UTF-8 text (a byte-order mark dropped, CRLF allowed), or a :class:`ConfigError`
+    naming ``source``, the line and column of the first byte that is not UTF-8."""
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise ConfigError(f"{source}: UTF-16 text; save the file as UTF-8")
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise ConfigError(
+            f"{source}: line {line}, column {column}: not UTF-8 (byte "
+            f"{data[exc.start]:#04x}); save the file as UTF-8"
+        ) from None
 
 
 def env_overrides(environ: Mapping[str, str] | None = None) -> dict[str, dict[str, Any]]:
@@ -490,16 +550,25 @@ def _env_origin(table: str, key: str) -> str:
     return f"environment {ENV_PREFIX}{table.upper()}_{key.upper()}"
 
 
+def _arg_origin(table: str, key: str) -> str:
+    return f"command-line argument ([{table}] {key})"
+
+
 def _merge(
     doc: dict[str, Any],
     layer: Mapping[str, Mapping[str, Any]],
     origins: dict[tuple[str, str], str],
     origin: Callable[[str, str], str],
+    source: str,
 ) -> None:
     for table, values in layer.items():
         t = doc.setdefault(table, {})
         if not isinstance(t, dict):
-            raise ConfigError(f"{origin}: [{table}] in the file is not a table")
+            setters = ", ".join(origin(table, key) for key in values)
+            raise ConfigError(
+                f"{source}: [{table}] must be a table, got {_typename(t)} "
+                f"(and {setters} sets a key in it)"
+            )
         for key, value in values.items():
             t[key] = value
             origins[(f"[{table}]", key)] = origin(table, key)
@@ -522,33 +591,26 @@ def load(
         path = environ[ENV_CONFIG]
     if path is not None:
         source = str(path)
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ConfigError(f"{source}: cannot read configuration: {exc}") from exc
-        try:
-            doc: dict[str, Any] = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
+        if not source.strip():
+            raise ConfigError("--config: empty path (or DAQ_CONFIG set to nothing)")
+        data = read_input_bytes(path, limit=MAX_TOML_BYTES, error=ConfigError)
+        doc: dict[str, Any] = _toml(decode_text(data, source), source)
     else:
         source = "<default cell>"
         doc = _deepcopy(base or {})
     origins: dict[tuple[str, str], str] = {}
     env = env_overrides(environ)
-    _merge(doc, env, origins, _env_origin)
+    _merge(doc, env, origins, _env_origin, source)
     if overrides:
-        _merge(doc, overrides, origins, lambda t, k: f"command-line argument ([{t}] {k})")
+        _merge(doc, overrides, origins, _arg_origin, source)
     return parse(doc, source, origins)
 
 
 def loads(text: str, source: str = "<string>", **kw: Any) -> DaqConfig:
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
+    doc = _toml(text, source)
     origins: dict[tuple[str, str], str] = {}
     env = env_overrides(kw.get("environ", {}))
-    _merge(doc, env, origins, _env_origin)
+    _merge(doc, env, origins, _env_origin, source)
     return parse(doc, source, origins)
 
 

@@ -39,7 +39,7 @@ def sim_config_text(
 ) -> str:
     lines = [
         "[cell]",
-        f'robot = "{robot}"',
+        f"robot = {json.dumps(robot)}",  # a JSON string is a TOML basic string
         f"seed = {seed}",
         f"speed = {speed}",
         'program = "campaign"',
@@ -67,20 +67,31 @@ def program_length_s(sim_config: Path) -> float:
     return float(Plant.from_config(CellConfig.load(sim_config)).trajectory.end_s)
 
 
-def record(args: argparse.Namespace, out_dir: Path, mcap: Path) -> dict:
-    sim = out_dir / "sim-cell.toml"
-    sim.write_text(
-        sim_config_text(
-            args.robot,
-            args.seed,
-            args.speed,
-            args.effect,
-            encoders=not args.no_encoders,
-            rate_hz=args.rate,
-        ),
-        encoding="utf-8",
+def prepare(args: argparse.Namespace, sim: Path) -> tuple[str, float]:
+    """The emulated cell's configuration text and its program's length in simulated
+    seconds, checked before anything is written (``--robot`` is named when it is wrong)."""
+    from sim_devices.config import CellConfig, robot_option
+    from sim_devices.plant import Plant
+
+    robot_option(args.robot)
+    text = sim_config_text(
+        args.robot,
+        args.seed,
+        args.speed,
+        args.effect,
+        encoders=not args.no_encoders,
+        rate_hz=args.rate,
     )
-    length = program_length_s(sim)
+    config = CellConfig.loads(text, source=f"{sim} (from the demo's options)")
+    return text, float(Plant.from_config(config).trajectory.end_s)
+
+
+def record(
+    args: argparse.Namespace, out_dir: Path, mcap: Path, prepared: tuple[str, float] | None = None
+) -> dict:
+    sim = out_dir / "sim-cell.toml"
+    text, length = prepared or prepare(args, sim)
+    sim.write_text(text, encoding="utf-8")
     duration = length / args.speed + args.margin_s
     env = dict(os.environ)
     # coarser batches than the default 1 ms: a smaller file, faster to replay
@@ -126,26 +137,63 @@ def record(args: argparse.Namespace, out_dir: Path, mcap: Path) -> dict:
     return {"record_s": wall, "mcap_bytes": size, "program_s": length}
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m daq.demo", description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="demo-out", help="output directory (demo-out)")
+def build_parser() -> argparse.ArgumentParser:
+    from daq.cli import OptionParser, integer, number, path_text
+
+    p = OptionParser(prog="python -m daq.demo", description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=path_text, default="demo-out", help="output directory")
     p.add_argument("--robot", default="kr500")
-    p.add_argument("--seed", type=int, default=3)
-    p.add_argument("--speed", type=float, default=100.0, help="simulated clock speed (100)")
+    p.add_argument("--seed", type=integer(0), default=3)
+    p.add_argument(
+        "--speed",
+        type=number(0.0, above=True, hi=10_000.0),
+        default=100.0,
+        help="simulated clock speed (100)",
+    )
     p.add_argument("--effect", default="gravity_deflection", choices=EFFECTS)
-    p.add_argument("--rate", type=float, default=1000.0, help="device rates, Hz (1000)")
+    p.add_argument(
+        "--rate",
+        type=number(0.0, above=True, hi=100_000.0),
+        default=1000.0,
+        help="device rates, Hz (1000)",
+    )
     p.add_argument("--no-encoders", action="store_true", help="leave the motor encoders out")
-    p.add_argument("--batch-age-s", type=float, default=0.02, help="daemon batch age (0.02)")
-    p.add_argument("--margin-s", type=float, default=8.0, help="extra recording time (8 s)")
-    p.add_argument("--port", type=int, default=17447, help="zenoh port on 127.0.0.1 (17447)")
+    p.add_argument("--batch-age-s", type=number(0.0), default=0.02, help="daemon batch age (0.02)")
+    p.add_argument("--margin-s", type=number(0.0), default=8.0, help="extra recording time (8 s)")
+    p.add_argument(
+        "--port", type=integer(1, 65535), default=17447, help="zenoh port on 127.0.0.1 (17447)"
+    )
     p.add_argument("--record-only", action="store_true", help="stop after the recording")
-    p.add_argument("--mcap", help="recording path (default OUT/campaign.mcap)")
-    args = p.parse_args(argv)
+    p.add_argument("--mcap", type=path_text, help="recording path (default OUT/campaign.mcap)")
+    return p
+
+
+def _check_outputs(out_dir: Path, mcap: Path) -> None:
+    """Refuse before anything runs: ``--out`` a file, the recording a directory or
+    where nothing can be written (the recording is streamed, not staged)."""
+    from daq.errors import DaqError
+    from daq.recording import check_stream_output
+
+    if out_dir.exists() and not out_dir.is_dir():
+        raise DaqError(f"--out {out_dir}: exists and is not a directory")
+    for parent in out_dir.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise DaqError(f"--out {out_dir}: {parent} is not a directory")
+            break
+    if mcap.parent == out_dir and not out_dir.exists():
+        return  # created below, with the directory
+    check_stream_output(mcap, "--mcap", [out_dir / "sim-cell.toml"], create_dirs=True)
+
+
+def _main(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
     mcap = Path(args.mcap) if args.mcap else out_dir / "campaign.mcap"
-    rec = record(args, out_dir, mcap)
+    _check_outputs(out_dir, mcap)
+    prepared = prepare(args, out_dir / "sim-cell.toml")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rec = record(args, out_dir, mcap, prepared)
     if args.record_only:
         return 0
     from calibration.cli import main as twin_main
@@ -162,6 +210,20 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
     return rc
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Options checked first (one line, exit 2), then the run behind the boundary."""
+    from daq.errors import DaqError
+    from edges.command import run_command, take_debug_flag
+
+    argv, debug = take_debug_flag(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    from calibration.errors import CalibrationError
+    from sim_devices.errors import SimError
+
+    errors: tuple[type[BaseException], ...] = (DaqError, CalibrationError, SimError)
+    return run_command("python -m daq.demo", lambda: _main(args), user_errors=errors, debug=debug)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ sequence gaps, order violations and latency percentiles per key).
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import threading
@@ -209,14 +210,16 @@ def run_echo(
     duration_s: float | None = None,
     count: int | None = None,
     idle_s: float | None = None,
-    jsonl: IO[str] | None = None,
+    jsonl: IO[str] | Callable[[], IO[str]] | None = None,
     quiet: bool = False,
     stats_out: IO[str] | None = None,
     ready_out: IO[str] | None = None,
     stats_window_s: int | None = None,
 ) -> dict[str, Any]:
     """Receive until duration, batch count, idle time or SIGINT/SIGTERM; return stats
-    (with ``stats_window_s``: latency percentiles per window of that many seconds too)."""
+    (with ``stats_window_s``: latency percentiles per window of that many seconds too).
+    ``jsonl``: a stream, or a function opening one, called once the session is open (a
+    run that cannot connect leaves no file behind)."""
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -285,6 +288,8 @@ def run_echo(
     t0 = time.monotonic()
     recv: Receiver | None = None
     try:
+        if callable(jsonl):
+            jsonl = jsonl()
         recv = Receiver(
             session,
             key_expr,
@@ -319,9 +324,22 @@ def run_echo(
 
 
 def main_echo(args: Any, zc: ZenohConfig) -> int:
-    jsonl = None
-    if args.jsonl:
-        jsonl = sys.stdout if args.jsonl == "-" else open(args.jsonl, "w", encoding="utf-8")  # noqa: SIM115
+    opened: list[IO[str]] = []
+    jsonl: IO[str] | Callable[[], IO[str]] | None = None
+    if args.jsonl == "-":
+        jsonl = sys.stdout
+    elif args.jsonl:
+        # written as batches come: checked up front, not staged
+        from daq.recording import check_stream_output
+
+        config_path = getattr(args, "config", None) or os.environ.get("DAQ_CONFIG")
+        check_stream_output(args.jsonl, "--jsonl", [config_path], regular=False)
+
+        def jsonl_open() -> IO[str]:
+            opened.append(open(args.jsonl, "w", encoding="utf-8"))  # noqa: SIM115
+            return opened[-1]
+
+        jsonl = jsonl_open
     try:
         run_echo(
             args.key,
@@ -336,6 +354,6 @@ def main_echo(args: Any, zc: ZenohConfig) -> int:
             stats_window_s=args.stats_window,
         )
     finally:
-        if jsonl is not None and jsonl is not sys.stdout:
-            jsonl.close()
+        for fh in opened:
+            fh.close()
     return 0

@@ -7,14 +7,18 @@ fast as possible. Schemas are served from the recording by the same ``<key>/@sch
 queryable as the daemon's, and a liveliness token is held per recorded device. Options:
 loop, start offset (seconds after the first message), key-expression filter. Derived
 viewer channels (Foxglove) are not republished. The file is streamed, so a truncated
-recording replays up to its last complete chunk.
+recording replays up to its last complete chunk, and a damaged chunk in the middle costs
+only that chunk (``daq.recording``; the result's ``damaged`` lists the regions skipped,
+and a warning on stderr says so).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import signal
+import sys
 import threading
 import time
 from typing import Any
@@ -25,7 +29,7 @@ from daq.bus import DATA_ENCODING, JSON_ENCODING, SchemaServer, device_key, open
 from daq.columnar import ENCODING_NAME
 from daq.config import ZenohConfig
 from daq.errors import RecordingError
-from daq.recording import KIND_FOXGLOVE, read_recording
+from daq.recording import KIND_FOXGLOVE, Recording, read_recording
 
 log = logging.getLogger(__name__)
 
@@ -51,9 +55,18 @@ def replay(
     stop: threading.Event | None = None,
     congestion: str = "block",
 ) -> dict[str, Any]:
-    """Replay ``path``; returns per-topic counts and the elapsed time."""
-    if speed <= 0:
-        raise RecordingError(f"speed must be > 0, got {speed}")
+    """Replay ``path``; returns per-topic counts, the elapsed time and the damage found.
+
+    Refused with :class:`RecordingError` (naming the file or the option): a file that
+    is not an MCAP recording (checked before the session opens), a pass that found
+    nothing to send (no readable message, a ``--topic`` that matches no recorded key,
+    a ``--start`` past the end), a non-finite or non-positive ``speed``, a negative
+    ``start_s``."""
+    if not math.isfinite(speed) or speed <= 0:
+        raise RecordingError(f"--speed: must be a finite number > 0, got {speed}")
+    if not math.isfinite(start_s) or start_s < 0:
+        raise RecordingError(f"--start: must be a finite number >= 0 (seconds), got {start_s}")
+    read_recording(path)  # not a recording: said before any session opens
     stop = stop or threading.Event()
     filters = [zenoh.KeyExpr(t) for t in topics] if topics else None
     session = open_session(zc)
@@ -65,13 +78,16 @@ def replay(
     t_wall0 = time.monotonic()
     passes = 0
     truncated = False
+    damaged: list[dict[str, Any]] = []
     waited = wait_subscribers_s <= 0
     try:
         while not stop.is_set():
             rec = read_recording(path)
             t_first: int | None = None
+            t_last: int | None = None
             t_rec0: int | None = None
             w0 = 0.0
+            sent = 0
             for m in rec.messages_iter():
                 if stop.is_set():
                     break
@@ -114,6 +130,7 @@ def replay(
                         waited = True
                 if t_first is None:
                     t_first = m.log_time
+                t_last = m.log_time
                 if m.log_time < t_first + int(start_s * 1e9):
                     continue
                 if t_rec0 is None:
@@ -127,8 +144,13 @@ def replay(
                 t.publisher.put(m.data)
                 t.messages += 1
                 t.bytes += len(m.data)
+                sent += 1
             truncated = truncated or rec.truncated
+            if passes == 0:
+                damaged = [d.as_dict() for d in rec.damaged if d.record != "footer"]
             passes += 1
+            if sent == 0 and not stop.is_set():
+                _nothing_sent(path, rec, topics, start_s, t_first, t_last)
             if not loop:
                 break
     finally:
@@ -142,15 +164,43 @@ def replay(
         "file": str(path),
         "passes": passes,
         "truncated": truncated,
+        "damaged": damaged,
         "elapsed_s": time.monotonic() - t_wall0,
         "topics": {k: {"messages": v.messages, "bytes": v.bytes} for k, v in sorted(out.items())},
     }
+
+
+def _nothing_sent(
+    path: str,
+    rec: Recording,
+    topics: list[str] | None,
+    start_s: float,
+    t_first: int | None,
+    t_last: int | None,
+) -> None:
+    """Why a whole pass sent nothing, as a :class:`RecordingError` (a loop would spin)."""
+    if rec.messages == 0:
+        why = rec.error or "it holds no message"
+        raise RecordingError(f"{path}: no readable message to replay ({why})")
+    if t_first is None:  # every message skipped by the filter (or a viewer channel)
+        recorded = sorted({c.topic for c in rec.channels.values()})
+        shown = ", ".join(recorded[:8]) + (", ..." if len(recorded) > 8 else "")
+        if topics:
+            raise RecordingError(
+                f"--topic {' '.join(topics)}: matches none of the recorded keys ({shown})"
+            )
+        raise RecordingError(f"{path}: only viewer channels, nothing to republish ({shown})")
+    length_s = ((t_last or t_first) - t_first) / 1e9
+    raise RecordingError(
+        f"--start {start_s:g}: past the end of the recording ({length_s:.3f} s long)"
+    )
 
 
 def main_replay(args: Any, zc: ZenohConfig) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    read_recording(args.file)  # not a recording: refused before anything is said
     print(json.dumps({"replay": args.file, "listen": list(zc.listen)}), flush=True)
     result = replay(
         args.file,
@@ -165,4 +215,13 @@ def main_replay(args: Any, zc: ZenohConfig) -> int:
         stop=stop,
     )
     print(json.dumps(result), flush=True)
+    if result["damaged"]:
+        first = result["damaged"][0]
+        print(
+            f"daq replay: warning: {args.file}: damaged at byte {first['offset']} "
+            f"({first['record']}: {first['reason']}; {len(result['damaged'])} region(s) "
+            "skipped); replayed every readable message (daq info shows where, daq recover "
+            "writes them to a whole file)",
+            file=sys.stderr,
+        )
     return 0

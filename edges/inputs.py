@@ -15,6 +15,7 @@ import os
 import stat
 from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
 
 MAX_TEXT_BYTES = 256 * 1024 * 1024
 MAX_TOML_BYTES = 16 * 1024 * 1024
@@ -37,6 +38,20 @@ def _mb(n: int) -> str:
     return f"{n / (1024 * 1024):g} MiB"
 
 
+def _open(path: str | Path) -> BinaryIO:
+    """``open(path, "rb")``, except that a named pipe without a writer does not block:
+    it is opened non-blocking (reads as empty), then switched back to blocking."""
+    try:
+        is_fifo = stat.S_ISFIFO(os.stat(path).st_mode)
+    except OSError:
+        is_fifo = False
+    if not is_fifo:
+        return open(path, "rb")
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    os.set_blocking(fd, True)
+    return os.fdopen(fd, "rb")
+
+
 def read_input_bytes(
     path: str | Path,
     *,
@@ -48,7 +63,7 @@ def read_input_bytes(
     source = str(path)
     limit = input_limit(limit)
     try:
-        fh = open(path, "rb")  # noqa: SIM115 - closed below
+        fh = _open(path)
     except IsADirectoryError:
         raise error(f"{source}: is a directory, expected a file") from None
     except OSError as exc:

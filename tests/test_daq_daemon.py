@@ -158,7 +158,9 @@ def test_kill_9_during_recording_leaves_readable_file(tmp_path):
     assert len(rec["seq"]) > 1000
     np.testing.assert_array_equal(rec["seq"], np.arange(len(rec["seq"])))
     r = subprocess.run(
-        [sys.executable, "-m", "daq.cli", "recover", str(rec_path)], capture_output=True, text=True
+        [sys.executable, "-m", "daq.cli", "recover", "--in-place", str(rec_path)],
+        capture_output=True,
+        text=True,
     )
     assert r.returncode == 0, r.stderr
     assert read_recording(rec_path) is not None

@@ -1,5 +1,6 @@
 """MCAP recording: round trip, Foxglove viewer channels, kill -9 leaves a readable file,
-and ``recover`` rewrites a truncated file whole."""
+and ``recover`` writes a truncated file's messages whole (beside it, or in place with a
+backup). Damaged files: tests/test_bad_input_daq.py."""
 
 from __future__ import annotations
 
@@ -134,6 +135,14 @@ def test_kill_9_leaves_readable_file_and_recover_rewrites_it(tmp_path):
         reader = make_reader(fh)
         assert reader.get_summary().statistics.message_count == n
         assert sum(1 for _ in reader.iter_messages()) == n
-    recover(p)  # in place
-    rec2, counts2 = scan(p)
+    before = p.read_bytes()
+    result = recover(p)  # beside the original by default; the original untouched
+    assert result.output == tmp_path / "killed.recovered.mcap" and p.read_bytes() == before
+    rec2, counts2 = scan(result.output)
     assert rec2.complete and counts2 == counts
+    result = recover(p, in_place=True)  # replaced, the original kept as a backup
+    assert result.backup == tmp_path / "killed.mcap.bak"
+    assert result.backup.read_bytes() == before
+    rec3, counts3 = scan(p)
+    assert rec3.complete and counts3 == counts
+    assert recover(p).output is None  # complete now: left alone, nothing written

@@ -178,3 +178,9 @@ def test_a_pipe_that_does_not_end_is_cut_at_the_limit(tmp_path):
         read_input_bytes(fifo, limit=100_000, error=UserError)
     stop.set()
     t.join(timeout=10)
+
+
+def test_a_pipe_without_a_writer_reads_as_empty_instead_of_waiting(tmp_path):
+    fifo = tmp_path / "nobody"
+    os.mkfifo(fifo)
+    assert read_input_bytes(fifo) == b""
