@@ -13,6 +13,7 @@ import sys
 
 from calibration.errors import CalibrationError
 from edges.command import run_command, take_debug_flag
+from edges.options import OptionParser
 
 # subcommand name -> (module providing register(), one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -27,7 +28,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 
 def build_parser(command: str | None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OptionParser(
         prog="twin",
         description="The robot's digital twin: calibration and identification.",
         epilog="commands:\n"

@@ -28,17 +28,14 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import os
 import re
 import sys
-from collections.abc import Callable
-from dataclasses import replace
-from typing import Any
 
-from daq.config import ENDPOINT_RE, DaqConfig, ZenohConfig, load
+from daq.config import ENDPOINT_RE, resolve, sink_zenoh
 from daq.errors import DaqError
-from edges.command import one_line, run_command, take_debug_flag
+from edges.command import run_command, take_debug_flag
+from edges.options import OptionParser, integer, number, path_text
 
 COMMANDS: dict[str, str] = {
     "run": "the acquisition daemon (no --config: the emulated default cell, recorded)",
@@ -49,55 +46,6 @@ COMMANDS: dict[str, str] = {
     "echo": "subscribe to a key expression and print or summarise batches",
     "schema": "print the JSON schema of a key (zenoh query <key>/@schema)",
 }
-
-
-class OptionParser(argparse.ArgumentParser):
-    """``argparse`` whose usage errors are one line, ``PROG: error: MESSAGE (see PROG
-    --help)``, exit 2, like every other user mistake (its subcommands' parsers too)."""
-
-    def error(self, message: str) -> Any:
-        self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
-
-
-def number(
-    lo: float | None = None, *, above: bool = False, hi: float | None = None
-) -> Callable[[str], float]:
-    """An ``argparse`` ``type=``: a finite float >= ``lo`` (> ``lo`` when ``above``), <=
-    ``hi``; ``nan``, ``inf`` and values outside are refused naming the bound."""
-
-    def parse(text: str) -> float:
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-        if not math.isfinite(v):
-            raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-        if lo is not None and (v <= lo if above else v < lo):
-            raise argparse.ArgumentTypeError(
-                f"must be {'>' if above else '>='} {lo:g}, got {text!r}"
-            )
-        if hi is not None and v > hi:
-            raise argparse.ArgumentTypeError(f"must be <= {hi:g}, got {text!r}")
-        return v
-
-    parse.__name__ = "number"
-    return parse
-
-
-def integer(lo: int, hi: int | None = None) -> Callable[[str], int]:
-    """An ``argparse`` ``type=``: an integer in ``lo..hi``."""
-
-    def parse(text: str) -> int:
-        if not re.fullmatch(r"\s*[+-]?[0-9]+\s*", text):
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}")
-        v = int(text)
-        if v < lo or (hi is not None and v > hi):
-            rng = f">= {lo}" if hi is None else f"{lo}-{hi}"
-            raise argparse.ArgumentTypeError(f"must be {rng}, got {text!r}")
-        return v
-
-    parse.__name__ = "integer"
-    return parse
 
 
 def key_expr(text: str) -> str:
@@ -119,13 +67,6 @@ def endpoint(text: str) -> str:
         raise argparse.ArgumentTypeError(
             f"expected <protocol>/<address> (tcp/127.0.0.1:7447) or none, got {text!r}"
         )
-    return text
-
-
-def path_text(text: str) -> str:
-    """An ``argparse`` ``type=``: a path, not empty."""
-    if not text.strip():
-        raise argparse.ArgumentTypeError("empty path")
     return text
 
 
@@ -164,40 +105,6 @@ def _zenoh_args(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--connect", type=endpoint, action="append", metavar="ENDPOINT", help="connect endpoint"
     )
-
-
-def _zenoh_overrides(args: argparse.Namespace) -> dict[str, Any]:
-    z: dict[str, Any] = {}
-    if getattr(args, "mode", None):
-        z["mode"] = args.mode
-    if getattr(args, "listen", None):
-        z["listen"] = [e for e in args.listen if e != "none"]
-    if getattr(args, "connect", None):
-        z["connect"] = [e for e in args.connect if e != "none"]
-    return z
-
-
-def resolve(args: argparse.Namespace, extra: dict[str, dict[str, Any]] | None = None) -> DaqConfig:
-    overrides: dict[str, dict[str, Any]] = dict(extra or {})
-    z = _zenoh_overrides(args)
-    if z:
-        overrides["zenoh"] = {**overrides.get("zenoh", {}), **z}
-    return load(getattr(args, "config", None), overrides=overrides)
-
-
-def sink_zenoh(args: argparse.Namespace) -> ZenohConfig:
-    """zenoh settings of a sink: connect to where the source listens, listen nowhere."""
-    user = _zenoh_overrides(args)
-    zc = resolve(argparse.Namespace(config=getattr(args, "config", None))).zenoh
-    connect = list(zc.connect) if zc.mode == "client" else [*zc.listen, *zc.connect]
-    zc = replace(zc, listen=(), connect=tuple(dict.fromkeys(connect)))
-    if "mode" in user:
-        zc = replace(zc, mode=user["mode"])
-    if "listen" in user:
-        zc = replace(zc, listen=tuple(user["listen"]))
-    if "connect" in user:
-        zc = replace(zc, connect=tuple(user["connect"]))
-    return zc
 
 
 def build_parser() -> argparse.ArgumentParser:

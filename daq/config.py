@@ -22,8 +22,9 @@ import os
 import re
 import tomllib
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 from daq.errors import ConfigError
@@ -620,3 +621,42 @@ def _deepcopy(doc: Any) -> Any:
     if isinstance(doc, list):
         return [_deepcopy(v) for v in doc]
     return doc
+
+
+# -- a command's configuration: file, environment, options ------------------------------
+def zenoh_overrides(args: Any) -> dict[str, Any]:
+    """The ``--mode/--listen/--connect`` options of a command as a ``[zenoh]`` table
+    (``none`` as an endpoint: the empty list)."""
+    z: dict[str, Any] = {}
+    if getattr(args, "mode", None):
+        z["mode"] = args.mode
+    if getattr(args, "listen", None):
+        z["listen"] = [e for e in args.listen if e != "none"]
+    if getattr(args, "connect", None):
+        z["connect"] = [e for e in args.connect if e != "none"]
+    return z
+
+
+def resolve(args: Any, extra: dict[str, dict[str, Any]] | None = None) -> DaqConfig:
+    """The configuration of a command: ``args.config`` (file), the environment, ``extra``
+    tables and the command's zenoh options, in rising precedence."""
+    overrides: dict[str, dict[str, Any]] = dict(extra or {})
+    z = zenoh_overrides(args)
+    if z:
+        overrides["zenoh"] = {**overrides.get("zenoh", {}), **z}
+    return load(getattr(args, "config", None), overrides=overrides)
+
+
+def sink_zenoh(args: Any) -> ZenohConfig:
+    """zenoh settings of a sink: connect to where the source listens, listen nowhere."""
+    user = zenoh_overrides(args)
+    zc = resolve(SimpleNamespace(config=getattr(args, "config", None))).zenoh
+    connect = list(zc.connect) if zc.mode == "client" else [*zc.listen, *zc.connect]
+    zc = replace(zc, listen=(), connect=tuple(dict.fromkeys(connect)))
+    if "mode" in user:
+        zc = replace(zc, mode=user["mode"])
+    if "listen" in user:
+        zc = replace(zc, listen=tuple(user["listen"]))
+    if "connect" in user:
+        zc = replace(zc, connect=tuple(user["connect"]))
+    return zc

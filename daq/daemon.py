@@ -15,7 +15,6 @@ On start it prints one JSON line to stdout: ``{"daq": "running", "cell": ..., "k
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import shutil
@@ -30,8 +29,9 @@ from pathlib import Path
 from typing import Any
 
 from daq.bus import JSON_ENCODING, SchemaServer, health_key, open_session, utc_offset_ns
-from daq.config import DaqConfig, DeviceConfig
-from daq.errors import ConfigError, DaqError
+from daq.config import DaqConfig, resolve, zenoh_overrides
+from daq.device_drivers import keep_freed_heap, make_driver
+from daq.errors import DaqError
 from daq.pipeline import DeviceStream, build_schemas
 from daq.recording import (
     HEALTH_SCHEMA,
@@ -44,53 +44,6 @@ from daq.scheduling import set_realtime_of
 from daq.worker import DeviceWorker, worker_zenoh
 
 log = logging.getLogger(__name__)
-
-
-def make_driver(dev: DeviceConfig) -> Any:
-    """The driver of ``dev`` (not opened): a registry name, or ``module:Class``."""
-    if ":" in dev.driver:
-        module, _, cls_name = dev.driver.partition(":")
-        try:
-            cls = getattr(importlib.import_module(module), cls_name)
-        except (ImportError, AttributeError) as exc:
-            raise ConfigError(f"[[device]] {dev.name!r}: key 'driver': {exc}") from exc
-    else:
-        from drivers.errors import DriverError
-        from drivers.registry import driver_class
-
-        try:
-            cls = driver_class(dev.driver)
-        except DriverError as exc:
-            raise ConfigError(f"[[device]] {dev.name!r}: key 'driver': {exc}") from exc
-    from drivers.errors import DriverError
-
-    # TOML has no tuples: drivers declare sequence options as tuple
-    options = {k: tuple(v) if isinstance(v, list) else v for k, v in dev.options.items()}
-    try:
-        return cls(dev.url, **options)
-    except DriverError as exc:
-        raise ConfigError(f"[[device]] {dev.name!r}: key 'options': {exc}") from exc
-
-
-def keep_freed_heap(pad_bytes: int = 64 << 20) -> bool:
-    """Ask glibc to keep freed heap memory instead of returning it to the kernel.
-
-    Every published message is a fresh ``bytes`` of up to tens of kB. With glibc's
-    defaults the heap top is trimmed and grown again around each read's payloads, and
-    every regrowth page-faults: a 67 kB ``tobytes`` then costs ~30 µs instead of ~6 µs
-    (measured here). Returns False where there is no glibc ``mallopt`` (nothing changes).
-    """
-    import ctypes
-    import ctypes.util
-
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    m_trim_threshold, m_top_pad = -1, -2
-    return bool(mallopt(m_trim_threshold, pad_bytes * 4)) and bool(mallopt(m_top_pad, pad_bytes))
 
 
 def recording_path(cfg: DaqConfig, path: str | None = None) -> Path:
@@ -298,8 +251,6 @@ class Daemon:
 
 
 def main_run(args: Any) -> int:
-    from daq.cli import resolve
-
     extra: dict[str, dict[str, Any]] = {}
     if getattr(args, "cell", None):
         extra["cell"] = {"name": args.cell}
@@ -380,10 +331,8 @@ def _env_config() -> bool:
 
 
 def _with_zenoh(args: Any, extra: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
-    from daq.cli import _zenoh_overrides
-
     out = dict(extra)
-    z = _zenoh_overrides(args)
+    z = zenoh_overrides(args)
     if z:
         out["zenoh"] = z
     return out

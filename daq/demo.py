@@ -138,7 +138,7 @@ def record(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from daq.cli import OptionParser, integer, number, path_text
+    from edges.options import OptionParser, integer, number, path_text
 
     p = OptionParser(prog="python -m daq.demo", description=__doc__.splitlines()[0])
     p.add_argument("--out", type=path_text, default="demo-out", help="output directory")

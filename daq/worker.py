@@ -111,7 +111,7 @@ def _stop_on_eof(stop: threading.Event) -> None:
 
 
 def main() -> int:
-    from daq.daemon import keep_freed_heap, make_driver
+    from daq.device_drivers import keep_freed_heap, make_driver
     from daq.pipeline import DeviceStream
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

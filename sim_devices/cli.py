@@ -33,8 +33,9 @@ import tomli_w
 
 from calibration.errors import CalibrationError
 from edges.command import one_line, os_error_text, run_command, take_debug_flag
+from edges.options import OptionParser
 from edges.outputs import OutputSet
-from sim_devices.config import CellConfig, OptionParser, load_cell, number_option
+from sim_devices.config import CellConfig, load_cell, number_option
 from sim_devices.errors import SimError
 from sim_devices.plant import Plant, SimClock
 

@@ -461,14 +461,6 @@ def load_cell(path: str | None) -> CellConfig:
 
 
 # -- command-line options ---------------------------------------------------------------
-class OptionParser(argparse.ArgumentParser):
-    """``argparse`` whose usage errors are one line: ``PROG: error: MESSAGE (see PROG
-    --help)``, exit 2, like every other user mistake."""
-
-    def error(self, message: str) -> Any:
-        self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
-
-
 def number_option(
     lo: float | None = None,
     hi: float | None = None,

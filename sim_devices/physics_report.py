@@ -20,7 +20,8 @@ import numpy as np
 from calibration.description import load_robot
 from calibration.errors import CalibrationError
 from edges.command import run_command, take_debug_flag
-from sim_devices.config import SEED_OPTION, OptionParser, integer_option, robot_option
+from edges.options import OptionParser
+from sim_devices.config import SEED_OPTION, integer_option, robot_option
 from sim_devices.effects import UndeclaredEffects, deflection_stiffness_nmm_per_rad
 from sim_devices.errors import SimError
 from sim_devices.pose_campaign import CampaignSettings, generate_campaign

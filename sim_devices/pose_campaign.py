@@ -26,8 +26,9 @@ from calibration.errors import CalibrationError
 from calibration.kinematics import KinematicModel, flange_poses, tcp_positions
 from calibration.pose_selection import OBSERVABILITY_INDICES, select_poses_for_model
 from edges.command import run_command, take_debug_flag
+from edges.options import OptionParser
 from edges.outputs import OutputSet
-from sim_devices.config import SEED_OPTION, OptionParser, integer_option, robot_option
+from sim_devices.config import SEED_OPTION, integer_option, robot_option
 from sim_devices.effects import (
     EFFECT_NAMES,
     UndeclaredEffects,

@@ -61,12 +61,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration.errors import CalibrationError
 from edges.command import run_command, take_debug_flag
+from edges.options import OptionParser
 from edges.outputs import OutputSet
 from sim_devices.config import (
     MAX_COUNT,
     SEED_OPTION,
     EffectsSection,
-    OptionParser,
     check_joints,
     integer_option,
     joint_list,

@@ -1,0 +1,86 @@
+"""The import graph of the project's packages: no cycles (function-level imports
+included: a lazy import is still a dependency), and no module imports a ``cli_*`` command
+module except the command line itself."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("calibration", "daq", "drivers", "sim_devices", "edges")
+
+
+def modules() -> dict[str, Path]:
+    out = {}
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return out
+
+
+def imports_of(path: Path, known: set[str]) -> set[str]:
+    """Every project module ``path`` imports, at any depth of its code."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+            found |= {f"{node.module}.{a.name}" for a in node.names}
+    return found & known
+
+
+def graph() -> dict[str, set[str]]:
+    mods = modules()
+    names = set(mods)
+    return {name: imports_of(path, names) - {name} for name, path in mods.items()}
+
+
+def cycles(g: dict[str, set[str]]) -> list[list[str]]:
+    """One cycle per back edge found by a depth-first walk (empty: acyclic)."""
+    found: list[list[str]] = []
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(v: str) -> None:
+        state[v] = 1
+        stack.append(v)
+        for w in sorted(g[v]):
+            if state.get(w) == 1:
+                found.append([*stack[stack.index(w) :], w])
+            elif w not in state:
+                visit(w)
+        stack.pop()
+        state[v] = 2
+
+    for v in sorted(g):
+        if v not in state:
+            visit(v)
+    return found
+
+
+def test_the_walk_finds_a_cycle_when_there_is_one():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == [["a", "b", "c", "a"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_the_graph_covers_every_package():
+    g = graph()
+    assert {"daq.cli", "calibration.cli", "drivers.base", "edges.outputs"} <= set(g)
+    assert "daq.config" in g["daq.daemon"]  # edges are found
+
+
+def test_no_import_cycle():
+    assert cycles(graph()) == []
+
+
+def test_only_the_command_line_imports_command_modules():
+    offenders = {
+        (name, dep)
+        for name, deps in graph().items()
+        for dep in deps
+        if dep.split(".")[-1].startswith("cli_") and name != "calibration.cli"
+    }
+    assert offenders == set()
