@@ -15,7 +15,7 @@ import numpy as np
 
 from calibration.chain_scale import ScaleCampaignResult, calibrate_scales, with_load_notes
 from calibration.description import RobotDescription, load_robot
-from calibration.errors import DataFileError
+from calibration.errors import DataFileError, OptionError, OutputFileError
 from calibration.grating_scale import (
     TERMS,
     ScaleError,
@@ -32,6 +32,8 @@ from calibration.scale_files import (
     write_csv,
     write_scale_toml,
 )
+from calibration.unit_plausibility import OVERRIDE, check_sweep_units
+from edges.outputs import OutputSet
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -62,6 +64,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--step-deg", type=float, default=2.0, help="commanded sweep step")
     p.add_argument("--tracker-mpe-um", type=float, default=15.0)
     p.add_argument("--tracker-mpe-um-per-m", type=float, default=6.0)
+    p.add_argument(
+        OVERRIDE,
+        action="store_true",
+        help="do not refuse sweep points that do not move like millimetres (metres)",
+    )
     p.set_defaults(func=run_scale)
 
     a = sub.add_parser(
@@ -75,12 +82,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--out", required=True, help="CSV to write (input columns + angle_deg)")
     a.add_argument("--joint-angle", action="store_true", help="also add q_deg = home_deg + angle")
     a.add_argument("--std", action="store_true", help="also add angle_std_deg")
+    a.add_argument(
+        OUT_OF_RANGE,
+        action="store_true",
+        help=f"convert counts whose angle lies more than {RANGE_MARGIN_DEG:g}° outside the "
+        "angles the calibration covered (default: refused, naming the row)",
+    )
     a.set_defaults(func=run_apply)
+
+
+def _positive(option: str, value: float, *, zero: bool = False) -> None:
+    if not math.isfinite(value) or value < 0 or (value == 0 and not zero):
+        need = ">= 0" if zero else "> 0"
+        raise OptionError(f"{option}: need a finite value {need}, got {value}")
 
 
 def _options(args: argparse.Namespace) -> ScaleOptions:
     if not 0 < args.alpha < 1:
-        raise ScaleError(f"--alpha must be in (0, 1), got {args.alpha}")
+        raise OptionError(f"--alpha: must be in (0, 1), got {args.alpha}")
+    _positive("--counts-per-mm", args.counts_per_mm)
+    _positive("--step-deg", args.step_deg)
+    _positive("--tracker-mpe-um", args.tracker_mpe_um)
+    _positive("--tracker-mpe-um-per-m", args.tracker_mpe_um_per_m, zero=True)
     terms = check_terms([t.strip() for t in args.terms.split(",") if t.strip()])
     return ScaleOptions(
         alpha=args.alpha,
@@ -96,6 +119,8 @@ def calibrate_files(
     home_path: str | Path | None,
     robot: RobotDescription | None,
     options: ScaleOptions,
+    *,
+    unit_check: bool = True,
 ) -> ScaleCampaignResult:
     """Read the campaign files and calibrate every joint in the sweep (in chain order, the
     other joints' motion taken out where sweep.csv has their readings)."""
@@ -103,6 +128,8 @@ def calibrate_files(
     sweep = read_sweep_csv(
         sweep_path, n_joints=n_joints, min_stops_per_pass=options.min_stops_per_pass
     )
+    if unit_check:
+        check_sweep_units(sweep.path, {j: s.points_mm for j, s in sweep.joints.items()})
     home = read_home_csv(home_path, n_joints=n_joints) if home_path else None
     if home is not None:
         for j, rows in home.rows.items():
@@ -126,11 +153,30 @@ def calibrate_files(
     return with_load_notes(result, robot, deflection_taken_out=False)
 
 
+def _file(name: str | None) -> str | None:
+    return name if name and Path(name).exists() else None
+
+
 def run_scale(args: argparse.Namespace) -> int:
     options = _options(args)
+    inputs = [args.sweep, args.home, _file(args.robot)]
+    with OutputSet(inputs, error=OutputFileError) as outputs:
+        out_path = outputs.file(args.out, "--out")
+        report_dir = outputs.directory(args.report, "--report") if args.report else None
+        lines = _scale(args, options, out_path, report_dir)
+    for line in lines:
+        print(line)
+    return 0
+
+
+def _scale(args, options, out_path, report_dir) -> list[str]:  # type: ignore[no-untyped-def]
+    """The calibration, written to the staged ``out_path`` (and ``report_dir``); the
+    lines to print once the outputs are in place."""
     robot = load_robot(args.robot) if args.robot else None
     t0 = time.perf_counter()
-    results = calibrate_files(args.sweep, args.home, robot, options)
+    results = calibrate_files(
+        args.sweep, args.home, robot, options, unit_check=not args.no_unit_check
+    )
     elapsed = time.perf_counter() - t0
     meta = {
         "sweep_file": Path(args.sweep).name,
@@ -147,24 +193,23 @@ def run_scale(args: argparse.Namespace) -> int:
         metadata=meta,
         counts_per_mm=options.counts_per_mm,
     )
-    write_scale_toml(args.out, doc)
-    print(_summary(results, options.counts_per_mm))
-    for r in results:
-        for note in r.notes:
-            print(f"joint {r.joint}: {note}")
-    print(f"wrote {args.out} ({len(results)} joints, {elapsed:.2f} s)")
-    if args.report:
+    write_scale_toml(out_path, doc)
+    lines = [_summary(results, options.counts_per_mm)]
+    lines += [f"joint {r.joint}: {note}" for r in results for note in r.notes]
+    lines.append(f"wrote {args.out} ({len(results)} joints, {elapsed:.2f} s)")
+    if report_dir is not None:
         from calibration.scale_report import write_report
 
         paths = write_report(
             results,
-            args.report,
+            report_dir,
             robot=doc.get("robot"),
             metadata=meta,
             counts_per_mm=options.counts_per_mm,
         )
-        print(f"wrote report: {', '.join(str(p) for p in paths.values())}")
-    return 0
+        final = (Path(args.report) / Path(p).relative_to(report_dir) for p in paths.values())
+        lines.append(f"wrote report: {', '.join(str(p) for p in final)}")
+    return lines
 
 
 def _summary(results: ScaleCampaignResult, counts_per_mm: float) -> str:
@@ -183,6 +228,15 @@ def _summary(results: ScaleCampaignResult, counts_per_mm: float) -> str:
 
 
 def run_apply(args: argparse.Namespace) -> int:
+    with OutputSet([args.scale, args.data], error=OutputFileError) as outputs:
+        out_path = outputs.file(args.out, "--out")
+        line = _apply(args, out_path)
+    print(line)
+    return 0
+
+
+def _apply(args: argparse.Namespace, out_path: Path) -> str:
+    """Counts to angles, written to the staged ``out_path``; the line to print."""
     cal = read_scale_toml(args.scale)
     data = read_counts_csv(args.data)
     for k, j in enumerate(data.joint):
@@ -201,6 +255,8 @@ def run_apply(args: argparse.Namespace) -> int:
         if name in data.header:
             raise DataFileError(f"{data.path}: row 1, column '{name}': already present")
     angle = cal.angles_deg(data.joint, data.counts, data.direction)
+    if not args.allow_out_of_range:
+        _check_range(args, cal, data, angle)
     columns = [angle]
     if args.joint_angle:
         home = np.empty(angle.shape)
@@ -221,10 +277,35 @@ def run_apply(args: argparse.Namespace) -> int:
             std[m] = cal.joints[int(j)].angle_std_deg(data.counts[m], d)
         columns.append(std)
     rows = ([*fields, *(_fmt(c[k]) for c in columns)] for k, fields in enumerate(data.rows))
-    write_csv(args.out, [*data.header, *added], rows)
+    write_csv(out_path, [*data.header, *added], rows)
     rms = math.sqrt(float(np.mean(angle**2))) if angle.size else 0.0
-    print(f"wrote {args.out} ({angle.size} rows; rms angle {rms:.3f} deg)")
-    return 0
+    return f"wrote {args.out} ({angle.size} rows; rms angle {rms:.3f} deg)"
+
+
+#: How far outside the calibrated angles (deg) a converted angle may lie: the sweeps run
+#: limit to limit, so beyond a few degrees past them the counts are of another joint, a
+#: reset counter or a typo, and the relation would be extrapolated.
+RANGE_MARGIN_DEG = 10.0
+#: Without a calibrated range in scale.toml (older files): more than a turn from Home.
+FALLBACK_RANGE_DEG = (-360.0, 360.0)
+OUT_OF_RANGE = "--allow-out-of-range"
+
+
+def _check_range(args, cal, data, angle) -> None:  # type: ignore[no-untyped-def]
+    """Refuse the first row whose angle lies outside what the calibration covered."""
+    for j in np.unique(data.joint):
+        lo, hi = cal.ranges_deg.get(int(j), FALLBACK_RANGE_DEG)
+        m = np.flatnonzero(data.joint == j)
+        bad = m[(angle[m] < lo - RANGE_MARGIN_DEG) | (angle[m] > hi + RANGE_MARGIN_DEG)]
+        if bad.size:
+            k = int(bad[0])
+            raise DataFileError(
+                f"{data.path}: row {data.lines[k]}, column 'counts': joint {j}: "
+                f"{data.rows[k][data.header.index('counts')].strip()} counts give "
+                f"{angle[k]:.1f}° from Home, outside the {lo:.1f}..{hi:.1f}° the calibration in "
+                f"{args.scale} covered (±{RANGE_MARGIN_DEG:g}°): the wrong joint, a reset "
+                f"counter? ({bad.size} such row(s); {OUT_OF_RANGE} converts them anyway)"
+            )
 
 
 def _fmt(x: float) -> str:

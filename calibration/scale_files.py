@@ -53,6 +53,8 @@ from calibration.grating_scale import (
     UnmodelledTerm,
     check_terms,
 )
+from edges.command import one_line
+from edges.inputs import MAX_TOML_BYTES, read_input_bytes
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -141,14 +143,15 @@ def _read_csv(
     extra_allowed: bool = False,
 ) -> _Csv:
     name = str(path)
-    try:
-        raw = Path(path).read_bytes()
-    except OSError as exc:
-        raise DataFileError(f"{name}: cannot read: {exc.strerror or exc}") from exc
+    raw = read_input_bytes(path, error=DataFileError)
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        raise DataFileError(f"{name}: not UTF-8 text (byte {exc.start})") from exc
+        row = raw[: exc.start].count(b"\n") + 1
+        raise DataFileError(f"{name}: row {row}: not UTF-8 text (byte {exc.start})") from None
+    if "\x00" in text:
+        row = text[: text.index("\x00")].count("\n") + 1
+        raise DataFileError(f"{name}: row {row}: contains NUL bytes: not a CSV text file")
     return parse_csv_text(text, name, required, optional=optional, extra_allowed=extra_allowed)
 
 
@@ -372,6 +375,8 @@ def read_counts_csv(path: str | Path) -> CountsTable:
     counts = np.empty(n, dtype=np.int64)
     has_direction = "direction" in t.index
     direction = np.zeros(n) if has_direction else None
+    if n == 0:
+        raise t.fail(2, None, "no data rows (only the header)")
     for k, (line, f) in enumerate(t.rows):
         joint[k] = t.joint(line, f, None)
         counts[k] = t.counts(line, f)
@@ -407,6 +412,9 @@ class ScaleCalibration:
     joints: Mapping[int, GratingScale]
     robot: str | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
+    #: per joint, the angles relative to Home (deg) its sweep stops covered, when the
+    #: file says (``calibrated_range_deg``; files before it do not)
+    ranges_deg: Mapping[int, tuple[float, float]] = field(default_factory=dict)
 
     def scale(self, joint: int) -> GratingScale:
         if joint not in self.joints:
@@ -458,6 +466,9 @@ def _joint_table(r: JointScaleResult, counts_per_mm: float) -> dict[str, Any]:
     table: dict[str, Any] = {"joint": r.joint}
     if s.home_deg is not None:
         table["home_deg"] = s.home_deg
+    used = r.stop_angle_deg[r.used]
+    if used.size:
+        table["calibrated_range_deg"] = [float(used.min()), float(used.max())]
     table.update(
         zero_counts=s.zero_counts,
         zero_std_counts=s.zero_std_counts,
@@ -550,14 +561,15 @@ class _Toml:
 def read_scale_toml(path: str | Path) -> ScaleCalibration:
     """Read ``scale.toml``; raises :class:`ScaleFileError` naming file, table and key."""
     source = str(path)
+    raw = read_input_bytes(path, limit=MAX_TOML_BYTES, error=ScaleFileError)
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ScaleFileError(f"{source}: cannot read: {exc}") from exc
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ScaleFileError(f"{source}: not UTF-8 text (byte {exc.start})") from None
     try:
         doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScaleFileError(f"{source}: not valid TOML: {exc}") from exc
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
+        raise ScaleFileError(f"{source}: not valid TOML: {one_line(str(exc))}") from None
     top = _Toml(doc, source, "top level")
     if top.get("format") != SCALE_FORMAT:
         raise top.fail("format", f"expected {SCALE_FORMAT!r}, got {doc.get('format')!r}")
@@ -567,14 +579,27 @@ def read_scale_toml(path: str | Path) -> ScaleCalibration:
     if not isinstance(raw, list) or not raw:
         raise top.fail("joint", "expected one or more [[joint]] tables")
     joints: dict[int, GratingScale] = {}
+    ranges: dict[int, tuple[float, float]] = {}
     for i, data in enumerate(raw):
-        scale = _parse_joint(_Toml(data, source, f"[[joint]] #{i + 1}"))
+        table = _Toml(data, source, f"[[joint]] #{i + 1}")
+        scale = _parse_joint(table)
         if scale.joint in joints:
             raise ScaleFileError(f"{source}: [[joint]] #{i + 1}: joint {scale.joint} given twice")
         joints[scale.joint] = scale
+        if "calibrated_range_deg" in table.data:
+            ranges[scale.joint] = _range(table, "calibrated_range_deg")
     robot = doc.get("robot") if isinstance(doc.get("robot"), str) else None
     meta = doc.get("calibration", {}) if isinstance(doc.get("calibration"), dict) else {}
-    return ScaleCalibration(joints, robot, meta)
+    return ScaleCalibration(joints, robot, meta, ranges)
+
+
+def _range(t: _Toml, key: str) -> tuple[float, float]:
+    value = t.get(key)
+    ok = isinstance(value, list) and len(value) == 2
+    ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    if not ok or not all(math.isfinite(v) for v in value) or value[0] > value[1]:
+        raise t.fail(key, f"expected [low, high] finite degrees, got {value!r}")
+    return float(value[0]), float(value[1])
 
 
 def _parse_joint(t: _Toml) -> GratingScale:

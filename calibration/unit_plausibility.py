@@ -21,7 +21,7 @@ better go on.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -116,3 +116,21 @@ def check_campaign_units(
         f"robot's TCP over these joint angles spreads {nominal:.0f} mm (ratio {ratio:.3g})"
         f"{guess}: give millimetres (or pass {OVERRIDE})"
     )
+
+
+#: A joint's sweep moves its tracker target by more than this (mm RMS about the centroid):
+#: a reflector on the arm sits at least centimetres from the joint axis, and the sweeps run
+#: limit to limit. Metres make the spread a few units.
+MIN_SWEEP_SPREAD_MM = 5.0
+
+
+def check_sweep_units(source: str, points_by_joint: Mapping[int, FloatArray]) -> None:
+    """Refuse sweep points ``(S, 3)`` per joint that do not move like millimetres."""
+    for joint, points in sorted(points_by_joint.items()):
+        spread = spread_mm(points)
+        if 0.0 < spread < MIN_SWEEP_SPREAD_MM:
+            raise UnitsError(
+                f"{source}: columns x_mm,y_mm,z_mm: joint {joint}'s sweep moves the target by "
+                f"{spread:.4g} RMS, a robot's joint sweep moves it by hundreds of mm; are the "
+                f"coordinates in metres? Give millimetres (or pass {OVERRIDE})"
+            )
