@@ -12,6 +12,7 @@ MiB); the environment variable ``GRATING_TWIN_MAX_INPUT_MB`` raises or lowers bo
 from __future__ import annotations
 
 import os
+import select
 import stat
 from collections.abc import Callable
 from pathlib import Path
@@ -38,9 +39,13 @@ def _mb(n: int) -> str:
     return f"{n / (1024 * 1024):g} MiB"
 
 
-def _open(path: str | Path) -> BinaryIO:
-    """``open(path, "rb")``, except that a named pipe without a writer does not block:
-    it is opened non-blocking (reads as empty), then switched back to blocking."""
+#: How long a named pipe may wait for its writer (s) before it is refused.
+FIFO_WAIT_S = 10.0
+
+
+def _open(path: str | Path, error: Callable[[str], Exception]) -> BinaryIO:
+    """``open(path, "rb")``; a named pipe is opened without blocking and given
+    :data:`FIFO_WAIT_S` for a writer to appear (or refused), so it never hangs."""
     try:
         is_fifo = stat.S_ISFIFO(os.stat(path).st_mode)
     except OSError:
@@ -48,6 +53,13 @@ def _open(path: str | Path) -> BinaryIO:
     if not is_fifo:
         return open(path, "rb")
     fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    # Linux reports POLLHUP on a pipe's read end only once a writer has come and gone:
+    # before any writer, the poll waits, and its time-out is the bound
+    poller = select.poll()
+    poller.register(fd, select.POLLIN | select.POLLHUP)
+    if not poller.poll(FIFO_WAIT_S * 1000):
+        os.close(fd)
+        raise error(f"{path}: a named pipe nobody wrote to within {FIFO_WAIT_S:g} s")
     os.set_blocking(fd, True)
     return os.fdopen(fd, "rb")
 
@@ -63,7 +75,7 @@ def read_input_bytes(
     source = str(path)
     limit = input_limit(limit)
     try:
-        fh = _open(path)
+        fh = _open(path, error)
     except IsADirectoryError:
         raise error(f"{source}: is a directory, expected a file") from None
     except OSError as exc:

@@ -52,6 +52,8 @@ from calibration.model_effects import description_effects
 from calibration.streams import read_recording_streams
 from sim_devices.pose_campaign import CampaignSettings, emulated_campaign
 
+#: Set to a file path to list every refused input there (counted for notes).
+COUNT_FILE = "BAD_INPUT_COUNT_FILE"
 RECORDING = Path(__file__).parent / "data" / "campaign_small.mcap"
 TWIN = [sys.executable, "-m", "calibration.cli"]
 FUZZ = settings(
@@ -125,6 +127,9 @@ def refused(work: Path, args: list[str], *keywords: str, env=None) -> str:
     for word in keywords:
         assert word.lower() in low, (word, err)
     assert snapshot(work) == before, err
+    if os.environ.get(COUNT_FILE):  # the closing note's counts: one line per refused input
+        with open(os.environ[COUNT_FILE], "a", encoding="utf-8") as fh:
+            fh.write(" ".join(args) + "\n")
     return err
 
 

@@ -89,7 +89,7 @@ def test_echo_rejects_a_priority_out_of_range_naming_the_flag():
     p = daq_cli("echo", "--realtime-priority", "100", "--duration", "0.1")
     _, err = p.communicate(timeout=60)
     assert p.returncode == 2
-    assert "--realtime-priority: must be 0 (off) or 1-99, got 100" in err
+    assert "--realtime-priority" in err and "0-99" in err and "100" in err
 
 
 def test_daemon_workers_and_echo_run_under_sched_fifo_but_not_the_mcap_writer(tmp_path):

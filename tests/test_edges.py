@@ -10,6 +10,7 @@ import threading
 
 import pytest
 
+from edges import inputs
 from edges.command import EXIT_BUG, EXIT_PIPE, EXIT_USER, run_command, take_debug_flag
 from edges.inputs import LIMIT_VARIABLE, read_input_bytes
 from edges.outputs import OutputSet
@@ -180,7 +181,9 @@ def test_a_pipe_that_does_not_end_is_cut_at_the_limit(tmp_path):
     t.join(timeout=10)
 
 
-def test_a_pipe_without_a_writer_reads_as_empty_instead_of_waiting(tmp_path):
+def test_a_pipe_without_a_writer_is_refused_after_a_bounded_wait(tmp_path, monkeypatch):
     fifo = tmp_path / "nobody"
     os.mkfifo(fifo)
-    assert read_input_bytes(fifo) == b""
+    monkeypatch.setattr(inputs, "FIFO_WAIT_S", 0.2)
+    with pytest.raises(UserError, match="nobody wrote"):
+        read_input_bytes(fifo, error=UserError)
