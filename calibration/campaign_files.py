@@ -197,29 +197,32 @@ def _parse_rows(
     rows: list[tuple[int, list[str]]],
     parse: Callable[[dict[str, str]], tuple[float | str | list[float], ...]],
     skip_bad: bool,
+    id_column: str = "pose",
 ) -> tuple[list[str], list[tuple[float | str | list[float], ...]], list[SkippedRow]]:
     poses: list[str] = []
     values: list[tuple[float | str | list[float], ...]] = []
     skipped: list[SkippedRow] = []
     first_line: dict[str, int] = {}
-    pose_col = header.index("pose")
+    pose_col = header.index(id_column)
     for line, raw in rows:
         pose: str | None = raw[pose_col].strip() if len(raw) > pose_col else None
         try:
             if len(raw) < len(header):
                 raise _RowError(None, f"{len(raw)} fields, the header has {len(header)}")
             fields = dict(zip(header, raw, strict=False))
-            pose = fields["pose"].strip()
+            pose = fields[id_column].strip()
             if not pose:
-                raise _RowError("pose", "empty pose id")
+                raise _RowError(id_column, f"empty {id_column} id")
             if pose in first_line:
-                raise _RowError("pose", f"duplicated pose id (first on line {first_line[pose]})")
+                raise _RowError(
+                    id_column, f"duplicated {id_column} id (first on line {first_line[pose]})"
+                )
             parsed = parse(fields)
         except _RowError as exc:
             where = f"column '{exc.column}': " if exc.column else ""
             reason = f"{where}{exc.message}"
             if not skip_bad:
-                label = f" (pose {pose!r})" if pose else ""
+                label = f" ({id_column} {pose!r})" if pose else ""
                 raise DataFileError(f"{source}: line {line}{label}: {reason}") from None
             skipped.append(SkippedRow(line, pose or None, reason))
             continue
@@ -301,6 +304,59 @@ def read_joint_readings(
         t_s=np.array([v[0] for v in values], dtype=float),
         q_deg=np.array([v[1] for v in values], dtype=float).reshape(len(poses), n_joints),
         skipped=tuple(skipped),
+    )
+
+
+@dataclass(frozen=True)
+class Targets:
+    """The rows of a targets.csv (``twin compensate``): ids, positions ``(m, 3)`` mm in
+    the tracker frame, and either programmed joints ``(m, n)`` deg or orientations
+    ``(m, 3)`` deg (fixed-axis X-Y-Z), optional times ``(m,)`` s."""
+
+    source: str
+    target: tuple[str, ...]
+    xyz_mm: FloatArray
+    q_deg: FloatArray | None
+    rpy_deg: FloatArray | None
+    t_s: FloatArray | None
+    lines: tuple[int, ...]
+
+
+def read_targets(
+    path: str | Path, n_joints: int, *, limits_deg: JointLimits | None = None
+) -> Targets:
+    """Read a targets.csv: ``target,x_mm,y_mm,z_mm`` and ``q1_deg..qN_deg`` or
+    ``rx_deg,ry_deg,rz_deg`` (``t_s`` optional; other columns ignored)."""
+    source, header, rows = _read_table(path)
+    xyz = ["x_mm", "y_mm", "z_mm"]
+    qcols, rcols = joint_columns(n_joints), ["rx_deg", "ry_deg", "rz_deg"]
+    has_q, has_r = all(c in header for c in qcols), all(c in header for c in rcols)
+    missing = [c for c in ["target", *xyz] if c not in header]
+    if missing or has_q == has_r:
+        what = "both" if has_q and has_r else "neither"
+        raise DataFileError(
+            f"{source}: header: need target,x_mm,y_mm,z_mm and either {qcols[0]}..{qcols[-1]} "
+            f"or rx_deg,ry_deg,rz_deg"
+            + (f" (missing {', '.join(missing)})" if missing else f" ({what} given)")
+        )
+    has_t = "t_s" in header
+
+    def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
+        p = [_number(f, c) for c in xyz]
+        o = _joint_angles(f, qcols, limits_deg) if has_q else [_number(f, c) for c in rcols]
+        return p, o, (_number(f, "t_s") if has_t else math.nan)
+
+    ids, values, _ = _parse_rows(source, header, rows, parse, False, id_column="target")
+    m = len(ids)
+    orient = np.array([v[1] for v in values], dtype=float).reshape(m, -1)
+    return Targets(
+        source=source,
+        target=tuple(ids),
+        xyz_mm=np.array([v[0] for v in values], dtype=float).reshape(m, 3),
+        q_deg=orient if has_q else None,
+        rpy_deg=None if has_q else orient,
+        t_s=np.array([v[2] for v in values], dtype=float) if has_t else None,
+        lines=tuple(line for line, _ in rows),
     )
 
 

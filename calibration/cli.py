@@ -24,6 +24,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "predict": ("calibration.cli_identify", "predict tracker points from joint angles"),
     "export": ("calibration.cli_export", "phases found in a recording as home/sweep/campaign.csv"),
     "run": ("calibration.cli_run", "the twin end to end: recording or live, reports, live twin"),
+    "compensate": (
+        "calibration.cli_compensate",
+        "joint commands that put the calibrated robot's TCP on targets",
+    ),
 }
 
 

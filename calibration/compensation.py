@@ -1,0 +1,185 @@
+"""Accuracy compensation: the joint commands that put the calibrated robot's TCP on targets.
+
+A robot program holds joint values computed with the nominal model (or taught); the
+calibrated twin knows where the robot really goes for any joints, every modelled effect
+included. :func:`compensate` inverts that: for each target position (tracker frame, mm)
+it finds joints whose calibrated prediction is the target, keeping a tool orientation.
+
+The orientation is the calibrated model's flange orientation at the programmed joints
+(``q_programmed_deg``), or a stated one (``rpy_deg``: fixed-axis X-Y-Z in the tracker
+frame). The solve is a Newton iteration over all targets at once, ``(m, 6, 6)`` batched
+solves: the position error comes from the full predictor
+(:func:`calibration.model_effects.predict_tcp`: geometry, base, tool and every effect),
+the orientation error and the Jacobian from the calibrated geometry (the effects are
+smooth and small against it: each step cuts the error by orders of magnitude). The start
+is the programmed joints, or the calibrated model's inverse kinematics (the
+shortest-travel branch) when only an orientation is given.
+
+Assumption (docs/compensation.md): the controller servos on the grating angles, the
+joint values of the calibration; a controller that servos on its motor encoders needs
+the encoder-vs-grating relation in between.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from calibration.description import RobotDescription
+from calibration.errors import CalibrationError
+from calibration.inverse_kinematics import JointLimits, solve_ik
+from calibration.kinematics import KinematicModel, flange_poses, geometric_jacobian
+from calibration.model_effects import predict_tcp
+
+FloatArray = NDArray[np.float64]
+
+#: A target is reached when the calibrated prediction is this close (mm).
+TOLERANCE_MM = 1e-6
+MAX_ITERATIONS = 25
+
+
+class CompensationError(CalibrationError, ValueError):
+    """The targets or their joints are malformed (shapes, non-finite values)."""
+
+
+@dataclass(frozen=True)
+class CompensationResult:
+    """Per target (arrays over ``m`` targets).
+
+    ``q_deg`` ``(m, n)``: the compensated joints (NaN where not ``ok``); ``residual_mm``
+    ``(m,)``: calibrated prediction minus target, every effect applied; ``travel_deg``
+    ``(m,)``: largest joint change from the programmed joints (NaN without them);
+    ``branch`` ``(m,)``: the IK branch index (``-1``: started from the programmed joints);
+    ``iterations`` ``(m,)``; ``ok`` ``(m,)`` and ``reason`` (why not, else ``""``).
+    """
+
+    q_deg: FloatArray
+    residual_mm: FloatArray
+    travel_deg: FloatArray
+    branch: NDArray[np.int_]
+    iterations: NDArray[np.int_]
+    ok: NDArray[np.bool_]
+    reason: tuple[str, ...]
+
+
+def rotation_xyz(rpy_deg: ArrayLike) -> FloatArray:
+    """Rotations ``(m, 3, 3)`` of fixed-axis X-Y-Z angles ``(m, 3)`` deg: ``Rz·Ry·Rx``."""
+    a = np.radians(np.asarray(rpy_deg, dtype=float).reshape(-1, 3))
+    c, s = np.cos(a), np.sin(a)
+    one, zero = np.ones(len(a)), np.zeros(len(a))
+    rx = np.stack([one, zero, zero, zero, c[:, 0], -s[:, 0], zero, s[:, 0], c[:, 0]], -1)
+    ry = np.stack([c[:, 1], zero, s[:, 1], zero, one, zero, -s[:, 1], zero, c[:, 1]], -1)
+    rz = np.stack([c[:, 2], -s[:, 2], zero, s[:, 2], c[:, 2], zero, zero, zero, one], -1)
+    return rz.reshape(-1, 3, 3) @ ry.reshape(-1, 3, 3) @ rx.reshape(-1, 3, 3)
+
+
+def _rotation_error(r_target: FloatArray, r: FloatArray) -> FloatArray:
+    """Rotation vectors ``(m, 3)`` taking ``r`` to ``r_target`` (small-angle exact enough
+    for a Newton step; zero when equal)."""
+    d = r_target @ np.swapaxes(r, -1, -2)
+    return 0.5 * np.stack(
+        [d[:, 2, 1] - d[:, 1, 2], d[:, 0, 2] - d[:, 2, 0], d[:, 1, 0] - d[:, 0, 1]], -1
+    )
+
+
+def _limits(desc: RobotDescription) -> tuple[FloatArray, FloatArray]:
+    lo = np.array([j.lower_deg for j in desc.joints], dtype=float)
+    hi = np.array([j.upper_deg for j in desc.joints], dtype=float)
+    return lo, hi
+
+
+def compensate(
+    description: RobotDescription,
+    target_mm: ArrayLike,
+    *,
+    q_programmed_deg: ArrayLike | None = None,
+    rpy_deg: ArrayLike | None = None,
+    t_s: ArrayLike | None = None,
+    tol_mm: float = TOLERANCE_MM,
+    max_iterations: int = MAX_ITERATIONS,
+) -> CompensationResult:
+    """Joints that put the calibrated ``description``'s TCP on ``target_mm`` ``(m, 3)``
+    (tracker frame, mm), keeping the orientation of ``q_programmed_deg`` ``(m, n)`` or
+    the stated ``rpy_deg`` ``(m, 3)``. ``t_s`` ``(m,)``: times for drift terms."""
+    target = np.asarray(target_mm, dtype=float).reshape(-1, 3)
+    m, n = len(target), description.n_joints
+    if (q_programmed_deg is None) == (rpy_deg is None):
+        raise CompensationError("give either the programmed joints or the orientation")
+    if not np.all(np.isfinite(target)):
+        raise CompensationError("target positions must be finite")
+    model = KinematicModel.from_description(description)
+    lo, hi = _limits(description)
+    branch = np.full(m, -1)
+    q_prog = None
+    if q_programmed_deg is not None:
+        q_prog = np.asarray(q_programmed_deg, dtype=float).reshape(m, n)
+        q = np.radians(q_prog)
+        r_target = flange_poses(model, q)[:, :3, :3]
+    else:
+        r_target = rotation_xyz(np.asarray(rpy_deg, dtype=float).reshape(m, 3))
+        pose = np.zeros((m, 4, 4))
+        pose[:, :3, :3], pose[:, :3, 3], pose[:, 3, 3] = r_target, target, 1.0
+        limits = JointLimits.from_description(description)
+        ik = solve_ik(model, pose, frame="world", target="tcp", limits=limits, branches="chosen")
+        q = ik.chosen_rad.copy()
+        branch = np.where(ik.selection.found, ik.selection.index, -1)
+    if not np.all(np.isfinite(q)) and q_prog is not None:
+        raise CompensationError("programmed joints must be finite")
+    times = None if t_s is None else np.asarray(t_s, dtype=float).reshape(m)
+    active = np.all(np.isfinite(q), axis=1)
+    iterations = np.zeros(m, dtype=int)
+    for _ in range(max_iterations):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        qa = q[idx]
+        e_p = target[idx] - predict_tcp(description, qa, None if times is None else times[idx])
+        e_r = _rotation_error(r_target[idx], flange_poses(model, qa)[:, :3, :3])
+        done = np.linalg.norm(e_p, axis=1) < tol_mm
+        active[idx[done]] = False
+        step = ~done
+        if not step.any():
+            break
+        jac = geometric_jacobian(model, qa[step], point="tcp", frame="world")
+        rhs = np.concatenate([e_p[step], e_r[step]], axis=1)[..., None]
+        dq = _solve(jac, rhs)
+        q[idx[step]] = qa[step] + dq[..., 0]
+        iterations[idx[step]] += 1
+    q_deg = np.degrees(q)
+    finite = np.all(np.isfinite(q_deg), axis=1)
+    residual = np.full(m, np.nan)
+    if finite.any():
+        p = predict_tcp(description, q[finite], None if times is None else times[finite])
+        residual[finite] = np.linalg.norm(p - target[finite], axis=1)
+    reasons = []
+    ok = np.zeros(m, dtype=bool)
+    for i in range(m):
+        if not finite[i]:
+            reasons.append("unreachable: no inverse-kinematics solution within the limits")
+        elif not residual[i] < max(10 * tol_mm, 1e-4):
+            reasons.append(f"unreachable: the solve ends {residual[i]:.3g} mm from the target")
+        else:
+            out = np.flatnonzero((q_deg[i] < lo - 1e-9) | (q_deg[i] > hi + 1e-9))
+            if out.size:
+                k = int(out[0])
+                reasons.append(
+                    f"joint {k + 1} would be at {q_deg[i, k]:.3f}°, outside its limits "
+                    f"[{lo[k]:g}, {hi[k]:g}]°"
+                )
+            else:
+                reasons.append("")
+                ok[i] = True
+    travel = np.max(np.abs(q_deg - q_prog), axis=1) if q_prog is not None else np.full(m, np.nan)
+    q_deg[~ok] = np.nan
+    return CompensationResult(q_deg, residual, travel, branch, iterations, ok, tuple(reasons))
+
+
+def _solve(jac: FloatArray, rhs: FloatArray) -> FloatArray:
+    """Least-squares steps ``(k, n, 1)`` of ``(k, 6, n)`` Jacobians (damped near a
+    singularity so a step never explodes)."""
+    jt = np.swapaxes(jac, 1, 2)
+    jtj = jt @ jac
+    damping = 1e-9 * np.trace(jtj, axis1=1, axis2=2)[:, None, None] * np.eye(jac.shape[2])
+    return np.linalg.solve(jtj + damping, jt @ rhs)
