@@ -1,8 +1,26 @@
-"""The twin: robot description, kinematics, grating-scale calibration, identification.
+"""The twin: robot description, kinematics, grating-scale calibration, identification,
+the closed loop and compensation.
 
 This package never imports ``sim_devices``: the twin must not know the emulator's truth.
+
+The names below are the public API. The light ones are imported at once; the solvers
+(``run_closed_loop``, ``calibrate_scales``, ``compensate``, ``identify``) on first use
+(PEP 562), so a command that does not need them does not pay for their imports::
+
+    from calibration import load_robot, read_campaign, run_closed_loop
+
+    robot = load_robot("kr500")
+    campaign = read_campaign("campaign.csv", robot.n_joints)
+    loop = run_closed_loop(robot, campaign)
+    loop.calibrated_description(robot).save("calibrated.toml")
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from calibration.campaign_files import Campaign, read_campaign, read_joint_readings
 from calibration.description import RobotDescription, load_robot, preset_names
 from calibration.errors import CalibrationError, DataFileError, DescriptionError
 from calibration.inverse_kinematics import IKResult, JointLimits, select_solution, solve_ik
@@ -14,19 +32,59 @@ from calibration.kinematics import (
     tcp_positions,
 )
 
+if TYPE_CHECKING:
+    from calibration.chain_scale import calibrate_scales
+    from calibration.closed_loop import ClosedLoopResult, run_closed_loop
+    from calibration.compensation import CompensationResult, compensate
+    from calibration.identification import IdentificationResult, identify
+    from calibration.model_effects import predict_tcp
+    from calibration.scale_files import read_scale_toml
+
+#: name -> module, imported on first use
+_LAZY = {
+    "calibrate_scales": "calibration.chain_scale",
+    "ClosedLoopResult": "calibration.closed_loop",
+    "run_closed_loop": "calibration.closed_loop",
+    "CompensationResult": "calibration.compensation",
+    "compensate": "calibration.compensation",
+    "IdentificationResult": "calibration.identification",
+    "identify": "calibration.identification",
+    "predict_tcp": "calibration.model_effects",
+    "read_scale_toml": "calibration.scale_files",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'calibration' has no attribute {name!r}")
+
+
 __all__ = [
     "CalibrationError",
+    "Campaign",
+    "ClosedLoopResult",
+    "CompensationResult",
     "DataFileError",
     "DescriptionError",
     "IKResult",
+    "IdentificationResult",
     "JointLimits",
     "KinematicModel",
     "RobotDescription",
+    "calibrate_scales",
+    "compensate",
     "flange_poses",
     "geometric_jacobian",
     "identification_jacobian",
+    "identify",
     "load_robot",
+    "predict_tcp",
     "preset_names",
+    "read_campaign",
+    "read_joint_readings",
+    "read_scale_toml",
+    "run_closed_loop",
     "select_solution",
     "solve_ik",
     "tcp_positions",
