@@ -12,7 +12,7 @@ import argparse
 import json
 from pathlib import Path
 
-from calibration.errors import DataFileError, OutputFileError
+from calibration.errors import DataFileError, OptionError, OutputFileError
 from edges.command import progress
 from edges.inputs import MAX_TOML_BYTES, read_input_bytes
 from edges.outputs import OutputSet
@@ -51,7 +51,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="append",
         default=None,
         metavar="EP",
-        help="zenoh endpoints to listen on (default: none)",
+        help="zenoh endpoints to listen on (default: none; needs --mode peer)",
+    )
+    live.add_argument(
+        "--mode",
+        choices=("client", "peer"),
+        default=None,
+        help="zenoh mode: client of the daemon (default: the daemon's session routes the "
+        "twin's keys to everyone connected to it), or peer (default with --listen)",
+    )
+    live.add_argument(
+        "--wait-s",
+        type=float,
+        default=60.0,
+        help="--from: wait at most this long for the first grating batch (60 s)",
     )
     live.add_argument("--key", default="cell/**", help="key expression of the data (cell/**)")
     live.add_argument(
@@ -74,7 +87,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _earlier_run(from_dir: str) -> dict:  # type: ignore[type-arg]
-    """run.json of an earlier ``twin run --out DIR`` (the files it names must exist)."""
+    """run.json of an earlier ``twin run --out DIR`` (the files it names must exist), its
+    paths resolved from this working directory."""
+    from calibration.twin_run import RUN_PATHS_RELATIVE_TO, resolve_run_path
+
     path = Path(from_dir) / "run.json"
     raw = read_input_bytes(path, limit=MAX_TOML_BYTES, error=DataFileError)
     try:
@@ -88,9 +104,21 @@ def _earlier_run(from_dir: str) -> dict:  # type: ignore[type-arg]
     for key in ("scale", "phases"):
         if not isinstance(run["files"].get(key), str):
             raise DataFileError(f"{path}: key 'files.{key}': missing or not a path")
-    for name in (run["calibrated"], run["files"]["scale"], run["files"]["phases"]):
+    # paths relative to run.json's directory (older run.json: to the first run's cwd)
+    beside = run.get("paths_relative_to") == RUN_PATHS_RELATIVE_TO
+    run["calibrated"] = str(resolve_run_path(from_dir, run["calibrated"], beside))
+    files = dict(run["files"])
+    for key, name in files.items():
+        if isinstance(name, str):
+            files[key] = str(resolve_run_path(from_dir, name, beside))
+    run["files"] = files
+    for key, name in (
+        ("calibrated", run["calibrated"]),
+        ("files.scale", files["scale"]),
+        ("files.phases", files["phases"]),
+    ):
         if not Path(name).is_file():
-            raise DataFileError(f"{path}: names {name}, which is not there any more")
+            raise DataFileError(f"{path}: key '{key}' names {name}, which is not there any more")
     return run
 
 
@@ -99,6 +127,14 @@ def run_run(args: argparse.Namespace) -> int:
 
     say = progress("twin run", args.quiet)
     live = None
+    if args.mode is None:
+        args.mode = "peer" if args.listen and args.listen != ["none"] else "client"
+    elif args.mode == "client" and args.listen and args.listen != ["none"]:
+        raise OptionError("--listen: a zenoh client listens nowhere; use --mode peer")
+    if args.mode == "client" and args.connect == ["none"]:
+        raise OptionError("--connect none: a zenoh client needs an endpoint to connect to")
+    if not args.wait_s > 0 or args.wait_s == float("inf"):
+        raise OptionError(f"--wait-s: expected a finite number of seconds > 0, got {args.wait_s}")
     if args.from_dir:
         from calibration.live_twin import LiveTwin
 

@@ -30,10 +30,15 @@ from typing import Any
 
 import numpy as np
 
+from calibration.errors import CalibrationError
 from calibration.phase_detection import PhaseOptions, find_dwells, find_phases
 from calibration.streams import CellStreams, StreamBuilder, pick_streams
 
 TWIN_PREFIX = "twin"
+
+
+class LiveTwinError(CalibrationError):
+    """The live twin cannot start (no grating stream where it was told to look)."""
 
 
 def twin_keys(cell: str, robot: str) -> dict[str, str]:
@@ -44,9 +49,13 @@ def twin_keys(cell: str, robot: str) -> dict[str, str]:
 def _zenoh_config(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     from daq.config import ZenohConfig
 
+    # a client of the daemon by default: the daemon's session then routes the twin's keys
+    # to every session connected to it (two peers connected to the daemon are not routed
+    # to each other: docs/topics.md, "One endpoint")
+    mode = getattr(args, "mode", None) or "client"
     return ZenohConfig(
-        mode="peer",
-        listen=tuple(e for e in (args.listen or ()) if e != "none"),
+        mode=mode,
+        listen=() if mode == "client" else tuple(e for e in (args.listen or ()) if e != "none"),
         connect=tuple(e for e in (args.connect or ["tcp/127.0.0.1:7447"]) if e != "none"),
     )
 
@@ -136,8 +145,15 @@ class LiveTwin:
         t0_ns = int(phases.get("campaign", {}).get("t0_ns", 0))
         n = desc.n_joints
         grating = next((b for b in self.builders.values() if b.kind == "grating"), None)
+        wait_s = float(getattr(args, "wait_s", 60.0))
+        deadline = time.monotonic() + wait_s
         while grating is None:  # no collection (--from): the first grating batch names it
-            got = self.receiver.receive(1.0)
+            if time.monotonic() >= deadline:
+                raise LiveTwinError(
+                    f"no grating samples on {args.key} within {wait_s:g} s "
+                    f"(--connect {' '.join(args.connect or ['tcp/127.0.0.1:7447'])}, --wait-s)"
+                )
+            got = self.receiver.receive(min(1.0, max(0.0, deadline - time.monotonic())))
             if got is not None:
                 self._add(got)
                 grating = next((b for b in self.builders.values() if b.kind == "grating"), None)

@@ -51,6 +51,8 @@ Say = Callable[[str], None]
 #: The joint fit's rounds at most: round 1 (maps from the sweeps as they are) and up to two
 #: more with the loop's modelled gravity deflection taken out of the sweeps.
 MAX_ROUNDS = 3
+#: run.json's ``paths_relative_to``: its paths are relative to its own directory
+RUN_PATHS_RELATIVE_TO = "run.json"
 
 
 class TwinRunError(CalibrationError, ValueError):
@@ -785,5 +787,44 @@ def run_twin(
         "total_s": round(elapsed, 3),
         "success": bool(final.result.success),
     }
-    (dest / "run.json").write_text(json.dumps(run, indent=2) + "\n", encoding="utf-8")
+
+    # run.json names its files relative to its own directory, so that ``twin run --from
+    # DIR`` finds them from any working directory (the summary returned names them as
+    # ``out`` does, for this process)
+    def beside(path: Path) -> str:
+        return path.relative_to(dest).as_posix()
+
+    stored = dict(
+        run,
+        calibrated=beside(calibrated_path),
+        report=beside(report_dir),
+        files={k: beside(v) for k, v in files.items()},
+        paths_relative_to=RUN_PATHS_RELATIVE_TO,
+    )
+    (dest / "run.json").write_text(json.dumps(stored, indent=2) + "\n", encoding="utf-8")
     return run
+
+
+def resolve_run_path(run_dir: str | Path, name: str, relative_to_run: bool) -> Path:
+    """Where a path named in ``run_dir/run.json`` is, from this process's working directory.
+
+    run.json written since ``paths_relative_to = "run.json"`` names its files relative to
+    its own directory. An older one named them relative to the working directory of the
+    run that wrote it: such a path is taken as it is if it exists from here, else found
+    beside run.json by its longest tail that exists there (``demo-out/twin/scale.toml``
+    from elsewhere: ``<run_dir>/scale.toml``); else the path is returned as written (the
+    caller says it is missing)."""
+    path = Path(name)
+    run_dir = Path(run_dir)
+    if path.is_absolute():
+        return path
+    if relative_to_run:
+        return run_dir / path
+    if path.exists():
+        return path
+    parts = path.parts
+    for k in range(len(parts)):
+        candidate = run_dir.joinpath(*parts[k:])
+        if candidate.exists():
+            return candidate
+    return path
