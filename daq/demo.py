@@ -24,12 +24,14 @@ docs/twin-run.md). Zenoh stays on loopback (``--port``), no scouting.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 EFFECTS = ("gravity_deflection", "grating_cyclic", "thermal_drift", "tracker_scale", "none")
 
@@ -120,10 +122,20 @@ def record(
     )
     print(f"demo: {' '.join(cmd)}", flush=True)
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, text=True)
+    try:
+        lines = _follow(proc, duration, length, mcap, args.port, args.progress_s)
+    finally:
+        if proc.poll() is None:  # interrupted: stop the daemon (it writes its summary)
+            proc.terminate()
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
     wall = time.perf_counter() - t0
     last = {}
-    for line in proc.stdout.splitlines():
+    for line in lines:
         if line.startswith("{"):
             last = json.loads(line)
     if proc.returncode != 0:
@@ -135,6 +147,121 @@ def record(
         flush=True,
     )
     return {"record_s": wall, "mcap_bytes": size, "program_s": length}
+
+
+class _Health:
+    """Samples per device so far, from the daemon's health keys (a zenoh client of it);
+    progress only: anything that goes wrong here leaves the figures out."""
+
+    def __init__(self, port: int) -> None:
+        self.samples: dict[str, int] = {}
+        self._session: Any = None
+        self._sub: Any = None
+        try:
+            from daq.bus import open_session
+            from daq.config import ZenohConfig
+
+            zc = ZenohConfig(mode="client", listen=(), connect=(f"tcp/127.0.0.1:{port}",))
+            self._session = open_session(zc)
+            self._sub = self._session.declare_subscriber("cell/*/robot/*/*/health", self._on)
+        except Exception:  # progress is best effort
+            self.close()
+
+    def _on(self, sample: Any) -> None:
+        try:
+            doc = json.loads(sample.payload.to_bytes())
+            self.samples[str(doc["device"])] = int(doc["samples"])
+        except (ValueError, KeyError, TypeError):
+            pass
+
+    def close(self) -> None:
+        sub, session, self._sub, self._session = self._sub, self._session, None, None
+        with contextlib.suppress(Exception):  # already closed
+            if sub is not None:
+                sub.undeclare()
+        with contextlib.suppress(Exception):
+            if session is not None:
+                session.close()
+
+
+def _progress_line(
+    elapsed: float, duration: float, length: float, mcap: Path, health: _Health
+) -> str:
+    if elapsed > duration:
+        return f"demo: recording done ({duration:.0f} s), the daemon is closing {mcap.name}"
+    robot_s = min(length, elapsed * length / max(duration, 1e-9))
+    try:
+        size = f"{mcap.stat().st_size / 1e6:.1f} MB"
+    except OSError:
+        size = "0 MB"
+    devices = ", ".join(f"{k} {v:,}" for k, v in sorted(health.samples.items()))
+    return (
+        f"demo: recording {elapsed:3.0f} / {duration:.0f} s ({100 * elapsed / duration:3.0f} %), "
+        f"robot time {robot_s:.0f} / {length:.0f} s, {mcap.name} {size}"
+        + (f"; samples: {devices}" if devices else "")
+    )
+
+
+def _follow(
+    proc: subprocess.Popen[str],
+    duration: float,
+    length: float,
+    mcap: Path,
+    port: int,
+    every_s: float,
+) -> list[str]:
+    """The daemon's stdout lines, once it has stopped; meanwhile progress: on a terminal
+    one line rewritten every second, else a line every ``every_s`` seconds (0: none)."""
+    import queue
+    import threading
+
+    lines: list[str] = []
+    q: queue.SimpleQueue[str | None] = queue.SimpleQueue()
+
+    def pump() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            q.put(line)
+        q.put(None)
+
+    threading.Thread(target=pump, name="daq-run-stdout", daemon=True).start()
+    tty = sys.stdout.isatty()
+    period = 1.0 if tty else every_s
+    t0 = time.monotonic()
+    next_t = t0 + period
+    health: _Health | None = None
+    shown = False
+    # bounded: the daemon stops by itself after ``duration``; allow it a generous end
+    deadline = t0 + duration + 120.0
+    try:
+        while time.monotonic() < deadline:
+            try:
+                line = q.get(timeout=0.2)
+            except queue.Empty:
+                line = ""
+            if line is None:
+                break
+            if line:
+                lines.append(line)
+                if health is None and period > 0 and line.startswith('{"daq": "running"'):
+                    health = _Health(port)
+                    t0 = time.monotonic()  # the daemon's --duration runs from here
+                    next_t = t0 + period
+            now = time.monotonic()
+            if period > 0 and now >= next_t and health is not None:
+                text = _progress_line(now - t0, duration, length, mcap, health)
+                print(("\r" + text + "  ") if tty else text, end="" if tty else "\n", flush=True)
+                shown = True
+                next_t += period * max(1, int((now - next_t) // period) + 1)
+        else:
+            raise SystemExit(f"demo: daq run did not stop within {duration + 120:.0f} s")
+    finally:
+        if health is not None:
+            health.close()
+        if tty and shown:
+            print(flush=True)
+    proc.wait(30)
+    return lines
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -164,6 +291,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--port", type=integer(1, 65535), default=17447, help="zenoh port on 127.0.0.1 (17447)"
     )
     p.add_argument("--record-only", action="store_true", help="stop after the recording")
+    p.add_argument(
+        "--progress-s",
+        type=number(0.0),
+        default=10.0,
+        help="a progress line this often while recording, when not on a terminal "
+        "(10 s; on a terminal one line updated every second; 0: none)",
+    )
     p.add_argument("--mcap", type=path_text, help="recording path (default OUT/campaign.mcap)")
     return p
 
