@@ -6,7 +6,8 @@ is seconds since the start of the campaign; q are the grating joint angles (degr
 the tracker TCP target in the tracker frame (mm). Other columns are ignored.
 
 ``joints.csv`` (input of ``twin predict``): ``pose,t_s,q1_deg..qN_deg``; other columns
-ignored. ``points.csv`` (its output): ``pose,x_mm,y_mm,z_mm``.
+ignored. ``points.csv`` (its output): ``pose,x_mm,y_mm,z_mm``. ``targets.csv`` (input of
+``twin compensate``) and ``loads.csv`` (a load test, ``twin stiffness``): see their readers.
 
 A bad row (a value that is not a finite number, a joint outside its limits, a duplicated
 pose id, too few fields, an unknown set) raises :class:`DataFileError` naming the file, the
@@ -320,13 +321,30 @@ class Targets:
     rpy_deg: FloatArray | None
     t_s: FloatArray | None
     lines: tuple[int, ...]
+    force_n: FloatArray | None = None  # (m, 3) N: a process force on the tool
+
+
+#: A process force on the tool, N in the tracker frame (targets.csv, loads.csv).
+FORCE_COLUMNS = ["fx_n", "fy_n", "fz_n"]
+
+
+def _force_columns(source: str, header: list[str]) -> bool:
+    """Whether the header has the force columns (all three or none)."""
+    present = [c for c in FORCE_COLUMNS if c in header]
+    if 0 < len(present) < len(FORCE_COLUMNS):
+        missing = [c for c in FORCE_COLUMNS if c not in header]
+        raise DataFileError(
+            f"{source}: header: a force needs fx_n,fy_n,fz_n (missing {', '.join(missing)})"
+        )
+    return bool(present)
 
 
 def read_targets(
     path: str | Path, n_joints: int, *, limits_deg: JointLimits | None = None
 ) -> Targets:
     """Read a targets.csv: ``target,x_mm,y_mm,z_mm`` and ``q1_deg..qN_deg`` or
-    ``rx_deg,ry_deg,rz_deg`` (``t_s`` optional; other columns ignored)."""
+    ``rx_deg,ry_deg,rz_deg`` (``t_s`` and ``fx_n,fy_n,fz_n`` optional; other columns
+    ignored)."""
     source, header, rows = _read_table(path)
     xyz = ["x_mm", "y_mm", "z_mm"]
     qcols, rcols = joint_columns(n_joints), ["rx_deg", "ry_deg", "rz_deg"]
@@ -340,11 +358,13 @@ def read_targets(
             + (f" (missing {', '.join(missing)})" if missing else f" ({what} given)")
         )
     has_t = "t_s" in header
+    has_f = _force_columns(source, header)
 
     def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
         p = [_number(f, c) for c in xyz]
         o = _joint_angles(f, qcols, limits_deg) if has_q else [_number(f, c) for c in rcols]
-        return p, o, (_number(f, "t_s") if has_t else math.nan)
+        force = [_number(f, c) for c in FORCE_COLUMNS] if has_f else []
+        return p, o, (_number(f, "t_s") if has_t else math.nan), force
 
     ids, values, _ = _parse_rows(source, header, rows, parse, False, id_column="target")
     m = len(ids)
@@ -357,6 +377,75 @@ def read_targets(
         rpy_deg=None if has_q else orient,
         t_s=np.array([v[2] for v in values], dtype=float) if has_t else None,
         lines=tuple(line for line, _ in rows),
+        force_n=np.array([v[3] for v in values], dtype=float).reshape(m, 3) if has_f else None,
+    )
+
+
+def read_poses(
+    path: str | Path, n_joints: int, *, limits_deg: JointLimits | None = None
+) -> JointReadings:
+    """Read joints to evaluate at: an id column (``pose``, or ``target`` as in the
+    joints.csv of ``twin compensate``) and ``q1_deg..qN_deg``; ``t_s`` optional (NaN)."""
+    source, header, rows = _read_table(path)
+    id_column = next((c for c in ("pose", "target") if c in header), "pose")
+    qcols = joint_columns(n_joints)
+    _check_columns(source, header, [id_column, *qcols], n_joints)
+    has_t = "t_s" in header
+
+    def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
+        return (_number(f, "t_s") if has_t else math.nan), _joint_angles(f, qcols, limits_deg)
+
+    ids, values, _ = _parse_rows(source, header, rows, parse, False, id_column=id_column)
+    return JointReadings(
+        source=source,
+        pose=tuple(ids),
+        t_s=np.array([v[0] for v in values], dtype=float),
+        q_deg=np.array([v[1] for v in values], dtype=float).reshape(len(ids), n_joints),
+    )
+
+
+@dataclass(frozen=True)
+class LoadTestRows:
+    """The rows of a loads.csv: ids, poses ``(m, n)`` deg, forces ``(m, 3)`` N and the
+    tracker's TCP unloaded and loaded ``(m, 3)`` mm (tracker frame)."""
+
+    source: str
+    load: tuple[str, ...]
+    q_deg: FloatArray
+    force_n: FloatArray
+    unloaded_mm: FloatArray
+    loaded_mm: FloatArray
+
+
+LOAD_TEST_POINTS = (["x0_mm", "y0_mm", "z0_mm"], ["x_mm", "y_mm", "z_mm"])
+
+
+def read_load_test(
+    path: str | Path, n_joints: int, *, limits_deg: JointLimits | None = None
+) -> LoadTestRows:
+    """Read a loads.csv: ``load`` (id), ``q1_deg..qN_deg``, ``fx_n,fy_n,fz_n`` (the force
+    on the tool), ``x0_mm,y0_mm,z0_mm`` (the TCP unloaded) and ``x_mm,y_mm,z_mm`` (loaded)."""
+    source, header, rows = _read_table(path)
+    qcols = joint_columns(n_joints)
+    unloaded, loaded = LOAD_TEST_POINTS
+    _check_columns(source, header, ["load", *qcols, *FORCE_COLUMNS, *unloaded, *loaded], n_joints)
+
+    def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
+        return (
+            _joint_angles(f, qcols, limits_deg),
+            [_number(f, c) for c in FORCE_COLUMNS],
+            [_number(f, c) for c in unloaded],
+            [_number(f, c) for c in loaded],
+        )
+
+    ids, values, _ = _parse_rows(source, header, rows, parse, False, id_column="load")
+    m = len(ids)
+
+    def column(k: int, width: int) -> FloatArray:
+        return np.array([v[k] for v in values], dtype=float).reshape(m, width)
+
+    return LoadTestRows(
+        source, tuple(ids), column(0, n_joints), column(1, 3), column(2, 3), column(3, 3)
     )
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,6 +18,9 @@ from calibration.campaign_files import joint_columns, read_targets
 from calibration.errors import DataFileError, OutputFileError
 from calibration.model_effects import load_checked_robot
 from edges.outputs import OutputSet
+
+if TYPE_CHECKING:  # the solver loads when the command runs, not for --help
+    from calibration.compensation import CompensationResult
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,7 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--targets",
         required=True,
-        help="targets.csv: target,x_mm,y_mm,z_mm and q1_deg..qN_deg or rx_deg,ry_deg,rz_deg",
+        help="targets.csv: target,x_mm,y_mm,z_mm and q1_deg..qN_deg or rx_deg,ry_deg,rz_deg; "
+        "optional fx_n,fy_n,fz_n (a process force on the tool, N)",
     )
     p.add_argument("--out", required=True, help="joints.csv to write")
     p.add_argument(
@@ -44,18 +49,27 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run_compensate(args: argparse.Namespace) -> int:
     from calibration.compensation import compensate
+    from calibration.stiffness import states_stiffness
 
     with OutputSet([args.model, args.targets], error=OutputFileError) as outputs:
         out_path = outputs.file(args.out, "--out")
         desc = load_checked_robot(args.model)
         limits = [(j.lower_deg, j.upper_deg) for j in desc.joints]
         targets = read_targets(args.targets, desc.n_joints, limits_deg=limits)
+        force = targets.force_n
+        if force is not None and np.any(force) and not states_stiffness(desc):
+            raise DataFileError(
+                f"{targets.source}: columns fx_n,fy_n,fz_n give a process force, but "
+                f"{args.model} states no joint stiffness ([[joint]] stiffness_nmm_per_rad; "
+                "`twin stiffness --load-test` measures them)"
+            )
         res = compensate(
             desc,
             targets.xyz_mm,
             q_programmed_deg=targets.q_deg,
             rpy_deg=targets.rpy_deg,
             t_s=targets.t_s,
+            force_n=force,
         )
         bad = np.flatnonzero(~res.ok)
         if bad.size and not args.skip_bad:
@@ -64,21 +78,7 @@ def run_compensate(args: argparse.Namespace) -> int:
                 f"{targets.source}: line {targets.lines[k]} (target {targets.target[k]!r}): "
                 f"{res.reason[k]} ({bad.size} such target(s); --skip-bad leaves them out)"
             )
-        with open(out_path, "w", newline="", encoding="utf-8") as fh:
-            w = csv.writer(fh, lineterminator="\n")
-            w.writerow(
-                ["target", *joint_columns(desc.n_joints), "residual_mm", "branch", "travel_deg"]
-            )
-            for i in np.flatnonzero(res.ok):
-                w.writerow(
-                    [
-                        targets.target[i],
-                        *(f"{v:.9f}" for v in res.q_deg[i]),
-                        f"{res.residual_mm[i]:.3e}",
-                        int(res.branch[i]),
-                        f"{res.travel_deg[i]:.6f}" if np.isfinite(res.travel_deg[i]) else "",
-                    ]
-                )
+        _write_joints(out_path, desc.n_joints, targets.target, res)
     for k in bad:
         print(
             f"twin compensate: skipped target {targets.target[k]!r} (line "
@@ -87,8 +87,28 @@ def run_compensate(args: argparse.Namespace) -> int:
         )
     travel = res.travel_deg[res.ok]
     extra = f"; largest joint change {np.max(travel):.4f}°" if np.isfinite(travel).any() else ""
+    if res.force_deflection_mm is not None and res.ok.any():
+        largest = np.max(np.linalg.norm(res.force_deflection_mm[res.ok], axis=1))
+        extra += f"; force deflection taken out ≤ {largest:.4f} mm"
     print(
         f"wrote {args.out}: {int(res.ok.sum())} targets, residual ≤ "
         f"{np.nanmax(res.residual_mm[res.ok]) if res.ok.any() else 0:.1e} mm{extra}"
     )
     return 0
+
+
+def _write_joints(path: str, n_joints: int, ids: tuple[str, ...], res: CompensationResult) -> None:
+    """joints.csv: the reached targets; ``force_deflection_mm`` (the process force's
+    deflection taken out, mm) only when the targets gave a force."""
+    deflection = res.force_deflection_mm
+    header = ["target", *joint_columns(n_joints), "residual_mm", "branch", "travel_deg"]
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow([*header, *([] if deflection is None else ["force_deflection_mm"])])
+        for i in np.flatnonzero(res.ok):
+            travel = f"{res.travel_deg[i]:.6f}" if np.isfinite(res.travel_deg[i]) else ""
+            row = [ids[i], *(f"{v:.9f}" for v in res.q_deg[i])]
+            row += [f"{res.residual_mm[i]:.3e}", int(res.branch[i]), travel]
+            if deflection is not None:
+                row.append(f"{np.linalg.norm(deflection[i]):.6f}")
+            w.writerow(row)

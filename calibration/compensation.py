@@ -15,6 +15,11 @@ smooth and small against it: each step cuts the error by orders of magnitude). T
 is the programmed joints, or the calibrated model's inverse kinematics (the
 shortest-travel branch) when only an orientation is given.
 
+A process force on the tool (``force_n``) deflects the joints after their gratings
+(:mod:`calibration.stiffness`, ``C·F``): the prediction the targets are met with then
+includes it, so the compensated joints take it out. That needs the description's joint
+stiffnesses (stated, or from a load test).
+
 Assumption (docs/compensation.md): the controller servos on the grating angles, the
 joint values of the calibration; a controller that servos on its motor encoders needs
 the encoder-vs-grating relation in between.
@@ -32,6 +37,7 @@ from calibration.errors import CalibrationError
 from calibration.inverse_kinematics import JointLimits, solve_ik
 from calibration.kinematics import KinematicModel, flange_poses, geometric_jacobian
 from calibration.model_effects import predict_tcp
+from calibration.stiffness import StiffnessError, force_deflection_mm, states_stiffness
 
 FloatArray = NDArray[np.float64]
 
@@ -52,7 +58,9 @@ class CompensationResult:
     ``(m,)``: calibrated prediction minus target, every effect applied; ``travel_deg``
     ``(m,)``: largest joint change from the programmed joints (NaN without them);
     ``branch`` ``(m,)``: the IK branch index (``-1``: started from the programmed joints);
-    ``iterations`` ``(m,)``; ``ok`` ``(m,)`` and ``reason`` (why not, else ``""``).
+    ``iterations`` ``(m,)``; ``ok`` ``(m,)`` and ``reason`` (why not, else ``""``);
+    ``force_deflection_mm`` ``(m, 3)``: the process force's deflection at the compensated
+    joints (None without a force).
     """
 
     q_deg: FloatArray
@@ -62,6 +70,7 @@ class CompensationResult:
     iterations: NDArray[np.int_]
     ok: NDArray[np.bool_]
     reason: tuple[str, ...]
+    force_deflection_mm: FloatArray | None = None
 
 
 def rotation_xyz(rpy_deg: ArrayLike) -> FloatArray:
@@ -97,18 +106,35 @@ def compensate(
     q_programmed_deg: ArrayLike | None = None,
     rpy_deg: ArrayLike | None = None,
     t_s: ArrayLike | None = None,
+    force_n: ArrayLike | None = None,
     tol_mm: float = TOLERANCE_MM,
     max_iterations: int = MAX_ITERATIONS,
 ) -> CompensationResult:
     """Joints that put the calibrated ``description``'s TCP on ``target_mm`` ``(m, 3)``
     (tracker frame, mm), keeping the orientation of ``q_programmed_deg`` ``(m, n)`` or
-    the stated ``rpy_deg`` ``(m, 3)``. ``t_s`` ``(m,)``: times for drift terms."""
+    the stated ``rpy_deg`` ``(m, 3)``. ``t_s`` ``(m,)``: times for drift terms;
+    ``force_n`` ``(m, 3)``: a process force on the tool (N, tracker frame)."""
     target = np.asarray(target_mm, dtype=float).reshape(-1, 3)
     m, n = len(target), description.n_joints
     if (q_programmed_deg is None) == (rpy_deg is None):
         raise CompensationError("give either the programmed joints or the orientation")
     if not np.all(np.isfinite(target)):
         raise CompensationError("target positions must be finite")
+    force = None if force_n is None else np.asarray(force_n, dtype=float).reshape(m, 3)
+    if force is not None and not np.all(np.isfinite(force)):
+        raise CompensationError("process forces must be finite")
+    if force is not None and np.any(force) and not states_stiffness(description):
+        raise StiffnessError(
+            "a process force needs the joints' stiffness, and the model states none "
+            "([[joint]] stiffness_nmm_per_rad; `twin stiffness --load-test` measures them)"
+        )
+
+    def predict(rows: NDArray[np.intp], q_rad: FloatArray) -> FloatArray:
+        p = predict_tcp(description, q_rad, None if times is None else times[rows])
+        if force is not None:
+            p = p + force_deflection_mm(description, q_rad, force[rows])
+        return p
+
     model = KinematicModel.from_description(description)
     lo, hi = _limits(description)
     branch = np.full(m, -1)
@@ -135,7 +161,7 @@ def compensate(
         if idx.size == 0:
             break
         qa = q[idx]
-        e_p = target[idx] - predict_tcp(description, qa, None if times is None else times[idx])
+        e_p = target[idx] - predict(idx, qa)
         e_r = _rotation_error(r_target[idx], flange_poses(model, qa)[:, :3, :3])
         done = np.linalg.norm(e_p, axis=1) < tol_mm
         active[idx[done]] = False
@@ -151,8 +177,8 @@ def compensate(
     finite = np.all(np.isfinite(q_deg), axis=1)
     residual = np.full(m, np.nan)
     if finite.any():
-        p = predict_tcp(description, q[finite], None if times is None else times[finite])
-        residual[finite] = np.linalg.norm(p - target[finite], axis=1)
+        rows = np.flatnonzero(finite)
+        residual[finite] = np.linalg.norm(predict(rows, q[finite]) - target[finite], axis=1)
     reasons = []
     ok = np.zeros(m, dtype=bool)
     for i in range(m):
@@ -172,8 +198,15 @@ def compensate(
                 reasons.append("")
                 ok[i] = True
     travel = np.max(np.abs(q_deg - q_prog), axis=1) if q_prog is not None else np.full(m, np.nan)
+    deflection = None
+    if force is not None:
+        deflection = np.full((m, 3), np.nan)
+        if ok.any():
+            deflection[ok] = force_deflection_mm(description, q[ok], force[ok])
     q_deg[~ok] = np.nan
-    return CompensationResult(q_deg, residual, travel, branch, iterations, ok, tuple(reasons))
+    return CompensationResult(
+        q_deg, residual, travel, branch, iterations, ok, tuple(reasons), deflection
+    )
 
 
 def _solve(jac: FloatArray, rhs: FloatArray) -> FloatArray:

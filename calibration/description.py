@@ -46,6 +46,9 @@ class JointDescription:
     #: a spring or gas counterbalance acts on this joint (heavy arms, joint 2): the twin's
     #: gravity term then allows it a torque profile of its own angle
     counterbalance: bool = False
+    #: the joint's torsional stiffness (N·mm/rad), stated or identified by a load test
+    #: (``twin stiffness --load-test``); None: not known (taken as rigid under a force)
+    stiffness_nmm_per_rad: float | None = None
 
 
 @dataclass(frozen=True)
@@ -217,7 +220,15 @@ class _Table:
 
 
 _JOINT_REQUIRED = ("a_mm", "alpha_deg", "d_mm", "theta_offset_deg", "lower_deg", "upper_deg")
-_JOINT_KEYS = {*_JOINT_REQUIRED, "beta_deg", "gear_ratio", "mass_kg", "com_mm", "counterbalance"}
+_JOINT_KEYS = {
+    *_JOINT_REQUIRED,
+    "beta_deg",
+    "gear_ratio",
+    "mass_kg",
+    "com_mm",
+    "counterbalance",
+    "stiffness_nmm_per_rad",
+}
 
 
 def _parse_joint(data: Any, source: str, index: int) -> JointDescription:
@@ -233,6 +244,9 @@ def _parse_joint(data: Any, source: str, index: int) -> JointDescription:
     if mass is not None and mass < 0:
         t.fail("mass_kg", "must not be negative")
     com = t.vector("com_mm", 3)
+    stiffness = t.number("stiffness_nmm_per_rad", required=False)
+    if stiffness is not None and stiffness <= 0:
+        t.fail("stiffness_nmm_per_rad", f"must be positive, got {stiffness!r}")
     counterbalance = t.data.get("counterbalance", False)
     if not isinstance(counterbalance, bool):
         t.fail("counterbalance", f"expected true or false, got {counterbalance!r}")
@@ -243,6 +257,7 @@ def _parse_joint(data: Any, source: str, index: int) -> JointDescription:
         mass_kg=mass,
         com_mm=com,  # type: ignore[arg-type]
         counterbalance=counterbalance,
+        stiffness_nmm_per_rad=stiffness,
     )
 
 

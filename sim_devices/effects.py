@@ -21,6 +21,10 @@ One physical implementation of each, shared by the pose campaign generator
 * **lost motion** downstream of the ring: joint j stands ``±w_j`` off depending on the
   direction it last moved in.
 
+A **process force** on the tool is an input, not an effect: the same compliance after the
+ring turns joint j by ``J_jᵀ·F / K_j`` (:func:`force_stiffness_nmm_per_rad`), whether or
+not gravity deflection is switched on (a real arm is never rigid).
+
 Units are in the names; angles are radians inside the functions, degrees in the settings.
 The functions take the emulator's arm; a :class:`RobotDescription` stands for an arm with
 exactly that description's mass model and no counterbalance (for checks against the twin's
@@ -37,7 +41,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.description import RobotDescription
-from calibration.kinematics import tcp_positions
+from calibration.kinematics import geometric_jacobian, tcp_positions
 from sim_devices.physical_arm import PhysicalArm
 
 FloatArray = NDArray[np.float64]
@@ -130,6 +134,36 @@ def deflection_stiffness_nmm_per_rad(settings: UndeclaredEffects, arm: ArmLike) 
     return k
 
 
+#: Joint stiffness proportions of a KUKA KR60 (method.md §4; N·mm/rad as the source
+#: states them): what the emulator gives, scaled to its arm, the joints that gravity
+#: hardly loads (joint 1 about the vertical, the flange), whose gravity stiffness is inf.
+KR60_STIFFNESS_NMM_PER_RAD = (5.7e7, 6.2e6, 1.2e7, 2.1e6, 2.3e6, 2.3e6)
+
+
+def force_stiffness_nmm_per_rad(settings: UndeclaredEffects, arm: ArmLike) -> FloatArray:
+    """Per-joint stiffness ``(n,)`` N·mm/rad under a process force: the gravity
+    deflection's where finite; elsewhere the KR60 proportion times the median ratio of
+    the finite joints to theirs (the emulator's own; never given to the twin)."""
+    k = deflection_stiffness_nmm_per_rad(settings, arm).copy()
+    pattern = np.resize(np.asarray(KR60_STIFFNESS_NMM_PER_RAD, float), len(k))
+    finite = np.isfinite(k)
+    scale = float(np.median(k[finite] / pattern[finite])) if finite.any() else 1e3
+    k[~finite] = scale * pattern[~finite]
+    return k
+
+
+def force_rotation_rad(
+    settings: UndeclaredEffects, arm: ArmLike, q_ring_rad: ArrayLike, force_n: ArrayLike
+) -> FloatArray:
+    """Rotation ``(N, n)`` rad of each link after its ring under a force ``(N, 3)`` N at
+    the TCP (tracker frame): ``J_jᵀ·F / K_j`` at the ring angles."""
+    body = physical_arm(arm)
+    q = np.atleast_2d(np.asarray(q_ring_rad, dtype=float))
+    f = np.broadcast_to(np.asarray(force_n, dtype=float), (len(q), 3))
+    jp = geometric_jacobian(body.model, q, point="tcp", frame="world")[:, :3, :]
+    return np.einsum("min,mi->mn", jp, f) / force_stiffness_nmm_per_rad(settings, body)
+
+
 def with_derived_stiffness(settings: UndeclaredEffects, arm: ArmLike) -> UndeclaredEffects:
     """``settings`` with the deflection stiffness derived once (not per evaluation)."""
     if not settings.gravity_deflection or settings.deflection_stiffness_nmm_per_rad:
@@ -155,11 +189,13 @@ def link_rotation_rad(
     arm: ArmLike,
     q_ring_rad: ArrayLike,
     direction: ArrayLike | None = None,
+    force_n: ArrayLike | None = None,
 ) -> FloatArray:
     """Rotation ``(N, n)`` rad of each link about its joint axis beyond the grating ring.
 
     Gravity deflection (``tau / K`` at the ring angles, the arm's static load) plus lost
-    motion (``w_j · direction_j``, direction ``(N, n)`` in {-1, 0, 1}: last motion).
+    motion (``w_j · direction_j``, direction ``(N, n)`` in {-1, 0, 1}: last motion), plus
+    a process force ``(N, 3)`` N at the TCP (:func:`force_rotation_rad`).
     """
     q = np.atleast_2d(np.asarray(q_ring_rad, dtype=float))
     out = np.zeros_like(q)
@@ -169,6 +205,8 @@ def link_rotation_rad(
     if settings.lost_motion and direction is not None:
         w = np.radians(np.resize(np.asarray(settings.lost_motion_deg, float), q.shape[1]))
         out += w * np.asarray(direction, dtype=float)
+    if force_n is not None:
+        out += force_rotation_rad(settings, arm, q, force_n)
     return out
 
 
@@ -227,9 +265,11 @@ def true_point_mm(
     q_ring_rad: ArrayLike,
     t_s: ArrayLike,
     direction: ArrayLike | None = None,
+    force_n: ArrayLike | None = None,
 ) -> FloatArray:
     """Physical position ``(N, 3)`` mm, tracker frame, of a point fixed in link ``link``'s
-    frame (0-based; ``point_mm`` ``(3,)``) at ring angles ``(N, n)`` and times ``(N,)``.
+    frame (0-based; ``point_mm`` ``(3,)``) at ring angles ``(N, n)`` and times ``(N,)``,
+    with an optional process force ``(N, 3)`` N on the tool.
 
     Links 1..link+1 stand at the ring angles plus :func:`link_rotation_rad`; a changing
     length upstream of the point adds along its own direction (a point is linear in every
@@ -237,7 +277,7 @@ def true_point_mm(
     """
     body = physical_arm(arm)
     q = np.atleast_2d(np.asarray(q_ring_rad, dtype=float))
-    q_link = q + link_rotation_rad(settings, body, q, direction)
+    q_link = q + link_rotation_rad(settings, body, q, direction, force_n)
     sub = body.model.truncated(link + 1, tool_mm=point_mm)
     q_sub = q_link[:, : link + 1]
     pts = tcp_positions(sub, q_sub)
@@ -258,12 +298,14 @@ def true_tcp_mm(
     q_ring_rad: ArrayLike,
     t_s: ArrayLike,
     direction: ArrayLike | None = None,
+    force_n: ArrayLike | None = None,
 ) -> FloatArray:
-    """Physical TCP ``(N, 3)`` mm in the tracker frame at ring angles and times
-    (:func:`true_point_mm` of the tool point on the last link)."""
+    """Physical TCP ``(N, 3)`` mm in the tracker frame at ring angles and times, under an
+    optional process force ``(N, 3)`` N (:func:`true_point_mm` of the tool point)."""
     body = physical_arm(arm)
     n = body.n_joints
-    return true_point_mm(settings, body, n - 1, body.model.tool_mm, q_ring_rad, t_s, direction)
+    tool = body.model.tool_mm
+    return true_point_mm(settings, body, n - 1, tool, q_ring_rad, t_s, direction, force_n)
 
 
 def tracker_reading_mm(
