@@ -32,6 +32,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "calibration.cli_stiffness",
         "Cartesian compliance at poses, or joint stiffness from a load test",
     ),
+    # the view lives in its own package (view/), loaded only when this command runs
+    "view": ("view.cli", "the twin in the browser: replay a recording or follow it live"),
 }
 
 

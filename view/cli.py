@@ -1,0 +1,187 @@
+"""``twin view``: the twin in a web browser, on a recording or live.
+
+twin view --replay run.mcap [--model DIR/calibrated.toml] [--port N]
+twin view [--connect EP] [--model DIR/calibrated.toml] [--port N]
+
+Serves a local page (127.0.0.1, viser's own client; nothing from the internet) and prints
+one JSON line with its URL; stops on Ctrl-C / SIGTERM or after ``--duration``. See
+docs/view.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+from pathlib import Path
+from typing import Any
+
+from edges.command import progress
+from edges.options import integer, number, path_text
+from view.errors import ViewError
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "view",
+        help="the twin in the browser: the arm, the TCP, the tracker's errors, the phase",
+        description="Serve a local web page with the robot drawn as the gratings drive it, "
+        "the tracker's points with their error vectors to the twin (magnified), the "
+        "campaign phase, the stage table of a calibration and the stream's rate and "
+        "latency. Replay a recording (play, pause, speed, time slider) or follow the "
+        "daemon and the live twin over zenoh. See docs/view.md.",
+    )
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--replay", metavar="FILE.mcap", type=path_text, help="a recording")
+    src.add_argument(
+        "--connect",
+        action="append",
+        default=None,
+        metavar="EP",
+        help=f"live: zenoh endpoint of the daemon (and/or the twin) ({DEFAULT_CONNECT})",
+    )
+    p.add_argument(
+        "--model",
+        metavar="calibrated.toml",
+        type=path_text,
+        help="a twin run's calibrated model (scale.toml, phases.json, report/ beside it)",
+    )
+    p.add_argument(
+        "--robot",
+        help="nominal robot, preset or .toml (default: the one the calibration started "
+        "from, else kr500)",
+    )
+    p.add_argument("--port", type=integer(0, 65535), default=8080, help="HTTP port (8080)")
+    p.add_argument(
+        "--speed", type=number(0.0, above=True, hi=1e4), default=1.0, help="replay speed (1)"
+    )
+    p.add_argument(
+        "--start",
+        type=number(0.0),
+        default=0.0,
+        metavar="S",
+        help="replay from S seconds after the recording's first grating sample (0)",
+    )
+    p.add_argument(
+        "--fps",
+        type=number(1.0, hi=120.0),
+        default=30.0,
+        help="scene updates per second sent to the page (30)",
+    )
+    p.add_argument(
+        "--duration",
+        type=number(0.0, above=True),
+        default=None,
+        metavar="S",
+        help="stop after S seconds (default: until Ctrl-C)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=run_view)
+
+
+def _replay_source(args: argparse.Namespace, say: Any) -> tuple[Any, Any, str]:
+    from calibration.errors import CalibrationError
+    from calibration.phase_detection import find_phases
+    from calibration.streams import read_recording_streams
+    from calibration.twin_run import TwinRunError, measure_campaign
+    from view.model import load_calibration, nominal_twin, provisional_twin
+    from view.phases import PhaseTimeline
+    from view.sources import ReplaySource, pose_points
+
+    path = Path(args.replay)
+    if not path.is_file():
+        raise ViewError(f"--replay {path}: " + ("not a file" if path.exists() else "no such file"))
+    model = load_calibration(args.model, args.robot) if args.model else None
+    say(f"reading {path}")
+    streams = read_recording_streams(path)
+    duration_s = float(streams.grating.t_ns.max() - streams.grating.t_ns.min()) * 1e-9
+    if args.start > duration_s:
+        raise ViewError(f"--start {args.start:g}: the recording lasts {duration_s:.2f} s")
+    robot = args.robot or "kr500"
+    nominal = model.description if model else nominal_twin(robot).description
+    if streams.grating.values.shape[1] != nominal.n_joints:
+        raise ViewError(
+            f"--replay {path}: the gratings have {streams.grating.values.shape[1]} strips, "
+            f"the robot {nominal.name!r} {nominal.n_joints} joints (--robot)"
+        )
+    say("finding the campaign's phases and poses")
+    meas = None
+    try:
+        meas = measure_campaign(streams, nominal)
+    except (TwinRunError, CalibrationError) as exc:
+        say(f"no campaign to measure ({exc}): phases only")
+    if model is None:
+        if meas is not None:
+            say("fitting scale maps from the recording's sweeps (the twin's round 1)")
+            try:
+                model = provisional_twin(robot, meas)
+            except CalibrationError as exc:
+                say(f"no scale maps ({exc}): the arm stays at Home")
+        model = model or nominal_twin(robot)
+    if meas is not None:
+        timeline = PhaseTimeline.from_phases(meas.phases)
+        poses = pose_points(meas, model)
+    else:
+        g = streams.grating
+        timeline = PhaseTimeline.from_phases(find_phases(g.t_ns, g.values))
+        poses = None
+    note = "" if model.calibrated else "provisional twin: no --model"
+    source = ReplaySource(
+        streams, model, timeline=timeline, poses=poses, speed=args.speed, note=note
+    )
+    source.clock.seek(args.start)
+    return source, model, f"replay {path.name}"
+
+
+def _live_source(args: argparse.Namespace, say: Any) -> tuple[Any, Any, str]:
+    from daq.bus import open_session
+    from daq.config import ZenohConfig
+    from view.model import load_calibration, nominal_twin
+    from view.sources import LiveSource
+
+    model = load_calibration(args.model, args.robot) if args.model else None
+    model = model or nominal_twin(args.robot or "kr500")
+    endpoints = tuple(args.connect or [DEFAULT_CONNECT])
+    say(f"connecting to {', '.join(endpoints)}")
+    try:
+        # a client of the daemon: its session routes the cell's and the twin's keys
+        session = open_session(ZenohConfig(mode="client", listen=(), connect=endpoints))
+    except Exception as exc:  # zenoh refuses a malformed endpoint with its own error type
+        reason = str(exc).split(" at /", 1)[0]  # zenoh appends its Rust source location
+        raise ViewError(f"--connect {' '.join(endpoints)}: {reason}") from None
+    try:
+        source = LiveSource(session, model, say=say)
+    except Exception:
+        session.close()
+        raise
+    source.session = session  # type: ignore[attr-defined]
+    return source, model, f"live {', '.join(endpoints)}"
+
+
+def run_view(args: argparse.Namespace) -> int:
+    from view.server import TwinView
+
+    say = progress("twin view", args.quiet)
+    if args.model is not None and not Path(args.model).is_file():
+        raise ViewError(f"--model {args.model}: no such file")
+    source, model, title = (_replay_source if args.replay else _live_source)(args, say)
+    view = TwinView(source, model, title=title, port=args.port, fps=args.fps)
+    try:
+        url = view.start()
+        mode = "replay" if args.replay else "live"
+        print(json.dumps({"view": url, "port": int(url.rsplit(":", 1)[1].strip("/")),
+                          "mode": mode}), flush=True)  # fmt: skip
+        say(f"serving {url} ({model.source})")
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: view.stop())
+        stats = view.run(args.duration)
+        say(f"stopped: {stats.frames} scene updates, {stats.rate_hz:.1f} frames/s at the end")
+    finally:
+        view.close()
+        source.close()
+        session = getattr(source, "session", None)
+        if session is not None:
+            session.close()
+    return 0
