@@ -12,21 +12,27 @@ See docs/robot-description.md for the full schema.
 
 from __future__ import annotations
 
-import math
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import tomli_w
 
 from calibration.errors import DescriptionError
-from edges.command import one_line
-from edges.inputs import MAX_TOML_BYTES, read_input_bytes
+from edges.toml_schema import (
+    REQUIRED,
+    Range,
+    TomlTable,
+    build,
+    key_spec,
+    parse_toml_file,
+    parse_toml_text,
+)
 
 PRESET_PACKAGE = "calibration.presets"
+_T = TypeVar("_T")
 
 
 @dataclass(frozen=True)
@@ -41,23 +47,27 @@ class JointDescription:
     upper_deg: float
     beta_deg: float = 0.0
     gear_ratio: float | None = None
-    mass_kg: float | None = None
+    mass_kg: float | None = field(
+        default=None, metadata=key_spec(range=Range(0.0, what="kg, not negative"))
+    )
     com_mm: tuple[float, float, float] | None = None
     #: a spring or gas counterbalance acts on this joint (heavy arms, joint 2): the twin's
     #: gravity term then allows it a torque profile of its own angle
     counterbalance: bool = False
     #: the joint's torsional stiffness (N·mm/rad), stated or identified by a load test
     #: (``twin stiffness --load-test``); None: not known (taken as rigid under a force)
-    stiffness_nmm_per_rad: float | None = None
+    stiffness_nmm_per_rad: float | None = field(
+        default=None, metadata=key_spec(range=Range(0.0, lo_open=True, what="N·mm/rad, positive"))
+    )
 
 
 @dataclass(frozen=True)
 class ToolDescription:
     """Tracker target in the flange frame (mm) and optional payload mass (kg)."""
 
-    x_mm: float = 0.0
-    y_mm: float = 0.0
-    z_mm: float = 0.0
+    x_mm: float = field(default=0.0, metadata=REQUIRED)
+    y_mm: float = field(default=0.0, metadata=REQUIRED)
+    z_mm: float = field(default=0.0, metadata=REQUIRED)
     mass_kg: float | None = None
 
 
@@ -66,12 +76,12 @@ class BaseDescription:
     """Robot base pose in the instrument frame: mm and fixed-axis XYZ degrees; optionally
     the direction of gravity in the robot base frame (None: −z, a floor-mounted arm)."""
 
-    x_mm: float = 0.0
-    y_mm: float = 0.0
-    z_mm: float = 0.0
-    rx_deg: float = 0.0
-    ry_deg: float = 0.0
-    rz_deg: float = 0.0
+    x_mm: float = field(default=0.0, metadata=REQUIRED)
+    y_mm: float = field(default=0.0, metadata=REQUIRED)
+    z_mm: float = field(default=0.0, metadata=REQUIRED)
+    rx_deg: float = field(default=0.0, metadata=REQUIRED)
+    ry_deg: float = field(default=0.0, metadata=REQUIRED)
+    rz_deg: float = field(default=0.0, metadata=REQUIRED)
     gravity: tuple[float, float, float] | None = None
 
 
@@ -115,23 +125,12 @@ class RobotDescription:
     @classmethod
     def load(cls, path: str | Path) -> RobotDescription:
         """Read a description file; errors name the file, table and key."""
-        path = Path(path)
-        raw = read_input_bytes(path, limit=MAX_TOML_BYTES, error=DescriptionError)
-        try:
-            text = raw.decode("utf-8-sig")
-        except UnicodeDecodeError as exc:
-            raise DescriptionError(
-                f"{path}: not UTF-8 text (byte {exc.start}): not a robot description"
-            ) from None
-        return cls.loads(text, source=str(path))
+        doc = parse_toml_file(path, DescriptionError, "a robot description")
+        return _parse(doc, str(path))
 
     @classmethod
     def loads(cls, text: str, source: str = "<string>") -> RobotDescription:
-        try:
-            doc = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise DescriptionError(f"{source}: not valid TOML: {one_line(str(exc))}") from None
-        return _parse(doc, source)
+        return _parse(parse_toml_text(text, source, DescriptionError), source)
 
     def dumps(self) -> str:
         return tomli_w.dumps(_to_document(self))
@@ -168,103 +167,21 @@ def load_robot(name_or_path: str | Path) -> RobotDescription:
 _TOP_KEYS = {"name", "home_deg", "joint", "tool", "base", "effect"}
 
 
-class _Table:
-    """Reads typed keys from one TOML table and reports errors with their location."""
-
-    def __init__(self, data: Any, source: str, where: str) -> None:
-        self.source, self.where = source, where
-        if not isinstance(data, dict):
-            self.fail(None, f"expected a table, got {type(data).__name__}")
-        self.data: dict[str, Any] = data
-
-    def fail(self, key: str | None, message: str) -> None:
-        loc = f"{self.source}: {self.where}" + (f": key '{key}'" if key else "")
-        raise DescriptionError(f"{loc}: {message}")
-
-    def check_keys(self, allowed: set[str]) -> None:
-        unknown = sorted(set(self.data) - allowed)
-        if unknown:
-            self.fail(unknown[0], f"unknown key (allowed: {', '.join(sorted(allowed))})")
-
-    def number(self, key: str, default: float | None = None, *, required: bool = True) -> Any:
-        if key not in self.data:
-            if required and default is None:
-                self.fail(key, "missing")
-            return default
-        return self._finite(key, self.data[key])
-
-    def _finite(self, key: str, value: Any) -> float:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            self.fail(key, f"expected a number, got {type(value).__name__} {value!r}")
-        if not math.isfinite(value):
-            self.fail(key, f"must be finite, got {value!r}")
-        return float(value)
-
-    def vector(self, key: str, length: int | None) -> tuple[float, ...] | None:
-        if key not in self.data:
-            return None
-        value = self.data[key]
-        if not isinstance(value, list):
-            self.fail(key, f"expected an array of numbers, got {type(value).__name__}")
-        if length is not None and len(value) != length:
-            self.fail(key, f"expected {length} numbers, got {len(value)}")
-        return tuple(self._finite(key, v) for v in value)
-
-    def string(self, key: str) -> str:
-        value = self.data.get(key)
-        if value is None:
-            self.fail(key, "missing")
-        if not isinstance(value, str) or not value.strip():
-            self.fail(key, f"expected a non-empty string, got {value!r}")
-        return value
-
-
-_JOINT_REQUIRED = ("a_mm", "alpha_deg", "d_mm", "theta_offset_deg", "lower_deg", "upper_deg")
-_JOINT_KEYS = {
-    *_JOINT_REQUIRED,
-    "beta_deg",
-    "gear_ratio",
-    "mass_kg",
-    "com_mm",
-    "counterbalance",
-    "stiffness_nmm_per_rad",
-}
-
-
 def _parse_joint(data: Any, source: str, index: int) -> JointDescription:
-    t = _Table(data, source, f"[[joint]] #{index + 1}")
-    t.check_keys(_JOINT_KEYS)
-    values = {k: t.number(k) for k in _JOINT_REQUIRED}
-    if values["lower_deg"] >= values["upper_deg"]:
-        t.fail("upper_deg", f"must exceed lower_deg ({values['lower_deg']})")
-    gear = t.number("gear_ratio", required=False)
-    if gear is not None and gear == 0:
-        t.fail("gear_ratio", "must not be zero")
-    mass = t.number("mass_kg", required=False)
-    if mass is not None and mass < 0:
-        t.fail("mass_kg", "must not be negative")
-    com = t.vector("com_mm", 3)
-    stiffness = t.number("stiffness_nmm_per_rad", required=False)
-    if stiffness is not None and stiffness <= 0:
-        t.fail("stiffness_nmm_per_rad", f"must be positive, got {stiffness!r}")
-    counterbalance = t.data.get("counterbalance", False)
-    if not isinstance(counterbalance, bool):
-        t.fail("counterbalance", f"expected true or false, got {counterbalance!r}")
-    return JointDescription(
-        **values,
-        beta_deg=t.number("beta_deg", 0.0),
-        gear_ratio=gear,
-        mass_kg=mass,
-        com_mm=com,  # type: ignore[arg-type]
-        counterbalance=counterbalance,
-        stiffness_nmm_per_rad=stiffness,
-    )
+    name = f"[[joint]] #{index + 1}"
+    joint = build(JointDescription, data, source=source, error=DescriptionError, name=name)
+    t = TomlTable(data, source, name, DescriptionError)
+    if joint.lower_deg >= joint.upper_deg:
+        raise t.fail("upper_deg", f"must exceed lower_deg ({joint.lower_deg})")
+    if joint.gear_ratio is not None and joint.gear_ratio == 0:
+        raise t.fail("gear_ratio", "must not be zero")
+    return joint
 
 
 def _parse_effect(data: Any, source: str, index: int) -> EffectDescription:
     """Numbers, names and arrays of either; what they mean is the effect library's to
     check (:func:`calibration.model_effects.description_effects`)."""
-    t = _Table(data, source, f"[[effect]] #{index + 1}")
+    t = TomlTable(data, source, f"[[effect]] #{index + 1}", DescriptionError)
     kind = t.string("kind")
     params: dict[str, EffectValue] = {}
     for key, value in t.data.items():
@@ -275,53 +192,38 @@ def _parse_effect(data: Any, source: str, index: int) -> EffectDescription:
         elif isinstance(value, list) and value and all(isinstance(v, str) for v in value):
             params[key] = tuple(value)
         elif isinstance(value, list):
-            vec = t.vector(key, None)
-            assert vec is not None
-            params[key] = vec
+            params[key] = t.numbers(key)
         else:
             params[key] = t.number(key)
     return EffectDescription(kind=kind, parameters=params)
 
 
 def _parse(doc: dict[str, Any], source: str) -> RobotDescription:
-    top = _Table(doc, source, "top level")
+    top = TomlTable(doc, source, "top level", DescriptionError)
     top.check_keys(_TOP_KEYS)
     name = top.string("name")
     raw_joints = doc.get("joint")
     if not isinstance(raw_joints, list) or not raw_joints:
-        top.fail("joint", "expected one or more [[joint]] tables")
+        raise top.fail("joint", "expected one or more [[joint]] tables")
     joints = tuple(_parse_joint(j, source, i) for i, j in enumerate(raw_joints))
 
-    home = top.vector("home_deg", len(joints))
-    if home is not None:
-        for i, (h, j) in enumerate(zip(home, joints, strict=True)):
-            if not j.lower_deg <= h <= j.upper_deg:
-                top.fail(
-                    "home_deg", f"joint {i + 1} Home {h} outside [{j.lower_deg}, {j.upper_deg}]"
-                )
+    home = top.numbers("home_deg", length=len(joints)) if "home_deg" in doc else None
+    for i, (h, j) in enumerate(zip(home or (), joints, strict=False)):
+        if not j.lower_deg <= h <= j.upper_deg:
+            raise top.fail(
+                "home_deg", f"joint {i + 1} Home {h} outside [{j.lower_deg}, {j.upper_deg}]"
+            )
 
-    tool = ToolDescription()
-    if "tool" in doc:
-        tt = _Table(doc["tool"], source, "[tool]")
-        tt.check_keys({"x_mm", "y_mm", "z_mm", "mass_kg"})
-        tool = ToolDescription(
-            x_mm=tt.number("x_mm"),
-            y_mm=tt.number("y_mm"),
-            z_mm=tt.number("z_mm"),
-            mass_kg=tt.number("mass_kg", required=False),
-        )
-    base = None
-    if "base" in doc:
-        bt = _Table(doc["base"], source, "[base]")
-        keys = [f.name for f in fields(BaseDescription) if f.name != "gravity"]
-        bt.check_keys({*keys, "gravity"})
-        gravity = bt.vector("gravity", 3)
-        if gravity is not None and not any(gravity):
-            bt.fail("gravity", "must be a direction, not [0, 0, 0]")
-        base = BaseDescription(**{k: bt.number(k) for k in keys}, gravity=gravity)  # type: ignore[arg-type]
+    def table(cls: type[_T], key: str) -> _T:
+        return build(cls, doc[key], source=source, error=DescriptionError, path=(key,))
+
+    tool = table(ToolDescription, "tool") if "tool" in doc else ToolDescription()
+    base = table(BaseDescription, "base") if "base" in doc else None
+    if base is not None and base.gravity is not None and not any(base.gravity):
+        raise top.table("base").fail("gravity", "must be a direction, not [0, 0, 0]")
     raw_effects = doc.get("effect", [])
     if not isinstance(raw_effects, list):
-        top.fail("effect", "expected [[effect]] tables")
+        raise top.fail("effect", "expected [[effect]] tables")
     effects = tuple(_parse_effect(e, source, i) for i, e in enumerate(raw_effects))
     return RobotDescription(
         name=name, joints=joints, tool=tool, base=base, home_deg=home, effects=effects

@@ -28,7 +28,6 @@ import csv
 import io
 import math
 import re
-import tomllib
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,8 +52,8 @@ from calibration.grating_scale import (
     UnmodelledTerm,
     check_terms,
 )
-from edges.command import one_line
-from edges.inputs import MAX_TOML_BYTES, read_input_bytes
+from edges.inputs import read_input_bytes
+from edges.toml_schema import TomlTable, parse_toml_file
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -511,66 +510,11 @@ def write_scale_toml(path: str | Path, document: Mapping[str, Any]) -> None:
     Path(path).write_text(header + tomli_w.dumps(dict(document)), encoding="utf-8")
 
 
-class _Toml:
-    """Typed access to one TOML table, errors naming file, table and key."""
-
-    def __init__(self, data: Any, source: str, where: str) -> None:
-        self.source, self.where = source, where
-        if not isinstance(data, dict):
-            raise self.fail(None, f"expected a table, got {type(data).__name__}")
-        self.data: dict[str, Any] = data
-
-    def fail(self, key: str | None, message: str) -> ScaleFileError:
-        loc = f"{self.source}: {self.where}" + (f": key '{key}'" if key else "")
-        return ScaleFileError(f"{loc}: {message}")
-
-    def get(self, key: str) -> Any:
-        if key not in self.data:
-            raise self.fail(key, "missing")
-        return self.data[key]
-
-    def number(self, key: str, default: float | None = None) -> float:
-        if key not in self.data and default is not None:
-            return default
-        value = self.get(key)
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise self.fail(key, f"expected a number, got {value!r}")
-        if not math.isfinite(value):
-            raise self.fail(key, f"must be finite, got {value!r}")
-        return float(value)
-
-    def numbers(self, key: str, value: Any = None) -> dict[str, float]:
-        value = self.get(key) if value is None else value
-        sub = _Toml(value, self.source, f"{self.where}.{key}")
-        return {k: sub.number(k) for k in sub.data}
-
-    def matrix(self, key: str, value: Any, size: int) -> FloatArray:
-        ok = isinstance(value, list) and len(value) == size
-        ok = ok and all(isinstance(r, list) and len(r) == size for r in value)
-        if not ok:
-            raise self.fail(key, f"expected a {size}×{size} array of numbers")
-        try:
-            m = np.array(value, dtype=float)
-        except (TypeError, ValueError):
-            raise self.fail(key, "expected numbers") from None
-        if not np.all(np.isfinite(m)):
-            raise self.fail(key, "must be finite")
-        return m
-
-
 def read_scale_toml(path: str | Path) -> ScaleCalibration:
     """Read ``scale.toml``; raises :class:`ScaleFileError` naming file, table and key."""
     source = str(path)
-    raw = read_input_bytes(path, limit=MAX_TOML_BYTES, error=ScaleFileError)
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise ScaleFileError(f"{source}: not UTF-8 text (byte {exc.start})") from None
-    try:
-        doc = tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, RecursionError) as exc:
-        raise ScaleFileError(f"{source}: not valid TOML: {one_line(str(exc))}") from None
-    top = _Toml(doc, source, "top level")
+    doc = parse_toml_file(path, ScaleFileError, "a scale calibration")
+    top = TomlTable(doc, source, "top level", ScaleFileError)
     if top.get("format") != SCALE_FORMAT:
         raise top.fail("format", f"expected {SCALE_FORMAT!r}, got {doc.get('format')!r}")
     if top.number("counter_modulus") != COUNTER_MODULUS:
@@ -581,7 +525,7 @@ def read_scale_toml(path: str | Path) -> ScaleCalibration:
     joints: dict[int, GratingScale] = {}
     ranges: dict[int, tuple[float, float]] = {}
     for i, data in enumerate(raw):
-        table = _Toml(data, source, f"[[joint]] #{i + 1}")
+        table = TomlTable(data, source, f"[[joint]] #{i + 1}", ScaleFileError)
         scale = _parse_joint(table)
         if scale.joint in joints:
             raise ScaleFileError(f"{source}: [[joint]] #{i + 1}: joint {scale.joint} given twice")
@@ -593,7 +537,7 @@ def read_scale_toml(path: str | Path) -> ScaleCalibration:
     return ScaleCalibration(joints, robot, meta, ranges)
 
 
-def _range(t: _Toml, key: str) -> tuple[float, float]:
+def _range(t: TomlTable, key: str) -> tuple[float, float]:
     value = t.get(key)
     ok = isinstance(value, list) and len(value) == 2
     ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
@@ -602,7 +546,7 @@ def _range(t: _Toml, key: str) -> tuple[float, float]:
     return float(value[0]), float(value[1])
 
 
-def _parse_joint(t: _Toml) -> GratingScale:
+def _parse_joint(t: TomlTable) -> GratingScale:
     joint = t.get("joint")
     if isinstance(joint, bool) or not isinstance(joint, int) or joint < 1:
         raise t.fail("joint", f"expected a joint number ≥ 1, got {joint!r}")
@@ -614,51 +558,49 @@ def _parse_joint(t: _Toml) -> GratingScale:
     except CalibrationError as exc:
         raise t.fail("terms", str(exc)) from None
     names = [SCALE_NAME] + [n for term in terms for n in TERMS[term][0]]
-    coefficients = t.numbers("coefficients")
+    coefficients = t.number_table("coefficients")
     for n in names:
         if n not in coefficients:
             raise t.fail("coefficients", f"missing coefficient '{n}' for terms {terms}")
     coefficients = {n: coefficients[n] for n in names}
     if coefficients[SCALE_NAME] == 0:
         raise t.fail("coefficients", f"'{SCALE_NAME}' must not be zero")
-    cov_table = _Toml(t.get("covariance"), t.source, f"{t.where}.covariance")
+    cov_table = t.table("covariance")
     if cov_table.get("names") != names:
         raise cov_table.fail("names", f"expected {names}")
-    covariance = cov_table.matrix("deg2", cov_table.get("deg2"), len(names))
+    covariance = cov_table.matrix("deg2", len(names))
     zero = t.number("zero_counts")
     if not 0 <= zero < COUNTER_MODULUS:
         raise t.fail("zero_counts", f"must be in [0, {COUNTER_MODULUS}), got {zero}")
-    half_span = t.number("nonlinear_half_span_counts", 1.0)
+    half_span = t.number("nonlinear_half_span_counts", default=1.0)
     if half_span <= 0:
         raise t.fail("nonlinear_half_span_counts", "must be positive")
     unmodelled = {}
     raw_un = t.data.get("unmodelled", {})
-    un_table = _Toml(raw_un, t.source, f"{t.where}.unmodelled")
+    un_table = t.table("unmodelled", raw_un)
     for term, data in un_table.data.items():
         if term not in TERMS or term in terms:
             raise un_table.fail(term, "not a candidate term left out of the relation")
-        sub = _Toml(data, t.source, f"{t.where}.unmodelled.{term}")
+        sub = un_table.table(term, data)
         wide = [*names, *TERMS[term][0]]
-        delta = sub.numbers("delta")
+        delta = sub.number_table("delta")
         if set(delta) != set(wide):
             raise sub.fail("delta", f"expected the coefficients {wide}")
         unmodelled[term] = UnmodelledTerm(
             p_value=sub.number("p_value"),
             delta={n: delta[n] for n in _canonical(terms, term)},
-            delta_covariance_deg2=sub.matrix(
-                "delta_covariance_deg2", sub.get("delta_covariance_deg2"), len(wide)
-            ),
+            delta_covariance_deg2=sub.matrix("delta_covariance_deg2", len(wide)),
         )
     home = t.data.get("home_deg")
     return GratingScale(
         joint=joint,
         zero_counts=zero,
-        zero_std_counts=t.number("zero_std_counts", 0.0),
+        zero_std_counts=t.number("zero_std_counts", default=0.0),
         terms=terms,
         coefficients=coefficients,
         basis=RelationBasis(
-            phase_rad_per_count=t.number("phase_rad_per_count", 0.0),
-            nonlinear_centre_counts=t.number("nonlinear_centre_counts", 0.0),
+            phase_rad_per_count=t.number("phase_rad_per_count", default=0.0),
+            nonlinear_centre_counts=t.number("nonlinear_centre_counts", default=0.0),
             nonlinear_half_span_counts=half_span,
         ),
         covariance_deg2=covariance,

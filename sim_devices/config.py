@@ -17,18 +17,23 @@ LF or CRLF line ends. What needs the robot (joint numbers, per-joint lists) is c
 from __future__ import annotations
 
 import argparse
-import math
 import re
-import tomllib
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import tomli_w
 
 from edges.command import one_line
-from edges.inputs import MAX_TOML_BYTES, read_input_bytes
+from edges.toml_schema import (
+    NON_NEGATIVE,
+    POSITIVE,
+    Range,
+    build,
+    parse_toml_file,
+    parse_toml_text,
+)
 from sim_devices.effects import EFFECT_NAMES, UndeclaredEffects
 from sim_devices.errors import SimConfigError, SimError
 
@@ -128,57 +133,6 @@ class TrackerSection:
 
 
 # -- value ranges -----------------------------------------------------------------------
-@dataclass(frozen=True)
-class Range:
-    """Allowed values of a number (each element of a list): ``lo..hi`` (None: unbounded),
-    ``lo`` itself excluded when ``lo_open``; ``inf``: +inf allowed (NaN never is);
-    ``empty``: a list may be empty; ``what``: what the number is, for the message."""
-
-    lo: float | None = None
-    hi: float | None = None
-    lo_open: bool = False
-    inf: bool = False
-    empty: bool = True
-    what: str = ""
-
-    def describe(self) -> str:
-        """The allowed values in words (``in 0..1 (what)``; ``finite`` when unbounded)."""
-        if self.lo is not None and self.hi is not None and not self.lo_open:
-            text = f"in {_num(self.lo)}..{_num(self.hi)}"
-        elif self.lo is not None and self.hi is not None:
-            text = f"> {_num(self.lo)} and <= {_num(self.hi)}"
-        elif self.lo is not None:
-            text = f"{'>' if self.lo_open else '>='} {_num(self.lo)}"
-        elif self.hi is not None:
-            text = f"<= {_num(self.hi)}"
-        else:
-            text = "finite"
-        return text + (f" ({self.what})" if self.what else "")
-
-    def refusal(self, v: float) -> str:
-        """Why ``v`` is refused, for a message (``must be ...``)."""
-        text = self.describe()
-        if isinstance(v, float) and not math.isfinite(v) and not self.inf:
-            text = text.removeprefix("finite").lstrip()
-            sep = " " if text.startswith("(") else ", "
-            return "must be a finite number" + (f"{sep}{text}" if text else "")
-        return f"must be {text}"
-
-    def admits(self, v: float) -> bool:
-        if isinstance(v, float) and (math.isnan(v) or (math.isinf(v) and not (self.inf and v > 0))):
-            return False
-        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
-            return False
-        return self.hi is None or v <= self.hi or (self.inf and math.isinf(v))
-
-
-def _num(v: float) -> str:
-    return str(int(v)) if float(v).is_integer() and abs(v) < 1e15 else f"{v:g}"
-
-
-FINITE = Range()
-POSITIVE = Range(0.0, lo_open=True)
-NON_NEGATIVE = Range(0.0)
 PROBABILITY = Range(0.0, 1.0)
 TIME_OR_NEVER = Range(what="s since start; < 0: never")
 PPM = Range(-1000.0, 1000.0, what="ppm; a crystal drifts by tens")
@@ -256,29 +210,17 @@ class CellConfig:
     @classmethod
     def load(cls, path: str | Path) -> CellConfig:
         """Read ``cell.toml`` (bounded); every error a :class:`SimConfigError` naming it."""
-        source = str(path)
-        raw = read_input_bytes(path, limit=MAX_TOML_BYTES, error=SimConfigError)
-        if b"\x00" in raw:
-            raise SimConfigError(f"{source}: contains NUL bytes: not a TOML text file")
-        try:
-            text = raw.decode("utf-8-sig")
-        except UnicodeDecodeError as exc:
-            line = raw[: exc.start].count(b"\n") + 1
-            raise SimConfigError(
-                f"{source}: line {line}: not UTF-8 text (byte {exc.start}): not a cell config"
-            ) from None
-        return cls.loads(text, source=source)
+        doc = parse_toml_file(path, SimConfigError, "a cell config")
+        return cls.from_document(doc, str(path))
 
     @classmethod
     def loads(cls, text: str, source: str = "<string>") -> CellConfig:
         """Parse and check the text of a ``cell.toml`` (``source`` names it in messages)."""
-        try:
-            doc = tomllib.loads(text.removeprefix("\ufeff"))
-        except tomllib.TOMLDecodeError as exc:
-            raise SimConfigError(f"{source}: not valid TOML: {one_line(str(exc))}") from None
-        except RecursionError:
-            raise SimConfigError(f"{source}: not valid TOML: nested too deeply") from None
-        cfg = _build(cls, doc, source, ())
+        return cls.from_document(parse_toml_text(text, source, SimConfigError), source)
+
+    @classmethod
+    def from_document(cls, doc: dict[str, Any], source: str) -> CellConfig:
+        cfg = build(cls, doc, source=source, error=SimConfigError, ranges=RANGES)
         _check(cfg, source)
         return cfg
 
@@ -287,83 +229,6 @@ class CellConfig:
 
     def dumps(self) -> str:
         return tomli_w.dumps(self.to_document())
-
-
-def _where(path: tuple[str, ...]) -> str:
-    return f"[{'.'.join(path)}]" if path else "top level"
-
-
-def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _build(cls: type, data: Any, source: str, path: tuple[str, ...]) -> Any:
-    if not isinstance(data, dict):
-        raise SimConfigError(f"{source}: {_where(path)}: expected a table, got {_short(data)}")
-    known = {f.name: f for f in fields(cls)}
-    unknown = sorted(set(data) - set(known))
-    if unknown:
-        what = "table" if not path else "key"
-        raise SimConfigError(
-            f"{source}: {_where(path)}: unknown {what} {unknown[0]!r} "
-            f"(allowed: {', '.join(sorted(known))})"
-        )
-    kwargs: dict[str, Any] = {}
-    defaults = cls()
-    for name, value in data.items():
-        default = getattr(defaults, name)
-        if hasattr(default, "__dataclass_fields__"):
-            kwargs[name] = _build(type(default), value, source, (*path, name))
-        else:
-            kwargs[name] = _coerce(default, value, source, path, name)
-    return cls(**kwargs)
-
-
-def _coerce(default: Any, value: Any, source: str, path: tuple[str, ...], key: str) -> Any:
-    loc = f"{source}: {_where(path)}: key {key!r}"
-    rng = RANGES.get(".".join((*path, key)), FINITE)
-
-    def bad(expected: str) -> SimConfigError:
-        return SimConfigError(f"{loc}: expected {expected}, got {_short(value)}")
-
-    def number(v: Any, integer: bool, what: str = "") -> float:
-        if isinstance(v, bool) or not isinstance(v, int if integer else int | float):
-            raise bad(what or ("an integer" if integer else "a number"))
-        given = v
-        if not integer:
-            try:
-                v = float(v)  # an integer of 400 digits is no float
-            except OverflowError:
-                v = math.inf if v > 0 else -math.inf
-        if not rng.admits(v):
-            raise SimConfigError(f"{loc}: {rng.refusal(v)}, got {_short(given)}")
-        return v
-
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise bad("true or false")
-        return value
-    if isinstance(default, int):
-        return number(value, True)
-    if isinstance(default, float):
-        return number(value, False)
-    if isinstance(default, str):
-        if not isinstance(value, str):
-            raise bad("a string")
-        return value
-    if isinstance(default, tuple):
-        if not isinstance(value, list):
-            raise bad("an array")
-        if not value and not rng.empty:
-            raise SimConfigError(f"{loc}: must not be empty")
-        integer = key in _INT_LISTS
-        kind = "an array of integers" if integer else "an array of numbers"
-        return tuple(number(v, integer, kind) for v in value)
-    raise bad(type(default).__name__)  # pragma: no cover - every field type is above
-
-
-_INT_LISTS = {"node_ids", "counter_offset_counts"}
 
 
 def _check(cfg: CellConfig, source: str) -> None:
