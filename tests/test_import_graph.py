@@ -8,7 +8,22 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("calibration", "daq", "drivers", "sim_devices", "edges")
+PACKAGES = ("calibration", "daq", "drivers", "sim_devices", "edges", "view")
+
+#: What each package may import of the others (docs/architecture.md): the one place the
+#: layering is written down, and a test holds the code to it.
+MAY_IMPORT: dict[str, set[str]] = {
+    "edges": set(),
+    "drivers": {"edges"},
+    "daq": {"drivers", "edges"},
+    "calibration": {"edges", "daq"},
+    "sim_devices": {"calibration", "drivers", "edges"},
+    "view": {"calibration", "daq", "edges"},
+}
+#: Modules above their package's layer, each with the reason it may reach higher.
+APPLICATIONS: dict[str, str] = {
+    "daq.demo": "the main job: runs the emulated cell, the daemon and the twin together",
+}
 
 
 def modules() -> dict[str, Path]:
@@ -74,6 +89,26 @@ def test_the_graph_covers_every_package():
 
 def test_no_import_cycle():
     assert cycles(graph()) == []
+
+
+def test_packages_import_only_what_their_layer_allows():
+    offenders = sorted(
+        f"{name} -> {dep}"
+        for name, deps in graph().items()
+        for dep in deps
+        if name not in APPLICATIONS
+        and dep.split(".")[0] != name.split(".")[0]
+        and dep.split(".")[0] not in MAY_IMPORT[name.split(".")[0]]
+    )
+    assert offenders == []
+
+
+def test_calibration_reads_daq_formats_only():
+    """The twin reads the daemon's formats (columnar batches, MCAP recordings, the bus and
+    its config, their errors); it never runs the daemon or its drivers."""
+    formats = {"daq.bus", "daq.columnar", "daq.config", "daq.recording", "daq.errors"}
+    reached = {d for n, deps in graph().items() if n.startswith("calibration.") for d in deps}
+    assert {d for d in reached if d.startswith("daq.")} <= formats
 
 
 def test_only_the_command_line_imports_command_modules():

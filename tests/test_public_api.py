@@ -1,5 +1,5 @@
-"""The public API of ``calibration``: its documented example runs as written, every name
-in ``__all__`` resolves, and the solvers load only when used."""
+"""The public APIs of ``calibration`` and ``drivers``: their documented examples run as
+written, every name in ``__all__`` resolves, and heavy parts load only when used."""
 
 from __future__ import annotations
 
@@ -39,3 +39,36 @@ def test_importing_the_package_does_not_load_the_solvers():
     code = "import sys, calibration; print('calibration.closed_loop' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.stdout.strip() == "False", out.stderr
+
+
+def test_drivers_exports_its_interface_and_registry():
+    import drivers
+
+    for name in drivers.__all__:
+        assert getattr(drivers, name) is not None, name
+    assert set(drivers.available_drivers()) >= {
+        "grating_modbus",
+        "encoder_canopen",
+        "tracker_ascii",
+    }
+    assert issubclass(drivers.ProtocolError, drivers.DriverError)
+    heavy = "('calibration', 'daq', 'canopen')"
+    code = f"import sys, drivers; print(sorted(m for m in {heavy} if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.stdout.strip() == "[]", out.stderr  # light: the protocols load per driver
+
+
+def test_the_drivers_example_reads_a_tracker():
+    import drivers
+    from tests.test_driver_tracker import Tracker
+
+    tracker = Tracker()
+    try:
+        doc = drivers.__doc__ or ""
+        code = textwrap.dedent(re.search(r"::\n\n((?:    .*\n|\n)+)", doc).group(1))
+        code = code.replace("socket://127.0.0.1:5000", f"socket://127.0.0.1:{tracker.server.port}")
+        scope: dict = {}
+        exec(compile(code, "drivers.__doc__", "exec"), scope)  # our own docstring
+        assert scope["batch"].schema is not None
+    finally:
+        tracker.close()
