@@ -33,13 +33,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.description import RobotDescription
-from calibration.grating_scale import (
-    JointScaleResult,
-    JointSweep,
-    ScaleError,
-    ScaleOptions,
-    calibrate_joint,
-)
+from calibration.errors import ScaleError
+from calibration.grating_scale import JointScaleResult, JointSweep, ScaleOptions, calibrate_joint
 from calibration.gravity_regressor import base_moments
 
 FloatArray = NDArray[np.float64]

@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import OptimizeResult, least_squares
 
-from calibration.errors import CalibrationError
+from calibration.errors import CircleFitError
 
 FloatArray = NDArray[np.float64]
 
@@ -46,10 +46,6 @@ PARAMETER_NAMES: tuple[str, ...] = (
     "tilt_v_rad",
     "radius_mm",
 )
-
-
-class CircleFitError(CalibrationError, ValueError):
-    """The points do not determine a circle (too few, non-finite, or collinear)."""
 
 
 class FactoredAngleCovariance:

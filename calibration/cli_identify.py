@@ -21,13 +21,18 @@ import numpy as np
 
 from calibration.campaign_files import read_campaign, read_joint_readings, write_points
 from calibration.description import RobotDescription
-from calibration.errors import CalibrationError, DataFileError, OptionError, OutputFileError
+from calibration.errors import (
+    CalibrationError,
+    DataFileError,
+    IdentificationError,
+    OptionError,
+    OutputFileError,
+)
 from calibration.identifiability import NO_EFFECT
 from calibration.identification import (
     LOSSES,
     RAN_AWAY,
     START_METHODS,
-    IdentificationError,
     IdentificationResult,
     identify,
     tracker_sigma_mm,

@@ -15,14 +15,8 @@ import numpy as np
 
 from calibration.chain_scale import ScaleCampaignResult, calibrate_scales, with_load_notes
 from calibration.description import RobotDescription, load_robot
-from calibration.errors import DataFileError, OptionError, OutputFileError
-from calibration.grating_scale import (
-    TERMS,
-    ScaleError,
-    ScaleOptions,
-    TrackerSpec,
-    check_terms,
-)
+from calibration.errors import DataFileError, OptionError, OutputFileError, ScaleError
+from calibration.grating_scale import TERMS, ScaleOptions, TrackerSpec, check_terms
 from calibration.scale_files import (
     read_counts_csv,
     read_home_csv,

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from calibration.campaign_files import joint_columns, read_load_test, read_poses
 from calibration.description import RobotDescription
-from calibration.errors import DataFileError, OptionError, OutputFileError
+from calibration.errors import DataFileError, OptionError, OutputFileError, StiffnessError
 from calibration.model_effects import load_checked_robot
 from edges.options import path_text
 from edges.outputs import OutputSet
@@ -153,7 +153,7 @@ def _write_compliance(
 
 
 def _load_test(args: argparse.Namespace) -> int:
-    from calibration.stiffness import StiffnessError, fit_joint_compliance
+    from calibration.stiffness import fit_joint_compliance
 
     with OutputSet([args.model, args.load_test], error=OutputFileError) as outputs:
         out_path = outputs.file(args.out_model, "--out-model")

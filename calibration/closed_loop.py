@@ -79,8 +79,8 @@ from calibration.effect_shapes import (
     fit_physical_gravity,
     profile_time_constant,
 )
+from calibration.errors import IdentificationError
 from calibration.identification import (
-    IdentificationError,
     IdentificationResult,
     LMSettings,
     ProgressCallback,

@@ -33,21 +33,17 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.description import RobotDescription
-from calibration.errors import CalibrationError
+from calibration.errors import CompensationError, StiffnessError
 from calibration.inverse_kinematics import JointLimits, solve_ik
 from calibration.kinematics import KinematicModel, flange_poses, geometric_jacobian
 from calibration.model_effects import predict_tcp
-from calibration.stiffness import StiffnessError, force_deflection_mm, states_stiffness
+from calibration.stiffness import force_deflection_mm, states_stiffness
 
 FloatArray = NDArray[np.float64]
 
 #: A target is reached when the calibrated prediction is this close (mm).
 TOLERANCE_MM = 1e-6
 MAX_ITERATIONS = 25
-
-
-class CompensationError(CalibrationError, ValueError):
-    """The targets or their joints are malformed (shapes, non-finite values)."""
 
 
 @dataclass(frozen=True)

@@ -58,7 +58,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.description import EffectDescription, RobotDescription
-from calibration.errors import CalibrationError
+from calibration.errors import EffectLibraryError
 from calibration.gravity_regressor import (
     BaseMoments,
     base_moments,
@@ -86,10 +86,6 @@ DRIFT_MIN_LENGTH_MM = 50.0
 MIN_MOVE_RAD = 1e-5
 #: Harmonic orders offered per joint (library and generic search).
 HARMONIC_ORDERS = (1, 2, 3)
-
-
-class EffectLibraryError(CalibrationError, ValueError):
-    """An effect has bad parameters, or needs data (times) the poses do not have."""
 
 
 # -- data ---------------------------------------------------------------------------------

@@ -61,8 +61,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
-from calibration.circle_fit import CircleFit, CircleFitError, fit_circle_3d
-from calibration.errors import CalibrationError
+from calibration.circle_fit import CircleFit, fit_circle_3d
+from calibration.errors import CircleFitError, ScaleError
 from calibration.relation_to_points import RelationToPoints, StopPoints
 from calibration.target_set_fit import TargetSetFit, crb_covariance_targets, fit_target_set
 
@@ -98,10 +98,6 @@ DIRECTIONS: dict[str, int] = {
     "unknown": 0,
     "": 0,
 }
-
-
-class ScaleError(CalibrationError, ValueError):
-    """The data of a joint cannot give a scale calibration (too few stops, no zero, ...)."""
 
 
 def check_terms(terms: Sequence[str]) -> tuple[str, ...]:

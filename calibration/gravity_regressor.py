@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.description import RobotDescription
-from calibration.errors import CalibrationError
+from calibration.errors import GravityRegressorError
 from calibration.kinematics import KinematicModel
 
 FloatArray = NDArray[np.float64]
@@ -46,10 +46,6 @@ SELECTION_POSES = 256
 #: A column adds a direction when its residual against the kept ones exceeds this
 #: (relative): structural zeros are ~1e-15, the weakest real directions ~1e-2.
 SELECTION_RTOL = 1e-8
-
-
-class GravityRegressorError(CalibrationError, ValueError):
-    """A moment name is unknown, or the gravity direction is not a direction."""
 
 
 def moment_names(n_joints: int) -> tuple[str, ...]:

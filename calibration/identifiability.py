@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.errors import CalibrationError
+from calibration.errors import IdentifiabilityError
 from calibration.kinematics import (
     PARAMETERS_PER_JOINT,
     KinematicModel,
@@ -52,10 +52,6 @@ NO_EFFECT_TOL = 1e-9
 
 #: Why a parameter whose column vanishes is dropped.
 NO_EFFECT = "no effect on the measured positions"
-
-
-class IdentifiabilityError(CalibrationError, ValueError):
-    """The data identifies nothing, or the arguments have the wrong shape."""
 
 
 @dataclass(frozen=True)

@@ -39,12 +39,11 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import OptimizeResult
 from scipy.stats import chi2
 
-from calibration.errors import CalibrationError
+from calibration.errors import IdentifiabilityError, IdentificationError
 from calibration.identifiability import (
     DEFAULT_RTOL,
     NO_EFFECT,
     IdentifiabilityAnalysis,
-    IdentifiabilityError,
     analyze_identifiability,
     arm_reach_mm,
     column_references,
@@ -81,11 +80,6 @@ TERMINATION_MESSAGES = {
 
 #: Two-sided probability beyond which a pose's 3-D residual marks it as an outlier.
 OUTLIER_PROBABILITY = 1e-3
-
-
-class IdentificationError(CalibrationError, ValueError):
-    """The identification cannot run (too few poses, bad shapes, unknown option) or its fit
-    ran away beyond repair."""
 
 
 ProgressCallback = Callable[[int, float, float], None]  # (iteration, error norm mm, damping)

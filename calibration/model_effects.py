@@ -27,19 +27,14 @@ from calibration.effect_library import (
     KINDS,
     EffectContext,
     EffectData,
-    EffectLibraryError,
     EffectSpec,
     from_description,
     predict_points,
 )
-from calibration.errors import CalibrationError
+from calibration.errors import EffectLibraryError, ModelEffectError
 from calibration.kinematics import KinematicModel
 
 FloatArray = NDArray[np.float64]
-
-
-class ModelEffectError(CalibrationError, ValueError):
-    """A description names an effect kind the twin cannot apply, or its parameters are bad."""
 
 
 def description_effects(

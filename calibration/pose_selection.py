@@ -23,15 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.errors import CalibrationError
+from calibration.errors import PoseSelectionError
 from calibration.identifiability import analyze_model
 from calibration.kinematics import KinematicModel, identification_jacobian
 
 FloatArray = NDArray[np.float64]
-
-
-class PoseSelectionError(CalibrationError, ValueError):
-    """Bad arguments to the pose selection (unknown index, too few candidates)."""
 
 
 def _o1(s: FloatArray, m: int) -> FloatArray:

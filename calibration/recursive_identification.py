@@ -28,15 +28,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.errors import CalibrationError
+from calibration.errors import RecursiveIdentificationError
 from calibration.identification import IdentificationResult
 from calibration.kinematics import KinematicModel, identification_jacobian
 
 FloatArray = NDArray[np.float64]
-
-
-class RecursiveIdentificationError(CalibrationError, ValueError):
-    """Bad settings or data for the recursive identification."""
 
 
 @dataclass(frozen=True)

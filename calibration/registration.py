@@ -12,14 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.errors import CalibrationError
+from calibration.errors import RegistrationError
 from calibration.kinematics import fixed_xyz_from_rotation
 
 FloatArray = NDArray[np.float64]
-
-
-class RegistrationError(CalibrationError, ValueError):
-    """The point sets cannot be registered (too few points, collinear, NaN)."""
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import lsq_linear
 
 from calibration.description import RobotDescription
-from calibration.errors import CalibrationError
+from calibration.errors import StiffnessError
 from calibration.kinematics import KinematicModel, geometric_jacobian
 
 FloatArray = NDArray[np.float64]
@@ -37,10 +37,6 @@ EXCITATION_FLOOR = 1e-9
 #: A fitted compliance is taken as determined by the test when its standard error is
 #: below this share of its value (a joint the forces hardly load stays as stated).
 DETERMINED_REL_ERROR = 0.5
-
-
-class StiffnessError(CalibrationError, ValueError):
-    """Stiffnesses missing for a force, or a load test that cannot give them."""
 
 
 def joint_compliance(description: RobotDescription) -> FloatArray:

@@ -24,15 +24,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.errors import CalibrationError
+from calibration.errors import StreamError
 
 KINDS = ("grating", "tracker", "encoders")
 _GRATING = re.compile(r"^grating(\d+)_counts$")
 _ENCODER = re.compile(r"^encoder(\d+)_counts$")
-
-
-class StreamError(CalibrationError, ValueError):
-    """A recording or live source lacks a stream the twin needs, or cannot be decoded."""
 
 
 def stream_kind(column_names: Iterable[str]) -> str:

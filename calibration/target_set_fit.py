@@ -103,13 +103,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
-from calibration.circle_fit import (
-    MIN_POINTS,
-    CircleFit,
-    CircleFitError,
-    FactoredAngleCovariance,
-    fit_circle_3d,
-)
+from calibration.circle_fit import MIN_POINTS, CircleFit, FactoredAngleCovariance, fit_circle_3d
+from calibration.errors import TargetSetFitError
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -119,14 +114,6 @@ MAX_ITERATIONS = 100
 # in-plane spread of the target set (RMS about its centroid) below this many times the
 # noise: the set is collinear with the axis and turns like a single target
 MIN_SPREAD_NOISE = 10.0
-
-
-class TargetSetFitError(CircleFitError):
-    """The points of a target set do not determine its rotation (shape, count, geometry).
-
-    A :class:`CircleFitError` (so a :class:`~calibration.errors.CalibrationError`): callers
-    of either fit catch both.
-    """
 
 
 def parameter_names(n_targets: int) -> tuple[str, ...]:

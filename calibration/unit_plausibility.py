@@ -26,7 +26,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.errors import DataFileError
+from calibration.errors import UnitsError
 from calibration.kinematics import KinematicModel, tcp_positions
 
 FloatArray = NDArray[np.float64]
@@ -37,10 +37,6 @@ OVERRIDE = "--no-unit-check"
 SPREAD_LIMIT = 5.0
 #: Known unit slips: the spread ratio they give, and what the numbers then are in.
 _UNIT_SLIPS = {1e-3: "metres", 1e-2: "centimetres", 1 / 25.4: "inches", 1e3: "micrometres"}
-
-
-class UnitsError(DataFileError):
-    """The numbers of a file are implausible in its columns' units (a hint says which)."""
 
 
 def spread_mm(points: FloatArray) -> float:
