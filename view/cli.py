@@ -19,6 +19,7 @@ from typing import Any
 from edges.command import progress
 from edges.options import integer, number, path_text
 from view.errors import ViewError
+from view.scene import MAGNIFICATIONS
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 
@@ -67,8 +68,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--fps",
         type=number(1.0, hi=120.0),
-        default=30.0,
-        help="scene updates per second sent to the page (30)",
+        default=40.0,
+        help="scene updates per second sent to the page, latest sample wins (40)",
     )
     p.add_argument(
         "--duration",
@@ -76,6 +77,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         metavar="S",
         help="stop after S seconds (default: until Ctrl-C)",
+    )
+    p.add_argument(
+        "--magnify",
+        choices=MAGNIFICATIONS,
+        default=MAGNIFICATIONS[0],
+        help="error vectors and the ghost's deviation drawn this many times larger at "
+        f"first (a switch on the page; {MAGNIFICATIONS[0]})",
     )
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=run_view)
@@ -167,9 +175,13 @@ def run_view(args: argparse.Namespace) -> int:
     if args.model is not None and not Path(args.model).is_file():
         raise ViewError(f"--model {args.model}: no such file")
     source, model, title = (_replay_source if args.replay else _live_source)(args, say)
-    view = TwinView(source, model, title=title, port=args.port, fps=args.fps)
+    view = TwinView(
+        source, model, title=title, port=args.port, fps=args.fps, magnify=float(args.magnify)
+    )
     try:
         url = view.start()
+        if args.replay:
+            source.clock.play()
         mode = "replay" if args.replay else "live"
         print(json.dumps({"view": url, "port": int(url.rsplit(":", 1)[1].strip("/")),
                           "mode": mode}), flush=True)  # fmt: skip

@@ -19,6 +19,9 @@ from calibration.description import RobotDescription
 from calibration.kinematics import KinematicModel, flange_poses
 
 FloatArray = NDArray[np.float64]
+#: the page's switch for error vectors and the ghost's deviation: drawn this many times
+#: larger (the twin's residuals are µm to mm; the arm is metres)
+MAGNIFICATIONS = ("100", "1000", "10000")
 
 
 @dataclass(frozen=True)

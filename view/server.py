@@ -24,7 +24,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from view.model import TwinModel
-from view.scene import ArmGeometry, arm_geometry, camera_pose, error_segments, magnified
+from view.scene import (
+    MAGNIFICATIONS,
+    ArmGeometry,
+    arm_geometry,
+    camera_pose,
+    error_segments,
+    magnified,
+)
 from view.sources import ReplaySource, Snapshot
 
 M_PER_MM = 1e-3
@@ -33,8 +40,10 @@ GHOST_RGB = (150, 150, 160)
 TCP_RGB = (220, 30, 30)
 TRACKER_RGB = (20, 160, 70)
 ERROR_RGB = (190, 20, 170)
-MAGNIFICATIONS = ("100", "1000", "10000")
 SPEEDS = ("0.1", "0.25", "1", "4", "16", "64")
+#: the ghost's deviation from the drawn model, drawn this many times larger (nominal and
+#: calibrated geometry differ by about a millimetre at the TCP: ×100 is a hand's width)
+GHOST_MAGNIFY = 100.0
 
 
 @dataclass
@@ -45,8 +54,8 @@ class FrameStats:
     rate_hz: float = 0.0
     update_ms_p50: float = 0.0  # time to compute and send one scene update
     update_ms_p99: float = 0.0
-    #: live: host UTC at drawing minus the drawn sample's mapped time (ms): how far the
-    #: page is behind the stream (the stream's own latency included)
+    #: live: host UTC when the frame was sent minus when the twin published the drawn
+    #: sample (ms): how far the page is behind the twin
     age_ms_p50: float | None = None
     age_ms_p99: float | None = None
 
@@ -89,8 +98,9 @@ class TwinView:
         title: str,
         host: str = "127.0.0.1",
         port: int = 8080,
-        fps: float = 30.0,
+        fps: float = 40.0,
         panel_hz: float = 5.0,
+        magnify: float = 100.0,
     ) -> None:
         self.source = source
         self.twin = twin
@@ -99,14 +109,14 @@ class TwinView:
         self.port = port
         self.fps = fps
         self.panel_period_s = 1.0 / panel_hz
-        self.factor = float(MAGNIFICATIONS[0])
+        self.factor = float(magnify)
         self.stats = FrameStats()
         self._stopped = threading.Event()
         self._server = None
         self._kin = twin.kinematics
-        self._frame_times: deque[float] = deque(maxlen=512)
-        self._update_ms: deque[float] = deque(maxlen=512)
-        self._age_ms: deque[float] = deque(maxlen=512)
+        self._frame_times: deque[float] = deque(maxlen=4096)
+        self._update_ms: deque[float] = deque(maxlen=4096)
+        self._age_ms: deque[float] = deque(maxlen=4096)
 
     # -- set-up ------------------------------------------------------------------------------
     def start(self) -> str:
@@ -217,7 +227,9 @@ class TwinView:
         t = self.twin
         parts = [f"model: {t.source}"]
         if t.ghost is not None:
-            parts.append("grey: the nominal model on the calibrated base, its deviation ×k")
+            parts.append(
+                f"grey: the nominal model on the calibrated base, its deviation ×{GHOST_MAGNIFY:g}"
+            )
         if t.stage_table:
             parts.append(_markdown_table(t.stage_table))
         if t.effects:
@@ -243,7 +255,7 @@ class TwinView:
                 self._frames.batched_wxyzs = _wxyz(arm.frames[:, :3, :3]).astype(np.float32)
                 if self._ghost is not None and self.twin.ghost is not None:
                     ghost = arm_geometry(self.twin.ghost, snap.q_deg)
-                    line = magnified(arm.polyline, ghost.polyline, k)
+                    line = magnified(arm.polyline, ghost.polyline, GHOST_MAGNIFY)
                     self._ghost.points = (
                         np.stack([line[:-1], line[1:]], axis=1) * M_PER_MM
                     ).astype(np.float32)
@@ -300,7 +312,7 @@ class TwinView:
             rows.append(f"{what} p50 {snap.latency_ms[0]:.1f} ms, p99 {snap.latency_ms[1]:.1f} ms")
         view = f"view: {self.stats.rate_hz:.1f} frames/s (update {self.stats.update_ms_p50:.1f} ms"
         if self.stats.age_ms_p50 is not None:
-            view += f", drawn sample age p50 {self.stats.age_ms_p50:.1f} ms"
+            view += f", drawn sample {self.stats.age_ms_p50:.1f} ms after the twin sent it"
         rows.append(view + ")")
         self._numbers.content = "  \n".join(rows)
 
@@ -320,8 +332,8 @@ class TwinView:
             self._frame_times.append(now)
             done = time.monotonic()
             self._update_ms.append((done - now) * 1e3)
-            if snap.duration_s is None and snap.t_ns:
-                self._age_ms.append((time.time_ns() - snap.t_ns) * 1e-6)
+            if snap.published_ns is not None:
+                self._age_ms.append((time.time_ns() - snap.published_ns) * 1e-6)
             if done >= next_panel:
                 recent = [t for t in self._frame_times if t > done - 1.0]
                 span = done - recent[0] if len(recent) > 1 else 0.0

@@ -16,6 +16,7 @@ latest sample wins and the ones between two frames are only counted.
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -62,6 +63,9 @@ class Snapshot:
     playing: bool = True
     speed: float = 1.0
     note: str = ""
+    #: live: host UTC ns at which the twin published the drawn sample (its
+    #: ``t_publish_ns``), None in replay or without a live twin
+    published_ns: int | None = None
 
 
 class ReplayClock:
@@ -188,7 +192,9 @@ class ReplaySource:
         self.poses = poses or PosePoints.empty()
         self.t_start_ns = int(self.g_t[0])
         self.duration_s = float(self.g_t[-1] - self.g_t[0]) * 1e-9
-        self.clock = ReplayClock(self.duration_s, speed=speed)
+        # paused until the page is served (``clock.play()``): the replay starts when
+        # someone can watch it, not while the viewer is setting up
+        self.clock = ReplayClock(self.duration_s, speed=speed, playing=False)
         self.note = note
 
     def latest(self) -> Snapshot:
@@ -305,6 +311,7 @@ class LiveSource:
         self._twin_q: FloatArray | None = None
         self._twin_tcp: FloatArray | None = None
         self._twin_t_ns = 0
+        self._twin_published_ns: int | None = None
         self._tracker_xyz: FloatArray | None = None
         self._health: dict[str, Any] = {}
         self._first_t_ns: int | None = None
@@ -353,6 +360,8 @@ class LiveSource:
                 self._twin_q = np.asarray(c["q_deg"][-1], dtype=float)
                 self._twin_tcp = np.asarray(c["tcp_mm"][-1], dtype=float)
                 self._twin_t_ns = int(t[-1])
+                if "t_publish_ns" in c:
+                    self._twin_published_ns = int(c["t_publish_ns"][-1])
                 self._twin.extend(t, np.asarray(c["tcp_mm"], dtype=float))
             elif kind == "grating" and len(cols) == self.twin.n_joints:
                 counts = np.column_stack([c[k] for k in cols])
@@ -394,7 +403,9 @@ class LiveSource:
             label = PhaseTimeline.from_phases(ph).label_at(int(t[-1]))
             found = self._new_poses(ph, tr_t, tr_v, tw_t, tw_v, int(t[-1]))
             with self._lock:
-                # live, the window's pose numbers mean nothing: count the poses stored
+                # live, the window's counts ("of N") mean nothing: poses are counted from
+                # the ones stored since the view started
+                label = re.sub(r" of \d+", "", label)
                 if "pose " in label:
                     head = label.split("pose ", 1)[0]
                     label = f"{head}pose {len(self._poses_t) + 1} since the view started"
@@ -435,6 +446,7 @@ class LiveSource:
     def latest(self) -> Snapshot:
         with self._lock:
             q, tcp = self._twin_q, self._twin_tcp
+            published = self._twin_published_ns
             t_ns = self._twin_t_ns or self._latest_t_ns
             counts = self._latest_counts
             tracker = self._tracker_xyz
@@ -467,6 +479,7 @@ class LiveSource:
             rate_hz=float(rate) if rate is not None else None,
             latency_ms=latency,
             note=note,
+            published_ns=published,
         )
 
     def close(self) -> None:
