@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import signal
+import time
 from pathlib import Path
 from typing import Any
 
@@ -188,8 +189,20 @@ def run_view(args: argparse.Namespace) -> int:
         say(f"serving {url} ({model.source})")
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: view.stop())
+        started = time.monotonic()
         stats = view.run(args.duration)
-        say(f"stopped: {stats.frames} scene updates, {stats.rate_hz:.1f} frames/s at the end")
+        elapsed = max(time.monotonic() - started, 1e-9)
+        age = (
+            f", the drawn sample {stats.age_ms_p50:.1f} ms (p50) / {stats.age_ms_p99:.1f} ms "
+            "(p99) after the twin sent it"
+            if stats.age_ms_p50 is not None
+            else ""
+        )
+        say(
+            f"stopped: {stats.frames} scene updates in {elapsed:.1f} s "
+            f"({stats.frames / elapsed:.1f} frames/s; update p50 {stats.update_ms_p50:.1f} ms, "
+            f"p99 {stats.update_ms_p99:.1f} ms){age}"
+        )
     finally:
         view.close()
         source.close()

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import threading
 import time
 from collections import deque
@@ -123,6 +124,9 @@ class TwinView:
         """Serve the page; the URL it is served at (the port viser bound)."""
         import viser
 
+        # a browser that goes away mid-handshake makes the websockets library log a
+        # traceback; for a page server that is an ordinary disconnect
+        logging.getLogger("websockets.server").setLevel(logging.CRITICAL)
         with _quiet_stdout():
             server = viser.ViserServer(host=self.host, port=self.port, verbose=False)
         self._server = server
@@ -345,9 +349,11 @@ class TwinView:
                     self.stats.age_ms_p50, self.stats.age_ms_p99 = float(a50), float(a99)
                 self._panel(snap)
                 next_panel = done + self.panel_period_s
-            # a fixed schedule, not sleep(period); after a slow frame the next starts at
-            # once, with no burst of catch-up frames
-            next_frame = max(next_frame + period, done)
+            # a fixed schedule, not sleep(period): a frame a little late is made up by the
+            # next; one more than a period behind drops the missed ticks (no burst)
+            next_frame += period
+            if done - next_frame > period:
+                next_frame = done
             self._stopped.wait(max(next_frame - time.monotonic(), 0.0))
         return self.stats
 
