@@ -682,6 +682,161 @@ def cell(
     }
 
 
+# -- the live twin's hop --------------------------------------------------------------------
+
+#: the calibration the benchmark's live twin runs (the twin of the small test campaign)
+TWIN_CALIBRATED = Path(__file__).parents[1] / "tests" / "data" / "twin_calibrated_small"
+GRATING_KEY = f"cell/{CELL}/robot/{ROBOT}/grating/samples"
+TWIN_STATE_KEY = f"twin/{CELL}/robot/{ROBOT}/state"
+
+
+def _twin_sub_main(port: int, warmup_s: float, seconds: float) -> None:
+    """One subscriber to the daemon's grating key and the twin's state (exact keys, both
+    through the daemon's endpoint), decoding on zenoh's callback thread; after
+    ``warmup_s``, for ``seconds``: the daemon's latency (receive − mapped latch time,
+    settled clock maps) and the twin's (its ``t_publish_ns`` − the same mapped time: device
+    → twin output; and this subscriber's receive − mapped: device → twin → subscriber)."""
+    from daq.bus import Receiver, open_session
+    from daq.testing import loopback_sink
+
+    session = open_session(loopback_sink(port))
+    parts: dict[str, list[np.ndarray]] = {"daemon": [], "twin_out": [], "twin_sub": []}
+    counts = {"grating_unsettled": 0, "grating": 0, "twin": 0}
+    t_from = time.time_ns() + int(warmup_s * 1e9)
+    t_to = t_from + int(seconds * 1e9)
+
+    def on_batch(got: Any) -> None:
+        if not t_from <= got.t_recv_ns < t_to:
+            return
+        c = got.columns
+        t_map = c["t_mapped_ns"]
+        if got.key == GRATING_KEY:
+            ok = c["t_mapped_ok"] == 1
+            counts["grating"] += len(t_map)
+            counts["grating_unsettled"] += int(np.count_nonzero(~ok))
+            parts["daemon"].append(got.t_recv_ns - t_map[ok])
+        elif got.key == TWIN_STATE_KEY:
+            counts["twin"] += len(t_map)
+            parts["twin_out"].append(c["t_publish_ns"] - t_map)
+            parts["twin_sub"].append(got.t_recv_ns - t_map)
+
+    rx = Receiver(session, [GRATING_KEY, TWIN_STATE_KEY], on_batch=on_batch)
+    print(json.dumps({"ready": True}), flush=True)
+    end = time.monotonic() + warmup_s + seconds + 0.5  # bounded by time
+    while time.monotonic() < end:
+        time.sleep(0.1)
+    rx.close()
+    session.close()
+    out: dict[str, Any] = dict(counts)
+    for name, ps in parts.items():
+        v = np.concatenate(ps) / 1e6 if ps else np.zeros(0)
+        out[name] = (
+            {
+                "p50": float(np.percentile(v, 50)),
+                "p99": float(np.percentile(v, 99)),
+                "max": float(v.max()),
+                "n": int(v.size),
+            }
+            if v.size
+            else None
+        )
+    print(json.dumps(out), flush=True)
+
+
+def _twin_cell_config(port: int) -> str:
+    # the fake box starts at the calibration's Home counts and moves 1 count per sample
+    # (0.1-0.5 °/s per joint): a slow steady move in the calibrated range
+    home = json.loads((TWIN_CALIBRATED / "phases.json").read_text())["home_counts"]
+    counts = ", ".join(str(round(c)) for c in home)
+    return (
+        f'[cell]\nname = "{CELL}"\nrobot = "{ROBOT}"\n\n'
+        f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n\n'
+        '[[device]]\nname = "grating"\ndriver = "daq.testing:FakeGratingDriver"\n'
+        'url = "fake://grating"\nrate_hz = 1000.0\n'
+        f"options = {{ rate_hz = 1000.0, counts = [{counts}] }}\n"
+    )
+
+
+def twin_round(seconds: float, radius_deg: float, warmup_s: float = 8.0) -> dict[str, Any]:
+    """``daq run`` (a fake six-joint grating box at 1 kHz, in the daemon's process) → the
+    live twin (``twin run --from``, a client of the daemon, ``--effects-radius-deg``) →
+    one subscriber process on the daemon's endpoint (``_twin_sub_main``): the daemon's
+    latency and the twin's, in the same seconds, plus the twin's CPU and the host's
+    steal. ``radius_deg = 0``: the full effect predictor per batch (the twin before)."""
+    port = _free_port()
+    span = warmup_s + seconds
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = Path(tmp) / "cell.toml"
+        cfg.write_text(_twin_cell_config(port))
+        procs: list[subprocess.Popen] = []
+        try:
+            d = subprocess.Popen(
+                [PY, "-m", "daq.cli", "run", "--config", str(cfg), "--duration", str(span + 20)],
+                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+            )  # fmt: skip
+            procs.append(d)
+            assert d.stdout is not None
+            json.loads(d.stdout.readline())
+            tw = subprocess.Popen(
+                [PY, "-m", "calibration.cli", "run", "--from", str(TWIN_CALIBRATED),
+                 "--out", str(Path(tmp) / "twin"), "--connect", f"tcp/127.0.0.1:{port}",
+                 "--publish-s", str(span + 10), "--effects-radius-deg", str(radius_deg),
+                 "--quiet"],
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            )  # fmt: skip
+            procs.append(tw)
+            assert tw.stdout is not None
+            line = tw.stdout.readline()  # {"twin": "live", ...} once it publishes
+            if not line.startswith('{"twin"'):
+                raise RuntimeError(f"twin run did not start: {tw.stderr.read()[-2000:]}")
+            sub = _start_main(f"_twin_sub_main({port}, {warmup_s}, {seconds})")
+            procs.append(sub)
+            time.sleep(warmup_s)
+            c0, s0, t0 = _cpu_s(tw.pid), _host_steal_s(), time.monotonic()
+            probe = _probe_host(max(0.0, seconds - 0.5))
+            c1, s1, t1 = _cpu_s(tw.pid), _host_steal_s(), time.monotonic()
+            out, _ = sub.communicate(timeout=seconds + 60)
+            res = json.loads(out.strip().splitlines()[-1])
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
+    res.update(
+        radius_deg=radius_deg,
+        twin_cpu_fraction=(c1 - c0) / (t1 - t0),
+        host_steal_cores=(s1 - s0) / (t1 - t0),
+        host_wakeup_late_ms=probe.summary(t1 - t0),
+    )
+    return res
+
+
+def twin_hop(seconds: float, rounds: int = 2) -> dict[str, Any]:
+    """Alternating rounds: the twin as it is (``--effects-radius-deg 0.25``) and the
+    reference, the same twin with the full effect predictor per batch (radius 0: the
+    twin's work per batch before), each beside the daemon's own latency of that round."""
+    out: dict[str, Any] = {"rounds": []}
+    for _ in range(rounds):
+        for radius in (0.25, 0.0):
+            r = twin_round(seconds, radius)
+            out["rounds"].append(r)
+    for name, radius in (("twin", 0.25), ("reference_full_predictor", 0.0)):
+        rs = [r for r in out["rounds"] if r["radius_deg"] == radius and r["twin_out"]]
+        if not rs:
+            continue
+        out[name] = {
+            "device_to_twin_p50_ms": float(np.median([r["twin_out"]["p50"] for r in rs])),
+            "device_to_twin_p99_ms": float(np.median([r["twin_out"]["p99"] for r in rs])),
+            "daemon_p50_ms": float(np.median([r["daemon"]["p50"] for r in rs])),
+            "daemon_p99_ms": float(np.median([r["daemon"]["p99"] for r in rs])),
+            "twin_hop_p50_ms": float(
+                np.median([r["twin_out"]["p50"] - r["daemon"]["p50"] for r in rs])
+            ),
+            "twin_cpu": float(np.median([r["twin_cpu_fraction"] for r in rs])),
+        }
+    return out
+
+
 #: steal bins (cores) the soak's windows are grouped by
 STEAL_BINS = (("<0.01", 0.0, 0.01), ("0.01-0.05", 0.01, 0.05), ("0.05-0.2", 0.05, 0.2),
               (">=0.2", 0.2, float("inf")))  # fmt: skip
@@ -829,7 +984,18 @@ def main(argv: list[str] | None = None) -> int:
         metavar="N",
         help="throughput: [zenoh] tx_queue_batches of both sides (default: the daemon's)",
     )
+    ap.add_argument(
+        "--twin",
+        type=float,
+        metavar="S",
+        help="only the live twin's hop: alternating S-second rounds of the twin and of the "
+        "twin with the full effect predictor per batch, each beside the daemon's latency",
+    )
+    ap.add_argument("--rounds", type=int, default=2, help="--twin: rounds of each (2)")
     args = ap.parse_args(argv)
+    if args.twin:
+        print(json.dumps({"twin_hop": twin_hop(args.twin, args.rounds)}, indent=1))
+        return 0
     if args.wildcard:
         print(json.dumps({"wildcard_subscription": wildcard_cost(5.0)}))
         return 0

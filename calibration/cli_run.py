@@ -61,6 +61,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "twin's keys to everyone connected to it), or peer (default with --listen)",
     )
     live.add_argument(
+        "--effects-radius-deg",
+        type=float,
+        default=0.25,
+        help="the modelled effects' share of the TCP is linearised within this many degrees "
+        "of the pose it was evaluated at (0.25; 0: the full predictor for every batch)",
+    )
+    live.add_argument(
+        "--frames-hz",
+        type=float,
+        default=30.0,
+        help="publish the link frames (twin/.../frames) at most this often (30; 0: never)",
+    )
+    live.add_argument(
         "--wait-s",
         type=float,
         default=60.0,
@@ -133,6 +146,14 @@ def run_run(args: argparse.Namespace) -> int:
         raise OptionError("--listen: a zenoh client listens nowhere; use --mode peer")
     if args.mode == "client" and args.connect == ["none"]:
         raise OptionError("--connect none: a zenoh client needs an endpoint to connect to")
+    for name, value in (
+        ("--effects-radius-deg", args.effects_radius_deg),
+        ("--frames-hz", args.frames_hz),
+    ):
+        if not 0 <= value < float("inf"):
+            raise OptionError(f"{name}: expected a finite number >= 0, got {value}")
+    if args.effects_radius_deg > 5:
+        raise OptionError(f"--effects-radius-deg: at most 5 degrees, got {args.effects_radius_deg}")
     if not args.wait_s > 0 or args.wait_s == float("inf"):
         raise OptionError(f"--wait-s: expected a finite number of seconds > 0, got {args.wait_s}")
     if args.from_dir:

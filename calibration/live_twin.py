@@ -43,7 +43,271 @@ class LiveTwinError(CalibrationError):
 
 def twin_keys(cell: str, robot: str) -> dict[str, str]:
     base = f"{TWIN_PREFIX}/{cell}/robot/{robot}"
-    return {"state": f"{base}/state", "health": f"{base}/health"}
+    return {"state": f"{base}/state", "health": f"{base}/health", "frames": f"{base}/frames"}
+
+
+def state_schema(key: str, n: int, cell: str, robot: str, model: str) -> Any:
+    """The columns of ``twin/<cell>/robot/<robot>/state`` (docs/topics.md, "Twin keys")."""
+    from daq.columnar import Column, StreamSchema
+
+    return StreamSchema(
+        key,
+        (
+            Column("seq", "uint64", (), "", None, "twin sample number"),
+            Column("t_mapped_ns", "int64", (), "ns", "host_utc", "grating sample time"),
+            Column("t_publish_ns", "int64", (), "ns", "host_utc", "when published"),
+            Column("q_deg", "float64", (n,), "deg", None, "joint angles from the gratings"),
+            Column("tcp_mm", "float64", (3,), "mm", None, "TCP, tracker frame"),
+            Column("flange_mm", "float64", (3,), "mm", None, "flange origin"),
+            Column("flange_quat", "float64", (4,), "", None, "flange rotation w, x, y, z"),
+            Column(
+                "encoder_minus_grating_deg",
+                "float64",
+                (n,),
+                "deg",
+                None,
+                "motor encoder joint angle minus grating angle (NaN: no encoder)",
+            ),
+        ),
+        {"cell": cell, "robot": robot, "model": model, "source": "twin run"},
+    )
+
+
+def frames_schema(key: str, names: tuple[str, ...], cell: str, robot: str, model: str) -> Any:
+    """The columns of ``twin/<cell>/robot/<robot>/frames``: every link frame of the
+    calibrated model at one grating sample, in the tracker frame (``meta.frames``: their
+    names, ``meta.parents``: each one's parent frame, the first one's is ``tracker``)."""
+    from daq.columnar import Column, StreamSchema
+
+    k = len(names)
+    return StreamSchema(
+        key,
+        (
+            Column("seq", "uint64", (), "", None, "frames sample number"),
+            Column("t_mapped_ns", "int64", (), "ns", "host_utc", "grating sample time"),
+            Column("frame_mm", "float64", (k, 3), "mm", None, "frame origins, tracker frame"),
+            Column("frame_quat", "float64", (k, 4), "", None, "frame rotations w, x, y, z"),
+        ),
+        {
+            "cell": cell,
+            "robot": robot,
+            "model": model,
+            "source": "twin run",
+            "frames": list(names),
+            "parents": ["tracker", *names[:-1]],
+        },
+    )
+
+
+def _percentiles(parts: list[np.ndarray]) -> dict[str, float]:
+    a = np.concatenate(parts) if parts else np.zeros(0)
+    if not a.size:
+        return {"p50": 0.0, "p99": 0.0, "max": 0.0, "n": 0}
+    p50, p99 = np.percentile(a, [50, 99])
+    return {"p50": float(p50), "p99": float(p99), "max": float(a.max()), "n": int(a.size)}
+
+
+class AngleReader:
+    """Joint angles (deg) from grating counts through the scale maps, cheap per batch.
+
+    The scale maps are smooth functions of the counts (a scale, harmonics of the ring,
+    at most a slow polynomial), evaluated per joint by
+    :meth:`~calibration.grating_scale.GratingScale.counts_to_angle_deg` at a cost per
+    call (~0.2-0.3 ms for six joints here). As :class:`TwinPredictor` does for the
+    effects, each map is linearised at the newest sample's counts (value and slope from
+    one call with ``c0``, ``c0 ± h``) and used within ``radius_deg`` of it; a sample
+    farther away moves the linearisation there, a batch wider than the radius gets the
+    maps themselves. Error: second order, ~2e-6° at most at 0.25° for the demo's maps
+    (far below one count, ~1e-4°; tests/test_twin_predictor.py); ``radius_deg = 0``:
+    the maps for every batch."""
+
+    def __init__(self, scale: Any, n: int, home_deg: Any, *, radius_deg: float = 0.25) -> None:
+        self.maps = [scale.scale(j) for j in range(1, n + 1)]
+        self.home = np.asarray(home_deg, dtype=float)
+        self.radius_deg = float(radius_deg)
+        self.h = 64  # counts
+        self._c0: np.ndarray | None = None
+        self._a0 = np.zeros(n)
+        self._slope = np.zeros(n)
+        self._radius_counts = np.zeros(n)
+        self.refreshes = 0
+        self.full_calls = 0
+
+    def exact(self, counts: np.ndarray) -> np.ndarray:
+        self.full_calls += 1
+        cols = [mp.counts_to_angle_deg(counts[:, j]) for j, mp in enumerate(self.maps)]
+        return self.home + np.column_stack(cols)
+
+    def _linearise(self, c0: np.ndarray) -> None:
+        h = self.h
+        for j, mp in enumerate(self.maps):
+            a = mp.counts_to_angle_deg(np.array([c0[j], c0[j] + h, c0[j] - h], dtype=np.int64))
+            self._a0[j] = a[0]
+            self._slope[j] = (a[1] - a[2]) / (2 * h)
+        with np.errstate(divide="ignore"):
+            self._radius_counts = np.where(
+                self._slope != 0, self.radius_deg / np.abs(self._slope), 0.0
+            )
+        self._c0 = c0.copy()
+        self.refreshes += 1
+
+    def _offsets(self, counts: np.ndarray) -> np.ndarray:
+        assert self._c0 is not None  # counts since c0, undoing 32-bit counter wraps
+        return (counts - self._c0 + (1 << 31)) % (1 << 32) - (1 << 31)
+
+    def angles(self, counts: np.ndarray) -> np.ndarray:
+        """Joint angles ``(m, n)`` deg (Home + map) of counts ``(m, n)``."""
+        if self.radius_deg <= 0:
+            return self.exact(counts)
+        if self._c0 is None or bool(
+            np.any(np.abs(self._offsets(counts[-1])) > self._radius_counts)
+        ):
+            self._linearise(counts[-1])
+        d = self._offsets(counts)
+        if bool(np.any(np.abs(d) > self._radius_counts)):  # a batch wider than the radius
+            return self.exact(counts)
+        return self.home + self._a0 + d * self._slope
+
+
+class TwinPredictor:
+    """TCP and flange poses of the calibrated model, cheap enough per grating batch.
+
+    The geometric TCP and flange are evaluated for every sample (one vectorized chain
+    walk). What the modelled effects add to the TCP, ``c(q, t)``, comes from the full
+    predictor (:func:`~calibration.model_effects.predict_tcp`), whose cost is per call
+    (1.5-5 ms here for one pose of the demo's model with its gravity deflection, ~90 % of
+    the twin's time per batch before), so it is *linearised*: at a pose ``q0`` the
+    predictor is evaluated once for ``q0`` and ``q0 ± h·e_j`` (one call, 2n + 1 poses) and
+    the samples within ``radius_deg`` of ``q0`` (every joint) get ``c(q0) + G·(q − q0)``.
+    The linearisation moves with the robot: a sample farther than the radius, or more
+    than ``max_age_s`` later (time terms), makes the newest sample the next ``q0``; a
+    batch that spans more than the radius gets the full predictor. The error is second
+    order: ≈ ½·|c''|·Δq², below 1e-4 mm for the emulated cell's gravity deflection at
+    0.25° (tests/test_twin_predictor.py against the full predictor).
+    ``radius_deg = 0``: the full predictor for every batch (as the twin did before).
+    """
+
+    def __init__(
+        self, desc: Any, *, radius_deg: float = 0.25, max_age_s: float = 1.0, h_rad: float = 4e-6
+    ) -> None:
+        from calibration.kinematics import KinematicModel
+        from calibration.model_effects import description_effects
+
+        self.desc = desc
+        self.model = KinematicModel.from_description(desc)
+        specs, _ = description_effects(desc)
+        self.has_effects = bool(specs)
+        self.radius = float(np.radians(radius_deg))
+        self.radius_deg = float(radius_deg)
+        self.max_age_s = float(max_age_s)
+        # below calibration.effect_library.MIN_MOVE_RAD: the stencil's poses keep q0's
+        # approach directions (direction-dependent terms see one pose, not a motion)
+        self.h = float(h_rad)
+        self._q0: np.ndarray | None = None
+        self._t0 = 0.0
+        self._c0 = np.zeros(3)
+        self._g = np.zeros((desc.n_joints, 3))
+        self.refreshes = 0
+        self.full_calls = 0
+        n = desc.n_joints
+        self.frame_names: tuple[str, ...] = ("base", *(f"link{i + 1}" for i in range(n)), "tcp")
+        # the chain as 4x4 matrices, constants once: joint i is Trans_x(a)·Rx(α)Ry(β) ·
+        # Rz(θ + offset)·Trans_z(d), as calibration.kinematics walks it
+        md = self.model
+        self._base = np.eye(4)
+        self._base[:3, :3] = md.base_rotation()
+        self._base[:3, 3] = md.base_mm
+        self._link = np.zeros((n, 4, 4))
+        self._link[:, :3, :3] = md.link_constants()
+        self._link[:, 0, 3] = md.a_mm
+        self._link[:, 3, 3] = 1.0
+        self._tool = np.append(md.tool_mm, 1.0)
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "modelled": self.has_effects,
+            "linearised_radius_deg": self.radius_deg,
+            "linearisations": self.refreshes,
+            "full_predictor_calls": self.full_calls,
+        }
+
+    def _chain(self, q_rad: np.ndarray, keep: bool) -> list[np.ndarray]:
+        """Poses ``(m, 4, 4)`` of the base and of the frame after each joint (``keep``),
+        else of the flange alone; one small matmul per joint and factor."""
+        q = np.atleast_2d(q_rad)
+        m, n = q.shape
+        theta = q + self.model.theta_offset_rad
+        c, s_ = np.cos(theta), np.sin(theta)
+        z = np.zeros((m, n, 4, 4))  # Rz(θ)·Trans_z(d)
+        z[:, :, 0, 0] = c
+        z[:, :, 0, 1] = -s_
+        z[:, :, 1, 0] = s_
+        z[:, :, 1, 1] = c
+        z[:, :, 2, 2] = 1.0
+        z[:, :, 2, 3] = self.model.d_mm
+        z[:, :, 3, 3] = 1.0
+        t = np.broadcast_to(self._base, (m, 4, 4))
+        out = [t] if keep else []
+        for i in range(n):
+            t = t @ self._link[i] @ z[:, i]
+            if keep:
+                out.append(t)
+        return out if keep else [t]
+
+    def _geometric(self, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        fl = self._chain(q_rad, keep=False)[0]
+        return (fl @ self._tool)[:, :3], fl
+
+    def _full(self, q_rad: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+        from calibration.model_effects import predict_tcp
+
+        self.full_calls += 1
+        return predict_tcp(self.desc, q_rad, t_s)
+
+    def _linearise(self, q0: np.ndarray, t0: float) -> None:
+        n = len(q0)
+        step = self.h * np.eye(n)
+        qs = np.vstack([q0, q0 + step, q0 - step])
+        c = self._full(qs, np.full(len(qs), t0)) - self._geometric(qs)[0]
+        self._c0 = c[0]
+        self._g = (c[1 : n + 1] - c[n + 1 :]) / (2 * self.h)  # (n, 3): dc/dq_j
+        self._q0 = q0.copy()
+        self._t0 = t0
+        self.refreshes += 1
+
+    def tcp_and_flange(self, q_rad: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """TCP ``(m, 3)`` mm with the modelled effects and flange poses ``(m, 4, 4)``."""
+        tcp, fl = self._geometric(q_rad)
+        if not self.has_effects:
+            return tcp, fl
+        if self.radius <= 0:
+            return self._full(q_rad, t_s), fl
+        q_new, t_new = q_rad[-1], float(t_s[-1])
+        if (
+            self._q0 is None
+            or float(np.max(np.abs(q_new - self._q0))) > self.radius
+            or abs(t_new - self._t0) > self.max_age_s
+        ):
+            self._linearise(q_new, t_new)
+        assert self._q0 is not None
+        dq = q_rad - self._q0
+        if float(np.max(np.abs(dq))) > self.radius:  # a batch wider than the radius
+            return self._full(q_rad, t_s), fl
+        return tcp + self._c0 + dq @ self._g, fl
+
+    def frames(self, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Origins ``(m, k, 3)`` mm and rotations ``(m, k, 4)`` (w, x, y, z) of the frames
+        ``frame_names`` (base, the frame after each joint, the TCP), tracker frame,
+        geometry only (the modelled effects move the TCP by well under a millimetre)."""
+        poses = self._chain(q_rad, keep=True)
+        t = np.stack(poses, axis=1)  # (m, n + 1, 4, 4)
+        m, k = t.shape[0], t.shape[1] + 1
+        pos = np.empty((m, k, 3))
+        pos[:, :-1] = t[:, :, :3, 3]
+        pos[:, -1] = (poses[-1] @ self._tool)[:, :3]
+        rot = np.concatenate([t[:, :, :3, :3], t[:, -1:, :3, :3]], axis=1)
+        quat = _quaternions(rot.reshape(-1, 3, 3)).reshape(m, k, 4)
+        return pos, quat
 
 
 def _zenoh_config(args: argparse.Namespace):  # type: ignore[no-untyped-def]
@@ -126,24 +390,10 @@ class LiveTwin:
         return pick_streams(self.builders, "live zenoh")
 
     # -- publication -----------------------------------------------------------------
-    def publish(self, run: dict[str, Any], out: Path) -> int:
-        from calibration.description import load_robot
-        from calibration.kinematics import KinematicModel, flange_poses
-        from calibration.model_effects import predict_tcp
-        from calibration.scale_files import read_scale_toml
-        from daq.bus import JSON_ENCODING, ChannelPublisher, SchemaServer
-        from daq.columnar import Column, StreamSchema
-
-        args, say = self.args, self.say
-        desc = load_robot(run["calibrated"])
-        model = KinematicModel.from_description(desc)
-        scale = read_scale_toml(run["files"]["scale"])
-        phases = json.loads(Path(run["files"]["phases"]).read_text())
-        enc_offset = np.asarray(phases.get("encoder_offset_deg") or [0.0] * desc.n_joints)
-        gear = np.array([j.gear_ratio or 100.0 for j in desc.joints], dtype=float)
-        cpr = float(phases.get("encoder_counts_per_rev", 131072))
-        t0_ns = int(phases.get("campaign", {}).get("t0_ns", 0))
-        n = desc.n_joints
+    def _wait_for_grating(self) -> StreamBuilder:
+        """The grating stream: collected already, or named by its first batch (--from),
+        waited for at most ``--wait-s``."""
+        args = self.args
         grating = next((b for b in self.builders.values() if b.kind == "grating"), None)
         wait_s = float(getattr(args, "wait_s", 60.0))
         deadline = time.monotonic() + wait_s
@@ -157,45 +407,79 @@ class LiveTwin:
             if got is not None:
                 self._add(got)
                 grating = next((b for b in self.builders.values() if b.kind == "grating"), None)
+        return grating
+
+    def _narrow_to(self, grating: StreamBuilder) -> None:
+        """Subscribe to the grating key and the encoders' keys only (not the tracker and
+        whatever else ``--key`` matches): the twin's thread is woken for what it uses."""
+        from calibration.streams import stream_kind
+        from daq.bus import Receiver, fetch_schemas
+
+        keys = [grating.key]
+        for key, schema in sorted(fetch_schemas(self.session, self.args.key).items()):
+            if key != grating.key and stream_kind(c.name for c in schema.columns) == "encoders":
+                keys.append(key)
+        for key, b in sorted(self.builders.items()):
+            if b.kind == "encoders" and key not in keys:
+                keys.append(key)
+        narrow = Receiver(self.session, keys)
+        old, self.receiver = self.receiver, narrow
+        old.close()
+
+    def publish(self, run: dict[str, Any], out: Path) -> int:
+        import sys
+
+        from calibration.description import load_robot
+        from calibration.scale_files import read_scale_toml
+        from daq.bus import JSON_ENCODING, ChannelPublisher, SchemaServer
+
+        args, say = self.args, self.say
+        desc = load_robot(run["calibrated"])
+        scale = read_scale_toml(run["files"]["scale"])
+        phases = json.loads(Path(run["files"]["phases"]).read_text())
+        enc_offset = np.asarray(phases.get("encoder_offset_deg") or [0.0] * desc.n_joints)
+        gear = np.array([j.gear_ratio or 100.0 for j in desc.joints], dtype=float)
+        cpr = float(phases.get("encoder_counts_per_rev", 131072))
+        t0_ns = int(phases.get("campaign", {}).get("t0_ns", 0))
+        n = desc.n_joints
+        grating = self._wait_for_grating()
+        self._narrow_to(grating)
         cell = str(grating.meta.get("cell", "cell"))
         robot = str(grating.meta.get("robot", "robot"))
         keys = twin_keys(cell, robot)
-        schema = StreamSchema(
-            keys["state"],
-            (
-                Column("seq", "uint64", (), "", None, "twin sample number"),
-                Column("t_mapped_ns", "int64", (), "ns", "host_utc", "grating sample time"),
-                Column("t_publish_ns", "int64", (), "ns", "host_utc", "when published"),
-                Column("q_deg", "float64", (n,), "deg", None, "joint angles from the gratings"),
-                Column("tcp_mm", "float64", (3,), "mm", None, "TCP, tracker frame"),
-                Column("flange_mm", "float64", (3,), "mm", None, "flange origin"),
-                Column("flange_quat", "float64", (4,), "", None, "flange rotation w, x, y, z"),
-                Column(
-                    "encoder_minus_grating_deg",
-                    "float64",
-                    (n,),
-                    "deg",
-                    None,
-                    "motor encoder joint angle minus grating angle (NaN: no encoder)",
-                ),
-            ),
-            {"cell": cell, "robot": robot, "model": str(run["calibrated"]), "source": "twin run"},
-        )
+        model_name = str(run["calibrated"])
+        radius = float(getattr(args, "effects_radius_deg", 0.25))
+        predictor = TwinPredictor(desc, radius_deg=radius)
+        reader = AngleReader(scale, n, desc.home, radius_deg=radius)
         schemas = SchemaServer(self.session, TWIN_PREFIX)
-        pub = ChannelPublisher(self.session, schema, schemas=schemas)
+        pub = ChannelPublisher(
+            self.session, state_schema(keys["state"], n, cell, robot, model_name), schemas=schemas
+        )
+        frames_pub = ChannelPublisher(
+            self.session,
+            frames_schema(keys["frames"], predictor.frame_names, cell, robot, model_name),
+            schemas=schemas,
+        )
         health_pub = self.session.declare_publisher(keys["health"], encoding=JSON_ENCODING)
         say(f"publishing the live twin on {keys['state']} (health: {keys['health']})")
         print(json.dumps({"twin": "live", "keys": keys}), flush=True)
+        # the receiving thread waits for the interpreter at most this long while this
+        # one computes (Python's default is 5 ms; the daemon uses the same)
+        sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
+        frames_every_ns = (
+            int(1e9 / args.frames_hz) if getattr(args, "frames_hz", 30.0) > 0 else None
+        )
+        next_frames_ns = 0
         enc_t = np.empty(0, dtype=np.int64)
         enc_v = np.empty((0, n))
-        seq = 0
-        lat: list[float] = []
-        lat_all: list[float] = []
+        seq = frames_seq = 0
+        lat: list[np.ndarray] = []  # end to end, settled clock maps (ms)
+        lat_all: list[np.ndarray] = []
+        upstream: list[np.ndarray] = []  # latch -> zenoh handed the batch to the twin
+        own: list[np.ndarray] = []  # zenoh handed it over -> the twin published
         period_start = time.monotonic()
         samples_period = 0
         started = time.monotonic()
-        joints = np.arange(1, n + 1)
-        home = np.array(desc.home, dtype=float)
         while True:
             if args.publish_s and time.monotonic() - started >= args.publish_s:
                 break
@@ -209,32 +493,29 @@ class LiveTwin:
             if got is not None:
                 batch.append(got)
             now_m = time.monotonic()
-            g_counts, g_t, g_ok = [], [], []
+            g_counts, g_t, g_ok, g_recv = [], [], [], []
             for got in batch:
                 b = self.builders.get(got.key)
                 if b is None:
                     b = self.builders[got.key] = StreamBuilder(got.key, got.schema.to_json())
                 cols = got.columns
-                if b.kind == "encoders":
+                if b.kind == "grating":
+                    g_counts.append(np.column_stack([cols[c] for c in b.channels]))
+                    g_t.append(np.asarray(cols["t_mapped_ns"], dtype=np.int64))
+                    g_ok.append(np.asarray(cols["t_mapped_ok"], dtype=np.uint8))
+                    g_recv.append(np.full(len(g_t[-1]), got.t_recv_ns, dtype=np.int64))
+                elif b.kind == "encoders":
                     v = np.column_stack([cols[c] for c in b.channels]).astype(float)
                     deg = v / cpr * 360.0 / gear + enc_offset
                     enc_t = np.concatenate((enc_t, cols["t_mapped_ns"]))[-2000:]
                     enc_v = np.concatenate((enc_v, deg))[-2000:]
-                elif b.kind == "grating":
-                    g_counts.append(np.column_stack([cols[c] for c in b.channels]))
-                    g_t.append(np.asarray(cols["t_mapped_ns"], dtype=np.int64))
-                    g_ok.append(np.asarray(cols["t_mapped_ok"], dtype=np.uint8))
             if g_counts:
-                counts = np.concatenate(g_counts)
-                t_map = np.concatenate(g_t)
-                settled = np.concatenate(g_ok) == 1
+                counts = np.concatenate(g_counts) if len(g_counts) > 1 else g_counts[0]
+                t_map = np.concatenate(g_t) if len(g_t) > 1 else g_t[0]
+                settled = (np.concatenate(g_ok) if len(g_ok) > 1 else g_ok[0]) == 1
                 m = counts.shape[0]
-                jj = np.broadcast_to(joints, (m, n))
-                angle = scale.angles_deg(jj.ravel(), counts.ravel()).reshape(m, n)
-                q = home + angle
-                q_rad = np.radians(q)
-                tcp = predict_tcp(desc, q_rad, (t_map - t0_ns) * 1e-9)
-                fl = flange_poses(model, q_rad)
+                q = reader.angles(counts)
+                tcp, fl = predictor.tcp_and_flange(np.radians(q), (t_map - t0_ns) * 1e-9)
                 diff = np.full((m, n), np.nan)
                 if enc_t.size:
                     idx = np.clip(np.searchsorted(enc_t, t_map), 0, enc_t.size - 1)
@@ -255,10 +536,26 @@ class LiveTwin:
                 seq += m
                 samples_period += m
                 # latency on settled clock maps only (provisional mapped times can be off)
-                lat.extend(((t_pub - t_map[settled]) * 1e-6).tolist())
-                lat_all.extend(((t_pub - t_map) * 1e-6).tolist())
+                recv = np.concatenate(g_recv) if len(g_recv) > 1 else g_recv[0]
+                lat.append((t_pub - t_map[settled]) * 1e-6)
+                lat_all.append((t_pub - t_map) * 1e-6)
+                upstream.append((recv[settled] - t_map[settled]) * 1e-6)
+                own.append((t_pub - recv) * 1e-6)
+                # the link frames of the newest sample, at a bounded rate (for viewers and
+                # recorders: Foxglove's frame transforms), after the state went out
+                if frames_every_ns is not None and t_pub >= next_frames_ns:
+                    next_frames_ns = t_pub + frames_every_ns
+                    pos, quat = predictor.frames(np.radians(q[-1:]))
+                    frames_pub.publish(
+                        {
+                            "seq": np.array([frames_seq], dtype=np.uint64),
+                            "t_mapped_ns": t_map[-1:],
+                            "frame_mm": pos,
+                            "frame_quat": quat,
+                        }
+                    )
+                    frames_seq += 1
             if now_m - period_start >= 1.0:
-                a = np.asarray(lat if lat else lat_all) if (lat or lat_all) else np.zeros(1)
                 doc = {
                     "t_host_ns": time.time_ns(),
                     "cell": cell,
@@ -266,23 +563,33 @@ class LiveTwin:
                     "state": "publishing",
                     "rate_hz": samples_period / (now_m - period_start),
                     "samples": seq,
-                    "latency_ms": {
-                        "p50": float(np.percentile(a, 50)),
-                        "p99": float(np.percentile(a, 99)),
-                        "max": float(a.max()),
-                    },
+                    "latency_ms": _percentiles(lat if any(x.size for x in lat) else lat_all),
                     "latency": "publication time minus the grating sample's mapped time",
-                    "clock_settled": bool(lat),
-                    "model": str(run["calibrated"]),
+                    "upstream_ms": _percentiles(upstream),
+                    "upstream": "the twin's receipt of the batch minus the mapped time "
+                    "(device, daemon, zenoh)",
+                    "twin_ms": _percentiles(own),
+                    "twin": "publication time minus the twin's receipt (the twin's own share)",
+                    "clock_settled": any(x.size for x in lat),
+                    "model": model_name,
+                    "effects": predictor.describe(),
+                    "scale_maps": {
+                        "linearised_radius_deg": reader.radius_deg,
+                        "linearisations": reader.refreshes,
+                        "full_map_calls": reader.full_calls,
+                    },
                 }
                 health_pub.put(json.dumps(doc))
                 say(
                     f"live twin: {doc['rate_hz']:.0f} samples/s, latency p50 "
-                    f"{doc['latency_ms']['p50']:.1f} ms, p99 {doc['latency_ms']['p99']:.1f} ms"
-                    + ("" if lat else " (clock map not settled yet)")
+                    f"{doc['latency_ms']['p50']:.1f} ms, p99 {doc['latency_ms']['p99']:.1f} ms "
+                    f"(the twin's own p50 {doc['twin_ms']['p50']:.2f} ms)"
+                    + ("" if doc["clock_settled"] else " (clock map not settled yet)")
                 )
-                period_start, samples_period, lat, lat_all = now_m, 0, [], []
+                period_start, samples_period = now_m, 0
+                lat, lat_all, upstream, own = [], [], [], []
         pub.close()
+        frames_pub.close()
         health_pub.undeclare()
         schemas.close()
         say(f"published {seq} twin samples")

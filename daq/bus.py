@@ -286,7 +286,7 @@ class Receiver:
     def __init__(
         self,
         session: zenoh.Session,
-        key_expr: str,
+        key_expr: str | tuple[str, ...] | list[str],
         *,
         capacity: int = 65536,
         on_other: Callable[[zenoh.Sample], None] | None = None,
@@ -295,9 +295,14 @@ class Receiver:
     ) -> None:
         self._session = session
         self._schemas: dict[str, StreamSchema] = {}
+        # several key expressions: one subscriber each, into the same queue or callback
+        # (the exact keys of a few streams instead of a wildcard that brings others too)
+        exprs = (key_expr,) if isinstance(key_expr, str) else tuple(key_expr)
         if prefetch_schemas:
-            self._schemas.update(fetch_schemas(session, key_expr))
-        self._queue: queue.SimpleQueue[zenoh.Sample] = queue.SimpleQueue()
+            for expr in exprs:
+                self._schemas.update(fetch_schemas(session, expr))
+        # (sample, host UTC ns when zenoh handed it over)
+        self._queue: queue.SimpleQueue[tuple[zenoh.Sample, int]] = queue.SimpleQueue()
         self._capacity = capacity
         self._closed = False
         self._on_other = on_other
@@ -314,13 +319,17 @@ class Receiver:
             self._drainer = threading.Thread(target=self._drain, name="receiver-backlog")
             self._drainer.daemon = True
             self._drainer.start()
-        self._sub = session.declare_subscriber(key_expr, zenoh.handlers.Callback(push))
+        self._subs = [
+            session.declare_subscriber(expr, zenoh.handlers.Callback(push)) for expr in exprs
+        ]
+        self._sub: Any = self._subs[0] if self._subs else None
 
     def _push(self, sample: zenoh.Sample) -> None:
         # zenoh's callback thread: a full queue waits for the reader (back-pressure)
+        t_recv = time.time_ns()
         while self._queue.qsize() >= self._capacity and not self._closed:
             time.sleep(0.0005)
-        self._queue.put(sample)
+        self._queue.put((sample, t_recv))
 
     def _hand_over(self, sample: zenoh.Sample) -> None:
         # zenoh's callback thread, push mode: decode and deliver here, unless the schema
@@ -423,16 +432,16 @@ class Receiver:
         deadline = time.monotonic() + timeout_s
         while True:
             try:
-                sample = self._queue.get_nowait()
+                sample, t_recv = self._queue.get_nowait()
             except queue.Empty:
                 left = deadline - time.monotonic()
                 if left <= 0 or self._sub is None:
                     return None
                 try:
-                    sample = self._queue.get(timeout=left)
+                    sample, t_recv = self._queue.get(timeout=left)
                 except queue.Empty:
                     return None
-            got = self._decode(sample)
+            got = self._decode(sample, t_recv)
             if got is not None:
                 return got  # type: ignore[return-value]
 
@@ -443,9 +452,9 @@ class Receiver:
                 yield got
 
     def close(self) -> None:
-        sub, self._sub = self._sub, None
+        subs, self._subs, self._sub = self._subs, [], None
         self._closed = True  # a callback waiting for room gives up
-        if sub is not None:
+        for sub in subs:
             sub.undeclare()
         with self._one_at_a_time:  # a batch being handed over is finished with
             pass

@@ -192,6 +192,56 @@ class FakeDriver(Driver):  # type: ignore[misc,valid-type]
         )
 
 
+GRATING6_SCHEMA = (
+    BatchSchema(
+        kind="fake_grating",
+        channels=tuple(
+            ChannelSchema(f"grating{i + 1}_counts", "count", "int64", f"joint {i + 1}")
+            for i in range(6)
+        ),
+        status_bits={1: "valid"},
+        device_clock="fake µs clock",
+        source="in-process",
+    )
+    if Driver is not object
+    else None
+)
+
+
+class FakeGratingDriver(FakeDriver):
+    """:class:`FakeDriver` with a six-joint grating box's channels (``grating1_counts`` …
+    ``grating6_counts``), so the live twin takes it for the gratings: joint ``j`` reads
+    ``offset_j + k`` at sample ``k`` (a slow, steady move). For latency benchmarks of the
+    twin without an emulator's CPU in the way (``benchmarks.bench_daq --twin``, which
+    starts it at the benchmark calibration's Home counts: ``options = { counts = [...] }``)."""
+
+    kind = "fake_grating"
+
+    def __init__(self, url: str = "fake://", counts: Any = (0, 0, 0, 0, 0, 0), **kw: Any) -> None:
+        super().__init__(url, **kw)
+        self.counts0 = np.asarray(counts, dtype=np.int64).reshape(6)
+
+    @property
+    def schema(self) -> BatchSchema:
+        return GRATING6_SCHEMA
+
+    def _read_batch(self, deadline_ns: int) -> SampleBatch | None:
+        b = super()._read_batch(deadline_ns)
+        if b is None:
+            return None
+        k = b.seq.view(np.int64)
+        n = len(k)
+        return SampleBatch(
+            GRATING6_SCHEMA,
+            b.seq,
+            b.t_device_us,
+            b.epoch,
+            b.t_host_ns,
+            k[:, None] + self.counts0,
+            np.ones((n, 6), np.uint16),
+        )
+
+
 def recorded_columns(path: Any, key: str) -> dict[str, np.ndarray]:
     """Every column of ``key``'s columnar messages in an MCAP recording, concatenated in
     file order (a streaming read: a truncated file gives what its complete chunks hold)."""
