@@ -132,6 +132,90 @@ def test_the_replay_clock_plays_pauses_seeks_and_stops_at_the_end():
         clock.set_speed(0.0)
 
 
+# -- the sources ----------------------------------------------------------------------------
+def test_a_replayed_campaign_gives_the_arm_the_poses_and_the_phase_at_each_instant():
+    from calibration.streams import read_recording_streams
+    from calibration.twin_run import measure_campaign
+    from view.model import provisional_twin
+    from view.sources import ReplaySource, pose_points
+
+    streams = read_recording_streams(DATA)
+    meas = measure_campaign(streams, load_robot("kr500"))
+    twin = provisional_twin("kr500", meas)
+    source = ReplaySource(
+        streams, twin, timeline=PhaseTimeline.from_phases(meas.phases),
+        poses=pose_points(meas, twin),
+    )  # fmt: skip
+    assert not source.clock.playing  # until the page is served
+    early, end = source.snapshot_at(5.0), source.snapshot_at(source.duration_s)
+    assert len(early.pose_points_mm) == 0 and len(end.pose_points_mm) == 250
+    # the nominal arm on a registered base, read through maps of this recording's sweeps:
+    # the tracker sees the TCP within the nominal model's error (about 1 mm)
+    err = np.linalg.norm(end.pose_points_mm - end.pose_twin_mm, axis=1)
+    assert 0.1 < float(np.mean(err)) < 3.0, np.mean(err)
+    dwell = meas.phases.dwells[meas.poses[10].dwell]  # a few ms: the campaign ran at 160x
+    at_pose = source.snapshot_at(((dwell.t0_ns + dwell.t1_ns) // 2 - source.t_start_ns) * 1e-9)
+    assert at_pose.phase == "pose 11 of 250 (identify)", at_pose.phase
+    np.testing.assert_allclose(at_pose.tcp_mm, at_pose.tracker_mm, atol=5.0)
+    assert len(at_pose.pose_points_mm) == 10
+    assert at_pose.rate_hz == pytest.approx(1000.0, rel=0.05)
+    assert at_pose.latency_ms is not None and 0 < at_pose.latency_ms[0] < 100
+
+
+def test_the_live_source_keeps_the_latest_twin_sample_and_the_twins_health():
+    from daq.bus import ChannelPublisher, SchemaServer, open_session
+    from daq.columnar import Column, StreamSchema
+    from daq.testing import free_port, loopback_sink, loopback_source
+    from view.model import nominal_twin
+    from view.sources import LiveSource
+
+    port = free_port()
+    src = open_session(loopback_source(port))
+    dst = open_session(loopback_sink(port))
+    source = None
+    try:
+        schema = StreamSchema(
+            "twin/c/robot/r/state",
+            (
+                Column("seq", "uint64", (), "", None, ""),
+                Column("t_mapped_ns", "int64", (), "ns", "host_utc", ""),
+                Column("t_publish_ns", "int64", (), "ns", "host_utc", ""),
+                Column("q_deg", "float64", (6,), "deg", None, ""),
+                Column("tcp_mm", "float64", (3,), "mm", None, ""),
+            ),
+        )
+        schemas = SchemaServer(src, "twin")
+        pub = ChannelPublisher(src, schema, schemas=schemas)
+        health = src.declare_publisher("twin/c/robot/r/health")
+        source = LiveSource(dst, nominal_twin("kr500"), phase_period_s=0.2)
+        deadline = time.monotonic() + 20
+        k = 0
+        while source.latest().q_deg is None or source.latest().q_deg[0] < k - 1:
+            assert time.monotonic() < deadline, "no twin sample reached the live source"
+            k += 1
+            now = time.time_ns()
+            pub.publish(
+                {"seq": np.array([k, k + 1]), "t_mapped_ns": np.array([now - 5, now]),
+                 "t_publish_ns": np.array([now, now + 1]),
+                 "q_deg": np.array([[0.0] * 6, [float(k)] * 6]),
+                 "tcp_mm": np.array([[0.0] * 3, [1.0, 2.0, float(k)]])}
+            )  # fmt: skip
+            health.put(json.dumps({"rate_hz": 999.0, "latency_ms": {"p50": 1.5, "p99": 4.0}}))
+            time.sleep(0.05)
+        snap = source.latest()
+        assert snap.duration_s is None  # live
+        assert snap.q_deg[0] == snap.tcp_mm[2] and snap.tcp_mm[0] == 1.0  # the batch's last
+        assert snap.published_ns == snap.t_ns + 1  # the last row's publication time
+        time.sleep(0.2)
+        snap = source.latest()
+        assert snap.rate_hz == 999.0 and snap.latency_ms == (1.5, 4.0)
+    finally:
+        if source is not None:
+            source.close()
+        dst.close()
+        src.close()
+
+
 # -- bad input: one line, exit 2 ------------------------------------------------------------
 @pytest.mark.parametrize(
     ("args", "names"),
