@@ -116,7 +116,10 @@ class EncoderCanopenDriver(Driver):
         )
         self.network: canopen.Network | None = None
         self._cond = threading.Condition()
-        self._rows: collections.deque = collections.deque(maxlen=200_000)
+        #: closed rows: sequence, device time s, host time ns, counts, status per node
+        self._rows: collections.deque[tuple[int, float, int, list[int], list[int]]] = (
+            collections.deque(maxlen=200_000)
+        )
         self._cur = [0] * self.n
         self._filled = [False] * self.n
         self._n_filled = 0

@@ -340,7 +340,8 @@ class GratingModbusDriver(Driver):
         first_seqs: list[int],
         t_send: int | None = None,
     ) -> int:
-        first_hi, first_lo, n, pending, boot = regs[:FIFO_HEADER].tolist()
+        header: list[int] = regs[:FIFO_HEADER].tolist()
+        first_hi, first_lo, n, pending, boot = header
         first = (first_hi << 16) | first_lo
         if n > MAX_SAMPLES_PER_READ or regs.shape[0] < FIFO_HEADER + n * SAMPLE_REGS:
             self.count("protocol_errors", detail=f"sample count {n}")

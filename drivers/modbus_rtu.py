@@ -166,7 +166,7 @@ class RtuMaster:
     def _drain(self) -> int:
         """Discard what is waiting (a late answer to a request that timed out)."""
         if self.fd is None:
-            n = self.port.in_waiting
+            n: int = self.port.in_waiting
             if n:
                 self.port.read(n)
             return n
@@ -181,7 +181,8 @@ class RtuMaster:
     def _read(self, want: int, deadline: float) -> bytes:
         """What arrives until ``deadline`` (at least one byte unless it passes)."""
         if self.fd is None:
-            return self.port.read(want)
+            data: bytes = self.port.read(want)
+            return data
         return read_available(self.fd, max(0.0, deadline - time.monotonic()), 4096)
 
     def transact(self, request: bytes, fc: int, n_regs: int) -> Reply:
