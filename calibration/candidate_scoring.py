@@ -99,7 +99,8 @@ def scaled(a: FloatArray) -> FloatArray:
     """Columns divided by their RMS (zero columns left as they are)."""
     s = np.sqrt(np.mean(a * a, axis=0))
     s[s == 0.0] = 1.0
-    return a / s
+    out: FloatArray = a / s
+    return out
 
 
 def keep_columns(basis_q: FloatArray, cols: FloatArray, rtol: float) -> NDArray[np.bool_]:
@@ -312,17 +313,19 @@ def choose(
     ranked = sorted((s for s in scores if s.significant), key=lambda s: -s.score)
     best = ranked[0]
     prior = [s for s in ranked if priority(s.spec) < priority(best.spec)]
-    best_basis = residual_basis(lin, columns[best.spec]) if prior else None
-    for other in prior:  # by score
-        cos = cosines_between(best_basis, residual_basis(lin, columns[other.spec]))
-        if contained_in(cos, best.n_parameters):
-            reason = (
-                f"physical priority: {best.label} (score {best.score:.1f}) lies within "
-                f"{other.label} (principal cosines {', '.join(f'{c:.3f}' for c in cos[:3])}); "
-                f"a {other.spec.kind.replace('_', ' ')} comes before a "
-                f"{best.spec.kind.replace('_', ' ')} when the data cannot tell them apart"
-            )
-            return other, reason
+    if prior:
+        best_basis = residual_basis(lin, columns[best.spec])
+        for other in prior:  # by score
+            cos = cosines_between(best_basis, residual_basis(lin, columns[other.spec]))
+            if contained_in(cos, best.n_parameters):
+                shown = ", ".join(f"{c:.3f}" for c in cos[:3])
+                reason = (
+                    f"physical priority: {best.label} (score {best.score:.1f}) lies within "
+                    f"{other.label} (principal cosines {shown}); "
+                    f"a {other.spec.kind.replace('_', ' ')} comes before a "
+                    f"{best.spec.kind.replace('_', ' ')} when the data cannot tell them apart"
+                )
+                return other, reason
     return best, "best penalized cross-validated score of the significant candidates"
 
 
@@ -347,10 +350,10 @@ def competitors(
     rows.sort(key=lambda r: -r[0])
     out = []
     for _, s, cos in rows[:top]:
-        scores = f"score {chosen.score:.1f} against {s.score:.1f} σ²"
+        by_score = f"score {chosen.score:.1f} against {s.score:.1f} σ²"
         shown = ", ".join(f"{c:.2f}" for c in cos[:3])
         if contained_in(cos, s.n_parameters) or contained_in(cos, chosen.n_parameters):
-            by = "physical priority" if priority(chosen.spec) < priority(s.spec) else scores
+            by = "physical priority" if priority(chosen.spec) < priority(s.spec) else by_score
             why = f"cannot be told apart by the data (principal cosines {shown}); {by}"
         elif not s.significant:
             why = f"not significant (corrected p {s.p_adjusted:.2g}, score {s.score:.1f} σ²)"
@@ -361,7 +364,7 @@ def competitors(
                 "physical priority"
             )
         else:
-            why = scores
+            why = by_score
         out.append(
             Competitor(s.label, s.spec.kind, tuple(float(c) for c in cos[:3]), s.score,
                        s.significant, why)

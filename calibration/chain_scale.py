@@ -26,8 +26,9 @@ residual beside the whole-chain one so a user sees what the chain removed.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -61,7 +62,8 @@ class JointAxis:
         a = np.asarray(angle_rad, dtype=float)[:, None]
         k = self.direction
         rotated = p * np.cos(a) + np.cross(k, p) * np.sin(a) + np.outer(p @ k, k) * (1 - np.cos(a))
-        return rotated + self.point_mm
+        moved: FloatArray = rotated + self.point_mm
+        return moved
 
 
 def undo_upstream(
@@ -95,17 +97,26 @@ class ChainCorrection:
 
 
 @dataclass(frozen=True, eq=False)
-class ScaleCampaignResult:
-    """Every joint's calibration, in joint order, and what the chain removed per joint."""
+class ScaleCampaignResult(Sequence[JointScaleResult]):
+    """Every joint's calibration, in joint order, and what the chain removed per joint.
+
+    A sequence of the joints' results (what the scale file and the report take)."""
 
     results: tuple[JointScaleResult, ...]
     chain: Mapping[int, ChainCorrection]
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[JointScaleResult]:
         return iter(self.results)
 
     def __len__(self) -> int:
         return len(self.results)
+
+    @overload
+    def __getitem__(self, index: int) -> JointScaleResult: ...
+    @overload
+    def __getitem__(self, index: slice) -> tuple[JointScaleResult, ...]: ...
+    def __getitem__(self, index: int | slice) -> JointScaleResult | tuple[JointScaleResult, ...]:
+        return self.results[index]
 
     def by_joint(self) -> dict[int, JointScaleResult]:
         return {r.joint: r for r in self.results}
@@ -135,12 +146,11 @@ def calibrate_scales(
     for j in sorted(sweeps):
         sweep = sweeps[j]
         home = None if home_counts is None else home_counts.get(j)
-        kwargs = dict(
-            home_deg=None if home_deg is None else home_deg[j - 1],
-            limits_deg=None if limits_deg is None else limits_deg[j - 1],
-            options=opt,
+        joint_home = None if home_deg is None else home_deg[j - 1]
+        joint_limits = None if limits_deg is None else limits_deg[j - 1]
+        circle_only = calibrate_joint(
+            sweep, home, home_deg=joint_home, limits_deg=joint_limits, options=opt
         )
-        circle_only = calibrate_joint(sweep, home, **kwargs)
         upstream, missing, largest = _upstream(sweep, done) if chain else ([], (), {})
         unseen = None if link_rotations_rad is None else link_rotations_rad.get(j)
         if unseen is not None:
@@ -152,17 +162,20 @@ def calibrate_scales(
             continue
         corrected = replace(sweep, points_mm=undo_upstream(sweep.points_mm, upstream))
         try:
-            done[j] = calibrate_joint(corrected, home, **kwargs)
+            done[j] = calibrate_joint(
+                corrected, home, home_deg=joint_home, limits_deg=joint_limits, options=opt
+            )
         except ScaleError as exc:
             raise ScaleError(f"joint {j}: with the upstream joints taken out: {exc}") from exc
         note = _note([u for u in upstream if u[0].joint != j], largest, missing)
         if unseen is not None:
             note += f"; modelled deflection after the rings taken out (joints 1..{j})"
         done[j] = replace(done[j], notes=(*done[j].notes, note))
-        own = up = None
+        own_arcsec: tuple[float, float] | None = None
+        up: dict[int, float] | None = None
         if unseen is not None:
             arcsec = np.degrees(np.asarray(unseen, dtype=float)) * 3600.0
-            own = (
+            own_arcsec = (
                 float(np.sqrt(np.mean(arcsec[:, j - 1] ** 2))),
                 float(np.abs(arcsec[:, j - 1]).max()),
             )
@@ -173,7 +186,7 @@ def calibrate_scales(
             largest,
             circle_only,
             missing,
-            own,
+            own_arcsec,
             up,
         )
     return ScaleCampaignResult(tuple(done[j] for j in sorted(done)), corrections)

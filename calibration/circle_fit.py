@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -66,7 +67,8 @@ class FactoredAngleCovariance:
     def angle_std_rad(self) -> FloatArray:
         """Standard deviation of every angle, ``(N,)`` rad."""
         d, b = self.angle_covariance_factors()
-        return np.sqrt(d + np.einsum("ij,ij->i", b, b))
+        std: FloatArray = np.sqrt(d + np.einsum("ij,ij->i", b, b))
+        return std
 
 
 @dataclass(frozen=True, eq=False)
@@ -200,12 +202,16 @@ def _basis(normal: FloatArray) -> FloatArray:
     """A unit vector in the plane of ``normal``: the world axis least aligned with it."""
     ref = np.eye(3)[int(np.argmin(np.abs(normal)))]
     u = ref - (ref @ normal) * normal
-    return u / np.linalg.norm(u)
+    unit: FloatArray = u / np.linalg.norm(u)
+    return unit
 
 
-def _tilted_normal(normal: FloatArray, u: FloatArray, v: FloatArray, tu: float, tv: float):
+def _tilted_normal(
+    normal: FloatArray, u: FloatArray, v: FloatArray, tu: float, tv: float
+) -> FloatArray:
     n = normal + tu * u + tv * v
-    return n / np.linalg.norm(n)
+    unit: FloatArray = n / np.linalg.norm(n)
+    return unit
 
 
 def _angles_at(fit: CircleFit, delta: FloatArray) -> FloatArray:
@@ -218,7 +224,8 @@ def _angles_at(fit: CircleFit, delta: FloatArray) -> FloatArray:
     u /= np.linalg.norm(u)
     v = np.cross(n, u)
     w = fit.points_mm - c
-    return np.arctan2(w @ v, w @ u)
+    angles: FloatArray = np.arctan2(w @ v, w @ u)
+    return angles
 
 
 def _plane_svd(points: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -294,7 +301,8 @@ def circle_jacobian(
     jac[n_pts:, :3] = -v / r[:, None]
     jac[n_pts:, 3:5] = -(a / r)[:, None] * da_dt
     jac[n_pts:, 5] = -1.0
-    return jac * np.concatenate([weight, weight])[:, None]
+    weighted: FloatArray = jac * np.concatenate([weight, weight])[:, None]
+    return weighted
 
 
 @dataclass(frozen=True, eq=False)
@@ -342,7 +350,8 @@ def _fit_core(points: FloatArray, sigma: FloatArray) -> _Core:
     jac = circle_jacobian(np.concatenate([x[:3], [0.0, 0.0], x[5:]]), *args[:2], normal, u, v)
     info = jac.T @ jac
     try:
-        cov_unit = np.linalg.inv(info)
+        # numpy's stubs type inv() of a float64 array as floating[Any]
+        cov_unit = cast(FloatArray, np.linalg.inv(info))
     except np.linalg.LinAlgError as exc:
         raise CircleFitError("points do not determine a circle (singular fit)") from exc
     dof = 2 * len(points) - N_PARAMETERS
@@ -355,7 +364,8 @@ def _point_chi2(core: _Core, points: FloatArray, sigma: FloatArray) -> FloatArra
     w = points - core.centre
     a = w @ core.normal
     r = np.sqrt(np.maximum(np.einsum("ij,ij->i", w, w) - a * a, 0.0))
-    return (a * a + (r - core.radius) ** 2) / sigma**2
+    chi2: FloatArray = (a * a + (r - core.radius) ** 2) / sigma**2
+    return chi2
 
 
 def fit_circle_3d(

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -23,7 +24,7 @@ if TYPE_CHECKING:  # the solver loads when the command runs, not for --help
     from calibration.compensation import CompensationResult
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "compensate",
         help="joint commands that put the calibrated TCP on target positions",
@@ -73,10 +74,11 @@ def run_compensate(args: argparse.Namespace) -> int:
         )
         bad = np.flatnonzero(~res.ok)
         if bad.size and not args.skip_bad:
-            k = int(bad[0])
+            first = int(bad[0])
             raise DataFileError(
-                f"{targets.source}: line {targets.lines[k]} (target {targets.target[k]!r}): "
-                f"{res.reason[k]} ({bad.size} such target(s); --skip-bad leaves them out)"
+                f"{targets.source}: line {targets.lines[first]} "
+                f"(target {targets.target[first]!r}): "
+                f"{res.reason[first]} ({bad.size} such target(s); --skip-bad leaves them out)"
             )
         _write_joints(out_path, desc.n_joints, targets.target, res)
     for k in bad:
@@ -97,7 +99,7 @@ def run_compensate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_joints(path: str, n_joints: int, ids: tuple[str, ...], res: CompensationResult) -> None:
+def _write_joints(path: Path, n_joints: int, ids: tuple[str, ...], res: CompensationResult) -> None:
     """joints.csv: the reached targets; ``force_deflection_mm`` (the process force's
     deflection taken out, mm) only when the targets gave a force."""
     deflection = res.force_deflection_mm
@@ -107,7 +109,7 @@ def _write_joints(path: str, n_joints: int, ids: tuple[str, ...], res: Compensat
         w.writerow([*header, *([] if deflection is None else ["force_deflection_mm"])])
         for i in np.flatnonzero(res.ok):
             travel = f"{res.travel_deg[i]:.6f}" if np.isfinite(res.travel_deg[i]) else ""
-            row = [ids[i], *(f"{v:.9f}" for v in res.q_deg[i])]
+            row: list[str | int] = [ids[i], *(f"{v:.9f}" for v in res.q_deg[i])]
             row += [f"{res.residual_mm[i]:.3e}", int(res.branch[i]), travel]
             if deflection is not None:
                 row.append(f"{np.linalg.norm(deflection[i]):.6f}")

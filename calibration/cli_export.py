@@ -18,7 +18,7 @@ from edges.command import progress
 from edges.outputs import OutputSet
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "export",
         help="write the phases found in a recording as home.csv, sweep.csv, campaign.csv",

@@ -14,12 +14,20 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 
-from calibration.campaign_files import read_campaign, read_joint_readings, write_points
+from calibration.campaign_files import (
+    Campaign,
+    read_campaign,
+    read_joint_readings,
+    write_points,
+)
 from calibration.description import RobotDescription
 from calibration.errors import (
     CalibrationError,
@@ -46,8 +54,13 @@ from calibration.unit_plausibility import (
 )
 from edges.outputs import OutputSet
 
+if TYPE_CHECKING:  # the closed loop loads when a command runs it, not for --help
+    from calibration.closed_loop import ClosedLoopResult, LoopSettings
 
-def register(sub: argparse._SubParsersAction) -> None:
+FloatArray = NDArray[np.float64]
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "identify",
         help="identify kinematic parameters from a campaign",
@@ -151,7 +164,7 @@ def _check_options(args: argparse.Namespace) -> None:
     _loop_settings(args)
 
 
-def _loop_settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+def _loop_settings(args: argparse.Namespace) -> LoopSettings:
     from calibration.closed_loop import LoopSettings
 
     kinds = None
@@ -183,7 +196,12 @@ def run_identify(args: argparse.Namespace) -> int:
     return 0
 
 
-def _identify(args, out_path, report_dir, say) -> list[str]:  # type: ignore[no-untyped-def]
+def _identify(
+    args: argparse.Namespace,
+    out_path: Path,
+    report_dir: Path | None,
+    say: Callable[[str], None],
+) -> list[str]:
     """The identification, writing to the staged ``out_path`` and ``report_dir``; the
     lines to print once the outputs are in place."""
     desc = load_checked_robot(args.robot)
@@ -311,7 +329,15 @@ def _require_converged(result: IdentificationResult, which: str) -> None:
         )
 
 
-def _closed_loop(args, desc, campaign, start, point_sigma, geometric, say):  # type: ignore[no-untyped-def]
+def _closed_loop(
+    args: argparse.Namespace,
+    desc: RobotDescription,
+    campaign: Campaign,
+    start: str,
+    point_sigma: FloatArray | None,
+    geometric: IdentificationResult,
+    say: Callable[[str], None],
+) -> ClosedLoopResult:
     from calibration.closed_loop import run_closed_loop
 
     settings = _loop_settings(args)

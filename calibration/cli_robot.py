@@ -13,7 +13,7 @@ from calibration.model_effects import description_effects, load_checked_robot
 from edges.outputs import OutputSet
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("robot", help="list presets or check a robot description file")
     p.add_argument("robot", nargs="?", help="preset name or path to a robot .toml")
     p.add_argument("--out", help="write the description back (normalized) to this file")

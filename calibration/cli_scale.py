@@ -12,12 +12,15 @@ import time
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from calibration.chain_scale import ScaleCampaignResult, calibrate_scales, with_load_notes
 from calibration.description import RobotDescription, load_robot
 from calibration.errors import DataFileError, OptionError, OutputFileError, ScaleError
 from calibration.grating_scale import TERMS, ScaleOptions, TrackerSpec, check_terms
 from calibration.scale_files import (
+    CountsTable,
+    ScaleCalibration,
     read_counts_csv,
     read_home_csv,
     read_scale_toml,
@@ -30,7 +33,7 @@ from calibration.unit_plausibility import OVERRIDE, check_sweep_units
 from edges.outputs import OutputSet
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "scale",
         help="grating-scale calibration from home.csv and sweep.csv",
@@ -163,7 +166,9 @@ def run_scale(args: argparse.Namespace) -> int:
     return 0
 
 
-def _scale(args, options, out_path, report_dir) -> list[str]:  # type: ignore[no-untyped-def]
+def _scale(
+    args: argparse.Namespace, options: ScaleOptions, out_path: Path, report_dir: Path | None
+) -> list[str]:
     """The calibration, written to the staged ``out_path`` (and ``report_dir``); the
     lines to print once the outputs are in place."""
     robot = load_robot(args.robot) if args.robot else None
@@ -285,7 +290,9 @@ FALLBACK_RANGE_DEG = (-360.0, 360.0)
 OUT_OF_RANGE = "--allow-out-of-range"
 
 
-def _check_range(args, cal, data, angle) -> None:  # type: ignore[no-untyped-def]
+def _check_range(
+    args: argparse.Namespace, cal: ScaleCalibration, data: CountsTable, angle: NDArray[np.float64]
+) -> None:
     """Refuse the first row whose angle lies outside what the calibration covered."""
     for j in np.unique(data.joint):
         lo, hi = cal.ranges_deg.get(int(j), FALLBACK_RANGE_DEG)

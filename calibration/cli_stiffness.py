@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +27,7 @@ FloatArray = NDArray[np.float64]
 UM_PER_MM = 1000.0
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "stiffness",
         help="Cartesian compliance C = J K⁻¹ Jᵀ at poses, or joint stiffness from a load test",
@@ -67,7 +68,8 @@ def _direction(text: str) -> FloatArray:
         raise argparse.ArgumentTypeError(f"expected X,Y,Z numbers, got {text!r}") from None
     if len(v) != 3 or not np.all(np.isfinite(v)) or not np.any(v):
         raise argparse.ArgumentTypeError(f"expected a non-zero finite X,Y,Z, got {text!r}")
-    return v / np.linalg.norm(v)
+    unit: FloatArray = v / np.linalg.norm(v)
+    return unit
 
 
 def run_stiffness(args: argparse.Namespace) -> int:
@@ -124,7 +126,7 @@ def _fmt_dir(v: FloatArray) -> str:
 
 
 def _write_compliance(
-    path: str,
+    path: Path,
     desc: RobotDescription,
     ids: tuple[str, ...],
     q_deg: FloatArray,

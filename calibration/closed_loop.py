@@ -404,9 +404,11 @@ def run_closed_loop(
             shape["time_constant"] = profiles[chosen.spec].as_dict()
         step = _try_step(problem, result, specs, chosen.spec, lin, columns, tell)
         errors: dict[str, FloatArray] = {}
-        why = step if isinstance(step, str) else ""
+        why = ""
         previous = stages[-1]
-        if not why:
+        if isinstance(step, str):
+            why = step
+        else:
             new_specs, new_result, form_info = step
             shape.update(form_info)
             errors = problem.errors(new_result.model, new_specs, new_result.effect_values)

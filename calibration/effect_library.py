@@ -57,7 +57,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.description import EffectDescription, RobotDescription
+from calibration.description import EffectDescription, EffectValue, RobotDescription
 from calibration.errors import EffectLibraryError
 from calibration.gravity_regressor import (
     BaseMoments,
@@ -324,7 +324,7 @@ class EffectKind(ABC):
     @abstractmethod
     def to_parameters(
         self, spec: EffectSpec, values: FloatArray, n_joints: int
-    ) -> dict[str, float | tuple[float, ...]]: ...
+    ) -> dict[str, EffectValue]: ...
 
     @abstractmethod
     def from_parameters(
@@ -394,27 +394,40 @@ class GravityCompliance(EffectKind):
     def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         return tuple(f"joint{j}_compliance_urad_per_knm" for j in spec.joints)
 
-    def regressor(self, spec, ctx, sel, kin):
+    def regressor(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
+    ) -> FloatArray:
         tau = kin.torques_nmm(ctx.masses)
         cols = [kin.joint_axis(j) * (tau[:, j - 1] * URAD_PER_KNM)[:, None] for j in spec.joints]
         return np.stack(cols, axis=2)
 
-    def label(self, spec):
+    def label(self, spec: EffectSpec) -> str:
         return "gravity compliance (joints " + ", ".join(str(j) for j in spec.joints) + ")"
 
-    def to_parameters(self, spec, values, n_joints):
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, EffectValue]:
         c = np.zeros(n_joints)
         for j, v in zip(spec.joints, values, strict=True):
             c[j - 1] = v
         return {"compliance_urad_per_knm": tuple(float(v) for v in c)}
 
-    def from_parameters(self, params, n_joints):
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]:
         _check_keys(params, {"compliance_urad_per_knm"}, self.kind)
         c = _vector(params, "compliance_urad_per_knm", self.kind, n_joints)
         joints = tuple(range(1, n_joints + 1))
         return EffectSpec(self.kind, joints=joints), c
 
-    def evidence(self, spec, values, ctx, sel, kin):
+    def evidence(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        sel: slice,
+        kin: Kinematics,
+    ) -> Evidence:
         # the joint whose term moves the TCP most
         torques = kin.torques_nmm(ctx.masses)
         shift = [
@@ -505,10 +518,10 @@ class GravityDeflection(EffectKind):
         "(compliance × a torque linear in the links' first mass moments; no masses needed)"
     )
 
-    def slot(self, spec):
+    def slot(self, spec: EffectSpec) -> tuple[Any, ...]:
         return (spec.kind,)  # the whole arm; ``parameter`` is the form
 
-    def parameter_names(self, spec):
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         if spec.parameter == "physical":
             return tuple(
                 f"{m}_urad" if counterbalance_term(m) else f"{m}_weighted_urad" for m in spec.names
@@ -516,7 +529,9 @@ class GravityDeflection(EffectKind):
         return tuple(f"{n}_urad" for n in spec.names)
 
     @staticmethod
-    def _plain(spec: EffectSpec, gravity: FloatArray, model: KinematicModel, q: FloatArray):
+    def _plain(
+        spec: EffectSpec, gravity: FloatArray, model: KinematicModel, q: FloatArray
+    ) -> FloatArray:
         """Joint deflections per unit parameter ``(r, n, P)`` at poses ``q`` (before the
         µrad scale), the plain regressor with no sweep reference."""
         n = model.n_joints
@@ -586,22 +601,27 @@ class GravityDeflection(EffectKind):
             d = d * acting[None, :, :]
         return d @ (np.asarray(values, dtype=float) * URAD)
 
-    def regressor(self, spec, ctx, sel, kin):
+    def regressor(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
+    ) -> FloatArray:
         d = self.deflection_jacobian(spec, ctx, kin)  # (r, n, P)
         theta = kin.jacobian[:, :, 3 : 5 * d.shape[1] : 5]  # ∂TCP/∂θ_j, (r, 3, n)
-        return np.einsum("rak,rkp->rap", theta, d) * URAD
+        reg: FloatArray = np.einsum("rak,rkp->rap", theta, d) * URAD
+        return reg
 
-    def label(self, spec):
+    def label(self, spec: EffectSpec) -> str:
         joints = ", ".join(str(j) for j in spec.joints)
         form = spec.parameter or "linear"
         return f"gravity deflection (joints {joints}; {form} form)"
 
-    def to_parameters(self, spec, values, n_joints):
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, EffectValue]:
         v = tuple(float(x) for x in values)
         if spec.parameter == "physical":
             cb = [i for i, m in enumerate(spec.names) if counterbalance_term(m)]
             moments = [i for i in range(len(spec.names)) if i not in cb]
-            out: dict[str, Any] = {
+            out: dict[str, EffectValue] = {
                 "form": "physical",
                 "joints": tuple(float(j) for j in spec.joints),
                 "compliance_ratio": tuple(float(r) for r in spec.shape),
@@ -614,7 +634,9 @@ class GravityDeflection(EffectKind):
             return out
         return {"form": "linear", "terms": spec.names, "deflection_urad": v}
 
-    def from_parameters(self, params, n_joints):
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]:
         form = params.get("form", "linear")
         if form not in GRAVITY_FORMS:
             raise EffectLibraryError(
@@ -668,7 +690,14 @@ class GravityDeflection(EffectKind):
         )
         return spec, np.concatenate([values, cb_values])
 
-    def evidence(self, spec, values, ctx, sel, kin):
+    def evidence(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        sel: slice,
+        kin: Kinematics,
+    ) -> Evidence:
         defl = self.joint_deflections_rad(spec, values, ctx, kin)
         lever = np.stack([np.linalg.norm(kin.joint_axis(j), axis=1) for j in spec.joints], 1)
         shift = np.sqrt(np.mean((lever * defl[:, [j - 1 for j in spec.joints]]) ** 2, axis=0))
@@ -685,22 +714,28 @@ class JointHarmonic(EffectKind):
     kind = "joint_harmonic"
     description = "cyclic error of one joint's reading (harmonic of its angle)"
 
-    def parameter_names(self, spec):
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         return ("cos_deg", "sin_deg")
 
-    def _basis(self, spec, ctx, sel):
+    def _basis(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice
+    ) -> tuple[FloatArray, FloatArray]:
         q = ctx.data.q_rad[sel, spec.joint - 1]
         return np.cos(spec.order * q), np.sin(spec.order * q)
 
-    def regressor(self, spec, ctx, sel, kin):
+    def regressor(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
+    ) -> FloatArray:
         c, s = self._basis(spec, ctx, sel)
         axis = kin.joint_axis(spec.joint) * DEG
         return np.stack([axis * c[:, None], axis * s[:, None]], axis=2)
 
-    def label(self, spec):
+    def label(self, spec: EffectSpec) -> str:
         return f"cyclic error of joint {spec.joint} (harmonic {spec.order})"
 
-    def to_parameters(self, spec, values, n_joints):
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, EffectValue]:
         return {
             "joint": float(spec.joint),
             "order": float(spec.order),
@@ -708,7 +743,9 @@ class JointHarmonic(EffectKind):
             "sin_deg": float(values[1]),
         }
 
-    def from_parameters(self, params, n_joints):
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]:
         _check_keys(params, {"joint", "order", "cos_deg", "sin_deg"}, self.kind)
         spec = EffectSpec(
             self.kind, joint=_joint(params, self.kind, n_joints), order=_order(params, self.kind)
@@ -716,7 +753,14 @@ class JointHarmonic(EffectKind):
         v = np.array([_number(params, "cos_deg", self.kind), _number(params, "sin_deg", self.kind)])
         return spec, v
 
-    def evidence(self, spec, values, ctx, sel, kin):
+    def evidence(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        sel: slice,
+        kin: Kinematics,
+    ) -> Evidence:
         return Evidence(
             x=np.degrees(ctx.data.q_rad[sel, spec.joint - 1]),
             x_label=f"joint {spec.joint} reading (deg)",
@@ -730,30 +774,43 @@ class LostMotion(EffectKind):
     needs_direction = True
     description = "direction-dependent lost motion after the grating ring"
 
-    def parameter_names(self, spec):
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         return ("half_width_deg",)
 
-    def _direction(self, spec, ctx, sel):
+    def _direction(self, spec: EffectSpec, ctx: EffectContext, sel: slice) -> FloatArray:
         if ctx.data.direction is None:
             raise EffectLibraryError("lost_motion needs the approach directions of the poses")
         return ctx.data.direction[sel, spec.joint - 1]
 
-    def regressor(self, spec, ctx, sel, kin):
+    def regressor(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
+    ) -> FloatArray:
         d = self._direction(spec, ctx, sel)
         return (kin.joint_axis(spec.joint) * DEG * d[:, None])[:, :, None]
 
-    def label(self, spec):
+    def label(self, spec: EffectSpec) -> str:
         return f"lost motion of joint {spec.joint}"
 
-    def to_parameters(self, spec, values, n_joints):
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, EffectValue]:
         return {"joint": float(spec.joint), "half_width_deg": float(values[0])}
 
-    def from_parameters(self, params, n_joints):
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]:
         _check_keys(params, {"joint", "half_width_deg"}, self.kind)
         spec = EffectSpec(self.kind, joint=_joint(params, self.kind, n_joints))
         return spec, np.array([_number(params, "half_width_deg", self.kind)])
 
-    def evidence(self, spec, values, ctx, sel, kin):
+    def evidence(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        sel: slice,
+        kin: Kinematics,
+    ) -> Evidence:
         d = self._direction(spec, ctx, sel)
         return Evidence(
             x=d,
@@ -793,7 +850,7 @@ class LengthDrift(EffectKind):
     needs_time = True
     description = "a link length changing with time (temperature)"
 
-    def parameter_names(self, spec):
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         if spec.shape:
             return (f"{spec.parameter}_final_mm",)
         return (f"{spec.parameter}_rate_mm_per_h",)
@@ -805,18 +862,22 @@ class LengthDrift(EffectKind):
             return -np.expm1(-np.maximum(t, 0.0) / spec.shape[0])
         return ctx.times_h(sel, span_s=spec.span_s)
 
-    def regressor(self, spec, ctx, sel, kin):
+    def regressor(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
+    ) -> FloatArray:
         f = self.time_function(spec, ctx, sel)
         return (kin.length_axis(spec.joint, spec.parameter) * f[:, None])[:, :, None]
 
-    def label(self, spec):
+    def label(self, spec: EffectSpec) -> str:
         base = f"thermal drift of joint {spec.joint} length {spec.parameter}"
         if spec.shape:
             return f"{base} (first-order lag, τ = {spec.shape[0] / 60.0:.1f} min)"
         return base
 
-    def to_parameters(self, spec, values, n_joints):
-        out: dict[str, float | tuple[float, ...]] = {"joint": float(spec.joint)}
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, EffectValue]:
+        out: dict[str, EffectValue] = {"joint": float(spec.joint)}
         if spec.shape:
             out[f"{spec.parameter}_final_mm"] = float(values[0])
             out["time_constant_s"] = float(spec.shape[0])
@@ -826,7 +887,9 @@ class LengthDrift(EffectKind):
         out.update(_span_parameters(spec))
         return out
 
-    def from_parameters(self, params, n_joints):
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]:
         names = ("a_rate_mm_per_h", "d_rate_mm_per_h", "a_final_mm", "d_final_mm")
         keys = [k for k in names if k in params]
         if len(keys) != 1:
@@ -850,7 +913,14 @@ class LengthDrift(EffectKind):
         )
         return spec, np.array([_number(params, keys[0], self.kind)])
 
-    def evidence(self, spec, values, ctx, sel, kin):
+    def evidence(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        sel: slice,
+        kin: Kinematics,
+    ) -> Evidence:
         t = ctx.times_h(sel)
         return Evidence(
             x=t,
@@ -864,23 +934,36 @@ class InstrumentScale(EffectKind):
     kind = "instrument_scale"
     description = "distance-proportional scale error of the tracker"
 
-    def parameter_names(self, spec):
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         return ("scale_ppm",)
 
-    def regressor(self, spec, ctx, sel, kin):
+    def regressor(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
+    ) -> FloatArray:
         return (kin.tcp_mm * 1e-6)[:, :, None]
 
-    def label(self, spec):
+    def label(self, spec: EffectSpec) -> str:
         return "tracker scale"
 
-    def to_parameters(self, spec, values, n_joints):
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, EffectValue]:
         return {"scale_ppm": float(values[0])}
 
-    def from_parameters(self, params, n_joints):
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]:
         _check_keys(params, {"scale_ppm"}, self.kind)
         return EffectSpec(self.kind), np.array([_number(params, "scale_ppm", self.kind)])
 
-    def evidence(self, spec, values, ctx, sel, kin):
+    def evidence(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        sel: slice,
+        kin: Kinematics,
+    ) -> Evidence:
         return Evidence(
             x=np.linalg.norm(kin.tcp_mm, axis=1) / 1000.0,
             x_label="distance from the tracker (m)",
@@ -894,26 +977,39 @@ class InstrumentScaleDrift(EffectKind):
     needs_time = True
     description = "the tracker's scale drifting with time (air temperature)"
 
-    def parameter_names(self, spec):
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         return ("rate_ppm_per_h",)
 
-    def regressor(self, spec, ctx, sel, kin):
+    def regressor(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
+    ) -> FloatArray:
         t = ctx.times_h(sel, span_s=spec.span_s)
         return (kin.tcp_mm * 1e-6 * t[:, None])[:, :, None]
 
-    def label(self, spec):
+    def label(self, spec: EffectSpec) -> str:
         return "tracker scale drift"
 
-    def to_parameters(self, spec, values, n_joints):
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, EffectValue]:
         return {"rate_ppm_per_h": float(values[0]), "t0_s": 0.0, **_span_parameters(spec)}
 
-    def from_parameters(self, params, n_joints):
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]:
         _check_keys(params, {"rate_ppm_per_h", "t0_s", "t_min_s", "t_max_s"}, self.kind)
         _t0(params, self.kind)
         spec = EffectSpec(self.kind, span_s=_span(params, self.kind))
         return spec, np.array([_number(params, "rate_ppm_per_h", self.kind)])
 
-    def evidence(self, spec, values, ctx, sel, kin):
+    def evidence(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        sel: slice,
+        kin: Kinematics,
+    ) -> Evidence:
         t = ctx.times_h(sel)
         return Evidence(
             x=t,
@@ -931,14 +1027,18 @@ class CartesianHarmonic(EffectKind):
     generic = True
     description = "an error vector in the tracker frame varying with a harmonic of one joint"
 
-    def parameter_names(self, spec):
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         return tuple(f"{a}_{f}_mm" for f in ("cos", "sin") for a in _AXES)
 
-    def _basis(self, spec, ctx, sel):
+    def _basis(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice
+    ) -> tuple[FloatArray, FloatArray]:
         q = ctx.data.q_rad[sel, spec.joint - 1]
         return np.cos(spec.order * q), np.sin(spec.order * q)
 
-    def regressor(self, spec, ctx, sel, kin):
+    def regressor(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
+    ) -> FloatArray:
         c, s = self._basis(spec, ctx, sel)
         out = np.zeros((len(c), 3, 6))
         for a in range(3):
@@ -946,10 +1046,12 @@ class CartesianHarmonic(EffectKind):
             out[:, a, 3 + a] = s
         return out
 
-    def label(self, spec):
+    def label(self, spec: EffectSpec) -> str:
         return f"unexplained structure in q{spec.joint} (harmonic {spec.order})"
 
-    def to_parameters(self, spec, values, n_joints):
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, EffectValue]:
         return {
             "joint": float(spec.joint),
             "order": float(spec.order),
@@ -957,7 +1059,9 @@ class CartesianHarmonic(EffectKind):
             "sin_mm": tuple(float(v) for v in values[3:]),
         }
 
-    def from_parameters(self, params, n_joints):
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]:
         _check_keys(params, {"joint", "order", "cos_mm", "sin_mm"}, self.kind)
         spec = EffectSpec(
             self.kind, joint=_joint(params, self.kind, n_joints), order=_order(params, self.kind)
@@ -967,7 +1071,14 @@ class CartesianHarmonic(EffectKind):
         )
         return spec, v
 
-    def evidence(self, spec, values, ctx, sel, kin):
+    def evidence(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        sel: slice,
+        kin: Kinematics,
+    ) -> Evidence:
         a = int(np.argmax(np.hypot(values[:3], values[3:])))
         g = np.zeros((len(kin.tcp_mm), 3))
         g[:, a] = 1.0
@@ -987,25 +1098,31 @@ class LinkHarmonic(EffectKind):
         "(bearing wobble; about z alone it is a cyclic error of the reading)"
     )
 
-    def parameter_names(self, spec):
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         return tuple(f"{a}_{f}_deg" for f in ("cos", "sin") for a in _AXES)
 
-    def _basis(self, spec, ctx, sel):
+    def _basis(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice
+    ) -> tuple[FloatArray, FloatArray]:
         q = ctx.data.q_rad[sel, spec.joint - 1]
         return np.cos(spec.order * q), np.sin(spec.order * q)
 
-    def regressor(self, spec, ctx, sel, kin):
+    def regressor(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
+    ) -> FloatArray:
         c, s = self._basis(spec, ctx, sel)
         rot = kin.rotation_axes(spec.joint) * DEG
         return np.concatenate([rot * c[:, None, None], rot * s[:, None, None]], axis=2)
 
-    def label(self, spec):
+    def label(self, spec: EffectSpec) -> str:
         return (
             f"unexplained structure in q{spec.joint} "
             f"(harmonic {spec.order}, link {spec.joint} turning)"
         )
 
-    def to_parameters(self, spec, values, n_joints):
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, EffectValue]:
         return {
             "joint": float(spec.joint),
             "order": float(spec.order),
@@ -1013,7 +1130,9 @@ class LinkHarmonic(EffectKind):
             "sin_deg": tuple(float(v) for v in values[3:]),
         }
 
-    def from_parameters(self, params, n_joints):
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]:
         _check_keys(params, {"joint", "order", "cos_deg", "sin_deg"}, self.kind)
         spec = EffectSpec(
             self.kind, joint=_joint(params, self.kind, n_joints), order=_order(params, self.kind)
@@ -1023,7 +1142,14 @@ class LinkHarmonic(EffectKind):
         )
         return spec, v
 
-    def evidence(self, spec, values, ctx, sel, kin):
+    def evidence(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        sel: slice,
+        kin: Kinematics,
+    ) -> Evidence:
         a = int(np.argmax(np.hypot(values[:3], values[3:])))
         return Evidence(
             x=np.degrees(ctx.data.q_rad[sel, spec.joint - 1]),
@@ -1041,13 +1167,15 @@ class CartesianTime(EffectKind):
         "an error vector fixed in the tracker frame or in a link's frame, polynomial in time"
     )
 
-    def parameter_names(self, spec):
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         names = [f"{a}_mm_per_h" for a in _AXES]
         if spec.order >= 2:
             names += [f"{a}_mm_per_h2" for a in _AXES]
         return tuple(names)
 
-    def regressor(self, spec, ctx, sel, kin):
+    def regressor(
+        self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
+    ) -> FloatArray:
         t = ctx.times_h(sel, span_s=spec.span_s)
         axes = kin.frame_axes(spec.joint)
         out = np.zeros((len(t), 3, 3 * spec.order))
@@ -1055,14 +1183,16 @@ class CartesianTime(EffectKind):
             out[:, :, 3 * p : 3 * p + 3] = axes * (t ** (p + 1))[:, None, None]
         return out
 
-    def _frame(self, spec):
+    def _frame(self, spec: EffectSpec) -> str:
         return "the tracker frame" if spec.joint == 0 else f"the frame of link {spec.joint}"
 
-    def label(self, spec):
+    def label(self, spec: EffectSpec) -> str:
         return f"unexplained structure in time (order {spec.order}, in {self._frame(spec)})"
 
-    def to_parameters(self, spec, values, n_joints):
-        out: dict[str, float | tuple[float, ...]] = {
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, EffectValue]:
+        out: dict[str, EffectValue] = {
             "frame": float(spec.joint),
             "rate_mm_per_h": tuple(float(v) for v in values[:3]),
         }
@@ -1072,7 +1202,9 @@ class CartesianTime(EffectKind):
         out.update(_span_parameters(spec))
         return out
 
-    def from_parameters(self, params, n_joints):
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]:
         allowed = {"frame", "rate_mm_per_h", "acceleration_mm_per_h2", "t0_s", "t_min_s", "t_max_s"}
         _check_keys(params, allowed, self.kind)
         _t0(params, self.kind)
@@ -1087,7 +1219,14 @@ class CartesianTime(EffectKind):
         spec = EffectSpec(self.kind, joint=int(frame), order=order, span_s=_span(params, self.kind))
         return spec, v
 
-    def evidence(self, spec, values, ctx, sel, kin):
+    def evidence(
+        self,
+        spec: EffectSpec,
+        values: FloatArray,
+        ctx: EffectContext,
+        sel: slice,
+        kin: Kinematics,
+    ) -> Evidence:
         t = ctx.times_h(sel)
         v = values.reshape(spec.order, 3)
         a = int(np.argmax(np.sqrt(np.sum(v**2, axis=0))))

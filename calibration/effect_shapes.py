@@ -114,7 +114,9 @@ def profile_time_constant(
     )  # fmt: skip
 
 
-def _golden(f: Callable[[float], float], lo: float, hi: float, iterations: int = 30):
+def _golden(
+    f: Callable[[float], float], lo: float, hi: float, iterations: int = 30
+) -> tuple[float, float]:
     """Minimum of ``f`` over log τ in [lo, hi] by golden-section search."""
     a, b = math.log(lo), math.log(hi)
     g = (math.sqrt(5.0) - 1.0) / 2.0
@@ -199,7 +201,8 @@ def fit_physical_gravity(
 
     def residual(x: FloatArray) -> FloatArray:
         r, ww = unpack(x)
-        return sum(r[i] * (perp[j] @ ww) for i, j in enumerate(joints)) - y
+        res: FloatArray = sum(r[i] * (perp[j] @ ww) for i, j in enumerate(joints)) - y
+        return res
 
     def jacobian(x: FloatArray) -> FloatArray:
         r, ww = unpack(x)

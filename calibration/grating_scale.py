@@ -54,8 +54,9 @@ forms the joint angle of its description as ``q_deg = home_deg + a(c)``.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -67,6 +68,10 @@ from calibration.relation_to_points import RelationToPoints, StopPoints
 from calibration.target_set_fit import TargetSetFit, crb_covariance_targets, fit_target_set
 
 FloatArray = NDArray[np.float64]
+#: a circle fit or a target-set fit (both can be oriented)
+_Fit = TypeVar("_Fit", CircleFit, TargetSetFit)
+#: a number or an array (the Legendre polynomials take both)
+_X = TypeVar("_X", float, FloatArray)
 IntArray = NDArray[np.int64]
 
 COUNTER_MODULUS = 2**32
@@ -130,14 +135,15 @@ class TrackerSpec:
     def sigma_mm(self, points_mm: ArrayLike) -> FloatArray:
         """Per-axis standard deviation (mm) of a measurement of each point, ``(N,)``."""
         dist_m = np.linalg.norm(np.atleast_2d(points_mm), axis=-1) / 1000.0
-        return 1e-3 * (self.mpe_um + self.mpe_um_per_m * dist_m) / self.mpe_sigmas
+        sigma: FloatArray = 1e-3 * (self.mpe_um + self.mpe_um_per_m * dist_m) / self.mpe_sigmas
+        return sigma
 
 
-def _p2(x: FloatArray) -> FloatArray:
+def _p2(x: _X) -> _X:
     return 0.5 * (3.0 * x * x - 1.0)
 
 
-def _p3(x: FloatArray) -> FloatArray:
+def _p3(x: _X) -> _X:
     return 0.5 * (5.0 * x**3 - 3.0 * x)
 
 
@@ -246,9 +252,16 @@ class GratingScale:
         s = np.broadcast_to(0.5 * d, u.shape).astype(float)
         return u, s
 
-    def _evaluate(self, coefficients: Mapping[str, float], terms, u, s) -> FloatArray:
+    def _evaluate(
+        self,
+        coefficients: Mapping[str, float],
+        terms: Sequence[str],
+        u: FloatArray,
+        s: FloatArray,
+    ) -> FloatArray:
         names, x = self.basis.columns(u, s, terms)
-        return x @ np.array([coefficients.get(n, 0.0) for n in names])
+        value: FloatArray = x @ np.array([coefficients.get(n, 0.0) for n in names])
+        return value
 
     def counts_to_angle_deg(
         self, counts: ArrayLike, direction: ArrayLike | None = None
@@ -294,7 +307,8 @@ class GratingScale:
                 delta = xw @ np.array([un.delta.get(n, 0.0) for n in names])
                 noise = np.einsum("ij,jk,ik->i", xw, un.delta_covariance_deg2, xw)
                 var = var + np.maximum(delta**2 - noise, 0.0)
-        return np.sqrt(var).reshape(np.shape(counts))
+        std: FloatArray = np.sqrt(var).reshape(np.shape(counts))
+        return std
 
 
 # -- input and result types ----------------------------------------------------------------
@@ -386,7 +400,7 @@ class JointScaleResult:
     # common circle of both sweeps (or the common fit of a target set), oriented with the
     # joint's + direction; one per sweep below, same orientation
     circle: CircleFit | TargetSetFit
-    pass_circles: dict[str, CircleFit | TargetSetFit]
+    pass_circles: Mapping[str, CircleFit | TargetSetFit]
     tests: tuple[TermTest, ...]
     pass_name: NDArray[np.str_]  # (S,)
     step: IntArray  # (S,)
@@ -442,7 +456,8 @@ class JointScaleResult:
         s = np.zeros_like(self.offset_counts)  # direction average
         _, x = self.scale.basis.columns(self.offset_counts, s, self.scale.terms)
         cov = self.crb_covariance_rad2[1:, 1:]
-        return np.degrees(np.sqrt(np.einsum("ij,jk,ik->i", x, cov, x)))
+        std: FloatArray = np.degrees(np.sqrt(np.einsum("ij,jk,ik->i", x, cov, x)))
+        return std
 
 
 # -- the fit --------------------------------------------------------------------------------
@@ -470,7 +485,8 @@ class _Whitener:
 
     @property
     def diag(self) -> FloatArray:
-        return self.d + np.einsum("ij,ij->i", self.b, self.b)
+        total: FloatArray = self.d + np.einsum("ij,ij->i", self.b, self.b)
+        return total
 
 
 class _NoJointFit(Exception):
@@ -541,7 +557,8 @@ def crb_covariance(
     scale = np.sqrt(np.diag(info))
     scale[scale == 0] = 1.0
     cov = np.linalg.pinv(info / np.outer(scale, scale), rcond=1e-12, hermitian=True)
-    return (cov / np.outer(scale, scale))[6:, 6:]
+    cov_angles: FloatArray = (cov / np.outer(scale, scale))[6:, 6:]
+    return cov_angles
 
 
 def _commanded_deg(
@@ -553,7 +570,7 @@ def _commanded_deg(
     return np.where(pass_name == "forward", upper - step_deg * step, last + step_deg * step)
 
 
-def _orient_like(fit: CircleFit, normal: FloatArray) -> CircleFit:
+def _orient_like(fit: _Fit, normal: FloatArray) -> _Fit:
     return fit if fit.normal @ normal >= 0 else fit.flipped()
 
 
@@ -579,7 +596,7 @@ class _Angles:
     theta: FloatArray
     inlier: NDArray[np.bool_]
     circle: CircleFit | TargetSetFit
-    pass_circles: dict[str, CircleFit | TargetSetFit]
+    pass_circles: Mapping[str, CircleFit | TargetSetFit]
     dropped: list[tuple[int, str]]
 
 
@@ -899,7 +916,7 @@ def calibrate_joint(
     var_stop = var_stop + final.cov_unit[0, 0] - 2 * cov_theta0
     if isinstance(circle, CircleFit):
         crb = crb_covariance(circle, theta[idx], x_all[idx], circle.point_sigma_mm[idx])
-        stored = replace(circle, inlier=inlier.copy())
+        stored: CircleFit | TargetSetFit = replace(circle, inlier=inlier.copy())
     else:  # a target set: its own bound; stops dropped by the relation are in `used`
         crb = crb_covariance_targets(
             circle, theta[idx], x_all[idx], circle.target_sigma_mm[idx], circle.point_inlier[idx]
@@ -932,7 +949,7 @@ def _stop_label(sweep: JointSweep, i: int) -> str:
 
 
 def _select_terms(
-    usable: Sequence[str], fit_terms, threshold: float
+    usable: Sequence[str], fit_terms: Callable[[Sequence[str]], _Gls], threshold: float
 ) -> tuple[list[str], list[TermTest]]:
     """Forward selection in :data:`TERMS` order, then a backward check; F-tests at ``threshold``."""
     kept: list[str] = []
@@ -964,7 +981,7 @@ def _publish(
     kept: Sequence[str],
     tests: Sequence[TermTest],
     basis: RelationBasis,
-    fit_terms,
+    fit_terms: Callable[[Sequence[str]], _Gls],
     home_deg: float | None,
 ) -> GratingScale:
     """The relation in degrees (all columns are angle per unit, so rad → deg throughout)."""

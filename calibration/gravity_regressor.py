@@ -91,7 +91,8 @@ def raw_regressor(
     y = np.einsum("pkca,pjc->pjka", rot, w)  # (N, j, k, a)
     outboard = np.arange(n)[None, :] >= np.arange(n)[:, None]  # [j, k]: k ≥ j
     y *= outboard[None, :, :, None]
-    return y.reshape(n_pose, n, 3 * n)
+    regressor: FloatArray = y.reshape(n_pose, n, 3 * n)
+    return regressor
 
 
 def _selection_poses(description: RobotDescription) -> FloatArray:
@@ -158,7 +159,7 @@ class BaseMoments:
         y = raw_regressor(model, q, self.gravity)
         rows = y.reshape(-1, y.shape[-1])
         target = rows @ np.asarray(raw_kgmm, dtype=float)
-        coef, *_ = np.linalg.lstsq(rows[:, self.raw_index], target, rcond=None)
+        coef: FloatArray = np.linalg.lstsq(rows[:, self.raw_index], target, rcond=None)[0]
         return coef
 
 
@@ -184,7 +185,7 @@ def base_moments(description: RobotDescription, gravity: ArrayLike | None = None
         rows = y[:, j, :][:, kept_sorted]
         local = _greedy_span(rows, [kept_sorted.index(i) for i in order if i in kept_sorted])
         per_joint.append(tuple(sorted(local)))
-    return BaseMoments(names, tuple(per_joint), tuple(float(v) for v in g))
+    return BaseMoments(names, tuple(per_joint), (float(g[0]), float(g[1]), float(g[2])))
 
 
 def gravity_of(description: RobotDescription) -> FloatArray:
@@ -218,4 +219,5 @@ def raw_moments_from_masses(description: RobotDescription) -> FloatArray | None:
             [0.0, 0.0, model.d_mm[k]]
         )
         mu[k - 1] += outboard[k] * origin
-    return mu.ravel()
+    moments: FloatArray = mu.ravel()
+    return moments

@@ -110,7 +110,8 @@ class IdentifiabilityAnalysis:
 def column_rms(jac: ArrayLike) -> FloatArray:
     """RMS ``(p,)`` of each column of a stacked Jacobian ``(M, p)``, in its own units."""
     a = np.asarray(jac, dtype=float)
-    return np.sqrt(np.einsum("ij,ij->j", a, a) / max(a.shape[0], 1))
+    rms: FloatArray = np.sqrt(np.einsum("ij,ij->j", a, a) / max(a.shape[0], 1))
+    return rms
 
 
 def column_scales(jac: ArrayLike) -> FloatArray:
@@ -267,7 +268,8 @@ def _gram_factor(scaled: FloatArray) -> FloatArray:
     """
     gram = scaled.T @ scaled
     w, v = np.linalg.eigh(gram)
-    return np.sqrt(np.clip(w, 0.0, None))[:, None] * v.T
+    factor: FloatArray = np.sqrt(np.clip(w, 0.0, None))[:, None] * v.T
+    return factor
 
 
 def _partners(r: FloatArray, kept: list[int], j: int, names: Sequence[str]) -> list[str]:

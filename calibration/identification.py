@@ -329,7 +329,8 @@ def tracker_sigma_mm(
     """Per-axis σ ``(m,)`` mm of tracker points from a data-sheet MPE ±(A µm + B µm/m · d),
     taken as ``mpe_sigmas`` σ, d the distance from the tracker (the frame origin)."""
     d_m = np.linalg.norm(np.atleast_2d(points_mm) - np.asarray(tracker_mm), axis=1) / 1000.0
-    return 1e-3 * (mpe_um + mpe_um_per_m * d_m) / mpe_sigmas
+    sigma: FloatArray = 1e-3 * (mpe_um + mpe_um_per_m * d_m) / mpe_sigmas
+    return sigma
 
 
 # -- the problem and its result ----------------------------------------------------------
@@ -554,13 +555,13 @@ class _Watch:
         weighted Jacobian ``j`` ``(3m, k)``."""
         why: dict[int, str] = {}
         bad = ~np.isfinite(x) | ~np.all(np.isfinite(j), axis=0)
-        for i in np.flatnonzero(bad):
+        for i in np.flatnonzero(bad).tolist():
             why[i] = f"{RAN_AWAY} (non-finite value or column at iteration {nit})"
         move = np.abs(x - self.x_start)
-        for i in np.flatnonzero(move > self.max_move):
+        for i in np.flatnonzero(move > self.max_move).tolist():
             why.setdefault(i, _moved(self.names[i], move[i], self.max_move[i], nit))
         ratio = column_rms(j) / self.start_rms
-        for i in np.flatnonzero(ratio < COLLAPSE_RATIO):
+        for i in np.flatnonzero(ratio < COLLAPSE_RATIO).tolist():
             why.setdefault(
                 i,
                 f"{COLLAPSED} (its column fell to {ratio[i]:.1e} of its start RMS by "
@@ -692,7 +693,8 @@ def _scaled_covariance(js: FloatArray) -> FloatArray:
     1e-15 of the largest are left out, as ``pinv`` does."""
     w, v = np.linalg.eigh(js.T @ js)
     keep = w > 1e-15 * max(float(w.max(initial=0.0)), 0.0)
-    return (v[:, keep] / w[keep]) @ v[:, keep].T
+    cov: FloatArray = (v[:, keep] / w[keep]) @ v[:, keep].T
+    return cov
 
 
 def identify(

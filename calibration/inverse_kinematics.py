@@ -120,7 +120,8 @@ class JointLimits:
         """Whether each joint vector of ``q_rad`` (``(..., n)``) is within limits."""
         q = np.asarray(q_rad, dtype=float)
         inside = (q >= self.lower_rad - slack_rad) & (q <= self.upper_rad + slack_rad)
-        return np.all(inside, axis=-1)
+        ok: BoolArray = np.all(inside, axis=-1)
+        return ok
 
 
 @dataclass(frozen=True)
@@ -315,14 +316,16 @@ class _Pieper:
 
     def elbow_angle(self, q3: FloatArray) -> FloatArray:
         """psi: angle between upper arm and the forearm's projection (0 = stretched)."""
-        return q3 + self.offsets[2] + self.phi
+        elbow: FloatArray = q3 + self.offsets[2] + self.phi
+        return elbow
 
     def shoulder_distance(self, q2: FloatArray, psi: FloatArray) -> FloatArray:
         """Signed distance r of the wrist centre from axis 1 in the arm plane (mm)."""
         w2x = self.a2 + self.forearm * np.cos(psi)
         w2y = self.forearm * np.sin(psi)
         t2 = q2 + self.offsets[1]
-        return self.a1 + np.cos(t2) * w2x - np.sin(t2) * w2y
+        dist: FloatArray = self.a1 + np.cos(t2) * w2x - np.sin(t2) * w2y
+        return dist
 
 
 def _closed_form(

@@ -188,17 +188,18 @@ def _find_sweeps(
             continue
         j, s = t
         e = k
+        steps = [s]  # the steps of transitions k..e
         while e + 1 < len(trans):
             nt = trans[e + 1]
             if nt is None or nt[0] != j or np.sign(nt[1]) != np.sign(s):
                 break
-            steps = [trans[i][1] for i in range(k, e + 2)]  # type: ignore[index]
-            med = float(np.median(steps))
-            if any(abs(x - med) > opts.step_tolerance * abs(med) for x in steps):
+            trial = [*steps, nt[1]]
+            med = float(np.median(trial))
+            if any(abs(x - med) > opts.step_tolerance * abs(med) for x in trial):
                 break
+            steps = trial
             e += 1
         if e - k + 2 >= opts.min_sweep_stops:
-            steps = [trans[i][1] for i in range(k, e + 1)]  # type: ignore[index]
             runs.append((k, e, j, float(np.median(steps))))
             k = e + 1
         else:
@@ -299,8 +300,8 @@ def find_phases(t_ns: IntArray, counts: IntArray, opts: PhaseOptions | None = No
                     continue
             other.append(d.index)
             continue
-        away = np.count_nonzero(off[known] > tol[known]) if known.any() else n
-        if away >= 2:
+        n_away = np.count_nonzero(off[known] > tol[known]) if known.any() else n
+        if n_away >= 2:
             poses_idx.append(d.index)
         else:
             other.append(d.index)
@@ -334,7 +335,7 @@ def _final_approach_start(c: IntArray, lo: int, hi: int) -> int:
         return lo
     d = np.diff(c[lo : hi + 1])
     sign = np.sign(d[np.flatnonzero(np.abs(d) > 0)[-1]]) if np.any(d) else 0
-    k = d.shape[0] - 1
+    k: int = d.shape[0] - 1
     # skip the still tail, then walk back while moving the same way
     while k >= 0 and np.sign(d[k]) != sign:
         k -= 1

@@ -33,7 +33,8 @@ FloatArray = NDArray[np.float64]
 def _o1(s: FloatArray, m: int) -> FloatArray:
     with np.errstate(divide="ignore"):
         geo = np.exp(np.mean(np.log(s), axis=-1))
-    return np.where(s[..., -1] > 0, geo, 0.0) / np.sqrt(m)
+    o1: FloatArray = np.where(s[..., -1] > 0, geo, 0.0) / np.sqrt(m)
+    return o1
 
 
 def _ratio(num: FloatArray, den: FloatArray) -> FloatArray:
@@ -60,7 +61,8 @@ def _check_index(index: str) -> None:
 def _singular_values_of_information(info: FloatArray) -> FloatArray:
     """Singular values (descending) of J from its information matrix JᵀJ ``(..., k, k)``."""
     ev = np.linalg.eigvalsh(info)
-    return np.sqrt(np.clip(ev[..., ::-1], 0.0, None))
+    sv: FloatArray = np.sqrt(np.clip(ev[..., ::-1], 0.0, None))
+    return sv
 
 
 def observability_indices(jac: ArrayLike) -> dict[str, float]:
@@ -124,7 +126,8 @@ def select_poses(
         """log det(info + H_iᵀH_i) − log det(info) for all candidates (determinant lemma)."""
         hv = h @ np.linalg.inv(info)  # (N, 3, p)
         m3 = hv @ h.transpose(0, 2, 1) + np.eye(3)
-        return np.linalg.slogdet(m3)[1]
+        gains: FloatArray = np.linalg.slogdet(m3)[1]
+        return gains
 
     chosen: list[int] = []
     available = np.ones(n_cand, dtype=bool)

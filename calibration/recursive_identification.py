@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -99,7 +100,8 @@ def start_recursive(
         x=result.model.parameter_vector(),
         free_idx=free_idx,
         column_scale=scale,
-        information=np.linalg.inv(cov_scaled),
+        # numpy's stubs type inv() of a float64 array as floating[Any]
+        information=cast(FloatArray, np.linalg.inv(cov_scaled)),
         sigma_mm=result.sigma_mm,
         forgetting=settings.lambda_max,
         normalized_error=1.0,

@@ -35,6 +35,7 @@ Units: mm, radians. Shapes: ``(K, T, 3)`` points, ``(K, T)`` per point, ``(K, q)
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -46,6 +47,7 @@ from calibration.target_set_fit import TargetSetFit, TargetSetGeometry
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
+IndexArray = NDArray[np.intp]
 
 _TILT_STEP = 1e-7  # rad, central differences of the two tilt columns
 
@@ -103,7 +105,8 @@ class StopPoints:
         return self.start.n_targets
 
     # -- the model --------------------------------------------------------------------------
-    def _unpack(self, x: FloatArray):
+    def _unpack(self, x: FloatArray) -> tuple[FloatArray, ...]:
+        """Centre, normal, in-plane axes a and b, radii, heights, phases, relation β."""
         t = self.n_targets
         u0, v0 = self.start.axis_u, self.start.axis_v
         n = _tilted_normal(self.start.normal, u0, v0, x[3], x[4])
@@ -126,7 +129,8 @@ class StopPoints:
         c, n, a, b, radii, height, phase, beta = self._unpack(x)
         ang = (design @ beta)[:, None] + phase[None, :]  # (K, T)
         radial = np.cos(ang)[..., None] * a + np.sin(ang)[..., None] * b
-        return c + height[None, :, None] * n + radii[None, :, None] * radial
+        positions: FloatArray = c + height[None, :, None] * n + radii[None, :, None] * radial
+        return positions
 
     def stop_angles(self, x: FloatArray) -> FloatArray:
         """Each stop's angle ``(K,)`` from its used points under the structure of ``x``:
@@ -137,11 +141,20 @@ class StopPoints:
         rel = np.nan_to_num(self.points_mm) - c - height[None, :, None] * n
         z = rel @ a + 1j * (rel @ b)
         measured = np.isfinite(self.points_mm).all(axis=-1)
-        use = np.where(self.used.any(axis=1)[:, None], self.used, measured)
+        use = np.where(np.any(self.used, axis=1)[:, None], self.used, measured)
         w = np.where(use, radii / np.where(use, self.sigma_mm, 1.0) ** 2, 0.0)
-        return np.angle(np.sum(w * np.exp(-1j * phase) * z, axis=1))
+        angles: FloatArray = np.angle(np.sum(w * np.exp(-1j * phase) * z, axis=1))
+        return angles
 
-    def _stop_whitener(self, x, design, kk, tt, w, angle_noise_rad: float):
+    def _stop_whitener(
+        self,
+        x: FloatArray,
+        design: FloatArray,
+        kk: IndexArray,
+        tt: IndexArray,
+        w: FloatArray,
+        angle_noise_rad: float,
+    ) -> Callable[[FloatArray], FloatArray]:
         """``W`` for residuals ``(M, 3, ...)`` scaled by ``w``: per stop, their covariance
         ``I + τ²·j·jᵀ`` (``j`` the stop's scaled tangent levers) whitened along ``j``."""
         if angle_noise_rad <= 0:

@@ -94,7 +94,8 @@ def gravity_torques_nmm(
     g = np.array([0.0, 0.0, -gravity_m_s2])  # N per kg
     lever = s_out - m_out[None, :, None] * origins  # kg·mm
     torque = np.einsum("pjk,pjk->pj", z_axes, np.cross(lever, g))
-    return torque[0] if single else torque
+    result: FloatArray = torque[0] if single else torque
+    return result
 
 
 def gravity_torques_for(desc: RobotDescription, q_rad: ArrayLike) -> FloatArray:
@@ -109,4 +110,5 @@ def torsion_rad(torque_nmm: ArrayLike, stiffness_nmm_per_rad: ArrayLike) -> Floa
     k = np.asarray(stiffness_nmm_per_rad, dtype=float)
     if np.any(k <= 0):
         raise KinematicsError("joint stiffness must be positive (N·mm/rad)")
-    return np.asarray(torque_nmm, dtype=float) / k
+    twist: FloatArray = np.asarray(torque_nmm, dtype=float) / k
+    return twist

@@ -67,7 +67,8 @@ def force_deflection_mm(
     frame) at joints ``(m, n)`` rad: ``C[:3, :3]·F``."""
     c = cartesian_compliance(description, q_rad)[:, :3, :3]
     f = np.asarray(force_n, dtype=float).reshape(len(c), 3)
-    return np.einsum("mij,mj->mi", c, f)
+    deflection: FloatArray = np.einsum("mij,mj->mi", c, f)
+    return deflection
 
 
 @dataclass(frozen=True)

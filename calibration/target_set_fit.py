@@ -219,12 +219,16 @@ def _profile_theta(geo: TargetSetGeometry, z: FloatArray, weight: FloatArray) ->
     return np.where(weight.sum(axis=1) > 0, theta, np.nan)
 
 
-def _cost(geo: TargetSetGeometry, points: FloatArray, weight: FloatArray, theta: FloatArray):
+def _cost(
+    geo: TargetSetGeometry, points: FloatArray, weight: FloatArray, theta: FloatArray
+) -> tuple[float, FloatArray]:
     e = points - geo.positions_mm(np.nan_to_num(theta))
     return float(np.sum(weight * np.einsum("kta,kta->kt", e, e))), e
 
 
-def _normal_blocks(geo: TargetSetGeometry, theta: FloatArray, weight: FloatArray):
+def _normal_blocks(
+    geo: TargetSetGeometry, theta: FloatArray, weight: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Blocks of the weighted normal matrix: ``N_ss`` ``(P, P)``, ``N_θs`` ``(K, P)``, ``N_θθ``."""
     js, j_theta = _jacobians(geo, np.nan_to_num(theta))
     sw = np.sqrt(weight)[..., None, None]
@@ -322,7 +326,8 @@ def _basis(normal: FloatArray) -> FloatArray:
     """A unit vector ⟂ ``normal``: the world axis least aligned with it, projected."""
     ref = np.eye(3)[int(np.argmin(np.abs(normal)))]
     u = ref - (ref @ normal) * normal
-    return u / np.linalg.norm(u)
+    unit: FloatArray = u / np.linalg.norm(u)
+    return unit
 
 
 def _start(points: FloatArray, measured: BoolArray, weight: FloatArray) -> TargetSetGeometry:
@@ -572,12 +577,14 @@ class TargetSetFit(FactoredAngleCovariance):
     @property
     def measured(self) -> BoolArray:
         """``(K, T)``: the target was measured at the stop (finite point)."""
-        return np.isfinite(self.points_mm).all(axis=-1)
+        measured: BoolArray = np.all(np.isfinite(self.points_mm), axis=-1)
+        return measured
 
     @property
     def inlier(self) -> BoolArray:
         """``(K,)``: the stop keeps at least one point, so its angle is in the fit."""
-        return self.point_inlier.any(axis=1)
+        inlier: BoolArray = np.any(self.point_inlier, axis=1)
+        return inlier
 
     @property
     def n_points(self) -> int:
@@ -646,7 +653,8 @@ class TargetSetFit(FactoredAngleCovariance):
     @property
     def angle_rad(self) -> FloatArray:
         """Angle of every stop about the axis, ``(K,)`` in (−π, π] (NaN: unmeasured)."""
-        return np.angle(np.exp(1j * self.angle_rad_all))
+        wrapped: FloatArray = np.angle(np.exp(1j * self.angle_rad_all))
+        return wrapped
 
     def unwrapped_angle_rad(self) -> FloatArray:
         """:attr:`angle_rad` unwrapped along the stop order (consecutive steps < 180°)."""
@@ -666,7 +674,8 @@ class TargetSetFit(FactoredAngleCovariance):
         """``G = ∂θ̂_k/∂structure`` ``(K, P)`` of the profiled angles (T ≥ 2)."""
         _, n_ts, n_tt, _ = _normal_blocks(self.geometry, self.angle_rad_all, self._angle_weight())
         with np.errstate(divide="ignore", invalid="ignore"):
-            return -n_ts / n_tt[:, None]
+            sens: FloatArray = -n_ts / n_tt[:, None]
+            return sens
 
     def angle_covariance_factors(self) -> tuple[FloatArray, FloatArray]:
         """The angle covariance as ``diag(d) + B·Bᵀ``: ``d`` ``(K,)``, ``B`` ``(K, P)``, rad².
@@ -896,4 +905,5 @@ def crb_covariance_targets(
     scale[scale == 0] = 1.0
     cov = np.linalg.pinv(info / np.outer(scale, scale), rcond=1e-12, hermitian=True)
     n_par = js.shape[-1]
-    return (cov / np.outer(scale, scale))[n_par:, n_par:]
+    cov_targets: FloatArray = (cov / np.outer(scale, scale))[n_par:, n_par:]
+    return cov_targets
