@@ -136,7 +136,8 @@ class AngleReader:
     def exact(self, counts: np.ndarray) -> np.ndarray:
         self.full_calls += 1
         cols = [mp.counts_to_angle_deg(counts[:, j]) for j, mp in enumerate(self.maps)]
-        return self.home + np.column_stack(cols)
+        out: np.ndarray = self.home + np.column_stack(cols)
+        return out
 
     def _linearise(self, c0: np.ndarray) -> None:
         h = self.h
@@ -153,7 +154,8 @@ class AngleReader:
 
     def _offsets(self, counts: np.ndarray) -> np.ndarray:
         assert self._c0 is not None  # counts since c0, undoing 32-bit counter wraps
-        return (counts - self._c0 + (1 << 31)) % (1 << 32) - (1 << 31)
+        out: np.ndarray = (counts - self._c0 + (1 << 31)) % (1 << 32) - (1 << 31)
+        return out
 
     def angles(self, counts: np.ndarray) -> np.ndarray:
         """Joint angles ``(m, n)`` deg (Home + map) of counts ``(m, n)``."""
@@ -580,10 +582,12 @@ class LiveTwin:
                     },
                 }
                 health_pub.put(json.dumps(doc))
+                end_to_end, own_share = doc["latency_ms"], doc["twin_ms"]
+                assert isinstance(end_to_end, dict) and isinstance(own_share, dict)
                 say(
                     f"live twin: {doc['rate_hz']:.0f} samples/s, latency p50 "
-                    f"{doc['latency_ms']['p50']:.1f} ms, p99 {doc['latency_ms']['p99']:.1f} ms "
-                    f"(the twin's own p50 {doc['twin_ms']['p50']:.2f} ms)"
+                    f"{end_to_end['p50']:.1f} ms, p99 {end_to_end['p99']:.1f} ms "
+                    f"(the twin's own p50 {own_share['p50']:.2f} ms)"
                     + ("" if doc["clock_settled"] else " (clock map not settled yet)")
                 )
                 period_start, samples_period = now_m, 0
@@ -613,4 +617,5 @@ def _quaternions(r: np.ndarray) -> np.ndarray:
     y = np.copysign(y, r[:, 0, 2] - r[:, 2, 0])
     z = np.copysign(z, r[:, 1, 0] - r[:, 0, 1])
     q = np.column_stack([w, x, y, z])
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
+    out: np.ndarray = q / np.linalg.norm(q, axis=1, keepdims=True)
+    return out

@@ -250,6 +250,8 @@ class Received:
     columns: dict[str, NDArray[Any]]
     t_recv_ns: int
     schema: StreamSchema
+    #: the message as received (what a recorder writes)
+    payload: bytes = b""
 
 
 _NEEDS_SCHEMA = object()  # Receiver._decode: the schema must be fetched first
@@ -423,7 +425,7 @@ class Receiver:
             self.undecodable += 1
             log.warning("cannot decode %s: %s", key, exc)
             return None
-        return Received(key, header, cols, t_recv, schema)
+        return Received(key, header, cols, t_recv, schema, payload)
 
     def receive(self, timeout_s: float) -> Received | None:
         """The next decoded batch, or None after ``timeout_s`` without one."""

@@ -54,8 +54,8 @@ CONGESTION: dict[str, str] = {
 COMPRESSIONS: dict[str, str] = {"zstd": "zstandard", "lz4": "lz4 frame", "none": "uncompressed"}
 FOXGLOVE_KINDS: dict[str, str] = {
     "auto": "points when the device has x_mm, y_mm, z_mm channels, else none",
-    "points": "foxglove.PointCloud of each batch (tracker points)",
-    "poses": "foxglove.PosesInFrame of each batch (TCP poses)",
+    "points": "foxglove.PointCloud of the points since the last one (tracker points)",
+    "poses": "foxglove.PosesInFrame of the poses since the last one (TCP poses)",
     "none": "no viewer channel",
 }
 
@@ -105,6 +105,11 @@ class RecordingConfig:
     compression: str = "zstd"
     chunk_size_bytes: int = 1 << 20
     chunk_interval_s: float = 1.0
+    #: Foxglove viewer channels (joints, points, TCP, frame transforms) at most this
+    #: often per stream; 0: none (docs/daq.md "Recording")
+    viewer_rate_hz: float = 30.0
+    #: also record the live twin's keys (``twin/<cell>/**``) when a twin publishes
+    twin: bool = True
 
 
 @dataclass(frozen=True)
@@ -386,7 +391,18 @@ def _parse_recording(t: Mapping[str, Any], w: _Where) -> RecordingConfig:
             w("[recording]", "chunk_interval_s"),
             positive=True,
         ),
+        viewer_rate_hz=_viewer_rate(
+            _number(t.get("viewer_rate_hz", d.viewer_rate_hz), w("[recording]", "viewer_rate_hz")),
+            w("[recording]", "viewer_rate_hz"),
+        ),
+        twin=_bool(t.get("twin", d.twin), w("[recording]", "twin")),
     )
+
+
+def _viewer_rate(value: float, where: str) -> float:
+    if not 0.0 <= value <= 1000.0:
+        raise ConfigError(f"{where}: must be >= 0 and <= 1000 (Hz), got {value}")
+    return value
 
 
 _DEVICE_KEYS = _keys_of(DeviceConfig)

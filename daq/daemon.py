@@ -28,19 +28,30 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from daq.bus import JSON_ENCODING, SchemaServer, health_key, open_session, utc_offset_ns
+from daq.bus import (
+    JSON_ENCODING,
+    Received,
+    Receiver,
+    SchemaServer,
+    health_key,
+    open_session,
+    utc_offset_ns,
+)
 from daq.config import DaqConfig, resolve, zenoh_overrides
 from daq.device_drivers import keep_freed_heap, make_driver
 from daq.errors import DaqError
-from daq.pipeline import DeviceStream, build_schemas
+from daq.pipeline import DeviceStream, build_schemas, recorder_meta
 from daq.recording import (
     HEALTH_SCHEMA,
     HEALTH_SCHEMA_NAME,
     KIND_HEALTH,
+    TWIN_HEALTH_SCHEMA,
+    TWIN_HEALTH_SCHEMA_NAME,
     BackgroundRecorder,
     McapRecorder,
 )
 from daq.scheduling import set_realtime_of
+from daq.viewer import StreamViewer
 from daq.worker import DeviceWorker, worker_zenoh
 
 log = logging.getLogger(__name__)
@@ -93,6 +104,8 @@ class Daemon:
         self.workers: list[DeviceWorker] = []
         self._health_pubs: dict[str, Any] = {}
         self._health_rec: dict[str, int] = {}
+        self._twin_rx: Any = None
+        self._twin_channels: dict[str, tuple[int, StreamViewer | None]] = {}
         self._closed = False
         try:
             if record_path is not None:
@@ -152,9 +165,46 @@ class Daemon:
                 self._health_pubs[dev.name] = self.session.declare_publisher(
                     hk, encoding=JSON_ENCODING
                 )
+            if self.recorder is not None and cfg.recording.twin:
+                # the live twin's keys too, when a twin publishes (its schemas by query)
+                self._twin_rx = Receiver(
+                    self.session,
+                    f"twin/{cfg.cell.name}/**",
+                    on_batch=self._record_twin,
+                    on_other=self._record_twin_json,
+                )
         except BaseException:
             self.close()
             raise
+
+    def _record_twin(self, got: Received) -> None:
+        """A batch of a twin key (zenoh's callback thread): recorded as it came, and its
+        viewer channels at their bounded rate."""
+        assert self.recorder is not None
+        t = time.time_ns()
+        entry = self._twin_channels.get(got.key)
+        if entry is None:
+            cid = self.recorder.add_columnar(got.schema, recorder_meta(got.schema))
+            viewer = StreamViewer(
+                self.recorder, got.schema, rate_hz=self.cfg.recording.viewer_rate_hz
+            )
+            entry = self._twin_channels[got.key] = (cid, viewer if viewer.active else None)
+        cid, viewer = entry
+        self.recorder.write(cid, got.payload, t, t, got.header.batch_seq)
+        if viewer is not None and viewer.due(t):
+            viewer.add(got.columns, t)
+
+    def _record_twin_json(self, sample: Any) -> None:
+        assert self.recorder is not None
+        key = str(sample.key_expr)
+        entry = self._twin_channels.get(key)
+        if entry is None:
+            cid = self.recorder.add_json(
+                key, TWIN_HEALTH_SCHEMA_NAME, TWIN_HEALTH_SCHEMA, {"daq.kind": KIND_HEALTH}
+            )
+            entry = self._twin_channels[key] = (cid, None)
+        t = time.time_ns()
+        self.recorder.write(entry[0], sample.payload.to_bytes(), t, t)
 
     @property
     def keys(self) -> list[str]:
@@ -236,6 +286,8 @@ class Daemon:
                 p.undeclare()
             except Exception:
                 log.debug("health undeclare failed", exc_info=True)
+        if self._twin_rx is not None:
+            self._twin_rx.close()
         if self.recorder is not None:
             self.recorder.close()
         self.schemas.close()

@@ -32,8 +32,9 @@ from daq.clock_sync import DeviceClockMap
 from daq.columnar import Column, StreamSchema
 from daq.config import ChannelGroup, DaqConfig, DeviceConfig
 from daq.errors import ConfigError, TransportError
-from daq.recording import KIND_FOXGLOVE, BackgroundRecorder
+from daq.recording import BackgroundRecorder
 from daq.scheduling import describe as describe_scheduling
+from daq.viewer import StreamViewer
 from drivers.base import SampleBatch
 
 log = logging.getLogger(__name__)
@@ -141,49 +142,21 @@ def recorder_meta(s: StreamSchema) -> dict[str, str]:
     return {k: str(v) for k, v in s.meta.items() if not isinstance(v, dict | list)}
 
 
-FoxgloveChannel = tuple[int, str, tuple[str, str, str]]
-
-
-def add_foxglove_channels(
-    recorder: BackgroundRecorder, dev: DeviceConfig, s: StreamSchema
-) -> list[FoxgloveChannel]:
-    """The Foxglove channel derived from ``s`` (points or poses), if the device has one."""
-    kind = dev.foxglove
-    xyz = foxglove.xyz_columns(list(s.names))
-    if kind == "none" or xyz is None:
-        if kind in ("points", "poses"):
-            log.warning("%s: foxglove=%s but no x_mm/y_mm/z_mm columns", s.key, kind)
-        return []
-    name = foxglove.POSES_IN_FRAME if kind == "poses" else foxglove.POINT_CLOUD
-    suffix = "poses" if kind == "poses" else "points"
-    cid = recorder.add_json(
-        f"{s.key}/{suffix}",
-        name,
-        foxglove.schema_bytes(name),
-        {"daq.kind": KIND_FOXGLOVE, "derived_from": s.key, "frame_id": dev.frame_id},
+def viewer_for(
+    recorder: BackgroundRecorder, cfg: DaqConfig, dev: DeviceConfig, s: StreamSchema, first: bool
+) -> StreamViewer | None:
+    """The Foxglove viewer channels of one of the device's keys (``first``: the key that
+    carries the points of an xyz device), or None when it has none (docs/daq.md)."""
+    v = StreamViewer(
+        recorder,
+        s,
+        rate_hz=cfg.recording.viewer_rate_hz,
+        points=dev.foxglove if first else "none",
+        frame_id=dev.frame_id,
     )
-    return [(cid, name, xyz)]
-
-
-def write_foxglove(
-    recorder: BackgroundRecorder,
-    fox: list[FoxgloveChannel],
-    dev: DeviceConfig,
-    cols: dict[str, Any],
-    a: int,
-    b: int,
-    t_pub: int,
-) -> None:
-    """Samples ``a:b`` of ``cols`` as one message on each Foxglove channel in ``fox``."""
-    for cid, name, (x, y, z) in fox:
-        xyz = np.stack([cols[x][a:b], cols[y][a:b], cols[z][a:b]], axis=1).astype(float)
-        t_last = int(cols["t_mapped_ns"][b - 1])
-        msg = (
-            foxglove.poses_in_frame(t_last, dev.frame_id, xyz)
-            if name == foxglove.POSES_IN_FRAME
-            else foxglove.point_cloud(t_last, dev.frame_id, xyz)
-        )
-        recorder.write(cid, msg, t_pub, t_pub)
+    if dev.foxglove in ("points", "poses") and foxglove.xyz_columns(list(s.names)) is None:
+        log.warning("%s: foxglove=%s but no x_mm/y_mm/z_mm columns", s.key, dev.foxglove)
+    return v if v.active else None
 
 
 @dataclass
@@ -241,11 +214,11 @@ class DeviceStream:
             ChannelPublisher(session, s, congestion=cc, schemas=schemas) for s, _ in self.groups
         ]
         self.rec_ids: list[int] = []
-        self.fox: list[FoxgloveChannel] = []
+        self.viewers: list[StreamViewer | None] = []
         if recorder is not None:
-            for s, _ in self.groups:
+            for gi, (s, _) in enumerate(self.groups):
                 self.rec_ids.append(recorder.add_columnar(s, recorder_meta(s)))
-                self.fox += add_foxglove_channels(recorder, dev, s)
+                self.viewers.append(viewer_for(recorder, cfg, dev, s, gi == 0))
         self.clock = self._new_clock()
         self._epoch: int | None = None
         self._last_seq: int | None = None
@@ -455,11 +428,9 @@ class DeviceStream:
                 continue
             for k, payload in enumerate(payloads):
                 self.recorder.write(self.rec_ids[gi], payload, t_pub, t_pub, seq0 + k)
-            if gi == 0:
-                for a in range(0, n, step):
-                    write_foxglove(
-                        self.recorder, self.fox, self.dev, cols, a, min(n, a + step), t_pub
-                    )
+            viewer = self.viewers[gi]
+            if viewer is not None and viewer.due(t_pub):  # at a bounded rate (daq.viewer)
+                viewer.add(cols, t_pub)
 
     def _map(
         self,
@@ -629,4 +600,8 @@ class DeviceStream:
     def close(self) -> None:
         for p in self.publishers:
             p.close()
+        t = time.time_ns()
+        for v in self.viewers:  # the last points into the viewer channel
+            if v is not None:
+                v.flush(t)
         self._set_alive(False)

@@ -76,6 +76,22 @@ HEALTH_SCHEMA = {
 }
 
 
+TWIN_HEALTH_SCHEMA_NAME = "grating_twin.twin_health.v1"
+TWIN_HEALTH_SCHEMA = {
+    "title": TWIN_HEALTH_SCHEMA_NAME,
+    "description": "The live twin's health, once a second (docs/topics.md, Twin keys)",
+    "type": "object",
+    "properties": {
+        "t_host_ns": {"type": "integer"},
+        "rate_hz": {"type": "number"},
+        "samples": {"type": "integer"},
+        "latency_ms": {"type": "object"},
+        "upstream_ms": {"type": "object"},
+        "twin_ms": {"type": "object"},
+    },
+}
+
+
 class McapRecorder:
     """Writes channels and messages to one MCAP file (not thread-safe; see
     :class:`BackgroundRecorder`). ``close()`` writes the summary; safe to call twice."""
@@ -1126,6 +1142,9 @@ def main_record(args: Any, zc: Any) -> int:
     import zenoh
 
     from daq.bus import fetch_schema, fetch_schemas, open_session
+    from daq.columnar import decode
+    from daq.errors import DaqError
+    from daq.viewer import StreamViewer
 
     # the file is written as samples come (a crash keeps what was closed): checked up
     # front, not staged
@@ -1144,6 +1163,9 @@ def main_record(args: Any, zc: Any) -> int:
     # with lost messages: daq.bus.Receiver)
     known = fetch_schemas(session, args.key)
     channels: dict[str, int] = {}
+    # viewer channels (daq.viewer) of the columnar keys, at their bounded rate
+    viewers: dict[str, tuple[Any, StreamSchema]] = {}
+    rate = float(getattr(args, "viewer_rate_hz", 30.0))
     sub = session.declare_subscriber(args.key, zenoh.handlers.FifoChannel(65536))
     print(json.dumps({"recording": str(rec.path), "key": args.key}), flush=True)
     t_end = None if args.duration is None else time.monotonic() + args.duration
@@ -1162,6 +1184,9 @@ def main_record(args: Any, zc: Any) -> int:
                     try:
                         schema = known.get(key) or fetch_schema(session, key)
                         cid = rec.add_columnar(schema)
+                        viewer = StreamViewer(rec, schema, rate_hz=rate)
+                        if viewer.active:
+                            viewers[key] = (viewer, schema)
                     except Exception as exc:
                         log.warning("no schema for %s, not recorded: %s", key, exc)
                         channels[key] = -1
@@ -1176,9 +1201,18 @@ def main_record(args: Any, zc: Any) -> int:
                 channels[key] = cid
             if cid < 0:
                 continue
-            rec.write(cid, sample.payload.to_bytes(), now, now)
+            payload = sample.payload.to_bytes()
+            rec.write(cid, payload, now, now)
+            view = viewers.get(key)
+            if view is not None and view[0].due(now):
+                try:
+                    view[0].add(decode(view[1], payload)[1], now)
+                except DaqError as exc:  # a payload of another schema: the data is kept
+                    log.warning("%s: no viewer message: %s", key, exc)
     finally:
         sub.undeclare()
+        for viewer, _ in viewers.values():  # the last points into the viewer channels
+            viewer.flush(time.time_ns())
         rec.close()
         session.close()
     return 0

@@ -176,7 +176,7 @@ class DeviceWorker:
         recorder: BackgroundRecorder | None = None,
         health_channel: int | None = None,
     ) -> None:
-        from daq.pipeline import add_foxglove_channels, recorder_meta
+        from daq.pipeline import recorder_meta, viewer_for
 
         self.dev = dev
         self.schemas = schemas
@@ -185,6 +185,7 @@ class DeviceWorker:
         self.restarts = 0  # times the worker ended by itself and was started again
         self.last_health: dict[str, Any] | None = None
         self._subs: list[Any] = []
+        self._viewers: list[Any] = []
         self._spec = json.dumps(worker_spec(cfg, dev, zc, utc_offset_ns))
         self.proc: subprocess.Popen[str] | None = None
         self._lock = threading.Lock()
@@ -194,10 +195,11 @@ class DeviceWorker:
         if recorder is not None:
             for gi, s in enumerate(schemas):
                 cid = recorder.add_columnar(s, recorder_meta(s))
-                fox = add_foxglove_channels(recorder, dev, s) if gi == 0 else []
+                viewer = viewer_for(recorder, cfg, dev, s, gi == 0)
+                self._viewers.append(viewer)
                 self._subs.append(
                     session.declare_subscriber(
-                        s.key, zenoh.handlers.Callback(self._recording(cid, s, fox))
+                        s.key, zenoh.handlers.Callback(self._recording(cid, s, viewer))
                     )
                 )
 
@@ -205,9 +207,7 @@ class DeviceWorker:
     def keys(self) -> list[str]:
         return [s.key for s in self.schemas]
 
-    def _recording(self, cid: int, s: StreamSchema, fox: list[Any]) -> Any:
-        from daq.pipeline import write_foxglove
-
+    def _recording(self, cid: int, s: StreamSchema, viewer: Any) -> Any:
         assert self.recorder is not None
         rec = self.recorder
 
@@ -217,9 +217,8 @@ class DeviceWorker:
             try:
                 seq = read_header(payload).batch_seq
                 rec.write(cid, payload, t, t, seq)
-                if fox:
-                    header, cols = decode(s, payload)
-                    write_foxglove(rec, fox, self.dev, cols, 0, header.n_samples, t)
+                if viewer is not None and viewer.due(t):  # decoded at a bounded rate
+                    viewer.add(decode(s, payload)[1], t)
             except DaqError as exc:
                 log.warning("%s: not recorded: %s", s.key, exc)
             with self._lock:
@@ -310,6 +309,12 @@ class DeviceWorker:
             except Exception:  # session already closed
                 log.debug("worker subscriber undeclare failed", exc_info=True)
         self._subs = []
+        t = time.time_ns()
+        with self._lock:  # the last points into the viewer channel
+            for v in self._viewers:
+                if v is not None:
+                    v.flush(t)
+            self._viewers = []
 
 
 if __name__ == "__main__":

@@ -21,7 +21,8 @@ from drivers.base import SampleBatch
 
 class ListRecorder:
     def __init__(self) -> None:
-        self.messages: list[tuple[int, bytes, int]] = []
+        self.messages: list[tuple[int, bytes, int]] = []  # the columnar data
+        self.viewer: list[tuple[int, bytes, int]] = []  # derived viewer channels (JSON)
 
     def add_columnar(self, schema: Any, meta: Any = None) -> int:
         return 1
@@ -30,7 +31,7 @@ class ListRecorder:
         return 2
 
     def write(self, cid: int, data: bytes, t_log: int, t_pub: int, seq: int = 0) -> None:
-        self.messages.append((cid, data, seq))
+        (self.messages if cid == 1 else self.viewer).append((cid, data, seq))
 
 
 def batch(k0: int, n: int) -> SampleBatch:
