@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import tomli_w
 
@@ -31,8 +31,11 @@ from edges.toml_schema import (
     parse_toml_text,
 )
 
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
 PRESET_PACKAGE = "calibration.presets"
-_T = TypeVar("_T")
+_T = TypeVar("_T", bound="DataclassInstance")
 
 
 @dataclass(frozen=True)

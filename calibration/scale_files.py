@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 import tomli_w
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from calibration.errors import CalibrationError, DataFileError
 from calibration.grating_scale import (
@@ -100,7 +100,9 @@ class _Csv:
     def value(self, line: int, fields: list[str], column: str) -> str:
         return fields[self.index[column]].strip()
 
-    def integer(self, line: int, fields: list[str], column: str, *, minimum=None) -> int:
+    def integer(
+        self, line: int, fields: list[str], column: str, *, minimum: int | None = None
+    ) -> int:
         text = self.value(line, fields, column)
         if not _INTEGER.match(text):
             kind = "NaN" if text.lower() in {"nan", "+nan", "-nan"} else repr(text)
@@ -422,7 +424,9 @@ class ScaleCalibration:
             )
         return self.joints[joint]
 
-    def angles_deg(self, joint: NDArray[np.int64], counts, direction=None) -> FloatArray:
+    def angles_deg(
+        self, joint: NDArray[np.int64], counts: ArrayLike, direction: ArrayLike | None = None
+    ) -> FloatArray:
         """Angles relative to Home (deg) for rows of (joint, counts[, direction]), ``(N,)``."""
         joint = np.asarray(joint)
         out = np.empty(joint.shape)

@@ -24,7 +24,7 @@ import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,7 +32,10 @@ from numpy.typing import NDArray
 from edges.command import one_line
 from edges.inputs import MAX_TOML_BYTES, read_input_bytes
 
-T = TypeVar("T")
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+T = TypeVar("T", bound="DataclassInstance")
 
 
 @dataclass(frozen=True)
@@ -125,8 +128,9 @@ def parse_toml_file(path: str | Path, error: type[Exception], what: str) -> dict
     the file should have been."""
     source = str(path)
     raw = read_input_bytes(path, limit=MAX_TOML_BYTES, error=error)
-    if b"\x00" in raw:
-        raise error(f"{source}: contains NUL bytes: not a TOML text file")
+    if b"\x00" in raw:  # a binary file, or UTF-16 text
+        line = raw[: raw.index(b"\x00")].count(b"\n") + 1
+        raise error(f"{source}: line {line}: contains NUL bytes: not UTF-8 TOML text, not {what}")
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -267,7 +271,7 @@ def build(
     Unknown keys, missing required ones, wrong types and numbers outside their range are
     ``error``; nested dataclass fields are sub-tables, built the same way."""
     table = TomlTable(data, source, name or where(path), error)
-    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
     unknown = sorted(set(table.data) - set(fields))
     if unknown:
@@ -302,9 +306,9 @@ def _value(
     if origin in (types.UnionType, typing.Union) and type(None) in args:
         inner = [a for a in args if a is not type(None)]
         return _value(table, key, inner[0], rng, path, ranges)
-    if dataclasses.is_dataclass(hint):
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
         return build(
-            hint,  # type: ignore[arg-type]
+            hint,
             value,
             source=table.source,
             error=table.error,
