@@ -107,3 +107,7 @@ class PoseSelectionError(CalibrationError, ValueError):
 
 class CompensationError(CalibrationError, ValueError):
     """The targets or their joints are malformed (shapes, non-finite values)."""
+
+
+class ScaleFileError(CalibrationError, ValueError):
+    """``scale.toml`` is malformed: the message names the file, table and key."""

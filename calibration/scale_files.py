@@ -37,7 +37,7 @@ import numpy as np
 import tomli_w
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.errors import CalibrationError, DataFileError
+from calibration.errors import CalibrationError, DataFileError, ScaleFileError
 from calibration.grating_scale import (
     COUNTER_MODULUS,
     DIRECTIONS,
@@ -72,10 +72,6 @@ ANGLE_CONVENTION = (
 )
 
 _INTEGER = re.compile(r"^[+-]?[0-9]+$")
-
-
-class ScaleFileError(CalibrationError, ValueError):
-    """``scale.toml`` is malformed: the message names the file, table and key."""
 
 
 # -- CSV ----------------------------------------------------------------------------------
