@@ -757,12 +757,16 @@ def _twin_cell_config(port: int) -> str:
     )
 
 
-def twin_round(seconds: float, radius_deg: float, warmup_s: float = 8.0) -> dict[str, Any]:
+def twin_round(
+    seconds: float, radius_deg: float, warmup_s: float = 8.0, tree: str | None = None
+) -> dict[str, Any]:
     """``daq run`` (a fake six-joint grating box at 1 kHz, in the daemon's process) → the
     live twin (``twin run --from``, a client of the daemon, ``--effects-radius-deg``) →
     one subscriber process on the daemon's endpoint (``_twin_sub_main``): the daemon's
     latency and the twin's, in the same seconds, plus the twin's CPU and the host's
-    steal. ``radius_deg = 0``: the full effect predictor per batch (the twin before)."""
+    steal. ``radius_deg = 0``: the full effect predictor per batch. ``tree``: run the
+    twin of another checkout of this repository (e.g. a worktree of an older commit;
+    ``radius_deg`` is then not passed: the twin as that commit had it)."""
     port = _free_port()
     span = warmup_s + seconds
     with tempfile.TemporaryDirectory() as tmp:
@@ -777,13 +781,22 @@ def twin_round(seconds: float, radius_deg: float, warmup_s: float = 8.0) -> dict
             procs.append(d)
             assert d.stdout is not None
             json.loads(d.stdout.readline())
+            cmd = [PY, "-m", "calibration.cli", "run", "--from", str(TWIN_CALIBRATED),
+                   "--out", str(Path(tmp) / "twin"), "--connect", f"tcp/127.0.0.1:{port}",
+                   "--publish-s", str(span + 10), "--quiet"]  # fmt: skip
+            if tree is None:
+                cmd += ["--effects-radius-deg", str(radius_deg)]
+            env = dict(os.environ)
+            if tree is not None:
+                env["PYTHONPATH"] = str(Path(tree).resolve())
             tw = subprocess.Popen(
-                [PY, "-m", "calibration.cli", "run", "--from", str(TWIN_CALIBRATED),
-                 "--out", str(Path(tmp) / "twin"), "--connect", f"tcp/127.0.0.1:{port}",
-                 "--publish-s", str(span + 10), "--effects-radius-deg", str(radius_deg),
-                 "--quiet"],
-                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-            )  # fmt: skip
+                cmd,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                cwd=tree,
+                env=env,
+            )
             procs.append(tw)
             assert tw.stdout is not None
             line = tw.stdout.readline()  # {"twin": "live", ...} once it publishes
@@ -804,6 +817,7 @@ def twin_round(seconds: float, radius_deg: float, warmup_s: float = 8.0) -> dict
                     p.wait()
     res.update(
         radius_deg=radius_deg,
+        tree=tree,
         twin_cpu_fraction=(c1 - c0) / (t1 - t0),
         host_steal_cores=(s1 - s0) / (t1 - t0),
         host_wakeup_late_ms=probe.summary(t1 - t0),
@@ -811,16 +825,19 @@ def twin_round(seconds: float, radius_deg: float, warmup_s: float = 8.0) -> dict
     return res
 
 
-def twin_hop(seconds: float, rounds: int = 2) -> dict[str, Any]:
+def twin_hop(seconds: float, rounds: int = 2, ref_tree: str | None = None) -> dict[str, Any]:
     """Alternating rounds: the twin as it is (``--effects-radius-deg 0.25``) and the
     reference, the same twin with the full effect predictor per batch (radius 0: the
-    twin's work per batch before), each beside the daemon's own latency of that round."""
+    twin's work per batch before), and with ``ref_tree`` the twin of that checkout; each
+    beside the daemon's own latency of that round."""
     out: dict[str, Any] = {"rounds": []}
+    kinds = [("twin", 0.25, None), ("reference_full_predictor", 0.0, None)]
+    if ref_tree is not None:
+        kinds.append(("reference_tree", -1.0, ref_tree))
     for _ in range(rounds):
-        for radius in (0.25, 0.0):
-            r = twin_round(seconds, radius)
-            out["rounds"].append(r)
-    for name, radius in (("twin", 0.25), ("reference_full_predictor", 0.0)):
+        for _, radius, tree in kinds:
+            out["rounds"].append(twin_round(seconds, radius, tree=tree))
+    for name, radius, _ in kinds:
         rs = [r for r in out["rounds"] if r["radius_deg"] == radius and r["twin_out"]]
         if not rs:
             continue
@@ -992,9 +1009,15 @@ def main(argv: list[str] | None = None) -> int:
         "twin with the full effect predictor per batch, each beside the daemon's latency",
     )
     ap.add_argument("--rounds", type=int, default=2, help="--twin: rounds of each (2)")
+    ap.add_argument(
+        "--twin-ref-tree",
+        metavar="DIR",
+        help="--twin: also rounds of the twin of this checkout (a worktree of an older commit)",
+    )
     args = ap.parse_args(argv)
     if args.twin:
-        print(json.dumps({"twin_hop": twin_hop(args.twin, args.rounds)}, indent=1))
+        res = twin_hop(args.twin, args.rounds, args.twin_ref_tree)
+        print(json.dumps({"twin_hop": res}, indent=1))
         return 0
     if args.wildcard:
         print(json.dumps({"wildcard_subscription": wildcard_cost(5.0)}))
