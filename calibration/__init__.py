@@ -5,14 +5,16 @@ This package never imports ``sim_devices``: the twin must not know the emulator'
 
 The names below are the public API. The light ones are imported at once; the solvers
 (``run_closed_loop``, ``calibrate_scales``, ``compensate``, ``identify``) on first use
-(PEP 562), so a command that does not need them does not pay for their imports::
+(PEP 562), so a command that does not need them does not pay for their imports.
+:func:`calibrate` is the one way from a campaign to a calibrated robot (identification,
+then the closed loop), as ``twin identify`` and ``twin run`` use it::
 
-    from calibration import load_robot, read_campaign, run_closed_loop
+    from calibration import calibrate, load_robot, read_campaign
 
     robot = load_robot("kr500")
     campaign = read_campaign("campaign.csv", robot.n_joints)
-    loop = run_closed_loop(robot, campaign)
-    loop.calibrated_description(robot).save("calibrated.toml")
+    result = calibrate(robot, campaign)
+    result.description.save("calibrated.toml")
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+from calibration.calibrate import CalibrationResult, calibrate
 from calibration.campaign_files import Campaign, read_campaign, read_joint_readings
 from calibration.description import RobotDescription, load_robot, preset_names
 from calibration.errors import CalibrationError, DataFileError, DescriptionError
@@ -62,6 +65,7 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "CalibrationError",
+    "CalibrationResult",
     "Campaign",
     "ClosedLoopResult",
     "CompensationResult",
@@ -72,6 +76,7 @@ __all__ = [
     "JointLimits",
     "KinematicModel",
     "RobotDescription",
+    "calibrate",
     "calibrate_scales",
     "compensate",
     "flange_poses",

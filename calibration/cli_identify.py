@@ -15,15 +15,14 @@ import argparse
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration.calibrate import calibrate, start_for
 from calibration.campaign_files import (
-    Campaign,
     read_campaign,
     read_joint_readings,
     write_points,
@@ -42,7 +41,6 @@ from calibration.identification import (
     RAN_AWAY,
     START_METHODS,
     IdentificationResult,
-    identify,
     tracker_sigma_mm,
 )
 from calibration.kinematics import KinematicModel
@@ -55,7 +53,7 @@ from calibration.unit_plausibility import (
 from edges.outputs import OutputSet
 
 if TYPE_CHECKING:  # the closed loop loads when a command runs it, not for --help
-    from calibration.closed_loop import ClosedLoopResult, LoopSettings
+    from calibration.closed_loop import LoopSettings
 
 FloatArray = NDArray[np.float64]
 
@@ -226,9 +224,7 @@ def _identify(
             f"{args.data}: only {distinct} distinct pose(s) among the 'identify' rows; the "
             f"geometry needs at least {MIN_DISTINCT_POSES} (the method uses 100)"
         )
-    start = args.start
-    if start == "auto":
-        start = "description" if desc.base is not None else "registration"
+    start = start_for(desc, args.start)
     say(
         f"{int(idm.sum())} identification and {int(campaign.mask('validate').sum())} "
         f"validation poses; base start: {start}"
@@ -241,36 +237,37 @@ def _identify(
     def progress(it: int, norm: float, mu: float) -> None:
         say(f"LM iteration {it}: error norm {norm:.6f} mm, damping {mu:.1e}")
 
+    def geometric_done(result: IdentificationResult) -> None:
+        _require_converged(result, "geometric")
+        ana = result.identifiability
+        say(
+            f"identified {ana.rank} of {len(ana.parameter_names)} parameters "
+            f"({len(ana.dropped)} dropped), condition number {ana.condition_number:.1f}; "
+            f"{result.optimize_result.message}"
+        )
+        for d in ana.dropped:
+            if d.reason.startswith((NO_EFFECT, RAN_AWAY)):
+                say(f"dropped {d.name}: {d.reason}")
+
     try:
-        result = identify(
-            nominal,
-            campaign.q_rad[idm],
-            campaign.xyz_mm[idm],
+        cal = calibrate(
+            desc,
+            campaign,
+            effects=not args.no_effects,
             start=start,
             loss=args.loss,
             f_scale_mm=args.f_scale_mm,
             point_sigma_mm=point_sigma,
+            loop_settings=_loop_settings(args),
             progress=progress,
+            say=say,
+            on_geometric=geometric_done,
         )
+    except _NotConverged:
+        raise
     except CalibrationError as exc:  # the data cannot be fitted: say which data
         raise IdentificationError(f"{args.data}: {exc}") from None
-    _require_converged(result, "geometric")
-    ana = result.identifiability
-    say(
-        f"identified {ana.rank} of {len(ana.parameter_names)} parameters "
-        f"({len(ana.dropped)} dropped), condition number {ana.condition_number:.1f}; "
-        f"{result.optimize_result.message}"
-    )
-    for d in ana.dropped:
-        if d.reason.startswith((NO_EFFECT, RAN_AWAY)):
-            say(f"dropped {d.name}: {d.reason}")
-    loop = None
-    if args.no_effects:
-        calibrated = replace(result.model.to_description(desc), effects=())
-    else:
-        loop = _closed_loop(args, desc, campaign, start, point_sigma, result, say)
-        result = loop.result
-        calibrated = loop.calibrated_description(desc)
+    result, loop, calibrated = cal.result, cal.loop, cal.description
     _require_converged(result, "final")
     calibrated.save(out_path)
 
@@ -316,6 +313,10 @@ def _identify(
     return lines
 
 
+class _NotConverged(IdentificationError):
+    """A fit that did not converge (its message is whole: no file prefix added)."""
+
+
 def _require_converged(result: IdentificationResult, which: str) -> None:
     """A fit that did not converge is an error (exit 2, nothing written). Converged: the
     error norm's change fell to tol_mm, or no step of any damping lowers a finite error
@@ -323,35 +324,10 @@ def _require_converged(result: IdentificationResult, which: str) -> None:
     repair has already raised in identify()."""
     if not result.success:
         opt = result.optimize_result
-        raise IdentificationError(
+        raise _NotConverged(
             f"the {which} fit did not converge: {opt.message} (status {opt.status}, "
             f"{opt.nit} iterations)"
         )
-
-
-def _closed_loop(
-    args: argparse.Namespace,
-    desc: RobotDescription,
-    campaign: Campaign,
-    start: str,
-    point_sigma: FloatArray | None,
-    geometric: IdentificationResult,
-    say: Callable[[str], None],
-) -> ClosedLoopResult:
-    from calibration.closed_loop import run_closed_loop
-
-    settings = _loop_settings(args)
-    return run_closed_loop(
-        desc,
-        campaign,
-        start=start,
-        loss=args.loss,
-        f_scale_mm=args.f_scale_mm,
-        point_sigma_mm=point_sigma,
-        settings=settings,
-        geometric=geometric,
-        say=say,
-    )
 
 
 def run_predict(args: argparse.Namespace) -> int:

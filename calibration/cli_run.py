@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 from calibration.errors import DataFileError, OptionError, OutputFileError
 from edges.command import progress
@@ -18,7 +19,7 @@ from edges.inputs import MAX_TOML_BYTES, read_input_bytes
 from edges.outputs import OutputSet
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "run",
         help="the twin end to end: phases, scale calibration, identification, live twin",
@@ -99,7 +100,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_run)
 
 
-def _earlier_run(from_dir: str) -> dict:  # type: ignore[type-arg]
+def _earlier_run(from_dir: str) -> dict[str, Any]:
     """run.json of an earlier ``twin run --out DIR`` (the files it names must exist), its
     paths resolved from this working directory."""
     from calibration.twin_run import RUN_PATHS_RELATIVE_TO, resolve_run_path
@@ -107,7 +108,7 @@ def _earlier_run(from_dir: str) -> dict:  # type: ignore[type-arg]
     path = Path(from_dir) / "run.json"
     raw = read_input_bytes(path, limit=MAX_TOML_BYTES, error=DataFileError)
     try:
-        run = json.loads(raw.decode("utf-8"))
+        run: Any = json.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
         raise DataFileError(f"{path}: not the run.json of a twin run: {exc}") from None
     need = {"calibrated": str, "files": dict}
@@ -125,6 +126,7 @@ def _earlier_run(from_dir: str) -> dict:  # type: ignore[type-arg]
         if isinstance(name, str):
             files[key] = str(resolve_run_path(from_dir, name, beside))
     run["files"] = files
+    checked: dict[str, Any] = run
     for key, name in (
         ("calibrated", run["calibrated"]),
         ("files.scale", files["scale"]),
@@ -132,7 +134,7 @@ def _earlier_run(from_dir: str) -> dict:  # type: ignore[type-arg]
     ):
         if not Path(name).is_file():
             raise DataFileError(f"{path}: key '{key}' names {name}, which is not there any more")
-    return run
+    return checked
 
 
 def run_run(args: argparse.Namespace) -> int:

@@ -111,3 +111,7 @@ class CompensationError(CalibrationError, ValueError):
 
 class ScaleFileError(CalibrationError, ValueError):
     """``scale.toml`` is malformed: the message names the file, table and key."""
+
+
+class TwinRunError(CalibrationError, ValueError):
+    """The data do not hold what a calibration needs (named in the message)."""

@@ -26,23 +26,29 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration.calibrate import calibrate
 from calibration.campaign_files import Campaign, write_campaign
 from calibration.chain_scale import ScaleCampaignResult, calibrate_scales, with_load_notes
 from calibration.description import RobotDescription, load_robot
-from calibration.errors import CalibrationError
+from calibration.errors import TwinRunError
 from calibration.grating_scale import COUNTER_MODULUS, JointSweep, ScaleOptions
 from calibration.pairing import PairingOptions, StopMeasurement, pair_dwell
 from calibration.phase_detection import PhaseOptions, Phases, Pose, find_phases
 from calibration.scale_files import write_csv
 from calibration.streams import CellStreams
+
+if TYPE_CHECKING:
+    from calibration.closed_loop import ClosedLoopResult
+    from calibration.effect_library import EffectSpec
+    from calibration.identification import IdentificationResult
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -53,10 +59,6 @@ Say = Callable[[str], None]
 MAX_ROUNDS = 3
 #: run.json's ``paths_relative_to``: its paths are relative to its own directory
 RUN_PATHS_RELATIVE_TO = "run.json"
-
-
-class TwinRunError(CalibrationError, ValueError):
-    """The data do not hold what a calibration needs (named in the message)."""
 
 
 def _quiet(_text: str) -> None:
@@ -276,12 +278,13 @@ class TwinRound:
 
     scales: ScaleCampaignResult
     campaign: Campaign
-    geometric: Any  # IdentificationResult
-    loop: Any  # ClosedLoopResult | None
+    geometric: IdentificationResult
+    loop: ClosedLoopResult | None
     deflection_rad: dict[int, FloatArray] | None  # taken out of each joint's sweep (S, n)
+    calibrated: RobotDescription  # this round's twin (calibration.calibrate)
 
     @property
-    def result(self) -> Any:
+    def result(self) -> IdentificationResult:
         return self.geometric if self.loop is None else self.loop.result
 
     def summary(self) -> dict[str, Any]:
@@ -318,11 +321,10 @@ class TwinCalibration:
     def final(self) -> TwinRound:
         return self.rounds[-1]
 
-    def calibrated_description(self, robot: RobotDescription) -> RobotDescription:
-        final = self.final
-        if final.loop is not None:
-            return final.loop.calibrated_description(robot)
-        return replace(final.geometric.model.to_description(robot), effects=())
+    @property
+    def calibrated(self) -> RobotDescription:
+        """The twin: the last round's calibrated description."""
+        return self.final.calibrated
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -366,32 +368,21 @@ def calibrate_twin(
     joint another's deflection; at most :data:`MAX_ROUNDS` rounds); otherwise a further
     round would only redraw the estimate's noise into the maps. The last round is the twin.
     """
-    from calibration.closed_loop import LoopSettings, run_closed_loop
-    from calibration.identification import identify
-    from calibration.kinematics import KinematicModel
-
     robot = meas.robot
     limits = [(j.lower_deg, j.upper_deg) for j in robot.joints]
-    start = "description" if robot.base is not None else "registration"
-    nominal = KinematicModel.from_description(robot)
-    settings = loop_settings or LoopSettings()
 
-    def one_round(deflection):  # type: ignore[no-untyped-def]
+    def one_round(deflection: dict[int, FloatArray] | None) -> TwinRound:
         scales = calibrate_scales(
             meas.sweeps, meas.home_counts, home_deg=robot.home, limits_deg=limits,
             options=scale_options, link_rotations_rad=deflection,
         )  # fmt: skip
         scales = with_load_notes(scales, robot, deflection_taken_out=deflection is not None)
         campaign = campaign_from_scales(meas, scales)
-        idm = campaign.mask("identify")
-        geometric = identify(nominal, campaign.q_rad[idm], campaign.xyz_mm[idm], start=start)
-        loop = None
-        if effects:
-            loop = run_closed_loop(
-                robot, campaign, start=start, settings=settings, geometric=geometric,
-                say=say, sweep_referenced=deflection is None,
-            )  # fmt: skip
-        return TwinRound(scales, campaign, geometric, loop, deflection)
+        cal = calibrate(
+            robot, campaign, effects=effects, loop_settings=loop_settings, say=say,
+            sweep_referenced=deflection is None,
+        )  # fmt: skip
+        return TwinRound(scales, campaign, cal.geometric, cal.loop, deflection, cal.description)
 
     first = one_round(None)
     idm = first.campaign.mask("identify")
@@ -466,6 +457,7 @@ def _sweep_deflections(
         KINDS,
         EffectContext,
         EffectData,
+        GravityDeflection,
         Kinematics,
         split_values,
     )
@@ -479,9 +471,11 @@ def _sweep_deflections(
         return None
     spec = gravity[0]
     index = list(final.specs).index(spec)
+    assert final.result is not None  # a loop's final stage has its fit
     values = split_values(final.specs, final.result.effect_values)[index]
     cov = _effect_covariance(final.result, index, final.specs)
     kind = KINDS["gravity_deflection"]
+    assert isinstance(kind, GravityDeflection)
     robot = meas.robot
     # which moments' share of each joint the poses see apart from that joint's own angle
     q_poses = rnd.campaign.q_rad[rnd.campaign.mask("identify")]
@@ -531,7 +525,9 @@ def _sweep_deflections(
     return {j: value * shrink[None, :] for j, (value, _) in sweeps.items()}, noise
 
 
-def _effect_covariance(result, index: int, specs) -> FloatArray:  # type: ignore[no-untyped-def]
+def _effect_covariance(
+    result: IdentificationResult, index: int, specs: Sequence[EffectSpec]
+) -> FloatArray:
     """Covariance ``(k, k)`` of one effect's parameters (zero rows for held ones)."""
     sizes = [len(s.parameter_names()) for s in specs]
     start = result.n_geometric + sum(sizes[:index])
@@ -745,7 +741,7 @@ def run_twin(
     twin = calibrate_twin(meas, effects=effects, say=say)
     final = twin.final
     files, summary = _write_campaign_files(dest, meas, final.scales, final.campaign)
-    calibrated = twin.calibrated_description(desc)
+    calibrated = twin.calibrated
     calibrated_path = dest / "calibrated.toml"
     calibrated.save(calibrated_path)
     doc, errors = build_report(
