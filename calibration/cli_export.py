@@ -15,6 +15,7 @@ import json
 from pathlib import Path
 
 from edges.command import progress
+from edges.options import integer
 from edges.outputs import OutputSet
 
 
@@ -30,7 +31,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--robot", default="kr500", help="nominal robot: preset or .toml (kr500)")
     p.add_argument("--out", required=True, metavar="DIR", help="directory for the files")
     p.add_argument(
-        "--encoder-counts-per-rev", type=int, default=131072, help="motor encoder counts/turn"
+        "--encoder-counts-per-rev",
+        type=integer(1),
+        default=None,
+        help="motor encoder counts/turn (131072: 17-bit)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=run_export)
@@ -38,24 +42,19 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def run_export(args: argparse.Namespace) -> int:
     from calibration.description import load_robot
-    from calibration.errors import OptionError, OutputFileError
+    from calibration.errors import OutputFileError
     from calibration.streams import read_recording_streams
-    from calibration.twin_run import export_campaign
+    from calibration.twin_run import ENCODER_COUNTS_PER_REV, export_campaign
 
     say = progress("twin export", args.quiet)
-    if args.encoder_counts_per_rev < 1:
-        raise OptionError(
-            f"--encoder-counts-per-rev: need a whole number >= 1, got {args.encoder_counts_per_rev}"
-        )
+    cpr = args.encoder_counts_per_rev or ENCODER_COUNTS_PER_REV
     robot_file = args.robot if Path(args.robot).exists() else None
     with OutputSet([args.replay, robot_file], error=OutputFileError) as outputs:
         staged = outputs.directory(args.out, "--out")
         robot = load_robot(args.robot)
         say(f"reading {args.replay}")
         streams = read_recording_streams(args.replay)
-        res = export_campaign(
-            streams, robot, staged, encoder_counts_per_rev=args.encoder_counts_per_rev, say=say
-        )
+        res = export_campaign(streams, robot, staged, encoder_counts_per_rev=cpr, say=say)
         written = {name: outputs.final(path) for name, path in res.files.items()}
     print(json.dumps(res.summary["phases"]))
     for name, path in written.items():

@@ -65,6 +65,11 @@ def _quiet(_text: str) -> None:
     pass
 
 
+#: The motor encoders' counts per turn unless told (17-bit single turn, the emulated cell's
+#: and docs/protocols.md's default).
+ENCODER_COUNTS_PER_REV = 131072
+
+
 def _counter(value: float) -> int:
     return int(np.rint(value)) % COUNTER_MODULUS
 
@@ -103,7 +108,7 @@ def measure_campaign(
     *,
     phase_options: PhaseOptions | None = None,
     pairing_options: PairingOptions | None = None,
-    encoder_counts_per_rev: int = 131072,
+    encoder_counts_per_rev: int = ENCODER_COUNTS_PER_REV,
     say: Say = _quiet,
 ) -> CampaignMeasurements:
     """Find the phases in the streams and pair every stop and pose that needs a point."""
@@ -639,7 +644,7 @@ def export_campaign(
     phase_options: PhaseOptions | None = None,
     pairing_options: PairingOptions | None = None,
     scale_options: ScaleOptions | None = None,
-    encoder_counts_per_rev: int = 131072,
+    encoder_counts_per_rev: int = ENCODER_COUNTS_PER_REV,
     say: Say = _quiet,
 ) -> ExportResult:
     """Write ``home.csv``, ``sweep.csv``, ``scale.toml``, ``campaign.csv``, ``phases.json``
