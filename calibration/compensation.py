@@ -27,6 +27,7 @@ the encoder-vs-grating relation in between.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -133,7 +134,6 @@ def compensate(
         return p
 
     model = KinematicModel.from_description(description)
-    lo, hi = _limits(description)
     branch = np.full(m, -1)
     q_prog = None
     if q_programmed_deg is not None:
@@ -151,8 +151,37 @@ def compensate(
     if not np.all(np.isfinite(q)) and q_prog is not None:
         raise CompensationError("programmed joints must be finite")
     times = None if t_s is None else np.asarray(t_s, dtype=float).reshape(m)
+    iterations = _newton(model, predict, q, target, r_target, tol_mm, max_iterations)
+    q_deg = np.degrees(q)
+    finite = np.all(np.isfinite(q_deg), axis=1)
+    residual = np.full(m, np.nan)
+    if finite.any():
+        rows = np.flatnonzero(finite)
+        residual[finite] = np.linalg.norm(predict(rows, q[finite]) - target[finite], axis=1)
+    reasons, ok = _verdicts(q_deg, residual, finite, _limits(description), tol_mm)
+    travel = np.max(np.abs(q_deg - q_prog), axis=1) if q_prog is not None else np.full(m, np.nan)
+    deflection = None
+    if force is not None:
+        deflection = np.full((m, 3), np.nan)
+        if ok.any():
+            deflection[ok] = force_deflection_mm(description, q[ok], force[ok])
+    q_deg[~ok] = np.nan
+    return CompensationResult(q_deg, residual, travel, branch, iterations, ok, reasons, deflection)
+
+
+def _newton(
+    model: KinematicModel,
+    predict: Callable[[NDArray[np.intp], FloatArray], FloatArray],
+    q: FloatArray,
+    target: FloatArray,
+    r_target: FloatArray,
+    tol_mm: float,
+    max_iterations: int,
+) -> NDArray[np.int_]:
+    """Newton steps on the joints ``q`` ``(m, n)`` rad in place, every unfinished target at
+    once, until each predicted TCP is within ``tol_mm``; the iterations per target."""
     active = np.all(np.isfinite(q), axis=1)
-    iterations = np.zeros(m, dtype=int)
+    iterations = np.zeros(len(q), dtype=int)
     for _ in range(max_iterations):
         idx = np.flatnonzero(active)
         if idx.size == 0:
@@ -167,18 +196,23 @@ def compensate(
             break
         jac = geometric_jacobian(model, qa[step], point="tcp", frame="world")
         rhs = np.concatenate([e_p[step], e_r[step]], axis=1)[..., None]
-        dq = _solve(jac, rhs)
-        q[idx[step]] = qa[step] + dq[..., 0]
+        q[idx[step]] = qa[step] + _solve(jac, rhs)[..., 0]
         iterations[idx[step]] += 1
-    q_deg = np.degrees(q)
-    finite = np.all(np.isfinite(q_deg), axis=1)
-    residual = np.full(m, np.nan)
-    if finite.any():
-        rows = np.flatnonzero(finite)
-        residual[finite] = np.linalg.norm(predict(rows, q[finite]) - target[finite], axis=1)
-    reasons = []
-    ok = np.zeros(m, dtype=bool)
-    for i in range(m):
+    return iterations
+
+
+def _verdicts(
+    q_deg: FloatArray,
+    residual: FloatArray,
+    finite: NDArray[np.bool_],
+    limits: tuple[FloatArray, FloatArray],
+    tol_mm: float,
+) -> tuple[tuple[str, ...], NDArray[np.bool_]]:
+    """Per target: why it is refused (``""`` when reached within the limits) and ``ok``."""
+    lo, hi = limits
+    reasons: list[str] = []
+    ok = np.zeros(len(q_deg), dtype=bool)
+    for i in range(len(q_deg)):
         if not finite[i]:
             reasons.append("unreachable: no inverse-kinematics solution within the limits")
         elif not residual[i] < max(10 * tol_mm, 1e-4):
@@ -194,16 +228,7 @@ def compensate(
             else:
                 reasons.append("")
                 ok[i] = True
-    travel = np.max(np.abs(q_deg - q_prog), axis=1) if q_prog is not None else np.full(m, np.nan)
-    deflection = None
-    if force is not None:
-        deflection = np.full((m, 3), np.nan)
-        if ok.any():
-            deflection[ok] = force_deflection_mm(description, q[ok], force[ok])
-    q_deg[~ok] = np.nan
-    return CompensationResult(
-        q_deg, residual, travel, branch, iterations, ok, tuple(reasons), deflection
-    )
+    return tuple(reasons), ok
 
 
 def _solve(jac: FloatArray, rhs: FloatArray) -> FloatArray:
