@@ -16,13 +16,14 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from calibration.calibrate import calibrate, start_for
 from calibration.campaign_files import (
+    Campaign,
     read_campaign,
     read_joint_readings,
     write_points,
@@ -53,7 +54,7 @@ from calibration.unit_plausibility import (
 from edges.outputs import OutputSet
 
 if TYPE_CHECKING:  # the closed loop loads when a command runs it, not for --help
-    from calibration.closed_loop import LoopSettings
+    from calibration.closed_loop import ClosedLoopResult, LoopSettings
 
 FloatArray = NDArray[np.float64]
 
@@ -203,27 +204,8 @@ def _identify(
     """The identification, writing to the staged ``out_path`` and ``report_dir``; the
     lines to print once the outputs are in place."""
     desc = load_checked_robot(args.robot)
-    campaign = read_campaign(
-        args.data, desc.n_joints, limits_deg=_limits(desc), skip_bad=args.skip_bad
-    )
-    nominal = KinematicModel.from_description(desc)
-    if not args.no_unit_check:
-        check_campaign_units(
-            str(args.data), campaign.q_deg, campaign.xyz_mm, nominal, _limits(desc)
-        )
-    if campaign.skipped:
-        say(f"skipped {len(campaign.skipped)} bad row(s)")
-        for s in campaign.skipped[:10]:
-            say(f"  {s}")
+    campaign = _checked_campaign(args, desc, say)
     idm = campaign.mask("identify")
-    if not idm.any():
-        raise DataFileError(f"{args.data}: no rows with set 'identify'")
-    distinct = len(np.unique(np.round(campaign.q_deg[idm], 6), axis=0))
-    if distinct < MIN_DISTINCT_POSES:
-        raise DataFileError(
-            f"{args.data}: only {distinct} distinct pose(s) among the 'identify' rows; the "
-            f"geometry needs at least {MIN_DISTINCT_POSES} (the method uses 100)"
-        )
     start = start_for(desc, args.start)
     say(
         f"{int(idm.sum())} identification and {int(campaign.mask('validate').sum())} "
@@ -286,6 +268,49 @@ def _identify(
         if args.tracker_mpe_um
         else "none (all points weigh the same)"
     )
+    lines = _result_lines(doc, loop, campaign)
+    lines.append(f"wrote {args.out}")
+    if report_dir is not None:
+        started = time.perf_counter()
+        paths = write_report(report_dir, doc, errors, closed_loop=loop)
+        say(f"report written in {time.perf_counter() - started:.1f} s")
+        lines.append(f"wrote report to {args.report} ({len(paths)} files)")
+    return lines
+
+
+def _checked_campaign(
+    args: argparse.Namespace, desc: RobotDescription, say: Callable[[str], None]
+) -> Campaign:
+    """The campaign file, read against the robot's limits, its units checked (unless
+    ``--no-unit-check``), with enough distinct identification poses."""
+    campaign = read_campaign(
+        args.data, desc.n_joints, limits_deg=_limits(desc), skip_bad=args.skip_bad
+    )
+    nominal = KinematicModel.from_description(desc)
+    if not args.no_unit_check:
+        check_campaign_units(
+            str(args.data), campaign.q_deg, campaign.xyz_mm, nominal, _limits(desc)
+        )
+    if campaign.skipped:
+        say(f"skipped {len(campaign.skipped)} bad row(s)")
+        for s in campaign.skipped[:10]:
+            say(f"  {s}")
+    idm = campaign.mask("identify")
+    if not idm.any():
+        raise DataFileError(f"{args.data}: no rows with set 'identify'")
+    distinct = len(np.unique(np.round(campaign.q_deg[idm], 6), axis=0))
+    if distinct < MIN_DISTINCT_POSES:
+        raise DataFileError(
+            f"{args.data}: only {distinct} distinct pose(s) among the 'identify' rows; the "
+            f"geometry needs at least {MIN_DISTINCT_POSES} (the method uses 100)"
+        )
+    return campaign
+
+
+def _result_lines(
+    doc: dict[str, Any], loop: ClosedLoopResult | None, campaign: Campaign
+) -> list[str]:
+    """What ``twin identify`` prints: the loop's stages, before → after per set."""
     lines = []
     if loop is not None:
         set_name = "validate" if "validate" in loop.final.errors_mm else "identify"
@@ -304,12 +329,6 @@ def _identify(
         lines.append(f"outlier poses: {', '.join(doc['outlier_poses'])}")
     if campaign.skipped:
         lines.append(f"skipped {len(campaign.skipped)} bad row(s)")
-    lines.append(f"wrote {args.out}")
-    if report_dir is not None:
-        started = time.perf_counter()
-        paths = write_report(report_dir, doc, errors, closed_loop=loop)
-        say(f"report written in {time.perf_counter() - started:.1f} s")
-        lines.append(f"wrote report to {args.report} ({len(paths)} files)")
     return lines
 
 
