@@ -159,12 +159,12 @@ def run_run(args: argparse.Namespace) -> int:
     if not args.wait_s > 0 or args.wait_s == float("inf"):
         raise OptionError(f"--wait-s: expected a finite number of seconds > 0, got {args.wait_s}")
     if args.from_dir:
-        from calibration.live_twin import LiveTwin
+        from calibration.live_twin import CalibratedTwin, LiveSettings, LiveTwin
 
-        run = _earlier_run(args.from_dir)
-        live = LiveTwin(args, say)
+        twin = CalibratedTwin.from_run(_earlier_run(args.from_dir))
+        live = LiveTwin(LiveSettings.from_options(args), say)
         try:
-            return live.publish(run, Path(args.out))
+            return live.publish(twin)
         finally:
             live.close()
     robot_file = args.robot if Path(args.robot).exists() else None
@@ -177,9 +177,9 @@ def run_run(args: argparse.Namespace) -> int:
             say(f"reading {args.replay}")
             streams = read_recording_streams(args.replay)
         else:
-            from calibration.live_twin import LiveTwin
+            from calibration.live_twin import LiveSettings, LiveTwin
 
-            live = LiveTwin(args, say)
+            live = LiveTwin(LiveSettings.from_options(args), say)
             streams = live.collect()
         run = run_twin(
             streams,
@@ -195,8 +195,10 @@ def run_run(args: argparse.Namespace) -> int:
         print(f"calibrated model: {run['calibrated']}")
         print(f"report: {run['report']}/report.md (scale: {args.out}/scale-report/report.md)")
         print(f"phases: {run['files']['phases']}", flush=True)
-        if live is not None:
-            return live.publish(run, Path(args.out))
+        if live is not None:  # the twin exactly as written (as --from would read it)
+            from calibration.live_twin import CalibratedTwin
+
+            return live.publish(CalibratedTwin.from_run(run))
         return 0 if run["success"] else 1
     finally:
         outputs.discard()

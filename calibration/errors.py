@@ -115,3 +115,7 @@ class ScaleFileError(CalibrationError, ValueError):
 
 class TwinRunError(CalibrationError, ValueError):
     """The data do not hold what a calibration needs (named in the message)."""
+
+
+class LiveTwinError(CalibrationError):
+    """The live twin cannot start (no grating stream where it was told to look)."""

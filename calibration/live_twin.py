@@ -25,20 +25,25 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
-from calibration.errors import CalibrationError
+from calibration.errors import LiveTwinError
 from calibration.phase_detection import PhaseOptions, find_dwells, find_phases
 from calibration.streams import CellStreams, StreamBuilder, pick_streams
 
+if TYPE_CHECKING:
+    from calibration.description import RobotDescription
+    from calibration.scale_files import ScaleCalibration
+
+FloatArray = NDArray[np.float64]
+
 TWIN_PREFIX = "twin"
-
-
-class LiveTwinError(CalibrationError):
-    """The live twin cannot start (no grating stream where it was told to look)."""
 
 
 def twin_keys(cell: str, robot: str) -> dict[str, str]:
@@ -312,30 +317,106 @@ class TwinPredictor:
         return pos, quat
 
 
-def _zenoh_config(args: argparse.Namespace):  # type: ignore[no-untyped-def]
-    from daq.config import ZenohConfig
+@dataclass(frozen=True)
+class LiveSettings:
+    """How the live twin meets the daemon and when it stops (``twin run``'s options).
 
-    # a client of the daemon by default: the daemon's session then routes the twin's keys
-    # to every session connected to it (two peers connected to the daemon are not routed
-    # to each other: docs/topics.md, "One endpoint")
-    mode = getattr(args, "mode", None) or "client"
-    return ZenohConfig(
-        mode=mode,
-        listen=() if mode == "client" else tuple(e for e in (args.listen or ()) if e != "none"),
-        connect=tuple(e for e in (args.connect or ["tcp/127.0.0.1:7447"]) if e != "none"),
-    )
+    ``key``: the key expression of the cell's streams; ``connect``/``listen``: zenoh
+    endpoints (``none`` left out); ``mode``: ``client`` (default: the daemon's session then
+    routes the twin's keys to everyone connected to it) or ``peer``; ``idle_s``: a silence
+    that ends the collection; ``collect_s``/``publish_s``: time limits (0: none);
+    ``wait_s``: the longest wait for the first grating batch; ``effects_radius_deg``: the
+    effects are linearised within this radius (0: the full predictor per batch);
+    ``frames_hz``: the rate of the link frames (0: none)."""
+
+    key: str = "cell/**"
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    listen: tuple[str, ...] = ()
+    mode: str = "client"
+    idle_s: float = 5.0
+    collect_s: float = 0.0
+    publish_s: float = 0.0
+    wait_s: float = 60.0
+    effects_radius_deg: float = 0.25
+    frames_hz: float = 30.0
+
+    @classmethod
+    def from_options(cls, args: argparse.Namespace) -> LiveSettings:
+        """The settings from ``twin run``'s parsed options (the command line's edge)."""
+        return cls(
+            key=args.key,
+            connect=tuple(e for e in (args.connect or ["tcp/127.0.0.1:7447"]) if e != "none"),
+            listen=tuple(e for e in (args.listen or ()) if e != "none"),
+            mode=getattr(args, "mode", None) or "client",
+            idle_s=float(args.idle_s),
+            collect_s=float(args.collect_s or 0.0),
+            publish_s=float(args.publish_s or 0.0),
+            wait_s=float(getattr(args, "wait_s", 60.0)),
+            effects_radius_deg=float(getattr(args, "effects_radius_deg", 0.25)),
+            frames_hz=float(getattr(args, "frames_hz", 30.0)),
+        )
+
+    def zenoh_config(self) -> Any:
+        from daq.config import ZenohConfig
+
+        # two peers connected to the daemon are not routed to each other: docs/topics.md,
+        # "One endpoint reaches everything"
+        listen = () if self.mode == "client" else self.listen
+        return ZenohConfig(mode=self.mode, listen=listen, connect=self.connect)
+
+
+@dataclass(frozen=True, eq=False)
+class CalibratedTwin:
+    """What the live twin computes with: the calibrated description, the gratings' scale
+    maps, the motor encoders' relation to the gratings (offsets ``(n,)`` deg, counts per
+    turn) and the campaign clock's origin (ns); ``name`` names the model in the schemas."""
+
+    description: RobotDescription
+    scale: ScaleCalibration
+    encoder_offset_deg: FloatArray
+    encoder_counts_per_rev: float
+    t0_ns: int
+    name: str
+
+    @classmethod
+    def from_run(cls, run: Mapping[str, Any]) -> CalibratedTwin:
+        """The twin an earlier ``twin run`` wrote (run.json's ``calibrated`` and
+        ``files.scale``/``files.phases``, resolved paths): read at the command line's edge."""
+        from calibration.description import load_robot
+        from calibration.scale_files import read_scale_toml
+
+        desc = load_robot(run["calibrated"])
+        phases = json.loads(Path(run["files"]["phases"]).read_text(encoding="utf-8"))
+        return cls.of(desc, read_scale_toml(run["files"]["scale"]), phases, str(run["calibrated"]))
+
+    @classmethod
+    def of(
+        cls,
+        description: RobotDescription,
+        scale: ScaleCalibration,
+        phases: Mapping[str, Any],
+        name: str,
+    ) -> CalibratedTwin:
+        """From a run's values in memory (``phases``: the summary phases.json holds)."""
+        from calibration.twin_run import ENCODER_COUNTS_PER_REV
+
+        n = description.n_joints
+        offset = np.asarray(phases.get("encoder_offset_deg") or [0.0] * n, dtype=float)
+        cpr = float(phases.get("encoder_counts_per_rev", ENCODER_COUNTS_PER_REV))
+        t0_ns = int(phases.get("campaign", {}).get("t0_ns", 0))
+        return cls(description, scale, offset, cpr, t0_ns, name)
 
 
 class LiveTwin:
     """One zenoh session: collect the campaign, then publish the twin."""
 
-    def __init__(self, args: argparse.Namespace, say) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, settings: LiveSettings, say: Callable[[str], None]) -> None:
         from daq.bus import Receiver, open_session
 
-        self.args = args
+        self.args = settings
         self.say = say
-        self.session = open_session(_zenoh_config(args))
-        self.receiver = Receiver(self.session, args.key)
+        self.session = open_session(settings.zenoh_config())
+        self.receiver = Receiver(self.session, settings.key)
         self.builders: dict[str, StreamBuilder] = {}
         self.closed = False
 
@@ -352,7 +433,7 @@ class LiveTwin:
         started = time.monotonic()
         last_report = started
         opts = PhaseOptions()
-        say(f"collecting {args.key} (connect {args.connect or ['tcp/127.0.0.1:7447']})")
+        say(f"collecting {args.key} (connect {list(args.connect)})")
         last_data = None
         while True:
             got = self.receiver.receive(0.2)
@@ -397,13 +478,13 @@ class LiveTwin:
         waited for at most ``--wait-s``."""
         args = self.args
         grating = next((b for b in self.builders.values() if b.kind == "grating"), None)
-        wait_s = float(getattr(args, "wait_s", 60.0))
+        wait_s = args.wait_s
         deadline = time.monotonic() + wait_s
         while grating is None:  # no collection (--from): the first grating batch names it
             if time.monotonic() >= deadline:
                 raise LiveTwinError(
                     f"no grating samples on {args.key} within {wait_s:g} s "
-                    f"(--connect {' '.join(args.connect or ['tcp/127.0.0.1:7447'])}, --wait-s)"
+                    f"(--connect {' '.join(args.connect)}, --wait-s)"
                 )
             got = self.receiver.receive(min(1.0, max(0.0, deadline - time.monotonic())))
             if got is not None:
@@ -428,29 +509,24 @@ class LiveTwin:
         old, self.receiver = self.receiver, narrow
         old.close()
 
-    def publish(self, run: dict[str, Any], out: Path) -> int:
+    def publish(self, twin: CalibratedTwin) -> int:
+        """Publish ``twin`` as the gratings drive it until ``publish_s`` (or forever)."""
         import sys
 
-        from calibration.description import load_robot
-        from calibration.scale_files import read_scale_toml
         from daq.bus import JSON_ENCODING, ChannelPublisher, SchemaServer
 
         args, say = self.args, self.say
-        desc = load_robot(run["calibrated"])
-        scale = read_scale_toml(run["files"]["scale"])
-        phases = json.loads(Path(run["files"]["phases"]).read_text())
-        enc_offset = np.asarray(phases.get("encoder_offset_deg") or [0.0] * desc.n_joints)
+        desc, scale, t0_ns = twin.description, twin.scale, twin.t0_ns
+        enc_offset, cpr = twin.encoder_offset_deg, twin.encoder_counts_per_rev
         gear = np.array([j.gear_ratio or 100.0 for j in desc.joints], dtype=float)
-        cpr = float(phases.get("encoder_counts_per_rev", 131072))
-        t0_ns = int(phases.get("campaign", {}).get("t0_ns", 0))
         n = desc.n_joints
         grating = self._wait_for_grating()
         self._narrow_to(grating)
         cell = str(grating.meta.get("cell", "cell"))
         robot = str(grating.meta.get("robot", "robot"))
         keys = twin_keys(cell, robot)
-        model_name = str(run["calibrated"])
-        radius = float(getattr(args, "effects_radius_deg", 0.25))
+        model_name = twin.name
+        radius = args.effects_radius_deg
         predictor = TwinPredictor(desc, radius_deg=radius)
         reader = AngleReader(scale, n, desc.home, radius_deg=radius)
         schemas = SchemaServer(self.session, TWIN_PREFIX)
@@ -468,9 +544,7 @@ class LiveTwin:
         # the receiving thread waits for the interpreter at most this long while this
         # one computes (Python's default is 5 ms; the daemon uses the same)
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
-        frames_every_ns = (
-            int(1e9 / args.frames_hz) if getattr(args, "frames_hz", 30.0) > 0 else None
-        )
+        frames_every_ns = int(1e9 / args.frames_hz) if args.frames_hz > 0 else None
         next_frames_ns = 0
         enc_t = np.empty(0, dtype=np.int64)
         enc_v = np.empty((0, n))
