@@ -14,12 +14,14 @@ schema at once.
 
 from __future__ import annotations
 
+import atexit
 import collections
 import json
 import logging
 import queue
 import threading
 import time
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -256,6 +258,24 @@ class Received:
 
 _NEEDS_SCHEMA = object()  # Receiver._decode: the schema must be fetched first
 
+#: Receivers not closed yet: closed when the interpreter shuts down. zenoh-python runs a
+#: subscriber's Python callback on a non-daemon thread of its own, which the interpreter
+#: waits for before exit: a script that received and returned without close() never ended.
+_OPEN_RECEIVERS: weakref.WeakSet[Receiver] = weakref.WeakSet()
+
+
+def _close_open_receivers() -> None:
+    for receiver in list(_OPEN_RECEIVERS):
+        try:
+            receiver.close()
+        except Exception:  # the session may be gone already: exit anyway
+            logging.getLogger(__name__).debug("receiver close at exit", exc_info=True)
+
+
+# before the interpreter joins its non-daemon threads (atexit would come after: too late);
+# the hook concurrent.futures uses for its workers
+getattr(threading, "_register_atexit", atexit.register)(_close_open_receivers)
+
 
 class Receiver:
     """Subscribes to a key expression and decodes columnar batches (schemas fetched once).
@@ -296,6 +316,7 @@ class Receiver:
         prefetch_schemas: bool = True,
     ) -> None:
         self._session = session
+        _OPEN_RECEIVERS.add(self)
         self._schemas: dict[str, StreamSchema] = {}
         # several key expressions: one subscriber each, into the same queue or callback
         # (the exact keys of a few streams instead of a wildcard that brings others too)

@@ -172,3 +172,24 @@ def test_router_mode_and_record_process(tmp_path):
     recording, counts = scan(out)
     assert recording.complete and counts[key] > 100
     assert counts["cell/rt/robot/robot1/fake/health"] >= 2
+
+
+def test_a_script_that_never_closes_its_receiver_still_exits():
+    """zenoh runs subscriber callbacks on a non-daemon thread: a Receiver left open used
+    to keep the interpreter from ending; it is closed at shutdown now."""
+    import textwrap
+
+    script = textwrap.dedent(
+        """
+        from daq.bus import Receiver, open_session
+        from daq.testing import free_port, loopback_source
+
+        session = open_session(loopback_source(free_port()))
+        print(Receiver(session, "cell/**").receive(0.2))
+        """
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=30
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "None"

@@ -72,3 +72,58 @@ def test_the_drivers_example_reads_a_tracker():
         assert scope["batch"].schema is not None
     finally:
         tracker.close()
+
+
+def test_daq_exports_its_formats_and_loads_zenoh_on_first_use():
+    import daq
+
+    for name in daq.__all__:
+        assert getattr(daq, name) is not None, name
+    heavy = "('zenoh', 'mcap', 'calibration')"
+    code = f"import sys, daq; print(sorted(m for m in {heavy} if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.stdout.strip() == "[]", out.stderr
+
+
+def test_the_daq_example_receives_a_batch():
+    """The docstring's subscriber, against a publisher listening where a daemon would."""
+    import threading
+
+    import numpy as np
+
+    import daq
+    from daq.bus import ChannelPublisher, SchemaServer, open_session
+    from daq.testing import free_port, loopback_source
+
+    port = free_port()
+    session = open_session(loopback_source(port))
+    schema = daq.StreamSchema(
+        "cell/kr500/grating", (daq.Column("t_ns", "int64"), daq.Column("counts", "uint32", (6,)))
+    )
+    schemas = SchemaServer(session, "cell")
+    pub = ChannelPublisher(session, schema, schemas=schemas)
+    stop = threading.Event()
+
+    def publish() -> None:
+        while not stop.wait(0.01):
+            pub.publish(
+                {"t_ns": np.arange(3, dtype=np.int64), "counts": np.ones((3, 6), np.uint32)}
+            )
+
+    thread = threading.Thread(target=publish, daemon=True)
+    thread.start()
+    try:
+        doc = daq.__doc__ or ""
+        code = textwrap.dedent(re.search(r"::\n\n((?:    .*\n|\n)+)", doc).group(1))
+        code = code.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}")
+        scope: dict = {}
+        exec(compile(code, "daq.__doc__", "exec"), scope)  # our own docstring
+        batch = scope["batch"]
+        assert batch is not None and batch.key == "cell/kr500/grating"
+        assert batch.columns["counts"].shape == (3, 6)
+    finally:
+        stop.set()
+        thread.join(5)
+        pub.close()
+        schemas.close()
+        session.close()
