@@ -14,6 +14,12 @@ from calibration.campaign_files import write_campaign
 from sim_devices.pose_campaign import CampaignSettings, emulated_campaign
 
 
+def docstring_example(module: object) -> str:
+    """The code block (``::`` then indented lines) of a package's docstring."""
+    doc = getattr(module, "__doc__", None) or ""
+    return textwrap.dedent(re.search(r"::\n\n((?:    .*\n|\n)+)", doc).group(1))
+
+
 def test_every_public_name_resolves():
     for name in calibration.__all__:
         assert getattr(calibration, name) is not None, name
@@ -22,8 +28,7 @@ def test_every_public_name_resolves():
 def test_the_package_example_calibrates_a_campaign(tmp_path):
     data = emulated_campaign("kr500", 4, CampaignSettings(n_identify=60, n_validate=30))
     write_campaign(tmp_path / "campaign.csv", data.campaign)
-    doc = calibration.__doc__ or ""
-    code = textwrap.dedent(re.search(r"::\n\n((?:    .*\n|\n)+)", doc).group(1))
+    code = docstring_example(calibration)
     assert code.count("\n") <= 6  # five lines of Python, as promised
     cwd = os.getcwd()
     os.chdir(tmp_path)
@@ -64,8 +69,7 @@ def test_the_drivers_example_reads_a_tracker():
 
     tracker = Tracker()
     try:
-        doc = drivers.__doc__ or ""
-        code = textwrap.dedent(re.search(r"::\n\n((?:    .*\n|\n)+)", doc).group(1))
+        code = docstring_example(drivers)
         code = code.replace("socket://127.0.0.1:5000", f"socket://127.0.0.1:{tracker.server.port}")
         scope: dict = {}
         exec(compile(code, "drivers.__doc__", "exec"), scope)  # our own docstring
@@ -113,8 +117,7 @@ def test_the_daq_example_receives_a_batch():
     thread = threading.Thread(target=publish, daemon=True)
     thread.start()
     try:
-        doc = daq.__doc__ or ""
-        code = textwrap.dedent(re.search(r"::\n\n((?:    .*\n|\n)+)", doc).group(1))
+        code = docstring_example(daq)
         code = code.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}")
         scope: dict = {}
         exec(compile(code, "daq.__doc__", "exec"), scope)  # our own docstring
