@@ -26,7 +26,7 @@ import numpy as np
 import zenoh
 from numpy.typing import NDArray
 
-from daq import foxglove
+import daq.foxglove as foxglove
 from daq.bus import ChannelPublisher, PublishError, SchemaServer, channel_key, device_key
 from daq.clock_sync import DeviceClockMap
 from daq.columnar import Column, StreamSchema

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from daq import foxglove
+import daq.foxglove as foxglove
 from daq.columnar import StreamSchema
 
 #: default of ``[recording] viewer_rate_hz``

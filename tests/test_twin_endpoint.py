@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daq.testing import free_port
+from daq.testing import free_port, recorded_columns
 
 DATA = Path(__file__).parent / "data"
 CALIBRATED = DATA / "twin_calibrated_small"
@@ -251,13 +251,20 @@ def _check_foxglove_channels(path: Path) -> None:
         t, r = last[c]["translation"], last[c]["rotation"]
         pos = pos + rot @ np.array([t["x"], t["y"], t["z"]])
         rot = rot @ _rotation(r["w"], r["x"], r["y"], r["z"])
-    tcp = topics[f"{twin}/state/tcp"][1][-1]["pose"]["position"]
+    # ... at the frames' own instant: the twin's state at that grating sample time (the
+    # last TCP message is another instant: the arm moves ~15 mm between them)
+    stamp = last["tcp"]["timestamp"]
+    t_ns = int(stamp["sec"]) * 10**9 + int(stamp["nsec"])
+    state = recorded_columns(path, f"{twin}/state")
+    at = np.flatnonzero(state["t_mapped_ns"] == t_ns)
+    assert at.size, "the frames' sample time is one of the twin's state samples"
+    tcp_mm = state["tcp_mm"][at[0]]
     # the shipped layout names these topics
     layout = (Path(__file__).parents[1] / "docs" / "foxglove-layout.json").read_text()
     for topic in (*want, f"{twin}/frames/tf"):
         if not topic.endswith("encoders/samples/joints"):
             assert topic in layout, topic
-    assert np.allclose(pos * 1000, [tcp["x"] * 1000, tcp["y"] * 1000, tcp["z"] * 1000], atol=1.0)
+    assert np.allclose(pos * 1000, tcp_mm, atol=1.0), (pos * 1000, tcp_mm)
 
 
 def _rotation(w: float, x: float, y: float, z: float) -> np.ndarray:
