@@ -33,13 +33,15 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import OptimizeResult
-from scipy.stats import chi2
 
 from calibration.errors import IdentifiabilityError, IdentificationError
+
+if TYPE_CHECKING:  # scipy loads when a fit runs: a command that only reads a model is quick
+    from scipy.optimize import OptimizeResult
 from calibration.identifiability import (
     DEFAULT_RTOL,
     NO_EFFECT,
@@ -294,6 +296,8 @@ def levenberg_marquardt(
             status = 1
             break
     grad = j.T @ f
+    from scipy.optimize import OptimizeResult
+
     return OptimizeResult(
         x=x,
         cost=0.5 * norm**2,
@@ -841,6 +845,8 @@ def identify(
     # robust per-axis σ for the outlier test: the median of a Maxwell distance is 1.538 σ,
     # and fitted residuals are smaller than the noise by √(1 − k/3m) on average
     robust_sigma = float(np.median(dist)) / 1.538 / math.sqrt(max(1.0 - k / (3 * len(q)), 0.1))
+    from scipy.stats import chi2
+
     threshold = robust_sigma * math.sqrt(chi2.ppf(1.0 - OUTLIER_PROBABILITY, 3))
     return IdentificationResult(
         model=model,
