@@ -113,7 +113,7 @@ class Cell:
             channel = f"simcell-{os.getpid()}-{id(self)}"
             nodes = EncoderNodes(self.plant, cfg.encoders, channel=channel)
             nodes.start_fault_schedule()
-            server = SocketcandServer(
+            can_server = SocketcandServer(
                 channel,
                 bus_name=cfg.encoders.channel,
                 port=cfg.encoders.socketcand_port,
@@ -122,14 +122,14 @@ class Cell:
                 sync_responder=nodes.sync_frames,
             ).start()
             self.encoders = nodes
-            self._closers += [server.stop, nodes.close]
+            self._closers += [can_server.stop, nodes.close]
             self.records.append(
                 {
                     "kind": "motor_encoders",
                     "protocol": "canopen-socketcand",
-                    "url": server.url,
+                    "url": can_server.url,
                     "host": "127.0.0.1",
-                    "port": server.port,
+                    "port": can_server.port,
                     "channel": cfg.encoders.channel,
                     "node_ids": list(nodes.node_ids),
                     "profile": "CiA 406",
@@ -205,7 +205,7 @@ def _child(config: CellConfig, run_dir: Path, t0: float, conn: Any) -> None:
         stop.wait()
     finally:
         cell.stop()
-        stats = {}
+        stats: dict[str, Any] = {}
         for name in KINDS:
             dev = getattr(cell, name, None)
             if dev is not None:

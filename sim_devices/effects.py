@@ -102,7 +102,8 @@ class UndeclaredEffects:
         unknown = [n for n in names if n not in EFFECT_NAMES]
         if unknown:
             raise ValueError(f"unknown effect {unknown[0]!r} (valid: {', '.join(EFFECT_NAMES)})")
-        return replace(cls(), **{n: True for n in names}, **overrides)
+        switched: dict[str, Any] = {n: True for n in names}
+        return replace(cls(), **switched, **overrides)
 
     @property
     def active(self) -> tuple[str, ...]:
@@ -131,7 +132,8 @@ def deflection_stiffness_nmm_per_rad(settings: UndeclaredEffects, arm: ArmLike) 
     rms = np.sqrt(np.mean(tau**2, axis=0))
     k = rms / np.radians(settings.deflection_rms_deg)
     k[rms < 0.01 * max(float(rms.max()), 1e-300)] = np.inf
-    return k
+    stiffness: FloatArray = k
+    return stiffness
 
 
 #: Joint stiffness proportions of a KUKA KR60 (method.md §4; N·mm/rad as the source
@@ -161,7 +163,8 @@ def force_rotation_rad(
     q = np.atleast_2d(np.asarray(q_ring_rad, dtype=float))
     f = np.broadcast_to(np.asarray(force_n, dtype=float), (len(q), 3))
     jp = geometric_jacobian(body.model, q, point="tcp", frame="world")[:, :3, :]
-    return np.einsum("min,mi->mn", jp, f) / force_stiffness_nmm_per_rad(settings, body)
+    torque: FloatArray = np.einsum("min,mi->mn", jp, f)
+    return torque / force_stiffness_nmm_per_rad(settings, body)
 
 
 def with_derived_stiffness(settings: UndeclaredEffects, arm: ArmLike) -> UndeclaredEffects:

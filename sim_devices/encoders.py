@@ -26,6 +26,7 @@ import math
 import struct
 import threading
 from collections import Counter
+from collections.abc import Callable
 
 import can
 import canopen
@@ -39,6 +40,12 @@ log = logging.getLogger(__name__)
 
 SYNC_COB_ID = 0x080
 _U32 = struct.Struct("<I")
+
+
+def _node_id(node: canopen.LocalNode) -> int:
+    """A local node's id (canopen types it optional; ours are always given one)."""
+    assert node.id is not None
+    return int(node.id)
 
 
 class EncoderNodes:
@@ -74,8 +81,8 @@ class EncoderNodes:
             od = object_dictionary(nid, config.counts_per_rev, config.turns)
             node = canopen.LocalNode(nid, od)
             self.network.add_node(node)
-            node.sdo[0x1017].raw = config.heartbeat_ms
-            node.sdo[0x1018][4].raw = 0x406000 + nid
+            node.sdo[0x1017].raw = config.heartbeat_ms  # type: ignore[union-attr]
+            node.sdo[0x1018][4].raw = 0x406000 + nid  # type: ignore[index]
             node.add_read_callback(self._make_read_cb(k))
             node.add_write_callback(self._make_write_cb(nid))
             self.nodes.append(node)
@@ -91,16 +98,16 @@ class EncoderNodes:
         node.nmt.send_command(0x81)  # reset node: INITIALISING, boot-up message
         node.nmt.send_command(0x80)  # to PRE-OPERATIONAL: heartbeat starts
 
-    def _make_read_cb(self, k: int):
-        def cb(index: int, subindex: int, od) -> int | None:
+    def _make_read_cb(self, k: int) -> Callable[..., int | None]:
+        def cb(index: int, subindex: int, od: object) -> int | None:
             if index == POSITION_INDEX:
                 return int(self.positions(self.plant.clock.wall_s())[k])
             return None
 
         return cb
 
-    def _make_write_cb(self, nid: int):
-        def cb(index: int, subindex: int, od, data: bytes) -> None:
+    def _make_write_cb(self, nid: int) -> Callable[..., None]:
+        def cb(index: int, subindex: int, od: object, data: bytes) -> None:
             if index in (TPDO1_COMM, TPDO1_MAP):
                 # applied after canopen stores the value: defer one tick
                 threading.Timer(0.0, self._refresh_tpdo, args=(self._node(nid),)).start()
@@ -118,17 +125,18 @@ class EncoderNodes:
             n_map = node.get_data(TPDO1_MAP, 0)[0]
             entry = int.from_bytes(node.get_data(TPDO1_MAP, 1), "little")
         except Exception:
-            self._tpdo[node.id] = None
+            self._tpdo[_node_id(node)] = None
             return
         valid = not (cob & 0x80000000) and n_map == 1 and entry == 0x60040020
-        self._tpdo[node.id] = (cob & 0x7FF, ttype) if valid and 1 <= ttype <= 240 else None
+        self._tpdo[_node_id(node)] = (cob & 0x7FF, ttype) if valid and 1 <= ttype <= 240 else None
 
     def positions(self, wall_s: float) -> np.ndarray:
         """Position values (u32 counts) of all nodes at wall time ``wall_s`` (exact)."""
         st = self.plant.joint_state(self.plant.clock.sim_s(np.array([wall_s])))
         motor = st.motor_rad[0, : len(self.node_ids)]
         counts = np.rint(motor / (2 * np.pi) * self.config.counts_per_rev).astype(np.int64)
-        return np.mod(counts + self.zero_counts, self.range)
+        values: np.ndarray = np.mod(counts + self.zero_counts, self.range)
+        return values
 
     GRID_S = 0.00025  # interpolation grid of the motor angles
     GRID_BLOCK = 400  # grid intervals per plant evaluation (0.1 s)
@@ -168,7 +176,7 @@ class EncoderNodes:
         for k, node in enumerate(self.nodes):
             if node.id in self._muted or node.nmt.state != "OPERATIONAL":
                 continue
-            tp = self._tpdo.get(node.id)
+            tp = self._tpdo.get(_node_id(node))
             if tp is None or count % tp[1] != 0:
                 continue
             if pos is None:

@@ -213,7 +213,8 @@ class GratingReaderDevice:
 
     def fifo_block(self, want_seq_u32: int | None, k_max: int) -> list[int]:
         """The FIFO read block: header and up to ``k_max`` samples from ``want_seq_u32``."""
-        return self.fifo_array(want_seq_u32, k_max).tolist()
+        block: list[int] = self.fifo_array(want_seq_u32, k_max).tolist()
+        return block
 
     def fifo_array(self, want_seq_u32: int | None, k_max: int, pad_to: int = 0) -> np.ndarray:
         """:meth:`fifo_block` as uint16 registers, zero-padded to ``pad_to`` registers."""

@@ -142,7 +142,8 @@ class PhysicalArm:
         lever = wc - f_out[:, None] * org  # Σ F_i (c_i − o_j), (N, n, 3)
         ez = np.array([0.0, 0.0, 1.0])
         moment = np.cross(lever, ez)  # Σ (c_i − o_j) × (F_i·ez)
-        return np.einsum("pjk,pjk->pj", rot[:, :, :, 2], moment)
+        torque: FloatArray = np.einsum("pjk,pjk->pj", rot[:, :, :, 2], moment)
+        return torque
 
     def counterbalance_torques_nmm(self, q_rad: ArrayLike) -> FloatArray:
         """The spring's torque ``(N, n)`` N·mm (non-zero on its joint only)."""

@@ -88,7 +88,9 @@ def report(robot: str, seed: int, poses: int) -> list[str]:
             f"joint {j} sweep, joints 1..{j - 1} turn (peak to peak, arcsec): "
             + " ".join(f"{v:.1f}" for v in turn)
         )
-    ring = [camp.truth(j).home_ring_rad - camp.truth(j).home_rad for j in range(1, 7)]
+    truths = [camp.truth(j) for j in range(1, 7)]
+    ring = [t.home_rad if t.home_ring_rad is None else t.home_ring_rad for t in truths]
+    ring = [r - t.home_rad for r, t in zip(ring, truths, strict=True)]
     lines.append(
         "ring at the Home returns minus commanded Home (arcsec): "
         + " ".join(f"{v * ARCSEC_PER_RAD:.1f}" for v in ring)

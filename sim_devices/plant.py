@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -295,7 +296,7 @@ class Plant:
             out[:, j] = np.rint(ideal + rng.normal(0.0, noise_counts, ideal.shape)).astype(np.int64)
         return out
 
-    def truth_document(self) -> dict:
+    def truth_document(self) -> dict[str, Any]:
         doc = self.cell.truth_document()
         doc["plant"] = {
             "gear_ratio": self.gear_ratio.tolist(),
@@ -331,7 +332,7 @@ def _random_poses(desc: RobotDescription, n: int, rng: np.random.Generator) -> F
     Home whose TCP stays above the robot's base plane.
     """
     try:
-        from sim_devices.pose_campaign import sample_reachable_poses  # type: ignore
+        from sim_devices.pose_campaign import sample_reachable_poses
 
         q = np.asarray(sample_reachable_poses(desc, n, rng), dtype=float)
         if q.shape == (n, desc.n_joints) and np.all(np.isfinite(q)):

@@ -92,7 +92,8 @@ def reachable_mask(
         z4, z6 = frames[3][:, :3, 2], frames[5][:, :3, 2]
         wrist_deg = np.degrees(np.arccos(np.clip(np.abs(np.sum(z4 * z6, axis=1)), 0.0, 1.0)))
         ok &= wrist_deg >= workspace.wrist_min_deg
-    return ok
+    feasible: NDArray[np.bool_] = ok
+    return feasible
 
 
 def sample_reachable_poses(

@@ -126,7 +126,7 @@ def calibrated_cell(
     q_prog = q[np.all((q > lo) & (q < hi), axis=1)][:n_targets]
     registered = replace(desc, base=cal.base, tool=cal.tool)
     target = tcp_positions(KinematicModel.from_description(registered), np.radians(q_prog))
-    t = float(data.campaign.t_s[-1]) + 5.0 * np.arange(1, len(q_prog) + 1)
+    t = float(data.campaign.t_s[-1]) + 5.0 * np.arange(1, len(q_prog) + 1, dtype=float)
     return CalibratedCell(data, cal, loop.final.errors_mm["validate"], q_prog, target, t, rng)
 
 

@@ -244,12 +244,15 @@ class ScaleCampaign:
     sweep_true_rad: FloatArray  # (S,) true ring angle of the swept joint at each stop
     sweep_true_points_mm: FloatArray  # (S, 3) true reflector positions (per target)
     wild_rows: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    sweep_target: IntArray | None = None  # (S,) 1-based reflector index
-    sweep_all_counts: IntArray | None = None  # (S, n) every joint's raw reading
-    sweep_ring_rad: FloatArray | None = None  # (S, n) every joint's true ring angle
-    sweep_t_s: FloatArray | None = None  # (S,) campaign clock
-    home_ring_rad: FloatArray | None = None  # (H, n) every joint's true ring angle
-    home_t_s: FloatArray | None = None  # (H,)
+    sweep_target: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    # (S,) 1-based reflector index; below: (S, n) every joint's raw reading, (S, n) every
+    # joint's true ring angle, (S,) campaign clock, (H, n) every joint's true ring angle at
+    # the Home returns, (H,) their clock
+    sweep_all_counts: IntArray = field(default_factory=lambda: np.zeros((0, 0), np.int64))
+    sweep_ring_rad: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
+    sweep_t_s: FloatArray = field(default_factory=lambda: np.zeros(0))
+    home_ring_rad: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
+    home_t_s: FloatArray = field(default_factory=lambda: np.zeros(0))
     targets_mm: tuple[FloatArray, ...] = ()  # per swept joint in order: (T, 3) link frame
 
     def joint_sweeps(self) -> dict[int, JointSweep]:
@@ -280,7 +283,7 @@ class ScaleCampaign:
         """The true relation of ``joint`` (1-based), with where its ring stood at Home."""
         home = math.radians(self.cell.nominal.home[joint - 1])
         ring = None
-        if self.home_ring_rad is not None and np.any(self.home_joint == joint):
+        if np.any(self.home_joint == joint):
             ring = float(np.mean(self.home_ring_rad[self.home_joint == joint, joint - 1]))
         return JointTruth(
             joint, self.cell.strips[joint - 1], home, self.options.hysteresis_counts, ring
@@ -290,7 +293,8 @@ class ScaleCampaign:
         """Peak-to-peak ``(n,)`` rad of every joint's true ring angle over ``joint``'s
         sweep (1-based): how far the joints held at Home turned (the swept one: its arc)."""
         m = self.sweep_joint == joint
-        return np.ptp(self.sweep_ring_rad[m], axis=0)
+        motion: FloatArray = np.ptp(self.sweep_ring_rad[m], axis=0)
+        return motion
 
     def home_csv(self) -> str:
         lines = ["joint,trial,counts"]
@@ -449,7 +453,7 @@ def _home_returns(
     state: _ArmState,
     joint: int,
     rng: np.random.Generator,
-) -> dict[str, NDArray]:
+) -> dict[str, NDArray[Any]]:
     """Joint ``joint``'s (1-based) Home returns, alternately from below and from above."""
     i = joint - 1
     home_rad = np.radians(cell.nominal.home)
@@ -482,7 +486,7 @@ def _sweep(
     joint: int,
     rng: np.random.Generator,
     chain_rng: np.random.Generator,
-) -> dict[str, NDArray]:
+) -> dict[str, NDArray[Any]]:
     """Joint ``joint``'s (1-based) forward and backward passes; arrays per row (stop-major,
     a stop's reflectors consecutive), ``"wild"`` the displaced rows, ``"targets"`` the
     reflectors ``(T, 3)`` in the link's frame."""
@@ -509,7 +513,7 @@ def _sweep(
     ring = physics.ring_rad(q_motor, direction)
     read = physics.readings_rad(ring)
     counts = _read(cell.strips[i], read[:, i], 0.5 * h * moving, rng)
-    t_stop = state.t_s + opt.stop_time_s * np.arange(1, k + 1)
+    t_stop = state.t_s + opt.stop_time_s * np.arange(1, k + 1, dtype=float)
     targets = target_set_mm(cell.link_targets_mm[i], opt.targets, opt.target_spacing_mm)
     n_t = len(targets)
     true_pts = physics.points_mm(i, targets, ring, t_stop, direction)
@@ -580,7 +584,9 @@ def run_campaign(
         row0 += len(sweep["joint"])
         sweeps.append(sweep)
 
-    def cat(parts: list[dict], key: str, dtype: type, shape: tuple = (0,)) -> NDArray:
+    def cat(
+        parts: list[dict[str, NDArray[Any]]], key: str, dtype: type, shape: tuple[int, ...] = (0,)
+    ) -> NDArray[Any]:
         if not parts:
             return np.zeros(shape, dtype=dtype)
         return np.concatenate([p[key] for p in parts]).astype(dtype)

@@ -21,7 +21,7 @@ TARGET_PLANE_TILT_DEG = 30.0
 def commanded_stops_deg(lower_deg: float, upper_deg: float, step_deg: float) -> FloatArray:
     """Commanded angles of the forward pass: from the positive limit down in ``step_deg``."""
     n = math.floor((upper_deg - lower_deg) / step_deg + 1e-9) + 1
-    return upper_deg - step_deg * np.arange(n)
+    return upper_deg - step_deg * np.arange(n, dtype=float)
 
 
 def arc_limits_deg(

@@ -69,9 +69,12 @@ def true_description(
         )
     guess = nominal.base or BaseDescription()
     base = BaseDescription(
-        *(getattr(guess, k) + rng.normal(0, dev.base_mm) for k in ("x_mm", "y_mm", "z_mm")),
-        *(getattr(guess, k) + rng.normal(0, dev.base_deg) for k in ("rx_deg", "ry_deg", "rz_deg")),
-        guess.gravity,
+        **{k: getattr(guess, k) + rng.normal(0, dev.base_mm) for k in ("x_mm", "y_mm", "z_mm")},
+        **{
+            k: getattr(guess, k) + rng.normal(0, dev.base_deg)
+            for k in ("rx_deg", "ry_deg", "rz_deg")
+        },
+        gravity=guess.gravity,
     )
     t = nominal.tool
     tool = ToolDescription(
@@ -163,7 +166,8 @@ class TrackerModel:
     def sigma_mm(self, points_mm: ArrayLike) -> FloatArray:
         """Per-axis standard deviation (mm) of a measurement of each point, shape ``(N,)``."""
         dist_m = np.linalg.norm(np.atleast_2d(points_mm), axis=-1) / 1000.0
-        return 1e-3 * (self.mpe_um + self.mpe_um_per_m * dist_m) / self.mpe_sigmas
+        sigma: FloatArray = 1e-3 * (self.mpe_um + self.mpe_um_per_m * dist_m) / self.mpe_sigmas
+        return sigma
 
     def measure(
         self, points_mm: ArrayLike, rng: np.random.Generator
@@ -183,7 +187,7 @@ def with_masses(desc: RobotDescription, masses: ArmMasses) -> RobotDescription:
     """``desc`` carrying ``masses`` (links and payload mass; the payload's centre of mass
     has no place in a description and goes to the truth document)."""
     joints = tuple(
-        replace(j, mass_kg=float(m), com_mm=tuple(float(v) for v in c))
+        replace(j, mass_kg=float(m), com_mm=(float(c[0]), float(c[1]), float(c[2])))
         for j, m, c in zip(desc.joints, masses.mass_kg, masses.com_mm, strict=True)
     )
     return replace(desc, joints=joints, tool=replace(desc.tool, mass_kg=masses.payload_kg))

@@ -25,7 +25,7 @@ from view.scene import MAGNIFICATIONS
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "view",
         help="the twin in the browser: the arm, the TCP, the tracker's errors, the phase",
@@ -91,10 +91,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _replay_source(args: argparse.Namespace, say: Any) -> tuple[Any, Any, str]:
-    from calibration.errors import CalibrationError
+    from calibration.errors import CalibrationError, TwinRunError
     from calibration.phase_detection import find_phases
     from calibration.streams import read_recording_streams
-    from calibration.twin_run import TwinRunError, measure_campaign
+    from calibration.twin_run import measure_campaign
     from view.model import load_calibration, nominal_twin, provisional_twin
     from view.phases import PhaseTimeline
     from view.sources import ReplaySource, pose_points

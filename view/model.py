@@ -111,7 +111,8 @@ def load_calibration(model_path: str | Path, robot: str | None = None) -> TwinMo
         )
     scale = read_scale_toml(scale_path)
     phases = _read_json(run_dir / "phases.json") or {}
-    campaign = phases.get("campaign") if isinstance(phases.get("campaign"), dict) else {}
+    campaign = phases.get("campaign")
+    campaign = campaign if isinstance(campaign, dict) else {}
     t0_ns = int(campaign.get("t0_ns", 0) or 0)
     report = _read_json(run_dir / "report" / "report.json")
     table = None

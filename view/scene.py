@@ -82,7 +82,8 @@ def magnified(reference: ArrayLike, other: ArrayLike, factor: float) -> FloatArr
     """``reference + factor · (other − reference)``, elementwise (same shapes): a small
     deviation drawn ``factor`` times larger, anchored on the reference."""
     r = np.asarray(reference, dtype=float)
-    return r + factor * (np.asarray(other, dtype=float) - r)
+    drawn: FloatArray = r + factor * (np.asarray(other, dtype=float) - r)
+    return drawn
 
 
 def error_segments(measured_mm: ArrayLike, twin_mm: ArrayLike, factor: float) -> FloatArray:

@@ -20,6 +20,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,7 +34,7 @@ from view.scene import (
     error_segments,
     magnified,
 )
-from view.sources import ReplaySource, Snapshot
+from view.sources import LiveSource, ReplaySource, Snapshot
 
 M_PER_MM = 1e-3
 ARM_RGB = (235, 125, 35)
@@ -61,7 +62,7 @@ class FrameStats:
     age_ms_p99: float | None = None
 
 
-def _quiet_stdout():  # type: ignore[no-untyped-def]
+def _quiet_stdout() -> contextlib.AbstractContextManager[object]:
     # viser prints a banner and "Server stopped" on stdout; the command prints its own line
     return contextlib.redirect_stdout(io.StringIO())
 
@@ -93,7 +94,7 @@ class TwinView:
 
     def __init__(
         self,
-        source: ReplaySource | object,
+        source: ReplaySource | LiveSource,
         twin: TwinModel,
         *,
         title: str,
@@ -113,7 +114,7 @@ class TwinView:
         self.factor = float(magnify)
         self.stats = FrameStats()
         self._stopped = threading.Event()
-        self._server = None
+        self._server: Any = None  # viser.ViserServer once started (viser loads on start)
         self._kin = twin.kinematics
         self._frame_times: deque[float] = deque(maxlen=4096)
         self._update_ms: deque[float] = deque(maxlen=4096)
@@ -330,7 +331,7 @@ class TwinView:
             now = time.monotonic()
             if duration_s is not None and now - started >= duration_s:
                 break
-            snap = self.source.latest()  # type: ignore[attr-defined]
+            snap = self.source.latest()
             self.draw(snap)
             self.stats.frames += 1
             self._frame_times.append(now)

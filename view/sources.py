@@ -456,9 +456,10 @@ class LiveSource:
             twin_pts = np.array(self._pose_twin).reshape(-1, 3)
             first = self._first_t_ns
         note = ""
-        if q is None and counts is not None and self.twin.scales is not None:
+        read = self.twin.joint_deg(counts) if q is None and counts is not None else None
+        if read is not None:
             # no live twin on the bus: the view's own model reads the gratings
-            q = self.twin.joint_deg(counts)[0]
+            q = read[0]
             tcp = self.twin.tcp_mm(q, [t_ns])[0]
             note = "no live twin on twin/**: the view's model reads the gratings"
         elif q is None:
