@@ -710,18 +710,55 @@ class GravityDeflection(EffectKind):
         )
 
 
-class JointHarmonic(EffectKind):
-    kind = "joint_harmonic"
-    description = "cyclic error of one joint's reading (harmonic of its angle)"
+class HarmonicOfJoint(EffectKind):
+    """A harmonic of one joint's angle: cosine and sine amplitudes, ``components`` each,
+    in ``unit`` (written as ``cos_<unit>``/``sin_<unit>``: a number for one component, an
+    array for three)."""
 
-    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
-        return ("cos_deg", "sin_deg")
+    unit: str = "deg"
+    components: int = 1
 
     def _basis(
         self, spec: EffectSpec, ctx: EffectContext, sel: slice
     ) -> tuple[FloatArray, FloatArray]:
         q = ctx.data.q_rad[sel, spec.joint - 1]
         return np.cos(spec.order * q), np.sin(spec.order * q)
+
+    def to_parameters(
+        self, spec: EffectSpec, values: FloatArray, n_joints: int
+    ) -> dict[str, EffectValue]:
+        k = self.components
+        cos, sin = values[:k], values[k : 2 * k]
+        return {
+            "joint": float(spec.joint),
+            "order": float(spec.order),
+            f"cos_{self.unit}": float(cos[0]) if k == 1 else tuple(float(v) for v in cos),
+            f"sin_{self.unit}": float(sin[0]) if k == 1 else tuple(float(v) for v in sin),
+        }
+
+    def from_parameters(
+        self, params: Mapping[str, Any], n_joints: int
+    ) -> tuple[EffectSpec, FloatArray]:
+        keys = (f"cos_{self.unit}", f"sin_{self.unit}")
+        _check_keys(params, {"joint", "order", *keys}, self.kind)
+        spec = EffectSpec(
+            self.kind, joint=_joint(params, self.kind, n_joints), order=_order(params, self.kind)
+        )
+        if self.components == 1:
+            return spec, np.array([_number(params, key, self.kind) for key in keys])
+        return spec, np.concatenate(
+            [_vector(params, key, self.kind, self.components) for key in keys]
+        )
+
+
+class JointHarmonic(HarmonicOfJoint):
+    kind = "joint_harmonic"
+    unit = "deg"
+    components = 1
+    description = "cyclic error of one joint's reading (harmonic of its angle)"
+
+    def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
+        return ("cos_deg", "sin_deg")
 
     def regressor(
         self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
@@ -732,26 +769,6 @@ class JointHarmonic(EffectKind):
 
     def label(self, spec: EffectSpec) -> str:
         return f"cyclic error of joint {spec.joint} (harmonic {spec.order})"
-
-    def to_parameters(
-        self, spec: EffectSpec, values: FloatArray, n_joints: int
-    ) -> dict[str, EffectValue]:
-        return {
-            "joint": float(spec.joint),
-            "order": float(spec.order),
-            "cos_deg": float(values[0]),
-            "sin_deg": float(values[1]),
-        }
-
-    def from_parameters(
-        self, params: Mapping[str, Any], n_joints: int
-    ) -> tuple[EffectSpec, FloatArray]:
-        _check_keys(params, {"joint", "order", "cos_deg", "sin_deg"}, self.kind)
-        spec = EffectSpec(
-            self.kind, joint=_joint(params, self.kind, n_joints), order=_order(params, self.kind)
-        )
-        v = np.array([_number(params, "cos_deg", self.kind), _number(params, "sin_deg", self.kind)])
-        return spec, v
 
     def evidence(
         self,
@@ -1022,19 +1039,15 @@ class InstrumentScaleDrift(EffectKind):
 _AXES = ("x", "y", "z")
 
 
-class CartesianHarmonic(EffectKind):
+class CartesianHarmonic(HarmonicOfJoint):
     kind = "cartesian_harmonic"
+    unit = "mm"
+    components = 3
     generic = True
     description = "an error vector in the tracker frame varying with a harmonic of one joint"
 
     def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         return tuple(f"{a}_{f}_mm" for f in ("cos", "sin") for a in _AXES)
-
-    def _basis(
-        self, spec: EffectSpec, ctx: EffectContext, sel: slice
-    ) -> tuple[FloatArray, FloatArray]:
-        q = ctx.data.q_rad[sel, spec.joint - 1]
-        return np.cos(spec.order * q), np.sin(spec.order * q)
 
     def regressor(
         self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
@@ -1048,28 +1061,6 @@ class CartesianHarmonic(EffectKind):
 
     def label(self, spec: EffectSpec) -> str:
         return f"unexplained structure in q{spec.joint} (harmonic {spec.order})"
-
-    def to_parameters(
-        self, spec: EffectSpec, values: FloatArray, n_joints: int
-    ) -> dict[str, EffectValue]:
-        return {
-            "joint": float(spec.joint),
-            "order": float(spec.order),
-            "cos_mm": tuple(float(v) for v in values[:3]),
-            "sin_mm": tuple(float(v) for v in values[3:]),
-        }
-
-    def from_parameters(
-        self, params: Mapping[str, Any], n_joints: int
-    ) -> tuple[EffectSpec, FloatArray]:
-        _check_keys(params, {"joint", "order", "cos_mm", "sin_mm"}, self.kind)
-        spec = EffectSpec(
-            self.kind, joint=_joint(params, self.kind, n_joints), order=_order(params, self.kind)
-        )
-        v = np.concatenate(
-            [_vector(params, "cos_mm", self.kind, 3), _vector(params, "sin_mm", self.kind, 3)]
-        )
-        return spec, v
 
     def evidence(
         self,
@@ -1090,8 +1081,10 @@ class CartesianHarmonic(EffectKind):
         )
 
 
-class LinkHarmonic(EffectKind):
+class LinkHarmonic(HarmonicOfJoint):
     kind = "link_harmonic"
+    unit = "deg"
+    components = 3
     generic = True
     description = (
         "link i turning about its own x, y and z axes with a harmonic of its joint angle "
@@ -1100,12 +1093,6 @@ class LinkHarmonic(EffectKind):
 
     def parameter_names(self, spec: EffectSpec) -> tuple[str, ...]:
         return tuple(f"{a}_{f}_deg" for f in ("cos", "sin") for a in _AXES)
-
-    def _basis(
-        self, spec: EffectSpec, ctx: EffectContext, sel: slice
-    ) -> tuple[FloatArray, FloatArray]:
-        q = ctx.data.q_rad[sel, spec.joint - 1]
-        return np.cos(spec.order * q), np.sin(spec.order * q)
 
     def regressor(
         self, spec: EffectSpec, ctx: EffectContext, sel: slice, kin: Kinematics
@@ -1119,28 +1106,6 @@ class LinkHarmonic(EffectKind):
             f"unexplained structure in q{spec.joint} "
             f"(harmonic {spec.order}, link {spec.joint} turning)"
         )
-
-    def to_parameters(
-        self, spec: EffectSpec, values: FloatArray, n_joints: int
-    ) -> dict[str, EffectValue]:
-        return {
-            "joint": float(spec.joint),
-            "order": float(spec.order),
-            "cos_deg": tuple(float(v) for v in values[:3]),
-            "sin_deg": tuple(float(v) for v in values[3:]),
-        }
-
-    def from_parameters(
-        self, params: Mapping[str, Any], n_joints: int
-    ) -> tuple[EffectSpec, FloatArray]:
-        _check_keys(params, {"joint", "order", "cos_deg", "sin_deg"}, self.kind)
-        spec = EffectSpec(
-            self.kind, joint=_joint(params, self.kind, n_joints), order=_order(params, self.kind)
-        )
-        v = np.concatenate(
-            [_vector(params, "cos_deg", self.kind, 3), _vector(params, "sin_deg", self.kind, 3)]
-        )
-        return spec, v
 
     def evidence(
         self,
