@@ -5,7 +5,9 @@ accumulates the grating, tracker and encoder streams and prints progress (sample
 sweeps, Home returns, poses found so far). The campaign is over when poses have been found
 and the gratings have been still for ``--idle-s``, when no data came for ``--idle-s`` (the
 source stopped), or after ``--collect-s``. The same
-pipeline as a replay then runs on the collected streams (:func:`run_twin`).
+pipeline as a replay then runs on the collected streams
+(:func:`~calibration.twin_run.run_twin`), and the twin it gives is published as it is in
+memory (:meth:`CalibratedTwin.from_twin_run`).
 
 The live twin (docs/topics.md, "Twin keys") is published per grating batch, at the grating
 rate, on ``twin/<cell>/robot/<robot>/state`` (columnar ``daq.columnar.v1``, schema by
@@ -40,6 +42,7 @@ from calibration.streams import CellStreams, StreamBuilder, pick_streams
 if TYPE_CHECKING:
     from calibration.description import RobotDescription
     from calibration.scale_files import ScaleCalibration
+    from calibration.twin_run import TwinRun
 
 FloatArray = NDArray[np.float64]
 
@@ -388,6 +391,13 @@ class CalibratedTwin:
         desc = load_robot(run["calibrated"])
         phases = json.loads(Path(run["files"]["phases"]).read_text(encoding="utf-8"))
         return cls.of(desc, read_scale_toml(run["files"]["scale"]), phases, str(run["calibrated"]))
+
+    @classmethod
+    def from_twin_run(cls, run: TwinRun, name: str) -> CalibratedTwin:
+        """The twin of a ``twin run`` in memory, as :meth:`from_run` reads it back from the
+        files written of it (``name``: where its calibrated.toml is, as run.json says)."""
+        export = run.export
+        return cls.of(run.calibrated, export.scale_calibration(), export.phases, name)
 
     @classmethod
     def of(
