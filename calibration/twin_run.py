@@ -83,7 +83,8 @@ class CampaignMeasurements:
     Sweeps per joint (rows in the order sweep.csv lists them, every joint's reading at
     each stop), Home readings per joint, and the paired poses: names, sets, times from
     the first dwell ``(m,)`` s, grating counts ``(m, n)``, tracker points ``(m, 3)`` mm and
-    encoder angles ``(m, n)`` deg (None without encoders). ``summary`` is phases.json.
+    encoder angles ``(m, n)`` deg (None without encoders). ``summary``: what phases.json
+    says of them (:func:`phases_document` adds the scale maps' part).
     """
 
     robot: RobotDescription
@@ -659,6 +660,7 @@ CAMPAIGN_FILES = {
 #: The twin's description, as the report names it.
 CALIBRATED_FILE = "calibrated.toml"
 
+#: A CSV file's header and rows.
 Table = tuple[list[str], list[list[Any]]]
 
 
