@@ -43,6 +43,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run_export(args: argparse.Namespace) -> int:
     from calibration.description import load_robot
     from calibration.errors import OutputFileError
+    from calibration.run_files import write_campaign_files
     from calibration.streams import read_recording_streams
     from calibration.twin_run import ENCODER_COUNTS_PER_REV, export_campaign
 
@@ -54,9 +55,12 @@ def run_export(args: argparse.Namespace) -> int:
         robot = load_robot(args.robot)
         say(f"reading {args.replay}")
         streams = read_recording_streams(args.replay)
-        res = export_campaign(streams, robot, staged, encoder_counts_per_rev=cpr, say=say)
-        written = {name: outputs.final(path) for name, path in res.files.items()}
-    print(json.dumps(res.summary["phases"]))
+        export = export_campaign(streams, robot, encoder_counts_per_rev=cpr, say=say)
+        files = write_campaign_files(staged, export)
+        csvs = ", ".join(files[k].name for k in ("home", "sweep", "scale", "campaign"))
+        say(f"wrote {csvs} ({len(export.campaign)} poses)")
+        written = {name: outputs.final(path) for name, path in files.items()}
+    print(json.dumps(export.phases["phases"]))
     for name, path in written.items():
         print(f"wrote {name}: {path}")
     return 0

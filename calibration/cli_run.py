@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +41,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--no-report", action="store_true", help="no figures (report.json only)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     live = p.add_argument_group("live (without --replay)")
+    _add_zenoh_options(live)
+    _add_live_options(live)
+    p.set_defaults(func=run_run)
+
+
+def _add_zenoh_options(live: argparse._ArgumentGroup) -> None:
+    """How the live twin meets the daemon."""
     live.add_argument(
         "--connect",
         action="append",
@@ -61,6 +69,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="zenoh mode: client of the daemon (default: the daemon's session routes the "
         "twin's keys to everyone connected to it), or peer (default with --listen)",
     )
+
+
+def _add_live_options(live: argparse._ArgumentGroup) -> None:
+    """What the live twin publishes, and when collection and publication end."""
     live.add_argument(
         "--effects-radius-deg",
         type=float,
@@ -97,13 +109,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default=0.0,
         help="publish the live twin for this long, then stop (0: until Ctrl-C)",
     )
-    p.set_defaults(func=run_run)
 
 
 def _earlier_run(from_dir: str) -> dict[str, Any]:
     """run.json of an earlier ``twin run --out DIR`` (the files it names must exist), its
     paths resolved from this working directory."""
-    from calibration.twin_run import RUN_PATHS_RELATIVE_TO, resolve_run_path
+    from calibration.run_files import RUN_PATHS_RELATIVE_TO, resolve_run_path
 
     path = Path(from_dir) / "run.json"
     raw = read_input_bytes(path, limit=MAX_TOML_BYTES, error=DataFileError)
@@ -138,10 +149,49 @@ def _earlier_run(from_dir: str) -> dict[str, Any]:
 
 
 def run_run(args: argparse.Namespace) -> int:
+    say = progress("twin run", args.quiet)
+    _check_live_options(args)
+    if args.from_dir:
+        return _publish_earlier(args, say)
+    from calibration.run_files import write_twin_run
     from calibration.twin_run import run_twin
 
-    say = progress("twin run", args.quiet)
     live = None
+    robot_file = args.robot if Path(args.robot).exists() else None
+    outputs = OutputSet([args.replay, robot_file], error=OutputFileError)
+    try:
+        staged = outputs.directory(args.out, "--out")
+        if args.replay:
+            from calibration.streams import read_recording_streams
+
+            say(f"reading {args.replay}")
+            streams = read_recording_streams(args.replay)
+        else:
+            from calibration.live_twin import LiveSettings, LiveTwin
+
+            live = LiveTwin(LiveSettings.from_options(args), say)
+            streams = live.collect()
+        result = run_twin(streams, args.robot, effects=not args.no_effects, say=say)
+        run = write_twin_run(staged, Path(args.out), result, report=not args.no_report, say=say)
+        outputs.commit()  # before publishing, which may go on until Ctrl-C
+        print(run["stage_table"])
+        print(f"calibrated model: {run['calibrated']}")
+        print(f"report: {run['report']}/report.md (scale: {args.out}/scale-report/report.md)")
+        print(f"phases: {run['files']['phases']}", flush=True)
+        if live is not None:  # the twin as written, named by its file as --from names it
+            from calibration.live_twin import CalibratedTwin
+
+            return live.publish(CalibratedTwin.from_twin_run(result, run["calibrated"]))
+        return 0 if result.success else 1
+    finally:
+        outputs.discard()
+        if live is not None:
+            live.close()
+
+
+def _check_live_options(args: argparse.Namespace) -> None:
+    """The live options checked together (one line naming the option, exit 2); ``--mode``
+    resolved: ``peer`` when listening, else ``client``."""
     if args.mode is None:
         args.mode = "peer" if args.listen and args.listen != ["none"] else "client"
     elif args.mode == "client" and args.listen and args.listen != ["none"]:
@@ -158,49 +208,15 @@ def run_run(args: argparse.Namespace) -> int:
         raise OptionError(f"--effects-radius-deg: at most 5 degrees, got {args.effects_radius_deg}")
     if not args.wait_s > 0 or args.wait_s == float("inf"):
         raise OptionError(f"--wait-s: expected a finite number of seconds > 0, got {args.wait_s}")
-    if args.from_dir:
-        from calibration.live_twin import CalibratedTwin, LiveSettings, LiveTwin
 
-        twin = CalibratedTwin.from_run(_earlier_run(args.from_dir))
-        live = LiveTwin(LiveSettings.from_options(args), say)
-        try:
-            return live.publish(twin)
-        finally:
-            live.close()
-    robot_file = args.robot if Path(args.robot).exists() else None
-    outputs = OutputSet([args.replay, robot_file], error=OutputFileError)
+
+def _publish_earlier(args: argparse.Namespace, say: Callable[[str], None]) -> int:
+    """``--from DIR``: publish the twin an earlier run wrote, read from its files."""
+    from calibration.live_twin import CalibratedTwin, LiveSettings, LiveTwin
+
+    twin = CalibratedTwin.from_run(_earlier_run(args.from_dir))
+    live = LiveTwin(LiveSettings.from_options(args), say)
     try:
-        staged = outputs.directory(args.out, "--out")
-        if args.replay:
-            from calibration.streams import read_recording_streams
-
-            say(f"reading {args.replay}")
-            streams = read_recording_streams(args.replay)
-        else:
-            from calibration.live_twin import LiveSettings, LiveTwin
-
-            live = LiveTwin(LiveSettings.from_options(args), say)
-            streams = live.collect()
-        run = run_twin(
-            streams,
-            args.robot,
-            args.out,
-            effects=not args.no_effects,
-            report=not args.no_report,
-            say=say,
-            write_to=staged,
-        )
-        outputs.commit()  # before publishing: the live twin is built from these files
-        print(run["stage_table"])
-        print(f"calibrated model: {run['calibrated']}")
-        print(f"report: {run['report']}/report.md (scale: {args.out}/scale-report/report.md)")
-        print(f"phases: {run['files']['phases']}", flush=True)
-        if live is not None:  # the twin exactly as written (as --from would read it)
-            from calibration.live_twin import CalibratedTwin
-
-            return live.publish(CalibratedTwin.from_run(run))
-        return 0 if run["success"] else 1
+        return live.publish(twin)
     finally:
-        outputs.discard()
-        if live is not None:
-            live.close()
+        live.close()

@@ -5,7 +5,9 @@ accumulates the grating, tracker and encoder streams and prints progress (sample
 sweeps, Home returns, poses found so far). The campaign is over when poses have been found
 and the gratings have been still for ``--idle-s``, when no data came for ``--idle-s`` (the
 source stopped), or after ``--collect-s``. The same
-pipeline as a replay then runs on the collected streams (:func:`run_twin`).
+pipeline as a replay then runs on the collected streams
+(:func:`~calibration.twin_run.run_twin`), and the twin it gives is published as it is in
+memory (:meth:`CalibratedTwin.from_twin_run`).
 
 The live twin (docs/topics.md, "Twin keys") is published per grating batch, at the grating
 rate, on ``twin/<cell>/robot/<robot>/state`` (columnar ``daq.columnar.v1``, schema by
@@ -40,6 +42,7 @@ from calibration.streams import CellStreams, StreamBuilder, pick_streams
 if TYPE_CHECKING:
     from calibration.description import RobotDescription
     from calibration.scale_files import ScaleCalibration
+    from calibration.twin_run import TwinRun
 
 FloatArray = NDArray[np.float64]
 
@@ -390,6 +393,13 @@ class CalibratedTwin:
         return cls.of(desc, read_scale_toml(run["files"]["scale"]), phases, str(run["calibrated"]))
 
     @classmethod
+    def from_twin_run(cls, run: TwinRun, name: str) -> CalibratedTwin:
+        """The twin of a ``twin run`` in memory, as :meth:`from_run` reads it back from the
+        files written of it (``name``: where its calibrated.toml is, as run.json says)."""
+        export = run.export
+        return cls.of(run.calibrated, export.scale_calibration(), export.phases, name)
+
+    @classmethod
     def of(
         cls,
         description: RobotDescription,
@@ -513,165 +523,72 @@ class LiveTwin:
         """Publish ``twin`` as the gratings drive it until ``publish_s`` (or forever)."""
         import sys
 
-        from daq.bus import JSON_ENCODING, ChannelPublisher, SchemaServer
-
         args, say = self.args, self.say
-        desc, scale, t0_ns = twin.description, twin.scale, twin.t0_ns
-        enc_offset, cpr = twin.encoder_offset_deg, twin.encoder_counts_per_rev
-        gear = np.array([j.gear_ratio or 100.0 for j in desc.joints], dtype=float)
-        n = desc.n_joints
         grating = self._wait_for_grating()
         self._narrow_to(grating)
         cell = str(grating.meta.get("cell", "cell"))
         robot = str(grating.meta.get("robot", "robot"))
-        keys = twin_keys(cell, robot)
-        model_name = twin.name
-        radius = args.effects_radius_deg
-        predictor = TwinPredictor(desc, radius_deg=radius)
-        reader = AngleReader(scale, n, desc.home, radius_deg=radius)
-        schemas = SchemaServer(self.session, TWIN_PREFIX)
-        pub = ChannelPublisher(
-            self.session, state_schema(keys["state"], n, cell, robot, model_name), schemas=schemas
-        )
-        frames_pub = ChannelPublisher(
-            self.session,
-            frames_schema(keys["frames"], predictor.frame_names, cell, robot, model_name),
-            schemas=schemas,
-        )
-        health_pub = self.session.declare_publisher(keys["health"], encoding=JSON_ENCODING)
-        say(f"publishing the live twin on {keys['state']} (health: {keys['health']})")
-        print(json.dumps({"twin": "live", "keys": keys}), flush=True)
+        out = TwinPublication(self.session, twin, args, cell, robot)
+        say(f"publishing the live twin on {out.keys['state']} (health: {out.keys['health']})")
+        print(json.dumps({"twin": "live", "keys": out.keys}), flush=True)
         # the receiving thread waits for the interpreter at most this long while this
         # one computes (Python's default is 5 ms; the daemon uses the same)
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
-        frames_every_ns = int(1e9 / args.frames_hz) if args.frames_hz > 0 else None
-        next_frames_ns = 0
-        enc_t = np.empty(0, dtype=np.int64)
-        enc_v = np.empty((0, n))
-        seq = frames_seq = 0
-        lat: list[np.ndarray] = []  # end to end, settled clock maps (ms)
-        lat_all: list[np.ndarray] = []
-        upstream: list[np.ndarray] = []  # latch -> zenoh handed the batch to the twin
-        own: list[np.ndarray] = []  # zenoh handed it over -> the twin published
-        period_start = time.monotonic()
-        samples_period = 0
         started = time.monotonic()
-        while True:
-            if args.publish_s and time.monotonic() - started >= args.publish_s:
-                break
-            # drain what has arrived and evaluate the grating samples in one call: the
-            # daemon sends ~1 ms batches, one model evaluation per batch would fall behind
-            batch: list[Any] = []
-            got = self.receiver.receive(0.1)
-            while got is not None and len(batch) < 500:
-                batch.append(got)
-                got = self.receiver.receive(0.0)
-            if got is not None:
-                batch.append(got)
+        while not (args.publish_s and time.monotonic() - started >= args.publish_s):
+            batch = self._drain()
             now_m = time.monotonic()
-            g_counts, g_t, g_ok, g_recv = [], [], [], []
-            for got in batch:
-                b = self.builders.get(got.key)
-                if b is None:
-                    b = self.builders[got.key] = StreamBuilder(got.key, got.schema.to_json())
-                cols = got.columns
-                if b.kind == "grating":
-                    g_counts.append(np.column_stack([cols[c] for c in b.channels]))
-                    g_t.append(np.asarray(cols["t_mapped_ns"], dtype=np.int64))
-                    g_ok.append(np.asarray(cols["t_mapped_ok"], dtype=np.uint8))
-                    g_recv.append(np.full(len(g_t[-1]), got.t_recv_ns, dtype=np.int64))
-                elif b.kind == "encoders":
-                    v = np.column_stack([cols[c] for c in b.channels]).astype(float)
-                    deg = v / cpr * 360.0 / gear + enc_offset
-                    enc_t = np.concatenate((enc_t, cols["t_mapped_ns"]))[-2000:]
-                    enc_v = np.concatenate((enc_v, deg))[-2000:]
-            if g_counts:
-                counts = np.concatenate(g_counts) if len(g_counts) > 1 else g_counts[0]
-                t_map = np.concatenate(g_t) if len(g_t) > 1 else g_t[0]
-                settled = (np.concatenate(g_ok) if len(g_ok) > 1 else g_ok[0]) == 1
-                m = counts.shape[0]
-                q = reader.angles(counts)
-                tcp, fl = predictor.tcp_and_flange(np.radians(q), (t_map - t0_ns) * 1e-9)
-                diff = np.full((m, n), np.nan)
-                if enc_t.size:
-                    idx = np.clip(np.searchsorted(enc_t, t_map), 0, enc_t.size - 1)
-                    diff = enc_v[idx] - q
-                t_pub = time.time_ns()
-                pub.publish(
-                    {
-                        "seq": np.arange(seq, seq + m, dtype=np.uint64),
-                        "t_mapped_ns": t_map,
-                        "t_publish_ns": np.full(m, t_pub, dtype=np.int64),
-                        "q_deg": q,
-                        "tcp_mm": tcp,
-                        "flange_mm": fl[:, :3, 3],
-                        "flange_quat": _quaternions(fl[:, :3, :3]),
-                        "encoder_minus_grating_deg": diff,
-                    }
-                )
-                seq += m
-                samples_period += m
-                # latency on settled clock maps only (provisional mapped times can be off)
-                recv = np.concatenate(g_recv) if len(g_recv) > 1 else g_recv[0]
-                lat.append((t_pub - t_map[settled]) * 1e-6)
-                lat_all.append((t_pub - t_map) * 1e-6)
-                upstream.append((recv[settled] - t_map[settled]) * 1e-6)
-                own.append((t_pub - recv) * 1e-6)
-                # the link frames of the newest sample, at a bounded rate (for viewers and
-                # recorders: Foxglove's frame transforms), after the state went out
-                if frames_every_ns is not None and t_pub >= next_frames_ns:
-                    next_frames_ns = t_pub + frames_every_ns
-                    pos, quat = predictor.frames(np.radians(q[-1:]))
-                    frames_pub.publish(
-                        {
-                            "seq": np.array([frames_seq], dtype=np.uint64),
-                            "t_mapped_ns": t_map[-1:],
-                            "frame_mm": pos,
-                            "frame_quat": quat,
-                        }
-                    )
-                    frames_seq += 1
-            if now_m - period_start >= 1.0:
-                doc = {
-                    "t_host_ns": time.time_ns(),
-                    "cell": cell,
-                    "robot": robot,
-                    "state": "publishing",
-                    "rate_hz": samples_period / (now_m - period_start),
-                    "samples": seq,
-                    "latency_ms": _percentiles(lat if any(x.size for x in lat) else lat_all),
-                    "latency": "publication time minus the grating sample's mapped time",
-                    "upstream_ms": _percentiles(upstream),
-                    "upstream": "the twin's receipt of the batch minus the mapped time "
-                    "(device, daemon, zenoh)",
-                    "twin_ms": _percentiles(own),
-                    "twin": "publication time minus the twin's receipt (the twin's own share)",
-                    "clock_settled": any(x.size for x in lat),
-                    "model": model_name,
-                    "effects": predictor.describe(),
-                    "scale_maps": {
-                        "linearised_radius_deg": reader.radius_deg,
-                        "linearisations": reader.refreshes,
-                        "full_map_calls": reader.full_calls,
-                    },
-                }
-                health_pub.put(json.dumps(doc))
+            gratings = self._gratings_of(batch, out)
+            if gratings is not None:
+                out.state(*gratings)
+            doc = out.health(now_m)
+            if doc is not None:
                 end_to_end, own_share = doc["latency_ms"], doc["twin_ms"]
-                assert isinstance(end_to_end, dict) and isinstance(own_share, dict)
                 say(
                     f"live twin: {doc['rate_hz']:.0f} samples/s, latency p50 "
                     f"{end_to_end['p50']:.1f} ms, p99 {end_to_end['p99']:.1f} ms "
                     f"(the twin's own p50 {own_share['p50']:.2f} ms)"
                     + ("" if doc["clock_settled"] else " (clock map not settled yet)")
                 )
-                period_start, samples_period = now_m, 0
-                lat, lat_all, upstream, own = [], [], [], []
-        pub.close()
-        frames_pub.close()
-        health_pub.undeclare()
-        schemas.close()
-        say(f"published {seq} twin samples")
+        out.close()
+        say(f"published {out.seq} twin samples")
         return 0
+
+    def _drain(self) -> list[Any]:
+        """The batches that have arrived (at most ~500; the first waited for at most
+        0.1 s): the daemon sends ~1 ms batches, one model evaluation per batch would fall
+        behind, so they are evaluated together."""
+        batch: list[Any] = []
+        got = self.receiver.receive(0.1)
+        while got is not None and len(batch) < 500:
+            batch.append(got)
+            got = self.receiver.receive(0.0)
+        if got is not None:
+            batch.append(got)
+        return batch
+
+    def _gratings_of(
+        self, batch: list[Any], out: TwinPublication
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The batch's grating samples joined: counts ``(m, n)``, mapped times ``(m,)`` ns,
+        whether each one's clock map had settled ``(m,)``, when the twin received it
+        ``(m,)`` ns (None: no grating sample); the encoders' samples go to ``out``."""
+        counts, t_map, ok, recv = [], [], [], []
+        for got in batch:
+            b = self.builders.get(got.key)
+            if b is None:
+                b = self.builders[got.key] = StreamBuilder(got.key, got.schema.to_json())
+            cols = got.columns
+            if b.kind == "grating":
+                counts.append(np.column_stack([cols[c] for c in b.channels]))
+                t_map.append(np.asarray(cols["t_mapped_ns"], dtype=np.int64))
+                ok.append(np.asarray(cols["t_mapped_ok"], dtype=np.uint8))
+                recv.append(np.full(len(t_map[-1]), got.t_recv_ns, dtype=np.int64))
+            elif b.kind == "encoders":
+                out.encoders(cols["t_mapped_ns"], np.column_stack([cols[c] for c in b.channels]))
+        if not counts:
+            return None
+        return _joined(counts), _joined(t_map), _joined(ok) == 1, _joined(recv)
 
     def close(self) -> None:
         if self.closed:
@@ -679,6 +596,150 @@ class LiveTwin:
         self.closed = True
         self.receiver.close()
         self.session.close()
+
+
+def _joined(parts: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(parts) if len(parts) > 1 else parts[0]
+
+
+class TwinPublication:
+    """One publication of a :class:`CalibratedTwin` on a cell's twin keys: the publishers,
+    the model's evaluators (:class:`AngleReader`, :class:`TwinPredictor`) and what runs on
+    between batches (sample numbers, the encoders' recent samples, this period's
+    latencies). :meth:`LiveTwin.publish` feeds it."""
+
+    def __init__(
+        self, session: Any, twin: CalibratedTwin, settings: LiveSettings, cell: str, robot: str
+    ) -> None:
+        from daq.bus import JSON_ENCODING, ChannelPublisher, SchemaServer
+
+        desc = twin.description
+        n = desc.n_joints
+        self.twin = twin
+        self.cell, self.robot = cell, robot
+        self.keys = twin_keys(cell, robot)
+        self.gear = np.array([j.gear_ratio or 100.0 for j in desc.joints], dtype=float)
+        radius = settings.effects_radius_deg
+        self.predictor = TwinPredictor(desc, radius_deg=radius)
+        self.reader = AngleReader(twin.scale, n, desc.home, radius_deg=radius)
+        self.schemas = SchemaServer(session, TWIN_PREFIX)
+        state = state_schema(self.keys["state"], n, cell, robot, twin.name)
+        self.state_pub = ChannelPublisher(session, state, schemas=self.schemas)
+        names = self.predictor.frame_names
+        frames = frames_schema(self.keys["frames"], names, cell, robot, twin.name)
+        self.frames_pub = ChannelPublisher(session, frames, schemas=self.schemas)
+        self.health_pub = session.declare_publisher(self.keys["health"], encoding=JSON_ENCODING)
+        hz = settings.frames_hz
+        self.frames_every_ns = int(1e9 / hz) if hz > 0 else None
+        self.next_frames_ns = 0
+        self.enc_t = np.empty(0, dtype=np.int64)
+        self.enc_v = np.empty((0, n))
+        self.seq = self.frames_seq = 0
+        self.lat: list[np.ndarray] = []  # end to end, settled clock maps (ms)
+        self.lat_all: list[np.ndarray] = []
+        self.upstream: list[np.ndarray] = []  # latch -> zenoh handed the batch to the twin
+        self.own: list[np.ndarray] = []  # zenoh handed it over -> the twin published
+        self.period_start = time.monotonic()
+        self.samples_period = 0
+
+    def encoders(self, t_mapped_ns: np.ndarray, counts: np.ndarray) -> None:
+        """Motor encoder samples (counts ``(m, n)``) as joint angles, the newest 2000 kept."""
+        twin = self.twin
+        deg = counts.astype(float) / twin.encoder_counts_per_rev * 360.0 / self.gear
+        deg += twin.encoder_offset_deg
+        self.enc_t = np.concatenate((self.enc_t, t_mapped_ns))[-2000:]
+        self.enc_v = np.concatenate((self.enc_v, deg))[-2000:]
+
+    def state(
+        self, counts: np.ndarray, t_map: np.ndarray, settled: np.ndarray, recv: np.ndarray
+    ) -> None:
+        """Publish the twin's state of grating samples (counts ``(m, n)``, mapped times
+        ``(m,)`` ns, clock maps settled ``(m,)``, received ``(m,)`` ns), note their
+        latencies, and the link frames of the newest one when they are due."""
+        m, n = counts.shape
+        q = self.reader.angles(counts)
+        t_s = (t_map - self.twin.t0_ns) * 1e-9
+        tcp, fl = self.predictor.tcp_and_flange(np.radians(q), t_s)
+        diff = np.full((m, n), np.nan)
+        if self.enc_t.size:
+            idx = np.clip(np.searchsorted(self.enc_t, t_map), 0, self.enc_t.size - 1)
+            diff = self.enc_v[idx] - q
+        t_pub = time.time_ns()
+        self.state_pub.publish(
+            {
+                "seq": np.arange(self.seq, self.seq + m, dtype=np.uint64),
+                "t_mapped_ns": t_map,
+                "t_publish_ns": np.full(m, t_pub, dtype=np.int64),
+                "q_deg": q,
+                "tcp_mm": tcp,
+                "flange_mm": fl[:, :3, 3],
+                "flange_quat": _quaternions(fl[:, :3, :3]),
+                "encoder_minus_grating_deg": diff,
+            }
+        )
+        self.seq += m
+        self.samples_period += m
+        # latency on settled clock maps only (provisional mapped times can be off)
+        self.lat.append((t_pub - t_map[settled]) * 1e-6)
+        self.lat_all.append((t_pub - t_map) * 1e-6)
+        self.upstream.append((recv[settled] - t_map[settled]) * 1e-6)
+        self.own.append((t_pub - recv) * 1e-6)
+        # the link frames of the newest sample, at a bounded rate (for viewers and
+        # recorders: Foxglove's frame transforms), after the state went out
+        if self.frames_every_ns is not None and t_pub >= self.next_frames_ns:
+            self.next_frames_ns = t_pub + self.frames_every_ns
+            pos, quat = self.predictor.frames(np.radians(q[-1:]))
+            self.frames_pub.publish(
+                {
+                    "seq": np.array([self.frames_seq], dtype=np.uint64),
+                    "t_mapped_ns": t_map[-1:],
+                    "frame_mm": pos,
+                    "frame_quat": quat,
+                }
+            )
+            self.frames_seq += 1
+
+    def health(self, now_m: float) -> dict[str, Any] | None:
+        """Once a second (``now_m``: monotonic s): the health document of the period, put
+        on the health key, and a new period begun; None within a period."""
+        elapsed = now_m - self.period_start
+        if elapsed < 1.0:
+            return None
+        settled = any(x.size for x in self.lat)
+        reader = self.reader
+        doc = {
+            "t_host_ns": time.time_ns(),
+            "cell": self.cell,
+            "robot": self.robot,
+            "state": "publishing",
+            "rate_hz": self.samples_period / elapsed,
+            "samples": self.seq,
+            "latency_ms": _percentiles(self.lat if settled else self.lat_all),
+            "latency": "publication time minus the grating sample's mapped time",
+            "upstream_ms": _percentiles(self.upstream),
+            "upstream": "the twin's receipt of the batch minus the mapped time "
+            "(device, daemon, zenoh)",
+            "twin_ms": _percentiles(self.own),
+            "twin": "publication time minus the twin's receipt (the twin's own share)",
+            "clock_settled": settled,
+            "model": self.twin.name,
+            "effects": self.predictor.describe(),
+            "scale_maps": {
+                "linearised_radius_deg": reader.radius_deg,
+                "linearisations": reader.refreshes,
+                "full_map_calls": reader.full_calls,
+            },
+        }
+        self.health_pub.put(json.dumps(doc))
+        self.period_start, self.samples_period = now_m, 0
+        self.lat, self.lat_all, self.upstream, self.own = [], [], [], []
+        return doc
+
+    def close(self) -> None:
+        self.state_pub.close()
+        self.frames_pub.close()
+        self.health_pub.undeclare()
+        self.schemas.close()
 
 
 def _quaternions(r: np.ndarray) -> np.ndarray:

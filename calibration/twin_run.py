@@ -12,8 +12,10 @@ The data flow one way, in memory, as typed values:
    no grating sees); when the loop finds gravity deflection, the maps are refitted with
    it taken out of the sweeps and everything downstream runs again: a joint fit of the
    maps and the loop's gravity term;
-3. files only at the edges: :func:`export_campaign` (``twin export``) and :func:`run_twin`
-   (``twin run``) write them.
+3. the documents of the files, still in memory: :func:`export_campaign` (``twin
+   export``) gives a :class:`CampaignExport`, :func:`run_twin` (``twin run``) a
+   :class:`TwinRun`; nothing here writes a file (:mod:`calibration.run_files` does, at
+   the command line's edge).
 
 Determinism: the same streams give bit-identical files. Nothing of the run's own clock goes
 into ``calibrated.toml``, ``report.json``, ``phases.json`` or the CSV files (the solver
@@ -23,7 +25,6 @@ closed loop's CV folds use its fixed seed; every list is in time or joint order.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -35,20 +36,22 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.calibrate import calibrate
-from calibration.campaign_files import Campaign, write_campaign
+from calibration.campaign_files import Campaign
 from calibration.chain_scale import ScaleCampaignResult, calibrate_scales, with_load_notes
 from calibration.description import RobotDescription, load_robot
 from calibration.errors import TwinRunError
 from calibration.grating_scale import COUNTER_MODULUS, JointSweep, ScaleOptions
 from calibration.pairing import PairingOptions, StopMeasurement, pair_dwell
 from calibration.phase_detection import PhaseOptions, Phases, Pose, find_phases
-from calibration.scale_files import write_csv
+from calibration.scale_files import ScaleCalibration, scale_document
 from calibration.streams import CellStreams
 
 if TYPE_CHECKING:
     from calibration.closed_loop import ClosedLoopResult
-    from calibration.effect_library import EffectSpec
+    from calibration.effect_library import EffectSpec, GravityDeflection
     from calibration.identification import IdentificationResult
+    from calibration.identification_report import SetErrors
+    from calibration.kinematics import KinematicModel
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -57,8 +60,6 @@ Say = Callable[[str], None]
 #: The joint fit's rounds at most: round 1 (maps from the sweeps as they are) and up to two
 #: more with the loop's modelled gravity deflection taken out of the sweeps.
 MAX_ROUNDS = 3
-#: run.json's ``paths_relative_to``: its paths are relative to its own directory
-RUN_PATHS_RELATIVE_TO = "run.json"
 
 
 def _quiet(_text: str) -> None:
@@ -82,7 +83,8 @@ class CampaignMeasurements:
     Sweeps per joint (rows in the order sweep.csv lists them, every joint's reading at
     each stop), Home readings per joint, and the paired poses: names, sets, times from
     the first dwell ``(m,)`` s, grating counts ``(m, n)``, tracker points ``(m, 3)`` mm and
-    encoder angles ``(m, n)`` deg (None without encoders). ``summary`` is phases.json.
+    encoder angles ``(m, n)`` deg (None without encoders). ``summary``: what phases.json
+    says of them (:func:`phases_document` adds the scale maps' part).
     """
 
     robot: RobotDescription
@@ -126,12 +128,54 @@ def measure_campaign(
         f"{s['dwells']} dwells: sweeps {s['sweep_stops']}, Home returns {s['home_returns']}, "
         f"poses {s['poses']}, other {s['other_dwells']}"
     )
-    popts = pairing_options or PairingOptions()
+    stops = _pair_stops(ph, streams, pairing_options or PairingOptions())
+    lost = _lost_stops(stops)
+    say(f"paired {len(stops) - len(lost)} of {len(stops)} stops ({len(lost)} lost)")
+    sweeps = _sweeps(ph, stops)
+    if not sweeps:
+        raise TwinRunError(f"{streams.source}: no sweep found (see phases.json)")
+    poses = tuple(p for p in ph.poses if stops[p.dwell].ok)
+    summary = _phases_summary(streams, robot, ph, s, stops, lost)
+    encoder = None
+    if (
+        streams.encoders is not None
+        and poses
+        and all(stops[p.dwell].encoder_counts is not None for p in poses)
+    ):
+        encoder, offsets = _encoder_deg(ph, stops, streams, robot, poses, encoder_counts_per_rev)
+        summary["encoder_zero"] = "mean encoder reading over the Home returns = Home angle"
+        summary["encoder_counts_per_rev"] = encoder_counts_per_rev
+        summary["encoder_offset_deg"] = [round(float(v), 9) for v in offsets]
+    t0 = int(ph.dwells[0].t0_ns)
+    return CampaignMeasurements(
+        robot=robot,
+        phases=ph,
+        stops=stops,
+        sweeps=sweeps,
+        home_counts=_home_counts(ph),
+        poses=poses,
+        pose_t_s=np.array([(stops[p.dwell].t_ns - t0) * 1e-9 for p in poses]),
+        pose_counts=np.array([stops[p.dwell].counts for p in poses]).reshape(len(poses), n),
+        pose_points_mm=np.array([stops[p.dwell].point_mm for p in poses]).reshape(-1, 3),
+        encoder_deg=encoder,
+        summary=summary,
+    )
+
+
+def _pair_stops(
+    ph: Phases, streams: CellStreams, options: PairingOptions
+) -> dict[int, StopMeasurement]:
+    """Every sweep stop's and pose's dwell paired, by dwell (in dwell order)."""
     needed = sorted({st.dwell for st in ph.sweeps} | {p.dwell for p in ph.poses})
-    stops = {
-        k: pair_dwell(ph.dwells[k], g, streams.tracker, streams.encoders, popts) for k in needed
+    return {
+        k: pair_dwell(ph.dwells[k], streams.grating, streams.tracker, streams.encoders, options)
+        for k in needed
     }
-    rejected = [
+
+
+def _lost_stops(stops: dict[int, StopMeasurement]) -> list[dict[str, Any]]:
+    """phases.json's ``stops_lost``: the stops that got no point, and why."""
+    return [
         {
             "dwell": m.dwell,
             "t_ns": m.t_ns,
@@ -143,52 +187,40 @@ def measure_campaign(
         for m in stops.values()
         if not m.ok
     ]
-    say(f"paired {len(needed) - len(rejected)} of {len(needed)} stops ({len(rejected)} lost)")
-    sweeps = _sweeps(ph, stops)
-    if not sweeps:
-        raise TwinRunError(f"{streams.source}: no sweep found (see phases.json)")
+
+
+def _home_counts(ph: Phases) -> dict[int, IntArray]:
+    """Per joint (in joint order), its counter value at each Home return (in trial order)."""
     home: dict[int, list[int]] = {}
     for h in sorted(ph.home_returns, key=lambda h: (h.joint, h.trial)):
         home.setdefault(h.joint, []).append(_counter(ph.dwells[h.dwell].counts[h.joint - 1]))
-    poses = tuple(p for p in ph.poses if stops[p.dwell].ok)
-    t0 = int(ph.dwells[0].t0_ns)
-    summary: dict[str, Any] = {
+    return {j: np.array(c, dtype=np.int64) for j, c in home.items()}
+
+
+def _phases_summary(
+    streams: CellStreams,
+    robot: RobotDescription,
+    ph: Phases,
+    found: dict[str, Any],
+    stops: dict[int, StopMeasurement],
+    lost: list[dict[str, Any]],
+) -> dict[str, Any]:
+    """What phases.json says of the measurements (``found``: the phases' summary; the
+    scale maps' part is added by :func:`phases_document`)."""
+    return {
         "format": "twin-phases/1",
         "source": Path(streams.source).name,
         "recording_complete": streams.complete,
         "note": streams.note,
         "robot": robot.name,
-        "phases": s,
+        "phases": found,
         "home_counts": [
             None if not math.isfinite(v) else round(float(v), 3) for v in ph.home_counts
         ],
-        "stops_needed": len(needed),
-        "stops_lost": rejected,
-        "lost_intervals": [_with_seconds(x, g.t_ns[0]) for x in streams.lost()],
+        "stops_needed": len(stops),
+        "stops_lost": lost,
+        "lost_intervals": [_with_seconds(x, streams.grating.t_ns[0]) for x in streams.lost()],
     }
-    encoder = None
-    if (
-        streams.encoders is not None
-        and poses
-        and all(stops[p.dwell].encoder_counts is not None for p in poses)
-    ):
-        encoder, offsets = _encoder_deg(ph, stops, streams, robot, poses, encoder_counts_per_rev)
-        summary["encoder_zero"] = "mean encoder reading over the Home returns = Home angle"
-        summary["encoder_counts_per_rev"] = encoder_counts_per_rev
-        summary["encoder_offset_deg"] = [round(float(v), 9) for v in offsets]
-    return CampaignMeasurements(
-        robot=robot,
-        phases=ph,
-        stops=stops,
-        sweeps=sweeps,
-        home_counts={j: np.array(c, dtype=np.int64) for j, c in home.items()},
-        poses=poses,
-        pose_t_s=np.array([(stops[p.dwell].t_ns - t0) * 1e-9 for p in poses]),
-        pose_counts=np.array([stops[p.dwell].counts for p in poses]).reshape(len(poses), n),
-        pose_points_mm=np.array([stops[p.dwell].point_mm for p in poses]).reshape(-1, 3),
-        encoder_deg=encoder,
-        summary=summary,
-    )
 
 
 def _sweeps(ph: Phases, stops: dict[int, StopMeasurement]) -> dict[int, JointSweep]:
@@ -373,21 +405,12 @@ def calibrate_twin(
     joint another's deflection; at most :data:`MAX_ROUNDS` rounds); otherwise a further
     round would only redraw the estimate's noise into the maps. The last round is the twin.
     """
-    robot = meas.robot
-    limits = [(j.lower_deg, j.upper_deg) for j in robot.joints]
 
     def one_round(deflection: dict[int, FloatArray] | None) -> TwinRound:
-        scales = calibrate_scales(
-            meas.sweeps, meas.home_counts, home_deg=robot.home, limits_deg=limits,
-            options=scale_options, link_rotations_rad=deflection,
+        return _twin_round(
+            meas, deflection, effects=effects, scale_options=scale_options,
+            loop_settings=loop_settings, say=say,
         )  # fmt: skip
-        scales = with_load_notes(scales, robot, deflection_taken_out=deflection is not None)
-        campaign = campaign_from_scales(meas, scales)
-        cal = calibrate(
-            robot, campaign, effects=effects, loop_settings=loop_settings, say=say,
-            sweep_referenced=deflection is None,
-        )  # fmt: skip
-        return TwinRound(scales, campaign, cal.geometric, cal.loop, deflection, cal.description)
 
     first = one_round(None)
     idm = first.campaign.mask("identify")
@@ -395,8 +418,45 @@ def calibrate_twin(
     found = _sweep_deflections(meas, first)
     if found is None:  # no gravity deflection found: nothing to take out
         return TwinCalibration((first,))
-    deflection, _ = found
     say("closed loop found gravity deflection: refitting the scale maps without it")
+    return TwinCalibration(_refitted_rounds(meas, first, found[0], one_round, say))
+
+
+def _twin_round(
+    meas: CampaignMeasurements,
+    deflection: dict[int, FloatArray] | None,
+    *,
+    effects: bool,
+    scale_options: ScaleOptions | None,
+    loop_settings: Any,
+    say: Say,
+) -> TwinRound:
+    """One round: maps from the sweeps (``deflection`` taken out, rad ``(S, n)`` per joint;
+    None: as they are), the poses read through them, identification and closed loop."""
+    robot = meas.robot
+    limits = [(j.lower_deg, j.upper_deg) for j in robot.joints]
+    scales = calibrate_scales(
+        meas.sweeps, meas.home_counts, home_deg=robot.home, limits_deg=limits,
+        options=scale_options, link_rotations_rad=deflection,
+    )  # fmt: skip
+    scales = with_load_notes(scales, robot, deflection_taken_out=deflection is not None)
+    campaign = campaign_from_scales(meas, scales)
+    cal = calibrate(
+        robot, campaign, effects=effects, loop_settings=loop_settings, say=say,
+        sweep_referenced=deflection is None,
+    )  # fmt: skip
+    return TwinRound(scales, campaign, cal.geometric, cal.loop, deflection, cal.description)
+
+
+def _refitted_rounds(
+    meas: CampaignMeasurements,
+    first: TwinRound,
+    deflection: dict[int, FloatArray],
+    one_round: Callable[[dict[int, FloatArray] | None], TwinRound],
+    say: Say,
+) -> tuple[TwinRound, ...]:
+    """``first`` and the rounds after it, each with the previous round's gravity deflection
+    taken out of the sweeps, while :func:`calibrate_twin`'s rules ask for one more."""
     rounds = [first]
     while True:
         current = one_round(deflection)
@@ -409,13 +469,13 @@ def calibrate_twin(
         if refined is None:
             break
         moved = _deflection_moved(deflection, *refined)
-        if not (moved or _load_left_in_maps(current, robot)):
+        if not (moved or _load_left_in_maps(current, meas.robot)):
             break
         if moved:
             say(f"joint fit: the deflection of joint(s) {', '.join(map(str, moved))} moved "
                 "beyond its noise: once more")  # fmt: skip
         deflection = refined[0]
-    return TwinCalibration(tuple(rounds))
+    return tuple(rounds)
 
 
 def _deflection_moved(
@@ -458,18 +518,44 @@ def _sweep_deflections(
     standard error (a rigid joint's estimate is noise) is not taken out, a well determined
     one nearly all of it, and nothing switches on and off between rounds.
     """
-    from calibration.effect_library import (
-        KINDS,
-        EffectContext,
-        EffectData,
-        GravityDeflection,
-        Kinematics,
-        split_values,
-    )
-
     loop = rnd.loop
-    if loop is None:
+    term = None if loop is None else _gravity_term(loop)
+    if loop is None or term is None:
         return None
+    robot = meas.robot
+    acting = _acting_moments(robot, rnd.campaign, term)
+    sweeps = {
+        j: _sweep_deflection(robot, rnd.scales, sweep, term, acting)
+        for j, sweep in meas.sweeps.items()
+    }
+    n = meas.n_joints
+    ratio_var = _compliance_ratio_variance(term.spec, loop, n)
+    signal = np.zeros(n)
+    noise = np.zeros(n)
+    for value, var in sweeps.values():
+        signal += np.sum(value**2, axis=0)
+        noise += np.sum(var, axis=0) + np.sum(value**2, axis=0) * ratio_var
+    # positive-part shrinkage by the joint's signal-to-noise ratio over the sweeps
+    shrink = np.clip(1.0 - noise / np.maximum(signal, 1e-300), 0.0, 1.0)
+    return {j: value * shrink[None, :] for j, (value, _) in sweeps.items()}, noise
+
+
+@dataclass(frozen=True, eq=False)
+class _GravityTerm:
+    """A loop's fitted gravity deflection: its spec, values ``(k,)`` and their covariance
+    ``(k, k)``, the kind that evaluates it and the loop's final model."""
+
+    spec: EffectSpec
+    values: FloatArray
+    covariance: FloatArray
+    kind: GravityDeflection
+    model: KinematicModel
+
+
+def _gravity_term(loop: ClosedLoopResult) -> _GravityTerm | None:
+    """The loop's gravity deflection term (None: it found none)."""
+    from calibration.effect_library import KINDS, GravityDeflection, split_values
+
     final = loop.final
     gravity = [s for s in final.specs if s.kind == "gravity_deflection"]
     if not gravity:
@@ -481,35 +567,60 @@ def _sweep_deflections(
     cov = _effect_covariance(final.result, index, final.specs)
     kind = KINDS["gravity_deflection"]
     assert isinstance(kind, GravityDeflection)
-    robot = meas.robot
-    # which moments' share of each joint the poses see apart from that joint's own angle
-    q_poses = rnd.campaign.q_rad[rnd.campaign.mask("identify")]
+    return _GravityTerm(spec, values, cov, kind, final.model)
+
+
+def _acting_moments(
+    robot: RobotDescription, campaign: Campaign, term: _GravityTerm
+) -> NDArray[np.bool_]:
+    """Which moments' share of each joint ``(n, P)`` the identification poses see apart
+    from that joint's own angle (relative to Home): what the maps cannot hold."""
+    from calibration.effect_library import EffectContext, EffectData, Kinematics
+
+    q_poses = campaign.q_rad[campaign.mask("identify")]
     ref_ctx = EffectContext(robot, EffectData(q_poses, sweep_reference=np.radians(robot.home)))
-    d_ref = kind.deflection_jacobian(spec, ref_ctx, Kinematics.of(final.model, q_poses))
+    d_ref = term.kind.deflection_jacobian(term.spec, ref_ctx, Kinematics.of(term.model, q_poses))
     rms = np.sqrt(np.mean(d_ref**2, axis=0))  # (n, P): what the poses see apart from maps
-    acting = rms > 1e-9 * max(float(rms.max(initial=0.0)), 1e-300)
-    by_joint = {r.joint: r.scale for r in rnd.scales}
-    sweeps: dict[int, tuple[FloatArray, FloatArray]] = {}
-    unit = np.eye(len(values))
-    for j, sweep in meas.sweeps.items():
-        assert sweep.chain_counts is not None
-        q = np.radians(
-            np.column_stack(
-                [
-                    by_joint[i + 1].counts_to_joint_deg(sweep.chain_counts[:, i])
-                    for i in range(meas.n_joints)
-                ]
-            )
+    acting: NDArray[np.bool_] = rms > 1e-9 * max(float(rms.max(initial=0.0)), 1e-300)
+    return acting
+
+
+def _sweep_deflection(
+    robot: RobotDescription,
+    scales: ScaleCampaignResult,
+    sweep: JointSweep,
+    term: _GravityTerm,
+    acting: NDArray[np.bool_],
+) -> tuple[FloatArray, FloatArray]:
+    """The term's deflection of every link ``(S, n)`` rad at one sweep's stops (the stops
+    read through ``scales``, the ``acting`` moments only) and its variance ``(S, n)``."""
+    from calibration.effect_library import EffectContext, EffectData, Kinematics
+
+    by_joint = {r.joint: r.scale for r in scales}
+    assert sweep.chain_counts is not None
+    q = np.radians(
+        np.column_stack(
+            [
+                by_joint[i + 1].counts_to_joint_deg(sweep.chain_counts[:, i])
+                for i in range(robot.n_joints)
+            ]
         )
-        ctx = EffectContext(robot, EffectData(q))
-        kin = Kinematics.of(final.model, q)
-        jac = np.stack(
-            [kind.joint_deflections_rad(spec, u, ctx, kin, acting) for u in unit], axis=2
-        )
-        sweeps[j] = (jac @ values, np.einsum("sjk,kl,sjl->sj", jac, cov, jac))
-    n = meas.n_joints
-    # the physical form's compliance ratios are held fixed in the fit: their own
-    # uncertainty (from the loop's profile of them) adds (d_j / ρ_j)²·var(ρ_j)
+    )
+    ctx = EffectContext(robot, EffectData(q))
+    kin = Kinematics.of(term.model, q)
+    unit = np.eye(len(term.values))
+    jac = np.stack(
+        [term.kind.joint_deflections_rad(term.spec, u, ctx, kin, acting) for u in unit], axis=2
+    )
+    value: FloatArray = jac @ term.values
+    variance: FloatArray = np.einsum("sjk,kl,sjl->sj", jac, term.covariance, jac)
+    return value, variance
+
+
+def _compliance_ratio_variance(spec: EffectSpec, loop: ClosedLoopResult, n: int) -> FloatArray:
+    """Per joint ``(n,)``, the relative variance of its compliance ratio: the physical
+    form's ratios are held fixed in the fit, and their own uncertainty (from the loop's
+    profile of them) adds ``(d_j / ρ_j)²·var(ρ_j)`` to a deflection's variance."""
     ratio_var = np.zeros(n)
     if spec.parameter == "physical":
         form = next(
@@ -520,14 +631,7 @@ def _sweep_deflections(
                 form["joints"], form["compliance_ratio"], form["compliance_ratio_se"], strict=True
             ):
                 ratio_var[j - 1] = (se / r) ** 2 if r != 0 else np.inf
-    signal = np.zeros(n)
-    noise = np.zeros(n)
-    for value, var in sweeps.values():
-        signal += np.sum(value**2, axis=0)
-        noise += np.sum(var, axis=0) + np.sum(value**2, axis=0) * ratio_var
-    # positive-part shrinkage by the joint's signal-to-noise ratio over the sweeps
-    shrink = np.clip(1.0 - noise / np.maximum(signal, 1e-300), 0.0, 1.0)
-    return {j: value * shrink[None, :] for j, (value, _) in sweeps.items()}, noise
+    return ratio_var
 
 
 def _effect_covariance(
@@ -543,44 +647,36 @@ def _effect_covariance(
     return full[start : start + k, start : start + k]
 
 
-# -- 3. files at the edge ---------------------------------------------------------------------
-@dataclass
-class ExportResult:
-    out: Path
-    measurements: CampaignMeasurements
-    scales: ScaleCampaignResult
-    files: dict[str, Path]
-    summary: dict[str, Any]
+# -- 3. the documents of the files, in memory ---------------------------------------------------
+#: The campaign's files (``twin export``, and ``twin run`` beside its other outputs) by key,
+#: as phases.json, scale.toml and run.json name them.
+CAMPAIGN_FILES = {
+    "home": "home.csv",
+    "sweep": "sweep.csv",
+    "scale": "scale.toml",
+    "campaign": "campaign.csv",
+    "phases": "phases.json",
+}
+#: The twin's description, as the report names it.
+CALIBRATED_FILE = "calibrated.toml"
 
-    @property
-    def phases(self) -> Phases:
-        return self.measurements.phases
+#: A CSV file's header and rows.
+Table = tuple[list[str], list[list[Any]]]
 
 
-def _write_campaign_files(
-    out: Path, meas: CampaignMeasurements, scales: ScaleCampaignResult, campaign: Campaign
-) -> tuple[dict[str, Path], dict[str, Any]]:
-    """home.csv, sweep.csv, scale.toml, campaign.csv and phases.json into ``out``."""
-    from calibration.scale_files import scale_document, write_scale_toml
+def home_table(meas: CampaignMeasurements) -> Table:
+    """home.csv's header and rows: every Home return's counter value, by joint and trial."""
+    rows = [
+        [j, t + 1, int(c)]
+        for j in sorted(meas.home_counts)
+        for t, c in enumerate(meas.home_counts[j])
+    ]
+    return ["joint", "trial", "counts"], rows
 
-    out.mkdir(parents=True, exist_ok=True)
-    n = meas.n_joints
-    files = {
-        "home": out / "home.csv",
-        "sweep": out / "sweep.csv",
-        "scale": out / "scale.toml",
-        "campaign": out / "campaign.csv",
-        "phases": out / "phases.json",
-    }
-    write_csv(
-        files["home"],
-        ["joint", "trial", "counts"],
-        (
-            [j, t + 1, int(c)]
-            for j in sorted(meas.home_counts)
-            for t, c in enumerate(meas.home_counts[j])
-        ),
-    )
+
+def sweep_table(meas: CampaignMeasurements) -> Table:
+    """sweep.csv's header and rows: every paired sweep stop, with every joint's counter
+    value (the chain's motion)."""
     rows = []
     for j in sorted(meas.sweeps):
         sw = meas.sweeps[j]
@@ -593,24 +689,30 @@ def _write_campaign_files(
                     int(sw.step[k]),
                     int(sw.counts[k]),
                     *(f"{v:.6f}" for v in sw.points_mm[k]),
-                    *(int(c) for c in sw.chain_counts[k]),  # every joint: the chain's motion
+                    *(int(c) for c in sw.chain_counts[k]),
                 ]
             )
-    chain_columns = [f"g{i}_counts" for i in range(1, n + 1)]
-    write_csv(
-        files["sweep"],
-        ["joint", "pass", "step", "counts", "x_mm", "y_mm", "z_mm", *chain_columns],
-        rows,
-    )
-    sopts = ScaleOptions()
-    doc = scale_document(
+    chain_columns = [f"g{i}_counts" for i in range(1, meas.n_joints + 1)]
+    return ["joint", "pass", "step", "counts", "x_mm", "y_mm", "z_mm", *chain_columns], rows
+
+
+def scale_toml_document(meas: CampaignMeasurements, scales: ScaleCampaignResult) -> dict[str, Any]:
+    """scale.toml's document: the maps, naming the sweep and Home files they came from."""
+    return scale_document(
         scales,
         robot=meas.robot.name,
-        metadata={"sweep_file": "sweep.csv", "home_file": "home.csv", "source": "twin"},
-        counts_per_mm=sopts.counts_per_mm,
+        metadata={
+            "sweep_file": CAMPAIGN_FILES["sweep"],
+            "home_file": CAMPAIGN_FILES["home"],
+            "source": "twin",
+        },
+        counts_per_mm=ScaleOptions().counts_per_mm,
     )
-    write_scale_toml(files["scale"], doc)
-    write_campaign(files["campaign"], campaign)
+
+
+def phases_document(meas: CampaignMeasurements, scales: ScaleCampaignResult) -> dict[str, Any]:
+    """phases.json's document: what was found in the streams, the maps' summary per joint,
+    the joints without a map and the campaign's sets and clock origin."""
     summary = dict(meas.summary)
     summary["scale"] = {
         str(r.joint): {
@@ -626,30 +728,64 @@ def _write_campaign_files(
         }
         for r in scales
     }
-    summary["uncalibrated_joints"] = [j for j in range(1, n + 1) if j not in meas.sweeps]
+    summary["uncalibrated_joints"] = [
+        j for j in range(1, meas.n_joints + 1) if j not in meas.sweeps
+    ]
     summary["campaign"] = {
         "identify": sum(p.set == "identify" for p in meas.poses),
         "validate": sum(p.set == "validate" for p in meas.poses),
         "t0_ns": int(meas.phases.dwells[0].t0_ns),
     }
-    files["phases"].write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-    return files, summary
+    return summary
+
+
+@dataclass(frozen=True, eq=False)
+class CampaignExport:
+    """The campaign as its files hold it, in memory: the measurements, the scale maps, the
+    poses read through them, and the documents of phases.json and scale.toml
+    (:data:`CAMPAIGN_FILES`; written by :mod:`calibration.run_files`)."""
+
+    measurements: CampaignMeasurements
+    scales: ScaleCampaignResult
+    campaign: Campaign
+    phases: dict[str, Any]
+    scale_document: dict[str, Any]
+
+    @classmethod
+    def of(
+        cls, meas: CampaignMeasurements, scales: ScaleCampaignResult, campaign: Campaign
+    ) -> CampaignExport:
+        return cls(
+            meas, scales, campaign, phases_document(meas, scales), scale_toml_document(meas, scales)
+        )
+
+    def scale_calibration(self) -> ScaleCalibration:
+        """The maps as :func:`~calibration.scale_files.read_scale_toml` reads scale.toml."""
+        doc = self.scale_document
+        ranges = {
+            int(t["joint"]): (
+                float(t["calibrated_range_deg"][0]),
+                float(t["calibrated_range_deg"][1]),
+            )
+            for t in doc["joint"]
+            if "calibrated_range_deg" in t
+        }
+        joints = {r.joint: r.scale for r in self.scales}
+        return ScaleCalibration(joints, doc.get("robot"), dict(doc.get("calibration", {})), ranges)
 
 
 def export_campaign(
     streams: CellStreams,
     robot: RobotDescription,
-    out: str | Path,
     *,
     phase_options: PhaseOptions | None = None,
     pairing_options: PairingOptions | None = None,
     scale_options: ScaleOptions | None = None,
     encoder_counts_per_rev: int = ENCODER_COUNTS_PER_REV,
     say: Say = _quiet,
-) -> ExportResult:
-    """Write ``home.csv``, ``sweep.csv``, ``scale.toml``, ``campaign.csv``, ``phases.json``
-    (the scale maps in chain order, without the loop's gravity feedback)."""
-    out = Path(out)
+) -> CampaignExport:
+    """``twin export``: the measurements and the scale maps in chain order, without the
+    loop's gravity feedback (:func:`calibrate_twin` has it)."""
     meas = measure_campaign(
         streams,
         robot,
@@ -664,22 +800,7 @@ def export_campaign(
         meas.sweeps, meas.home_counts, home_deg=robot.home, limits_deg=limits,
         options=scale_options,
     )  # fmt: skip
-    campaign = campaign_from_scales(meas, scales)
-    files, summary = _write_campaign_files(out, meas, scales, campaign)
-    say(
-        f"wrote {files['home'].name}, {files['sweep'].name}, {files['scale'].name}, "
-        f"{files['campaign'].name} ({len(campaign)} poses)"
-    )
-    return ExportResult(out, meas, scales, files, summary)
-
-
-def _scrub(obj: Any) -> Any:
-    """``obj`` without the run's own timings (keys ``elapsed_s``)."""
-    if isinstance(obj, dict):
-        return {k: _scrub(v) for k, v in obj.items() if k != "elapsed_s"}
-    if isinstance(obj, list):
-        return [_scrub(v) for v in obj]
-    return obj
+    return CampaignExport.of(meas, scales, campaign_from_scales(meas, scales))
 
 
 def stage_table(doc: dict[str, Any]) -> str:
@@ -715,117 +836,86 @@ def stage_table(doc: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def run_twin(
-    streams: CellStreams,
-    robot: str | RobotDescription,
-    out: str | Path,
-    *,
-    effects: bool = True,
-    report: bool = True,
-    say: Say = _quiet,
-    write_to: str | Path | None = None,
-) -> dict[str, Any]:
-    """Measurements, the twin (maps and loop fitted jointly), files and reports; a summary.
+def report_document(
+    robot: RobotDescription,
+    robot_source: str,
+    twin: TwinCalibration,
+    phases: dict[str, Any],
+) -> tuple[dict[str, Any], list[SetErrors]]:
+    """The identification report of the twin (the last round), with what ``twin run``
+    adds (``twin_run``: phases, lost stops and intervals, the joint fit's rounds), and the
+    per-set errors it was made from (``phases``: phases.json's document)."""
+    from calibration.identification_report import build_report
 
-    ``out``: the output directory the documents name; ``write_to``: where the files are
-    written now (a staging directory moved to ``out`` afterwards; default ``out``)."""
-    from calibration.identification_report import build_report, write_report
-    from calibration.scale_report import write_report as write_scale_report
-
-    started = time.perf_counter()
-    desc = load_robot(robot) if isinstance(robot, str) else robot
-    out = Path(out)
-    dest = Path(write_to) if write_to is not None else out
-
-    def named(path: Path) -> str:
-        return str(out / path.relative_to(dest))
-
-    meas = measure_campaign(streams, desc, say=say)
-    t_export = time.perf_counter() - started
-    say("scale calibration (chain order), identification and closed loop")
-    twin = calibrate_twin(meas, effects=effects, say=say)
     final = twin.final
-    files, summary = _write_campaign_files(dest, meas, final.scales, final.campaign)
-    calibrated = twin.calibrated
-    calibrated_path = dest / "calibrated.toml"
-    calibrated.save(calibrated_path)
     doc, errors = build_report(
         final.result,
-        desc,
+        robot,
         final.campaign,
-        robot_source=desc.name if not isinstance(robot, str) else robot,
-        calibrated_path="calibrated.toml",
+        robot_source=robot_source,
+        calibrated_path=CALIBRATED_FILE,
         closed_loop=final.loop,
     )
     doc["solver"]["point_weights"] = "none (all points weigh the same)"
     doc["twin_run"] = {
-        "phases": summary["phases"],
-        "stops_lost": len(summary["stops_lost"]),
-        "lost_intervals": summary["lost_intervals"],
-        "recording_complete": summary["recording_complete"],
+        "phases": phases["phases"],
+        "stops_lost": len(phases["stops_lost"]),
+        "lost_intervals": phases["lost_intervals"],
+        "recording_complete": phases["recording_complete"],
         "joint_fit": twin.summary(),
     }
-    report_dir = dest / "report"
-    if report:
-        say("writing the report (figures)")
-        write_report(report_dir, doc, errors, closed_loop=final.loop)
-        write_scale_report(
-            final.scales, dest / "scale-report", robot=desc.name, metadata={"source": "twin run"}
-        )
-    report_dir.mkdir(parents=True, exist_ok=True)
-    (report_dir / "report.json").write_text(
-        json.dumps(_scrub(doc), indent=2, allow_nan=False) + "\n", encoding="utf-8"
-    )
-    table = stage_table(doc)
-    elapsed = time.perf_counter() - started
-    run = {
-        "calibrated": named(calibrated_path),
-        "report": named(report_dir),
-        "files": {k: named(v) for k, v in files.items()},
-        "stage_table": table,
-        "joint_fit_rounds": len(twin.rounds),
-        "export_s": round(t_export, 3),
-        "total_s": round(elapsed, 3),
-        "success": bool(final.result.success),
-    }
-
-    # run.json names its files relative to its own directory, so that ``twin run --from
-    # DIR`` finds them from any working directory (the summary returned names them as
-    # ``out`` does, for this process)
-    def beside(path: Path) -> str:
-        return path.relative_to(dest).as_posix()
-
-    stored = dict(
-        run,
-        calibrated=beside(calibrated_path),
-        report=beside(report_dir),
-        files={k: beside(v) for k, v in files.items()},
-        paths_relative_to=RUN_PATHS_RELATIVE_TO,
-    )
-    (dest / "run.json").write_text(json.dumps(stored, indent=2) + "\n", encoding="utf-8")
-    return run
+    return doc, errors
 
 
-def resolve_run_path(run_dir: str | Path, name: str, relative_to_run: bool) -> Path:
-    """Where a path named in ``run_dir/run.json`` is, from this process's working directory.
+@dataclass(frozen=True, eq=False)
+class TwinRun:
+    """``twin run``'s result, in memory: the nominal robot, the campaign's files
+    (:class:`CampaignExport`, of the last round's maps), the joint fit, the report's
+    document (the solver times included: report.md shows them) and per-set errors, the
+    stage table, and the wall times (s) of the measurements and of the whole run."""
 
-    run.json written since ``paths_relative_to = "run.json"`` names its files relative to
-    its own directory. An older one named them relative to the working directory of the
-    run that wrote it: such a path is taken as it is if it exists from here, else found
-    beside run.json by its longest tail that exists there (``demo-out/twin/scale.toml``
-    from elsewhere: ``<run_dir>/scale.toml``); else the path is returned as written (the
-    caller says it is missing)."""
-    path = Path(name)
-    run_dir = Path(run_dir)
-    if path.is_absolute():
-        return path
-    if relative_to_run:
-        return run_dir / path
-    if path.exists():
-        return path
-    parts = path.parts
-    for k in range(len(parts)):
-        candidate = run_dir.joinpath(*parts[k:])
-        if candidate.exists():
-            return candidate
-    return path
+    robot: RobotDescription
+    export: CampaignExport
+    calibration: TwinCalibration
+    report: dict[str, Any]
+    errors: tuple[SetErrors, ...]
+    stage_table: str
+    export_s: float
+    elapsed_s: float
+
+    @property
+    def measurements(self) -> CampaignMeasurements:
+        return self.export.measurements
+
+    @property
+    def calibrated(self) -> RobotDescription:
+        """The twin: the calibrated description (calibrated.toml)."""
+        return self.calibration.calibrated
+
+    @property
+    def success(self) -> bool:
+        """Whether the twin's identification converged (``twin run``'s exit code)."""
+        return bool(self.calibration.final.result.success)
+
+
+def run_twin(
+    streams: CellStreams,
+    robot: str | RobotDescription,
+    *,
+    effects: bool = True,
+    say: Say = _quiet,
+) -> TwinRun:
+    """Measurements, the twin (maps and loop fitted jointly) and its documents; writes
+    nothing (:mod:`calibration.run_files` writes the files). ``robot``: a preset name, a
+    description file or a description."""
+    started = time.perf_counter()
+    desc = load_robot(robot) if isinstance(robot, str) else robot
+    meas = measure_campaign(streams, desc, say=say)
+    export_s = time.perf_counter() - started
+    say("scale calibration (chain order), identification and closed loop")
+    twin = calibrate_twin(meas, effects=effects, say=say)
+    export = CampaignExport.of(meas, twin.final.scales, twin.final.campaign)
+    source = robot if isinstance(robot, str) else desc.name
+    doc, errors = report_document(desc, source, twin, export.phases)
+    elapsed_s = time.perf_counter() - started
+    return TwinRun(desc, export, twin, doc, tuple(errors), stage_table(doc), export_s, elapsed_s)

@@ -119,3 +119,10 @@ def test_only_the_command_line_imports_command_modules():
         if dep.split(".")[-1].startswith("cli_") and name != "calibration.cli"
     }
     assert offenders == set()
+
+
+def test_only_the_command_line_writes_the_twins_run_files():
+    """``calibration.run_files`` writes what ``twin export`` and ``twin run`` computed in
+    memory: only command modules import it (files at the edges)."""
+    importers = {name for name, deps in graph().items() if "calibration.run_files" in deps}
+    assert importers == {"calibration.cli_export", "calibration.cli_run"}

@@ -92,10 +92,10 @@ def test_earlier_run_is_found_from_another_working_directory(tmp_path, monkeypat
         _earlier_run(str(tmp_path / "runs/cal"))
 
 
-def test_run_twin_writes_run_json_paths_beside_it():
-    # the shipped run.json is what run_twin writes (trimmed): names relative to its folder
+def test_twin_run_writes_run_json_paths_beside_it():
+    # the shipped run.json is what write_twin_run writes (trimmed): names relative to its folder
     run = json.loads((CALIBRATED / "run.json").read_text())
-    from calibration.twin_run import RUN_PATHS_RELATIVE_TO
+    from calibration.run_files import RUN_PATHS_RELATIVE_TO
 
     assert run["paths_relative_to"] == RUN_PATHS_RELATIVE_TO
     assert run["calibrated"] == "calibrated.toml"

@@ -13,24 +13,35 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
+from calibration.run_files import write_twin_run
 from calibration.streams import read_recording_streams
-from calibration.twin_run import run_twin
+from calibration.twin_run import TwinRun, run_twin
 
 DATA = Path(__file__).parent / "data" / "campaign_small.mcap"
 
 pytestmark = pytest.mark.skipif(not DATA.exists(), reason="tests/data/campaign_small.mcap missing")
 
 
-def _run(src: Path, out: Path) -> dict:
-    return run_twin(read_recording_streams(src), "kr500", out, report=False)
+def _run(src: Path, out: Path) -> tuple[TwinRun, dict[str, Any]]:
+    """The twin of ``src`` in memory, and run.json's document of its files, written to ``out``."""
+    result = run_twin(read_recording_streams(src), "kr500")
+    return result, write_twin_run(out, out, result, report=False)
 
 
-def test_replay_gives_bit_identical_model_and_report(tmp_path):
-    a = _run(DATA, tmp_path / "a")
-    b = _run(DATA, tmp_path / "b")
+@pytest.fixture(scope="module")
+def replayed(tmp_path_factory) -> tuple[TwinRun, dict[str, Any], Path]:
+    out = tmp_path_factory.mktemp("replay") / "a"
+    return (*_run(DATA, out), out)
+
+
+def test_replay_gives_bit_identical_model_and_report(replayed, tmp_path):
+    _, a, a_dir = replayed
+    _, b = _run(DATA, tmp_path / "b")
     for name in (
         "calibrated.toml",
         "report/report.json",
@@ -40,9 +51,9 @@ def test_replay_gives_bit_identical_model_and_report(tmp_path):
         "scale.toml",
         "phases.json",
     ):
-        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
+        assert (a_dir / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
     assert a["stage_table"] == b["stage_table"]
-    phases = json.loads((tmp_path / "a" / "phases.json").read_text())["phases"]
+    phases = json.loads((a_dir / "phases.json").read_text())["phases"]
     # the emulator's KR500 campaign: 2° stops limit to limit and back, 250 poses
     assert phases["sweep_stops"] == {
         "1": {"forward": 185, "backward": 185},
@@ -54,7 +65,7 @@ def test_replay_gives_bit_identical_model_and_report(tmp_path):
     }
     assert phases["poses"] == {"identify": 100, "validate": 150}
     assert sum(phases["home_returns"].values()) >= 58  # of 60
-    report = json.loads((tmp_path / "a" / "report" / "report.json").read_text())
+    report = json.loads((a_dir / "report" / "report.json").read_text())
     stages = report["closed_loop"]["stages"]
     val = [s["sets"]["validate"]["AP"]["mean"] for s in stages]
     assert val[-1] < 0.025 < 0.1 < val[0]  # nominal (mm) -> final, with the found effects
@@ -105,7 +116,7 @@ def _drop_slice(src: Path, dst: Path, device: str, t_from_s: float, t_to_s: floa
 def test_a_tracker_dropout_still_calibrates_and_reports_the_lost_interval(tmp_path):
     src = tmp_path / "dropout.mcap"
     assert _drop_slice(DATA, src, "tracker", 30.0, 33.0) > 0
-    run = _run(src, tmp_path / "out")
+    result, run = _run(src, tmp_path / "out")
     phases = json.loads((tmp_path / "out" / "phases.json").read_text())
     lost = [x for x in phases["lost_intervals"] if x["device"] == "tracker"]
     assert len(lost) == 1
@@ -116,7 +127,41 @@ def test_a_tracker_dropout_still_calibrates_and_reports_the_lost_interval(tmp_pa
     assert (tmp_path / "out" / "calibrated.toml").exists()
     report = json.loads((tmp_path / "out" / "report" / "report.json").read_text())
     assert report["twin_run"]["lost_intervals"][0]["device"] == "tracker"
-    assert run["success"]
+    assert run["success"] and result.success
+
+
+def test_the_twin_in_memory_is_the_twin_its_files_give(replayed):
+    """The live twin after ``twin run`` is built in memory; ``--from DIR`` reads it back
+    from the files: the same angles from the same counts, the same TCP points, bit for bit
+    (every float in calibrated.toml and scale.toml is written as its shortest repr, which
+    reads back as the same double)."""
+    from calibration.live_twin import CalibratedTwin
+    from calibration.model_effects import predict_tcp
+
+    result, run, _ = replayed
+    memory = CalibratedTwin.from_twin_run(result, run["calibrated"])
+    files = CalibratedTwin.from_run(run)
+    assert memory.name == files.name == run["calibrated"]
+    assert (
+        memory.t0_ns == files.t0_ns
+        and memory.encoder_counts_per_rev == files.encoder_counts_per_rev
+    )
+    assert np.array_equal(memory.encoder_offset_deg, files.encoder_offset_deg)
+    counts = result.measurements.pose_counts.astype(np.int64)  # (m, n): every pose's gratings
+    n = memory.description.n_joints
+    angles = {}
+    for key, twin in (("memory", memory), ("files", files)):
+        maps = [twin.scale.scale(j).counts_to_angle_deg(counts[:, j - 1]) for j in range(1, n + 1)]
+        angles[key] = np.asarray(twin.description.home) + np.column_stack(maps)
+    assert np.array_equal(angles["memory"], angles["files"])
+    q_rad = np.radians(angles["memory"])
+    t_s = np.linspace(0.0, 600.0, len(q_rad))
+    tcp_memory = predict_tcp(memory.description, q_rad, t_s)
+    tcp_files = predict_tcp(files.description, q_rad, t_s)
+    assert tcp_memory.shape == (len(counts), 3) and np.isfinite(tcp_memory).all()
+    assert np.array_equal(tcp_memory, tcp_files)
+    # the description itself, not only its predictions, reads back as it was
+    assert memory.description.dumps() == files.description.dumps()
 
 
 def test_the_joint_fit_goes_on_while_the_deflection_moves_beyond_its_noise():
