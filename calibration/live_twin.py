@@ -43,6 +43,7 @@ if TYPE_CHECKING:
     from calibration.description import RobotDescription
     from calibration.scale_files import ScaleCalibration
     from calibration.twin_run import TwinRun
+    from daq.bus import Received
 
 FloatArray = NDArray[np.float64]
 
@@ -431,7 +432,7 @@ class LiveTwin:
         self.closed = False
 
     # -- collection ------------------------------------------------------------------
-    def _add(self, got) -> None:  # type: ignore[no-untyped-def]
+    def _add(self, got: Received) -> None:
         b = self.builders.get(got.key)
         if b is None:
             b = self.builders[got.key] = StreamBuilder(got.key, got.schema.to_json())

@@ -165,12 +165,12 @@ def _live_source(args: argparse.Namespace, say: Any) -> tuple[Any, Any, str]:
     except Exception:
         session.close()
         raise
-    source.session = session  # type: ignore[attr-defined]
     return source, model, f"live {', '.join(endpoints)}"
 
 
 def run_view(args: argparse.Namespace) -> int:
     from view.server import TwinView
+    from view.sources import LiveSource
 
     say = progress("twin view", args.quiet)
     if args.model is not None and not Path(args.model).is_file():
@@ -206,7 +206,6 @@ def run_view(args: argparse.Namespace) -> int:
     finally:
         view.close()
         source.close()
-        session = getattr(source, "session", None)
-        if session is not None:
-            session.close()
+        if isinstance(source, LiveSource):
+            source.session.close()
     return 0

@@ -20,7 +20,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,6 +35,9 @@ from view.scene import (
     magnified,
 )
 from view.sources import LiveSource, ReplaySource, Snapshot
+
+if TYPE_CHECKING:
+    from viser import GuiEvent, ViserServer
 
 M_PER_MM = 1e-3
 ARM_RGB = (235, 125, 35)
@@ -115,6 +118,9 @@ class TwinView:
         self.stats = FrameStats()
         self._stopped = threading.Event()
         self._server: Any = None  # viser.ViserServer once started (viser loads on start)
+        # a replay's controls (viser's handles; their value setters are untyped)
+        self._slider: Any = None
+        self._play_button: Any = None
         self._kin = twin.kinematics
         self._frame_times: deque[float] = deque(maxlen=4096)
         self._update_ms: deque[float] = deque(maxlen=4096)
@@ -138,7 +144,7 @@ class TwinView:
         self._build_panel(server)
         return f"http://{self.host}:{server.get_port()}/"
 
-    def _build_scene(self, server, home: ArmGeometry) -> None:  # type: ignore[no-untyped-def]
+    def _build_scene(self, server: ViserServer, home: ArmGeometry) -> None:
         s = server.scene
         base = home.frames[0, :3, 3] * M_PER_MM
         s.add_grid("/floor", 6.0, 6.0, cell_size=0.25, section_size=1.0, position=base)
@@ -179,7 +185,7 @@ class TwinView:
         server.initial_camera.position = tuple(cam * M_PER_MM)
         server.initial_camera.look_at = tuple(look * M_PER_MM)
 
-    def _build_panel(self, server) -> None:  # type: ignore[no-untyped-def]
+    def _build_panel(self, server: ViserServer) -> None:
         g = server.gui
         g.add_markdown(f"**twin view** · {self.title}")
         self._status = g.add_markdown("starting")
@@ -188,7 +194,7 @@ class TwinView:
         mag = g.add_button_group("error vectors ×", MAGNIFICATIONS)
 
         @mag.on_click
-        def _(event) -> None:  # type: ignore[no-untyped-def]
+        def _(event: GuiEvent[Any]) -> None:
             self.factor = float(event.target.value)
 
         if isinstance(self.source, ReplaySource):
@@ -196,7 +202,7 @@ class TwinView:
         with g.add_folder("calibration"):
             g.add_markdown(self._calibration_text())
 
-    def _build_replay_controls(self, server, source: ReplaySource) -> None:  # type: ignore[no-untyped-def]
+    def _build_replay_controls(self, server: ViserServer, source: ReplaySource) -> None:
         g = server.gui
         clock = source.clock
         with g.add_folder("replay"):
@@ -205,12 +211,12 @@ class TwinView:
             if f"{clock.speed:g}" not in speeds:
                 speeds.append(f"{clock.speed:g}")
             speed = g.add_dropdown("speed ×", speeds, initial_value=f"{clock.speed:g}")
-            self._slider = g.add_slider(
+            slider = self._slider = g.add_slider(
                 "time s", 0.0, max(round(source.duration_s, 2), 0.01), 0.01, 0.0
             )
 
         @play.on_click
-        def _(_event) -> None:  # type: ignore[no-untyped-def]
+        def _(_event: GuiEvent[Any]) -> None:
             if clock.playing:
                 clock.pause()
             else:
@@ -218,11 +224,11 @@ class TwinView:
             play.label = "Pause" if clock.playing else "Play"
 
         @speed.on_update
-        def _(event) -> None:  # type: ignore[no-untyped-def]
+        def _(event: GuiEvent[Any]) -> None:
             clock.set_speed(float(event.target.value))
 
-        @self._slider.on_update
-        def _(event) -> None:  # type: ignore[no-untyped-def]
+        @slider.on_update
+        def _(event: GuiEvent[Any]) -> None:
             if event.client is not None:  # a person moved it (not our own progress update)
                 clock.seek(float(event.target.value))
 
@@ -286,9 +292,9 @@ class TwinView:
             status = (
                 f"**replay {snap.t_s:.2f} s of {snap.duration_s:.2f} s** · {state} ×{snap.speed:g}"
             )
-            if hasattr(self, "_slider"):
+            if self._slider is not None:
                 self._slider.value = round(snap.t_s, 2)
-            if hasattr(self, "_play_button"):
+            if self._play_button is not None:
                 self._play_button.label = "Pause" if snap.playing else "Play"
         else:
             status = f"**live {snap.t_s:.1f} s** since the first grating sample"

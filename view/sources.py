@@ -297,6 +297,7 @@ class LiveSource:
     ) -> None:
         from daq.bus import Receiver
 
+        self.session = session  # the caller's: it closes it after this source
         self.twin = twin
         self.say = say
         n = twin.n_joints
