@@ -200,7 +200,7 @@ def test_unplug_replug_loses_only_the_time_away(tmp_path):
                     continue
                 seqs.append(got.columns["seq"].copy())
             t.join()
-            health = daemon.streams[0].health(1.0)
+            health = daemon.devices[0].health(1.0)
     finally:
         sink.close()
     seq = np.concatenate(seqs)
