@@ -26,7 +26,7 @@ import re
 import tomllib
 import typing
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -255,19 +255,10 @@ def parse(
         raise top.fail(None, f"unknown key {unknown[0]!r} (allowed: {allowed})")
 
     def table(cls: type[T], name: str) -> T:
-        return build(
-            cls, doc.get(name, {}), source=source, error=ConfigError, path=(name,), origins=origins
-        )
+        given = _comma_lists(doc.get(name, {}), cls)
+        return build(cls, given, source=source, error=ConfigError, path=(name,), origins=origins)
 
     cell = table(CellConfig, "cell")
-    zenoh = table(ZenohConfig, "zenoh")
-    if zenoh.mode == "client":
-        given = doc.get("zenoh", {})
-        if "listen" not in given:
-            zenoh = replace(zenoh, listen=())
-        if not zenoh.connect:
-            z = TomlTable(given, source, "[zenoh]", ConfigError, origins_at(origins, ("zenoh",)))
-            raise z.fail("connect", "mode 'client' needs a router endpoint")
     devs = doc.get("device", [])
     if not isinstance(devs, list):
         raise top.fail("device", f"expected an array of tables ([[device]]), got {short(devs)}")
@@ -277,6 +268,14 @@ def parse(
         if dev.name in {d.name for d in devices}:
             raise ConfigError(f"{source}: [[device]] {dev.name!r}: key 'name': duplicate")
         devices.append(dev)
+    zenoh = table(ZenohConfig, "zenoh")
+    if zenoh.mode == "client":
+        given = doc.get("zenoh", {})
+        if "listen" not in given:
+            zenoh = replace(zenoh, listen=())
+        if not zenoh.connect:
+            z = TomlTable(given, source, "[zenoh]", ConfigError, origins_at(origins, ("zenoh",)))
+            raise z.fail("connect", "mode 'client' needs a router endpoint")
     return DaqConfig(
         cell=cell,
         zenoh=zenoh,
@@ -285,6 +284,22 @@ def parse(
         devices=tuple(devices),
         source=source,
     )
+
+
+def _comma_list(text: str) -> list[str]:
+    return [s.strip() for s in text.split(",") if s.strip()]
+
+
+def _comma_lists(values: Any, cls: type) -> Any:
+    """``values`` with a list key given as one string read as a comma-separated list
+    (how an environment variable says a list; the file may say it so too)."""
+    if not isinstance(values, dict):
+        return values  # build() names what it is
+    hints = typing.get_type_hints(cls)
+    return {
+        k: _comma_list(v) if isinstance(v, str) and typing.get_origin(hints.get(k)) is tuple else v
+        for k, v in values.items()
+    }
 
 
 def _device(t: Any, label: str, cell: CellConfig, source: str) -> DeviceConfig:
@@ -304,23 +319,25 @@ def _device(t: Any, label: str, cell: CellConfig, source: str) -> DeviceConfig:
             refusal = f"{name!r} is reserved (used by the daemon)"
         if refusal is not None:
             raise chan.fail(name, refusal)
-        groups.append(ChannelGroup(name, chan.strings(name)))
+        members = chan.data[name]
+        groups.append(
+            ChannelGroup(
+                name,
+                chan.strings(name, _comma_list(members) if isinstance(members, str) else members),
+            )
+        )
     return replace(dev, channels=tuple(groups))
 
 
 # -- layers: file < env < args ----------------------------------------------------------------
 
 
-def _env_value(raw: str, hint: Any) -> Any:
-    """A variable's value: TOML when it parses as TOML, else the text; a list key's text
-    is a comma-separated list."""
+def _env_value(raw: str) -> Any:
+    """A variable's value: TOML when it parses as TOML, else the text."""
     try:
-        value = tomllib.loads(f"v = {raw}")["v"]
+        return tomllib.loads(f"v = {raw}")["v"]
     except (tomllib.TOMLDecodeError, RecursionError):
-        value = raw
-    if isinstance(value, str) and typing.get_origin(hint) is tuple:
-        return [s.strip() for s in value.split(",") if s.strip()]
-    return value
+        return raw
 
 
 def decode_text(data: bytes, source: str) -> str:
@@ -352,13 +369,13 @@ def env_overrides(environ: Mapping[str, str] | None = None) -> dict[str, dict[st
         table, _, key = rest.partition("_")
         if table not in ENV_TABLES or not key:
             continue  # not ours (other DAQ_* tools may exist)
-        hints = typing.get_type_hints(ENV_TABLES[table])
-        if key not in hints:
+        allowed = {f.name for f in fields(ENV_TABLES[table])}
+        if key not in allowed:
             raise ConfigError(
                 f"environment {var}: [{table}] has no key {key!r} "
-                f"(allowed: {', '.join(sorted(hints))})"
+                f"(allowed: {', '.join(sorted(allowed))})"
             )
-        out.setdefault(table, {})[key] = _env_value(raw, hints[key])
+        out.setdefault(table, {})[key] = _env_value(raw)
     return out
 
 
