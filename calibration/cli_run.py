@@ -17,6 +17,7 @@ from typing import Any
 from calibration.errors import DataFileError, OptionError, OutputFileError
 from edges.command import progress
 from edges.inputs import MAX_TOML_BYTES, read_input_bytes
+from edges.options import number
 from edges.outputs import OutputSet
 
 
@@ -95,17 +96,20 @@ def _add_live_options(live: argparse._ArgumentGroup) -> None:
     live.add_argument("--key", default="cell/**", help="key expression of the data (cell/**)")
     live.add_argument(
         "--idle-s",
-        type=float,
+        type=number(0.0, above=True),
         default=10.0,
         help="the campaign is over when the robot has not moved for this long "
         "after the last pose (10 s)",
     )
     live.add_argument(
-        "--collect-s", type=float, default=0.0, help="collect for at most this long (0: until idle)"
+        "--collect-s",
+        type=number(0.0),
+        default=0.0,
+        help="collect for at most this long (0: until idle)",
     )
     live.add_argument(
         "--publish-s",
-        type=float,
+        type=number(0.0),
         default=0.0,
         help="publish the live twin for this long, then stop (0: until Ctrl-C)",
     )

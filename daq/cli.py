@@ -72,14 +72,14 @@ def endpoint(text: str) -> str:
 
 def record_path(text: str) -> str:
     """An ``argparse`` ``type=``: a recording path, ``{cell}`` and ``{start}`` allowed."""
-    from daq.config import path_template
+    from daq.config import template_refusal
 
     if not text:
         return text  # --record with no path: the configured one
-    try:
-        return path_template(text, "path")
-    except DaqError as exc:
-        raise argparse.ArgumentTypeError(str(exc).removeprefix("path: ")) from None
+    refusal = template_refusal(text)
+    if refusal is not None:
+        raise argparse.ArgumentTypeError(refusal)
+    return text
 
 
 POSITIVE_S = number(0.0, above=True)

@@ -8,27 +8,45 @@ variables, then the file, then the defaults below. An environment variable
 as one, as a plain string otherwise (a comma-separated string for a list key).
 ``DAQ_CONFIG`` names the file itself.
 
-Every error names where the value came from, the table and the key, e.g.::
+Each table is a dataclass below, read by the project's one TOML reader
+(:mod:`edges.toml_schema`): types from the hints, ranges, choices and checks in the
+fields' metadata. Every error names where the value came from (the file, an environment
+variable, a command-line argument), the table and the key, e.g.::
 
     cell.toml: [[device]] #2 'tracker': key 'rate_hz': expected a number, got str '1000'
+    environment DAQ_PUBLISH_HEALTH_PERIOD_S: [publish]: key 'health_period_s': must be > 0, got 0
 
 See docs/daq.md for the full list of keys, types and defaults.
 """
 
 from __future__ import annotations
 
-import math
 import os
 import re
 import tomllib
+import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from daq.errors import ConfigError
 from edges.inputs import MAX_TOML_BYTES, read_input_bytes
+from edges.toml_schema import (
+    NON_NEGATIVE,
+    POSITIVE,
+    Range,
+    TomlTable,
+    build,
+    key_spec,
+    origins_at,
+    parse_toml_text,
+    short,
+)
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 ENV_PREFIX = "DAQ_"
 ENV_CONFIG = "DAQ_CONFIG"
@@ -60,54 +78,108 @@ FOXGLOVE_KINDS: dict[str, str] = {
 }
 
 
+# -- checks of single values, beyond their types and ranges (edges.toml_schema.Check) -------
+def _key_chunk(value: str) -> str | None:
+    """Why ``value`` cannot be one chunk of a zenoh key (None: it can)."""
+    if NAME_RE.match(value):
+        return None
+    return f"{value!r} is not a valid key chunk (letters, digits, '_', '-', '.' only)"
+
+
+def _non_empty(value: str) -> str | None:
+    return None if value else f"expected a non-empty string, got {value!r}"
+
+
+def _endpoints(values: tuple[str, ...]) -> str | None:
+    for e in values:
+        if not ENDPOINT_RE.fullmatch(e):
+            return f"{e!r} is not a zenoh endpoint (<protocol>/<address>, e.g. tcp/127.0.0.1:7447)"
+    return None
+
+
+def _at_most(hi: int) -> Callable[[int], str | None]:
+    """The upper bound of an integer whose range is its lower one: a refusal names the
+    bound crossed (``must be >= 1024`` by the range, ``must be <= 16`` here)."""
+    return lambda value: f"must be <= {hi}, got {value!r}" if value > hi else None
+
+
+def template_refusal(value: str) -> str | None:
+    """Why ``value`` is not a recording path template: only ``{cell}`` and ``{start}`` in
+    braces (``{{`` is a literal brace), not empty. None: it is one."""
+    if not value:
+        return f"expected a non-empty string, got {value!r}"
+    try:
+        value.format(cell="cell", start="20260101T000000Z")
+    except (KeyError, IndexError, ValueError, AttributeError) as exc:
+        why = f"unknown placeholder {{{exc.args[0]}}}" if isinstance(exc, KeyError) else str(exc)
+        return f"{value!r}: {why} (allowed: {{cell}}, {{start}}; '{{{{' for a brace)"
+    return None
+
+
+KEY_CHUNK = key_spec(check=_key_chunk)
+NON_EMPTY = key_spec(check=_non_empty)
+ENDPOINTS = key_spec(check=_endpoints)
+
+
+# -- the tables -------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class CellConfig:
-    name: str = "cell1"
-    robot: str = "robot1"  # the robot a device belongs to unless it names another
+    name: str = field(default="cell1", metadata=KEY_CHUNK)
+    # the robot a device belongs to unless it names another
+    robot: str = field(default="robot1", metadata=KEY_CHUNK)
 
 
 @dataclass(frozen=True)
 class ZenohConfig:
-    mode: str = "peer"
-    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
-    connect: tuple[str, ...] = ()
+    mode: str = field(default="peer", metadata=key_spec(choices=tuple(ZENOH_MODES)))
+    #: default for peer and router; a client listens nowhere unless told (:func:`parse`)
+    listen: tuple[str, ...] = field(default=("tcp/127.0.0.1:7447",), metadata=ENDPOINTS)
+    connect: tuple[str, ...] = field(default=(), metadata=ENDPOINTS)
     multicast_scouting: bool = False
     gossip_scouting: bool = False
     shared_memory: bool = False
-    congestion_control: str = "block"
+    congestion_control: str = field(default="block", metadata=key_spec(choices=tuple(CONGESTION)))
     #: zenoh's transmit queue for data, in batches of up to 64 KiB (zenoh allows 1-16,
     #: default 2). The daemon puts in bursts, one read's messages back to back; a queue
     #: that outlasts encoding the next read keeps the link busy meanwhile (docs/daq.md)
-    tx_queue_batches: int = 16
+    tx_queue_batches: int = field(default=16, metadata=key_spec(range=Range(1), check=_at_most(16)))
     #: extra zenoh config entries, path -> JSON value (``insert_json5``), applied last
     extra: Mapping[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class PublishConfig:
-    max_batch_samples: int = 500
-    max_batch_age_s: float = 0.0  # publish each read: a fast device's read holds many samples
-    health_period_s: float = 1.0
-    read_timeout_s: float = 0.002
-    gil_switch_s: float = 0.0005  # sys.setswitchinterval for the daemon (0: Python's 5 ms)
+    max_batch_samples: int = field(default=500, metadata=key_spec(range=Range(1)))
+    # publish each read: a fast device's read holds many samples
+    max_batch_age_s: float = field(default=0.0, metadata=key_spec(range=NON_NEGATIVE))
+    health_period_s: float = field(default=1.0, metadata=key_spec(range=POSITIVE))
+    read_timeout_s: float = field(default=0.002, metadata=key_spec(range=POSITIVE))
+    # sys.setswitchinterval for the daemon (0: Python's 5 ms)
+    gil_switch_s: float = field(default=0.0005, metadata=key_spec(range=NON_NEGATIVE))
     # each device's acquisition in a process of its own (daq.worker): true, false, or
     # "auto": when the daemon runs more than one device (one device has no GIL to share)
-    process_per_device: bool | str = "auto"
+    process_per_device: bool | str = field(
+        default="auto", metadata=key_spec(choices=(True, False, "auto"))
+    )
     #: SCHED_FIFO priority (1-99) of the daemon and its device workers; 0: normal
     #: scheduling (daq.scheduling; docs/daq.md "Real-time scheduling")
-    realtime_priority: int = 0
+    realtime_priority: int = field(default=0, metadata=key_spec(range=Range(0), check=_at_most(99)))
 
 
 @dataclass(frozen=True)
 class RecordingConfig:
     enabled: bool = False
-    path: str = "daq-{cell}-{start}.mcap"
-    compression: str = "zstd"
-    chunk_size_bytes: int = 1 << 20
-    chunk_interval_s: float = 1.0
+    path: str = field(default="daq-{cell}-{start}.mcap", metadata=key_spec(check=template_refusal))
+    compression: str = field(default="zstd", metadata=key_spec(choices=tuple(COMPRESSIONS)))
+    chunk_size_bytes: int = field(
+        default=1 << 20, metadata=key_spec(range=Range(1024), check=_at_most(MAX_CHUNK_BYTES))
+    )
+    chunk_interval_s: float = field(default=1.0, metadata=key_spec(range=POSITIVE))
     #: Foxglove viewer channels (joints, points, TCP, frame transforms) at most this
     #: often per stream; 0: none (docs/daq.md "Recording")
-    viewer_rate_hz: float = 30.0
+    viewer_rate_hz: float = field(
+        default=30.0, metadata=key_spec(range=Range(0.0, 1000.0, what="Hz"))
+    )
     #: also record the live twin's keys (``twin/<cell>/**``) when a twin publishes
     twin: bool = True
 
@@ -122,20 +194,25 @@ class ChannelGroup:
 
 @dataclass(frozen=True)
 class DeviceConfig:
-    name: str
-    driver: str
-    url: str
-    robot: str
-    rate_hz: float | None = None
-    joints: tuple[int, ...] | None = None
+    """One ``[[device]]``; ``robot`` defaults to ``[cell] robot`` and ``channels`` is
+    read from the ``[device.channels]`` table (:func:`parse`)."""
+
+    name: str = field(metadata=KEY_CHUNK)
+    driver: str = field(metadata=NON_EMPTY)
+    url: str = field(metadata=NON_EMPTY)
+    robot: str = field(metadata=KEY_CHUNK)
+    rate_hz: float | None = field(default=None, metadata=key_spec(range=POSITIVE))
+    joints: tuple[int, ...] | None = field(
+        default=None, metadata=key_spec(range=Range(1, what="joint numbers, 1-based"))
+    )
     channels: tuple[ChannelGroup, ...] = ()
     options: Mapping[str, Any] = field(default_factory=dict)
     enabled: bool = True
-    open_timeout_s: float = 5.0
-    clock_latency_us: float = 0.0
-    clock_window_s: float = 60.0
-    foxglove: str = "auto"
-    frame_id: str = "tracker"
+    open_timeout_s: float = field(default=5.0, metadata=key_spec(range=POSITIVE))
+    clock_latency_us: float = field(default=0.0, metadata=key_spec(range=NON_NEGATIVE))
+    clock_window_s: float = field(default=60.0, metadata=key_spec(range=POSITIVE))
+    foxglove: str = field(default="auto", metadata=key_spec(choices=tuple(FOXGLOVE_KINDS)))
+    frame_id: str = field(default="tracker", metadata=NON_EMPTY)
 
 
 @dataclass(frozen=True)
@@ -154,375 +231,113 @@ class DaqConfig:
         raise ConfigError(f"no device named {name!r}")
 
 
-# -- value checking ---------------------------------------------------------------------------
-
-
-class _Where:
-    """Formats 'origin: [table] key' for error messages; origins per (table, key)."""
-
-    def __init__(self, source: str, origins: Mapping[tuple[str, str], str]) -> None:
-        self.source = source
-        self.origins = origins
-
-    def __call__(self, table: str, key: str) -> str:
-        origin = self.origins.get((table, key), self.source)
-        return f"{origin}: {table}: key {key!r}"
-
-
-def _typename(v: Any) -> str:
-    return type(v).__name__
-
-
-def _number(v: Any, where: str, *, positive: bool = False, minimum: float | None = None) -> float:
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        raise ConfigError(f"{where}: expected a number, got {_typename(v)} {v!r}")
-    x = float(v)
-    if not math.isfinite(x):
-        raise ConfigError(f"{where}: expected a finite number, got {v!r}")
-    if positive and x <= 0:
-        raise ConfigError(f"{where}: must be > 0, got {v!r}")
-    if minimum is not None and x < minimum:
-        raise ConfigError(f"{where}: must be >= {minimum}, got {v!r}")
-    return x
-
-
-def _integer(v: Any, where: str, *, minimum: int | None = None, maximum: int | None = None) -> int:
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise ConfigError(f"{where}: expected an integer, got {_typename(v)} {v!r}")
-    if minimum is not None and v < minimum:
-        raise ConfigError(f"{where}: must be >= {minimum}, got {v!r}")
-    if maximum is not None and v > maximum:
-        raise ConfigError(f"{where}: must be <= {maximum}, got {v!r}")
-    return int(v)
-
-
-def _string(v: Any, where: str) -> str:
-    if not isinstance(v, str) or not v:
-        raise ConfigError(f"{where}: expected a non-empty string, got {_typename(v)} {v!r}")
-    return v
-
-
-def _name(v: Any, where: str) -> str:
-    s = _string(v, where)
-    if not NAME_RE.match(s):
-        raise ConfigError(
-            f"{where}: {s!r} is not a valid key chunk (letters, digits, '_', '-', '.' only)"
-        )
-    return s
-
-
-def _bool(v: Any, where: str) -> bool:
-    if not isinstance(v, bool):
-        raise ConfigError(f"{where}: expected true or false, got {_typename(v)} {v!r}")
-    return v
-
-
-def _bool_or_auto(v: Any, where: str) -> bool | str:
-    if v == "auto" or isinstance(v, bool):
-        return v
-    raise ConfigError(f'{where}: expected true, false or "auto", got {_typename(v)} {v!r}')
-
-
-def _choice(v: Any, where: str, table: Mapping[str, str]) -> str:
-    if not isinstance(v, str) or v not in table:
-        raise ConfigError(f"{where}: must be one of {', '.join(table)}, got {v!r}")
-    return str(v)
-
-
-def _strings(v: Any, where: str) -> tuple[str, ...]:
-    if isinstance(v, str):
-        v = [s.strip() for s in v.split(",") if s.strip()]
-    if not isinstance(v, list) or not all(isinstance(s, str) and s for s in v):
-        raise ConfigError(f"{where}: expected a list of strings, got {_typename(v)} {v!r}")
-    return tuple(v)
-
-
-def _endpoints(v: Any, where: str) -> tuple[str, ...]:
-    out = _strings(v, where)
-    for e in out:
-        if not ENDPOINT_RE.fullmatch(e):
-            raise ConfigError(
-                f"{where}: {e!r} is not a zenoh endpoint (<protocol>/<address>, e.g. "
-                "tcp/127.0.0.1:7447)"
-            )
-    return out
-
-
-def _check_keys(doc: Mapping[str, Any], allowed: set[str], where: str) -> None:
-    unknown = sorted(set(doc) - allowed)
-    if unknown:
-        raise ConfigError(
-            f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(allowed))})"
-        )
-
-
-def _table(doc: Mapping[str, Any], name: str, source: str) -> Mapping[str, Any]:
-    t = doc.get(name, {})
-    if not isinstance(t, Mapping):
-        raise ConfigError(f"{source}: [{name}] must be a table, got {_typename(t)}")
-    return t
-
-
-def _keys_of(cls: type) -> set[str]:
-    return {f.name for f in fields(cls)}
-
-
-# -- tables -------------------------------------------------------------------------------
-
-
-def _parse_cell(t: Mapping[str, Any], w: _Where) -> CellConfig:
-    _check_keys(t, _keys_of(CellConfig), f"{w.source}: [cell]")
-    d = CellConfig()
-    return CellConfig(
-        name=_name(t.get("name", d.name), w("[cell]", "name")),
-        robot=_name(t.get("robot", d.robot), w("[cell]", "robot")),
-    )
-
-
-def _parse_zenoh(t: Mapping[str, Any], w: _Where) -> ZenohConfig:
-    _check_keys(t, _keys_of(ZenohConfig), f"{w.source}: [zenoh]")
-    d = ZenohConfig()
-    mode = _choice(t.get("mode", d.mode), w("[zenoh]", "mode"), ZENOH_MODES)
-    listen_default: tuple[str, ...] = d.listen if mode != "client" else ()
-    listen = _endpoints(t.get("listen", list(listen_default)), w("[zenoh]", "listen"))
-    connect = _endpoints(t.get("connect", list(d.connect)), w("[zenoh]", "connect"))
-    if mode == "client" and not connect:
-        raise ConfigError(f"{w('[zenoh]', 'connect')}: mode 'client' needs a router endpoint")
-    extra = t.get("extra", {})
-    if not isinstance(extra, Mapping):
-        raise ConfigError(f"{w('[zenoh]', 'extra')}: expected a table of zenoh config paths")
-    return ZenohConfig(
-        mode=mode,
-        listen=listen,
-        connect=connect,
-        multicast_scouting=_bool(
-            t.get("multicast_scouting", d.multicast_scouting), w("[zenoh]", "multicast_scouting")
-        ),
-        gossip_scouting=_bool(
-            t.get("gossip_scouting", d.gossip_scouting), w("[zenoh]", "gossip_scouting")
-        ),
-        shared_memory=_bool(t.get("shared_memory", d.shared_memory), w("[zenoh]", "shared_memory")),
-        congestion_control=_choice(
-            t.get("congestion_control", d.congestion_control),
-            w("[zenoh]", "congestion_control"),
-            CONGESTION,
-        ),
-        tx_queue_batches=_integer(
-            t.get("tx_queue_batches", d.tx_queue_batches),
-            w("[zenoh]", "tx_queue_batches"),
-            minimum=1,
-            maximum=16,
-        ),
-        extra=dict(extra),
-    )
-
-
-def _parse_publish(t: Mapping[str, Any], w: _Where) -> PublishConfig:
-    _check_keys(t, _keys_of(PublishConfig), f"{w.source}: [publish]")
-    d = PublishConfig()
-    return PublishConfig(
-        max_batch_samples=_integer(
-            t.get("max_batch_samples", d.max_batch_samples),
-            w("[publish]", "max_batch_samples"),
-            minimum=1,
-        ),
-        max_batch_age_s=_number(
-            t.get("max_batch_age_s", d.max_batch_age_s),
-            w("[publish]", "max_batch_age_s"),
-            minimum=0.0,
-        ),
-        health_period_s=_number(
-            t.get("health_period_s", d.health_period_s),
-            w("[publish]", "health_period_s"),
-            positive=True,
-        ),
-        read_timeout_s=_number(
-            t.get("read_timeout_s", d.read_timeout_s),
-            w("[publish]", "read_timeout_s"),
-            positive=True,
-        ),
-        gil_switch_s=_number(
-            t.get("gil_switch_s", d.gil_switch_s), w("[publish]", "gil_switch_s"), minimum=0.0
-        ),
-        process_per_device=_bool_or_auto(
-            t.get("process_per_device", d.process_per_device),
-            w("[publish]", "process_per_device"),
-        ),
-        realtime_priority=_integer(
-            t.get("realtime_priority", d.realtime_priority),
-            w("[publish]", "realtime_priority"),
-            minimum=0,
-            maximum=99,
-        ),
-    )
-
-
-def path_template(v: Any, where: str) -> str:
-    """A recording path that may hold ``{cell}`` and ``{start}`` (and nothing else in
-    braces; ``{{`` is a literal brace)."""
-    s = _string(v, where)
-    try:
-        s.format(cell="cell", start="20260101T000000Z")
-    except (KeyError, IndexError, ValueError, AttributeError) as exc:
-        why = f"unknown placeholder {{{exc.args[0]}}}" if isinstance(exc, KeyError) else str(exc)
-        raise ConfigError(
-            f"{where}: {s!r}: {why} (allowed: {{cell}}, {{start}}; '{{{{' for a brace)"
-        ) from None
-    return s
-
-
-def _parse_recording(t: Mapping[str, Any], w: _Where) -> RecordingConfig:
-    _check_keys(t, _keys_of(RecordingConfig), f"{w.source}: [recording]")
-    d = RecordingConfig()
-    return RecordingConfig(
-        enabled=_bool(t.get("enabled", d.enabled), w("[recording]", "enabled")),
-        path=path_template(t.get("path", d.path), w("[recording]", "path")),
-        compression=_choice(
-            t.get("compression", d.compression), w("[recording]", "compression"), COMPRESSIONS
-        ),
-        chunk_size_bytes=_integer(
-            t.get("chunk_size_bytes", d.chunk_size_bytes),
-            w("[recording]", "chunk_size_bytes"),
-            minimum=1024,
-            maximum=MAX_CHUNK_BYTES,
-        ),
-        chunk_interval_s=_number(
-            t.get("chunk_interval_s", d.chunk_interval_s),
-            w("[recording]", "chunk_interval_s"),
-            positive=True,
-        ),
-        viewer_rate_hz=_viewer_rate(
-            _number(t.get("viewer_rate_hz", d.viewer_rate_hz), w("[recording]", "viewer_rate_hz")),
-            w("[recording]", "viewer_rate_hz"),
-        ),
-        twin=_bool(t.get("twin", d.twin), w("[recording]", "twin")),
-    )
-
-
-def _viewer_rate(value: float, where: str) -> float:
-    if not 0.0 <= value <= 1000.0:
-        raise ConfigError(f"{where}: must be >= 0 and <= 1000 (Hz), got {value}")
-    return value
-
-
-_DEVICE_KEYS = _keys_of(DeviceConfig)
-
-
-def _parse_device(t: Any, i: int, cell: CellConfig, source: str) -> DeviceConfig:
-    if not isinstance(t, Mapping):
-        raise ConfigError(f"{source}: [[device]] #{i}: must be a table, got {_typename(t)}")
-    label = f"{source}: [[device]] #{i}"
-    if "name" in t and isinstance(t["name"], str):
-        label += f" {t['name']!r}"
-
-    def where(key: str) -> str:
-        return f"{label}: key {key!r}"
-
-    _check_keys(t, _DEVICE_KEYS, label)
-    for key in ("name", "driver", "url"):
-        if key not in t:
-            raise ConfigError(f"{where(key)}: missing (required)")
-    d = DeviceConfig(name="", driver="", url="", robot="")
-    rate = t.get("rate_hz")
-    joints = t.get("joints")
-    if joints is not None:
-        if not isinstance(joints, list) or not all(
-            isinstance(j, int) and not isinstance(j, bool) and j >= 1 for j in joints
-        ):
-            raise ConfigError(f"{where('joints')}: expected a list of joint numbers (1-based)")
-        joints = tuple(joints)
-    groups: list[ChannelGroup] = []
-    chan = t.get("channels", {})
-    if not isinstance(chan, Mapping):
-        raise ConfigError(f"{where('channels')}: expected a table name = [driver channels]")
-    for gname, members in chan.items():
-        gw = f"{label}: [channels] key {gname!r}"
-        _name(gname, gw)
-        if gname in RESERVED_CHANNELS:
-            raise ConfigError(f"{gw}: {gname!r} is reserved (used by the daemon)")
-        groups.append(ChannelGroup(gname, _strings(members, gw)))
-    options = t.get("options", {})
-    if not isinstance(options, Mapping):
-        raise ConfigError(f"{where('options')}: expected a table of driver options")
-    return DeviceConfig(
-        name=_name(t["name"], where("name")),
-        driver=_string(t["driver"], where("driver")),
-        url=_string(t["url"], where("url")),
-        robot=_name(t.get("robot", cell.robot), where("robot")),
-        rate_hz=None if rate is None else _number(rate, where("rate_hz"), positive=True),
-        joints=joints,
-        channels=tuple(groups),
-        options=dict(options),
-        enabled=_bool(t.get("enabled", d.enabled), where("enabled")),
-        open_timeout_s=_number(
-            t.get("open_timeout_s", d.open_timeout_s), where("open_timeout_s"), positive=True
-        ),
-        clock_latency_us=_number(
-            t.get("clock_latency_us", d.clock_latency_us), where("clock_latency_us"), minimum=0.0
-        ),
-        clock_window_s=_number(
-            t.get("clock_window_s", d.clock_window_s), where("clock_window_s"), positive=True
-        ),
-        foxglove=_choice(t.get("foxglove", d.foxglove), where("foxglove"), FOXGLOVE_KINDS),
-        frame_id=_string(t.get("frame_id", d.frame_id), where("frame_id")),
-    )
-
-
-TOP_KEYS = {"cell", "zenoh", "publish", "recording", "device"}
 ENV_TABLES: dict[str, type] = {
     "cell": CellConfig,
     "zenoh": ZenohConfig,
     "publish": PublishConfig,
     "recording": RecordingConfig,
 }
+TOP_KEYS = {*ENV_TABLES, "device"}
+T = TypeVar("T", bound="DataclassInstance")
 
 
 def parse(
     doc: Mapping[str, Any],
     source: str = "<config>",
-    origins: Mapping[tuple[str, str], str] | None = None,
+    origins: Mapping[str, str] | None = None,
 ) -> DaqConfig:
-    """Validate a configuration document (as from ``tomllib``)."""
-    _check_keys(doc, TOP_KEYS, source)
-    w = _Where(source, origins or {})
-    cell = _parse_cell(_table(doc, "cell", source), w)
+    """Validate a configuration document (as from ``tomllib``); ``origins``: where a
+    value came from when not from ``source``, by dotted key (``zenoh.mode``)."""
+    top = TomlTable(dict(doc), source, "top level", ConfigError)
+    unknown = sorted(set(doc) - TOP_KEYS)
+    if unknown:
+        allowed = ", ".join(sorted(TOP_KEYS))
+        raise top.fail(None, f"unknown key {unknown[0]!r} (allowed: {allowed})")
+
+    def table(cls: type[T], name: str) -> T:
+        given = _comma_lists(doc.get(name, {}), cls)
+        return build(cls, given, source=source, error=ConfigError, path=(name,), origins=origins)
+
+    cell = table(CellConfig, "cell")
     devs = doc.get("device", [])
     if not isinstance(devs, list):
-        raise ConfigError(f"{source}: [[device]] must be an array of tables")
-    devices = tuple(_parse_device(t, i + 1, cell, source) for i, t in enumerate(devs))
-    seen: set[str] = set()
-    for dev in devices:
-        if dev.name in seen:
+        raise top.fail("device", f"expected an array of tables ([[device]]), got {short(devs)}")
+    devices: list[DeviceConfig] = []
+    for i, t in enumerate(devs, start=1):
+        dev = _device(t, f"[[device]] #{i}", cell, source)
+        if dev.name in {d.name for d in devices}:
             raise ConfigError(f"{source}: [[device]] {dev.name!r}: key 'name': duplicate")
-        seen.add(dev.name)
+        devices.append(dev)
+    zenoh = table(ZenohConfig, "zenoh")
+    if zenoh.mode == "client":
+        given = doc.get("zenoh", {})
+        if "listen" not in given:
+            zenoh = replace(zenoh, listen=())
+        if not zenoh.connect:
+            z = TomlTable(given, source, "[zenoh]", ConfigError, origins_at(origins, ("zenoh",)))
+            raise z.fail("connect", "mode 'client' needs a router endpoint")
     return DaqConfig(
         cell=cell,
-        zenoh=_parse_zenoh(_table(doc, "zenoh", source), w),
-        publish=_parse_publish(_table(doc, "publish", source), w),
-        recording=_parse_recording(_table(doc, "recording", source), w),
-        devices=devices,
+        zenoh=zenoh,
+        publish=table(PublishConfig, "publish"),
+        recording=table(RecordingConfig, "recording"),
+        devices=tuple(devices),
         source=source,
     )
+
+
+def _comma_list(text: str) -> list[str]:
+    return [s.strip() for s in text.split(",") if s.strip()]
+
+
+def _comma_lists(values: Any, cls: type) -> Any:
+    """``values`` with a list key given as one string read as a comma-separated list
+    (how an environment variable says a list; the file may say it so too)."""
+    if not isinstance(values, dict):
+        return values  # build() names what it is
+    hints = typing.get_type_hints(cls)
+    return {
+        k: _comma_list(v) if isinstance(v, str) and typing.get_origin(hints.get(k)) is tuple else v
+        for k, v in values.items()
+    }
+
+
+def _device(t: Any, label: str, cell: CellConfig, source: str) -> DeviceConfig:
+    """One ``[[device]]`` table: its keys, then its ``[device.channels]``."""
+    if isinstance(t, dict) and isinstance(t.get("name"), str):
+        label += f" {t['name']!r}"
+    table = TomlTable(t, source, label, ConfigError)
+    keys = {k: v for k, v in table.data.items() if k != "channels"}
+    dev = build(
+        DeviceConfig, {"robot": cell.robot, **keys}, source=source, error=ConfigError, name=label
+    )
+    chan = TomlTable(table.data.get("channels", {}), source, f"{label}: [channels]", ConfigError)
+    groups = []
+    for name in chan.data:
+        refusal = _key_chunk(name)
+        if refusal is None and name in RESERVED_CHANNELS:
+            refusal = f"{name!r} is reserved (used by the daemon)"
+        if refusal is not None:
+            raise chan.fail(name, refusal)
+        members = chan.data[name]
+        groups.append(
+            ChannelGroup(
+                name,
+                chan.strings(name, _comma_list(members) if isinstance(members, str) else members),
+            )
+        )
+    return replace(dev, channels=tuple(groups))
 
 
 # -- layers: file < env < args ----------------------------------------------------------------
 
 
 def _env_value(raw: str) -> Any:
+    """A variable's value: TOML when it parses as TOML, else the text."""
     try:
         return tomllib.loads(f"v = {raw}")["v"]
     except (tomllib.TOMLDecodeError, RecursionError):
         return raw
-
-
-def _toml(text: str, source: str) -> dict[str, Any]:
-    """A TOML document, or a :class:`ConfigError` naming ``source`` and the line."""
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
-    except RecursionError:
-        raise ConfigError(f"{source}: not valid TOML: arrays or tables nested too deeply") from None
 
 
 def decode_text(data: bytes, source: str) -> str:
@@ -554,10 +369,11 @@ def env_overrides(environ: Mapping[str, str] | None = None) -> dict[str, dict[st
         table, _, key = rest.partition("_")
         if table not in ENV_TABLES or not key:
             continue  # not ours (other DAQ_* tools may exist)
-        if key not in _keys_of(ENV_TABLES[table]):
+        allowed = {f.name for f in fields(ENV_TABLES[table])}
+        if key not in allowed:
             raise ConfigError(
                 f"environment {var}: [{table}] has no key {key!r} "
-                f"(allowed: {', '.join(sorted(_keys_of(ENV_TABLES[table])))})"
+                f"(allowed: {', '.join(sorted(allowed))})"
             )
         out.setdefault(table, {})[key] = _env_value(raw)
     return out
@@ -574,21 +390,22 @@ def _arg_origin(table: str, key: str) -> str:
 def _merge(
     doc: dict[str, Any],
     layer: Mapping[str, Mapping[str, Any]],
-    origins: dict[tuple[str, str], str],
+    origins: dict[str, str],
     origin: Callable[[str, str], str],
     source: str,
 ) -> None:
+    """``layer``'s values over ``doc``'s, each noted in ``origins`` (by dotted key)."""
     for table, values in layer.items():
         t = doc.setdefault(table, {})
         if not isinstance(t, dict):
             setters = ", ".join(origin(table, key) for key in values)
             raise ConfigError(
-                f"{source}: [{table}] must be a table, got {_typename(t)} "
+                f"{source}: [{table}] must be a table, got {type(t).__name__} "
                 f"(and {setters} sets a key in it)"
             )
         for key, value in values.items():
             t[key] = value
-            origins[(f"[{table}]", key)] = origin(table, key)
+            origins[f"{table}.{key}"] = origin(table, key)
 
 
 def load(
@@ -611,11 +428,11 @@ def load(
         if not source.strip():
             raise ConfigError("--config: empty path (or DAQ_CONFIG set to nothing)")
         data = read_input_bytes(path, limit=MAX_TOML_BYTES, error=ConfigError)
-        doc: dict[str, Any] = _toml(decode_text(data, source), source)
+        doc: dict[str, Any] = parse_toml_text(decode_text(data, source), source, ConfigError)
     else:
         source = "<default cell>"
         doc = _deepcopy(base or {})
-    origins: dict[tuple[str, str], str] = {}
+    origins: dict[str, str] = {}
     env = env_overrides(environ)
     _merge(doc, env, origins, _env_origin, source)
     if overrides:
@@ -624,8 +441,8 @@ def load(
 
 
 def loads(text: str, source: str = "<string>", **kw: Any) -> DaqConfig:
-    doc = _toml(text, source)
-    origins: dict[tuple[str, str], str] = {}
+    doc = parse_toml_text(text, source, ConfigError)
+    origins: dict[str, str] = {}
     env = env_overrides(kw.get("environ", {}))
     _merge(doc, env, origins, _env_origin, source)
     return parse(doc, source, origins)

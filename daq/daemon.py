@@ -3,10 +3,12 @@
 Opens one zenoh session, an optional MCAP recorder, and one
 :class:`~daq.pipeline.DeviceStream` per enabled device: in a worker process of its own
 (:mod:`daq.worker`) when there is more than one device (``[publish] process_per_device``),
-else in a thread. Each device's health is published once a period (by its worker, or by
-the daemon for a thread). It stops on
-SIGINT/SIGTERM or after ``--duration``: device streams flush what they hold and close
-their drivers, the recorder drains and writes the summary, and it exits 0.
+else in a thread. Either way the device's recorder channels are one
+:class:`~daq.device_recording.DeviceRecording`, and its health is published once a period
+by a :class:`~daq.health.HealthLoop` (the daemon's for a thread, the worker's own for a
+worker). It stops on SIGINT/SIGTERM or after ``--duration``: device streams flush what
+they hold and close their drivers, the recorder drains and writes the summary, and it
+exits 0.
 
 On start it prints one JSON line to stdout: ``{"daq": "running", "cell": ..., "keys":
 [...], "listen": [...], "recording": PATH or null}``; on exit one ``{"daq": "stopped",
@@ -28,22 +30,14 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from daq.bus import (
-    JSON_ENCODING,
-    Received,
-    Receiver,
-    SchemaServer,
-    health_key,
-    open_session,
-    utc_offset_ns,
-)
+from daq.bus import Received, Receiver, SchemaServer, open_session, utc_offset_ns
 from daq.config import DaqConfig, resolve, zenoh_overrides
 from daq.device_drivers import keep_freed_heap, make_driver
+from daq.device_recording import DeviceRecording, recorder_meta
 from daq.errors import DaqError
-from daq.pipeline import DeviceStream, build_schemas, recorder_meta
+from daq.health import HealthLoop
+from daq.pipeline import DeviceStream, build_schemas
 from daq.recording import (
-    HEALTH_SCHEMA,
-    HEALTH_SCHEMA_NAME,
     KIND_HEALTH,
     TWIN_HEALTH_SCHEMA,
     TWIN_HEALTH_SCHEMA_NAME,
@@ -100,10 +94,11 @@ class Daemon:
         self.session = open_session(zc)
         self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")
         self.recorder: BackgroundRecorder | None = None
-        self.streams: list[DeviceStream] = []
-        self.workers: list[DeviceWorker] = []
-        self._health_pubs: dict[str, Any] = {}
-        self._health_rec: dict[str, int] = {}
+        # every enabled device, in a thread or a worker process (the same calls either way)
+        self.devices: list[DeviceStream | DeviceWorker] = []
+        self.workers: list[DeviceWorker] = []  # those in worker processes
+        self.recordings: list[DeviceRecording] = []
+        self.health = HealthLoop(self.session, cfg.publish.health_period_s)
         self._twin_rx: Any = None
         self._twin_channels: dict[str, tuple[int, StreamViewer | None]] = {}
         self._closed = False
@@ -129,42 +124,37 @@ class Daemon:
             for dev in cfg.devices:
                 if not dev.enabled:
                     continue
-                hk = health_key(cfg.cell.name, dev.robot, dev.name)
-                health_rec = None
+                driver = driver_factory(dev)  # a worker's: made for its schema, not opened
+                groups = build_schemas(cfg, dev, driver.schema, self.utc_offset_ns)
+                recording = None
                 if self.recorder is not None:
-                    health_rec = self._health_rec[dev.name] = self.recorder.add_json(
-                        hk, HEALTH_SCHEMA_NAME, HEALTH_SCHEMA, {"daq.kind": KIND_HEALTH}
-                    )
+                    recording = DeviceRecording(self.recorder, cfg, dev, [g for g, _ in groups])
+                    self.recordings.append(recording)
                 if worker_zc is not None:
-                    schema = driver_factory(dev).schema  # made, not opened
-                    groups = build_schemas(cfg, dev, schema, self.utc_offset_ns)
-                    self.workers.append(
-                        DeviceWorker(
-                            cfg,
-                            dev,
-                            [g for g, _ in groups],
-                            self.session,
-                            worker_zc,
-                            self.utc_offset_ns,
-                            recorder=self.recorder,
-                            health_channel=health_rec,
-                        )
+                    worker = DeviceWorker(
+                        cfg,
+                        dev,
+                        [g for g, _ in groups],
+                        self.session,
+                        worker_zc,
+                        self.utc_offset_ns,
+                        recording=recording,
                     )
+                    self.devices.append(worker)
+                    self.workers.append(worker)
                     continue
                 stream = DeviceStream(
                     cfg,
                     dev,
-                    driver_factory(dev),
+                    driver,
                     self.session,
                     self.schemas,
-                    recorder=self.recorder,
+                    recording=recording,
                     utc_offset_ns=self.utc_offset_ns,
                     stop=self.stop,
                 )
-                self.streams.append(stream)
-                self._health_pubs[dev.name] = self.session.declare_publisher(
-                    hk, encoding=JSON_ENCODING
-                )
+                self.devices.append(stream)
+                self.health.add(stream)
             if self.recorder is not None and cfg.recording.twin:
                 # the live twin's keys too, when a twin publishes (its schemas by query)
                 self._twin_rx = Receiver(
@@ -208,65 +198,25 @@ class Daemon:
 
     @property
     def keys(self) -> list[str]:
-        return [p.key for s in self.streams for p in s.publishers] + [
-            k for w in self.workers for k in w.keys
-        ]
+        return [k for d in self.devices for k in d.keys]
 
-    def publish_health(self, period_s: float) -> list[dict[str, Any]]:
-        docs = []
-        for s in self.streams:
-            doc = s.health(period_s)
-            data = json.dumps(doc).encode()
-            try:
-                self._health_pubs[s.dev.name].put(data)
-            except Exception:
-                log.exception("health publish failed for %s", s.dev.name)
-            if self.recorder is not None:
-                t = time.time_ns()
-                self.recorder.write(self._health_rec[s.dev.name], data, t, t)
-            docs.append(doc)
-        return docs
+    def _restart_ended_workers(self) -> None:
+        for w in self.workers:
+            w.check()
 
     def run(self, duration_s: float | None = None) -> list[dict[str, Any]]:
         """Acquire until stopped; returns the last health documents."""
-        for s in self.streams:
-            s.start()
-        for w in self.workers:
-            w.start()
-        t0 = time.monotonic()
-        period = self.cfg.publish.health_period_s
-        next_health = t0 + period
-        last = t0
-        docs: list[dict[str, Any]] = []
-        while not self.stop.is_set():
-            now = time.monotonic()
-            if duration_s is not None and now - t0 >= duration_s:
-                break
-            wait = next_health - now
-            if duration_s is not None:
-                wait = min(wait, t0 + duration_s - now)
-            if self.stop.wait(max(0.0, wait)):
-                break
-            now = time.monotonic()
-            if now >= next_health:
-                for w in self.workers:
-                    w.check()
-                docs = self.publish_health(now - last)
-                last = now
-                next_health += period
-                if next_health < now:
-                    next_health = now + period
+        for d in self.devices:
+            d.start()
+        self.health.run(self.stop, duration_s, on_round=self._restart_ended_workers)
         self.stop.set()
-        for w in self.workers:
-            w.stop()
-        for s in self.streams:
-            s.join(timeout=10.0)
-        docs = self.publish_health(max(1e-3, time.monotonic() - last))
-        for w in self.workers:
-            doc = w.join()
-            if doc:
-                docs.append(doc)
-        return docs
+        for d in self.devices:
+            d.stop()
+        for d in self.devices:
+            d.join(timeout=10.0)
+        # a worker published its last document itself and printed it (its handle read it)
+        last = [w.last_health for w in self.workers if w.last_health]
+        return self.health.publish() + last
 
     def close(self) -> None:
         """Stop threads, close drivers, flush the recording, close zenoh; safe twice."""
@@ -274,18 +224,14 @@ class Daemon:
             return
         self._closed = True
         self.stop.set()
-        for w in self.workers:
-            w.stop()
-        for w in self.workers:
-            w.close()
-        for s in self.streams:
-            s.join(timeout=10.0)
-            s.close()
-        for p in self._health_pubs.values():
-            try:
-                p.undeclare()
-            except Exception:
-                log.debug("health undeclare failed", exc_info=True)
+        for d in self.devices:
+            d.stop()
+        for d in self.devices:
+            d.join(timeout=10.0)
+            d.close()
+        self.health.close()
+        for r in self.recordings:  # the last points into the viewer channels
+            r.flush()
         if self._twin_rx is not None:
             self._twin_rx.close()
         if self.recorder is not None:

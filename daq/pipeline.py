@@ -4,8 +4,10 @@
 host receive stamps and reconnects), maps device time to host time with
 :class:`daq.clock_sync.DeviceClockMap`, counts gaps and sequence breaks, coalesces reads
 into batches of at most ``max_batch_samples`` or ``max_batch_age_s``, and publishes one
-message per channel group. It keeps a liveliness token while the device is connected and
-reports its health once a period (:meth:`DeviceStream.health`).
+message per channel group (and writes it to the device's
+:class:`~daq.device_recording.DeviceRecording`, when recording). It keeps a liveliness
+token while the device is connected and gives its health document on request
+(:meth:`DeviceStream.health`, once a period by a :class:`~daq.health.HealthLoop`).
 
 Published clocks: ``host_utc`` is CLOCK_REALTIME ns since the Unix epoch, obtained from
 the driver's ``time.monotonic_ns`` stamps plus one offset taken when the daemon started
@@ -26,15 +28,20 @@ import numpy as np
 import zenoh
 from numpy.typing import NDArray
 
-import daq.foxglove as foxglove
-from daq.bus import ChannelPublisher, PublishError, SchemaServer, channel_key, device_key
+from daq.bus import (
+    ChannelPublisher,
+    PublishError,
+    SchemaServer,
+    channel_key,
+    device_key,
+    health_key,
+)
 from daq.clock_sync import DeviceClockMap
 from daq.columnar import Column, StreamSchema
 from daq.config import ChannelGroup, DaqConfig, DeviceConfig
+from daq.device_recording import DeviceRecording
 from daq.errors import ConfigError, TransportError
-from daq.recording import BackgroundRecorder
 from daq.scheduling import describe as describe_scheduling
-from daq.viewer import StreamViewer
 from drivers.base import SampleBatch
 
 log = logging.getLogger(__name__)
@@ -137,28 +144,6 @@ def build_schemas(
     return out
 
 
-def recorder_meta(s: StreamSchema) -> dict[str, str]:
-    """An MCAP channel's metadata: the schema's scalar meta entries, as strings."""
-    return {k: str(v) for k, v in s.meta.items() if not isinstance(v, dict | list)}
-
-
-def viewer_for(
-    recorder: BackgroundRecorder, cfg: DaqConfig, dev: DeviceConfig, s: StreamSchema, first: bool
-) -> StreamViewer | None:
-    """The Foxglove viewer channels of one of the device's keys (``first``: the key that
-    carries the points of an xyz device), or None when it has none (docs/daq.md)."""
-    v = StreamViewer(
-        recorder,
-        s,
-        rate_hz=cfg.recording.viewer_rate_hz,
-        points=dev.foxglove if first else "none",
-        frame_id=dev.frame_id,
-    )
-    if dev.foxglove in ("points", "poses") and foxglove.xyz_columns(list(s.names)) is None:
-        log.warning("%s: foxglove=%s but no x_mm/y_mm/z_mm columns", s.key, dev.foxglove)
-    return v if v.active else None
-
-
 @dataclass
 class Counters:
     samples: int = 0
@@ -193,7 +178,7 @@ class DeviceStream:
         session: zenoh.Session,
         schemas: SchemaServer,
         *,
-        recorder: BackgroundRecorder | None = None,
+        recording: DeviceRecording | None = None,
         utc_offset_ns: int,
         stop: threading.Event,
     ) -> None:
@@ -201,9 +186,9 @@ class DeviceStream:
         self.dev = dev
         self.driver = driver
         self.session = session
-        self.recorder = recorder
+        self.recording = recording
         self.utc_offset_ns = utc_offset_ns
-        self.stop = stop
+        self._stop = stop
         self.counters = Counters()
         self.groups = build_schemas(cfg, dev, driver.schema, utc_offset_ns)
         # groups carrying every driver channel in order pass the status array as it is
@@ -213,12 +198,6 @@ class DeviceStream:
         self.publishers = [
             ChannelPublisher(session, s, congestion=cc, schemas=schemas) for s, _ in self.groups
         ]
-        self.rec_ids: list[int] = []
-        self.viewers: list[StreamViewer | None] = []
-        if recorder is not None:
-            for gi, (s, _) in enumerate(self.groups):
-                self.rec_ids.append(recorder.add_columnar(s, recorder_meta(s)))
-                self.viewers.append(viewer_for(recorder, cfg, dev, s, gi == 0))
         self.clock = self._new_clock()
         self._epoch: int | None = None
         self._last_seq: int | None = None
@@ -251,11 +230,25 @@ class DeviceStream:
         )
 
     # -- lifecycle --------------------------------------------------------------------------
+    @property
+    def keys(self) -> list[str]:
+        return [p.key for p in self.publishers]
+
+    @property
+    def health_key(self) -> str:
+        return health_key(self.cfg.cell.name, self.dev.robot, self.dev.name)
+
     def start(self) -> None:
         self._thread.start()
 
+    def stop(self) -> None:
+        """Ask the thread to stop (it publishes what it holds and closes the driver);
+        sets the stop event it was given (the daemon's streams share one)."""
+        self._stop.set()
+
     def join(self, timeout: float | None = None) -> None:
-        self._thread.join(timeout)
+        if self._thread.ident is not None:  # started
+            self._thread.join(timeout)
 
     @property
     def state(self) -> str:
@@ -290,14 +283,14 @@ class DeviceStream:
     def _open(self) -> bool:
         from drivers.errors import DriverError
 
-        while not self.stop.is_set():
+        while not self._stop.is_set():
             try:
                 self.driver.open(timeout_s=min(self.dev.open_timeout_s, 1.0))
                 return True
             except DriverError as exc:
                 self._state = "reconnecting"
                 log.warning("%s: %s (retrying)", self.dev.name, exc)
-                self.stop.wait(0.2)
+                self._stop.wait(0.2)
         return False
 
     def _run(self) -> None:
@@ -311,7 +304,7 @@ class DeviceStream:
                 return
             last_state_check = 0.0
             while True:
-                stopping = self.stop.is_set()
+                stopping = self._stop.is_set()
                 now = time.monotonic()
                 if now - last_state_check > 0.02:
                     self._track_state()
@@ -424,13 +417,8 @@ class DeviceStream:
             t_pub = time.time_ns()
             c.batches += publisher.messages - sent0  # published: unsent ones are counted
             c.bytes += publisher.bytes - bytes0  # in messages_unsent
-            if self.recorder is None:
-                continue
-            for k, payload in enumerate(payloads):
-                self.recorder.write(self.rec_ids[gi], payload, t_pub, t_pub, seq0 + k)
-            viewer = self.viewers[gi]
-            if viewer is not None and viewer.due(t_pub):  # at a bounded rate (daq.viewer)
-                viewer.add(cols, t_pub)
+            if self.recording is not None:
+                self.recording.write(gi, payloads, t_pub, seq0, cols)
 
     def _map(
         self,
@@ -600,8 +588,4 @@ class DeviceStream:
     def close(self) -> None:
         for p in self.publishers:
             p.close()
-        t = time.time_ns()
-        for v in self.viewers:  # the last points into the viewer channel
-            if v is not None:
-                v.flush(t)
         self._set_alive(False)

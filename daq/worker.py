@@ -13,10 +13,12 @@ zenoh settings of a *client* session connected to the daemon's own session over 
 socket the daemon listens on (a client-mode daemon's workers connect to its routers
 instead). zenoh routes the worker's data, schema replies and liveliness token through the
 daemon's session in Rust, so subscribers see the same keys as from a single process. The
-worker runs a :class:`~daq.pipeline.DeviceStream` and publishes the device's health once a
-period. It stops on SIGINT/SIGTERM or when its stdin closes (the daemon is gone): it
-flushes, closes the driver, and prints its last health document as one JSON line on
-stdout. The daemon records a worker's messages from its own subscription.
+worker runs a :class:`~daq.pipeline.DeviceStream` and a :class:`~daq.health.HealthLoop`
+over it, as the daemon does for a device in a thread. It stops on SIGINT/SIGTERM or when
+its stdin closes (the daemon is gone): it flushes, closes the driver, publishes its last
+health document and prints it as one JSON line on stdout. The daemon writes a worker's
+messages and health documents to the device's :class:`~daq.device_recording.DeviceRecording`
+from its own subscription.
 
 Only JSON crosses the pipe; the driver is made from the device's configured name.
 """
@@ -33,12 +35,12 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import zenoh
 
-from daq.bus import JSON_ENCODING, SchemaServer, health_key, open_session
+from daq.bus import SchemaServer, health_key, open_session
 from daq.columnar import StreamSchema, decode, read_header
 from daq.config import (
     CellConfig,
@@ -48,8 +50,8 @@ from daq.config import (
     PublishConfig,
     ZenohConfig,
 )
+from daq.device_recording import DeviceRecording
 from daq.errors import DaqError
-from daq.recording import BackgroundRecorder
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +114,7 @@ def _stop_on_eof(stop: threading.Event) -> None:
 
 def main() -> int:
     from daq.device_drivers import keep_freed_heap, make_driver
+    from daq.health import HealthLoop
     from daq.pipeline import DeviceStream
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -129,28 +132,19 @@ def main() -> int:
     stream = DeviceStream(
         cfg, dev, make_driver(dev), session, schemas, utc_offset_ns=utc_offset, stop=stop
     )
-    health = session.declare_publisher(
-        health_key(cfg.cell.name, dev.robot, dev.name), encoding=JSON_ENCODING
-    )
-    period = cfg.publish.health_period_s
-    doc: dict[str, Any] = {}
+    health = HealthLoop(session, cfg.publish.health_period_s)
     try:
+        health.add(stream)
         stream.start()
-        last = time.monotonic()
-        while not stop.wait(max(0.0, last + period - time.monotonic())):
-            now = time.monotonic()
-            doc = stream.health(now - last)
-            last = now
-            health.put(json.dumps(doc).encode())
+        health.run(stop)
         stream.join(timeout=10.0)
-        doc = stream.health(max(1e-3, time.monotonic() - last))
-        health.put(json.dumps(doc).encode())
+        health.publish()
     finally:
         stream.close()
-        health.undeclare()
+        health.close()
         schemas.close()
         session.close()
-        print(json.dumps({"health": doc}), flush=True)
+        print(json.dumps({"health": health.last[0] if health.last else {}}), flush=True)
     return 0
 
 
@@ -161,7 +155,7 @@ class DeviceWorker:
     """One device's worker process, seen from the daemon; records what it publishes.
 
     ``schemas`` are the device's channel groups (built by the daemon from the driver's
-    schema, the same the worker builds); ``recorder``: where its messages and health go.
+    schema, the same the worker builds); ``recording``: where its messages and health go.
     """
 
     def __init__(
@@ -173,33 +167,25 @@ class DeviceWorker:
         zc: ZenohConfig,
         utc_offset_ns: int,
         *,
-        recorder: BackgroundRecorder | None = None,
-        health_channel: int | None = None,
+        recording: DeviceRecording | None = None,
     ) -> None:
-        from daq.pipeline import recorder_meta, viewer_for
-
         self.dev = dev
         self.schemas = schemas
-        self.recorder = recorder
+        self.recording = recording
         self.recorded = 0  # data messages written to the recorder
         self.restarts = 0  # times the worker ended by itself and was started again
         self.last_health: dict[str, Any] | None = None
         self._subs: list[Any] = []
-        self._viewers: list[Any] = []
         self._spec = json.dumps(worker_spec(cfg, dev, zc, utc_offset_ns))
         self.proc: subprocess.Popen[str] | None = None
         self._lock = threading.Lock()
         hk = health_key(cfg.cell.name, dev.robot, dev.name)
         self._subs.append(session.declare_subscriber(hk, self._on_health))
-        self._health_channel = health_channel
-        if recorder is not None:
+        if recording is not None:
             for gi, s in enumerate(schemas):
-                cid = recorder.add_columnar(s, recorder_meta(s))
-                viewer = viewer_for(recorder, cfg, dev, s, gi == 0)
-                self._viewers.append(viewer)
                 self._subs.append(
                     session.declare_subscriber(
-                        s.key, zenoh.handlers.Callback(self._recording(cid, s, viewer))
+                        s.key, zenoh.handlers.Callback(self._recorder_of(recording, gi, s))
                     )
                 )
 
@@ -207,18 +193,15 @@ class DeviceWorker:
     def keys(self) -> list[str]:
         return [s.key for s in self.schemas]
 
-    def _recording(self, cid: int, s: StreamSchema, viewer: Any) -> Any:
-        assert self.recorder is not None
-        rec = self.recorder
-
+    def _recorder_of(
+        self, recording: DeviceRecording, group: int, s: StreamSchema
+    ) -> Callable[[zenoh.Sample], None]:
         def on_data(sample: zenoh.Sample) -> None:
             payload = sample.payload.to_bytes()
             t = time.time_ns()
             try:
                 seq = read_header(payload).batch_seq
-                rec.write(cid, payload, t, t, seq)
-                if viewer is not None and viewer.due(t):  # decoded at a bounded rate
-                    viewer.add(decode(s, payload)[1], t)
+                recording.write(group, (payload,), t, seq, lambda: decode(s, payload)[1])
             except DaqError as exc:
                 log.warning("%s: not recorded: %s", s.key, exc)
             with self._lock:
@@ -233,9 +216,8 @@ class DeviceWorker:
         except ValueError:
             return
         self.last_health = doc
-        if self.recorder is not None and self._health_channel is not None:
-            t = time.time_ns()
-            self.recorder.write(self._health_channel, data, t, t)
+        if self.recording is not None:
+            self.recording.write_health(data)
 
     def start(self) -> None:
         self.proc = subprocess.Popen(
@@ -295,7 +277,7 @@ class DeviceWorker:
 
     def _drain(self, published: int) -> None:
         # the worker's last messages may still be on their way to the recorder
-        if self.recorder is None:
+        if self.recording is None:
             return
         t_end = time.monotonic() + DRAIN_S
         while self.recorded < published and time.monotonic() < t_end:
@@ -309,12 +291,6 @@ class DeviceWorker:
             except Exception:  # session already closed
                 log.debug("worker subscriber undeclare failed", exc_info=True)
         self._subs = []
-        t = time.time_ns()
-        with self._lock:  # the last points into the viewer channel
-            for v in self._viewers:
-                if v is not None:
-                    v.flush(t)
-            self._viewers = []
 
 
 if __name__ == "__main__":

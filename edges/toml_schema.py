@@ -2,16 +2,20 @@
 
 A table is a frozen dataclass: its fields are the keys, their type hints the value types
 (``bool``, ``int``, ``float``, ``str``, ``tuple[float, ...]``, ``tuple[float, float,
-float]``, ``X | None``, ``Literal[...]``, a nested dataclass for a sub-table), a default
-makes a key optional (unless the field's metadata says :data:`REQUIRED`), and a
-:class:`Range` (in the metadata, or in a ``ranges`` map by dotted key) bounds a number and
-says its unit. :func:`build` turns a parsed table into the dataclass; :class:`TomlTable`
-reads the few tables whose keys are data (an effect's parameters, a scale map's terms)
-with the same checks and messages. :func:`parse_toml_file` reads a file bounded, as UTF-8
-(with or without a byte-order mark), refusing NUL bytes.
+float]``, ``tuple[str, ...]``, ``X | None``, ``Literal[...]``, ``Mapping[str, Any]`` for a
+table taken as it is, a nested dataclass for a sub-table), a default makes a key optional
+(unless the field's metadata is :data:`REQUIRED`), and the metadata :func:`key_spec` adds
+a :class:`Range` (or a ``ranges`` map by dotted key) that bounds a number and says its
+unit, the allowed values of a key, or a check of its own. :func:`build` turns a parsed
+table into the dataclass; :class:`TomlTable` reads the few tables whose keys are data (an
+effect's parameters, a scale map's terms) with the same checks and messages.
+:func:`parse_toml_file` reads a file bounded, as UTF-8 (with or without a byte-order
+mark), refusing NUL bytes.
 
 Every mistake is one line: ``FILE: [table]: key 'k': must be in 1..20000 (Hz), got 0``.
-TOML allows ``nan`` and ``inf``: a number must be finite unless its range admits ``inf``.
+A value set elsewhere than in the file (an environment variable, a command-line option)
+is named by its origin instead of the file (``origins``, by dotted key). TOML allows
+``nan`` and ``inf``: a number must be finite unless its range admits ``inf``.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import math
 import tomllib
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
@@ -93,15 +97,37 @@ NON_NEGATIVE = Range(0.0)
 #: Field metadata: the key must be in the file although the dataclass has a default.
 REQUIRED: Mapping[str, Any] = types.MappingProxyType({"required": True})
 
+#: A check of a value beyond its type and range: why it is refused, or None.
+Check = Callable[[Any], str | None]
 
-def key_spec(*, required: bool = False, range: Range | None = None) -> dict[str, Any]:
-    """Field metadata for :func:`build` (``field(default=..., metadata=key_spec(...))``)."""
-    return {"required": required, "range": range}
+
+def key_spec(
+    *,
+    range: Range | None = None,
+    choices: Sequence[Any] | None = None,
+    check: Check | None = None,
+) -> dict[str, Any]:
+    """Field metadata for :func:`build` (``field(default=..., metadata=key_spec(...))``):
+    a number's ``range``, the allowed values (``choices``, as a ``Literal`` hint says),
+    a ``check`` of the value read."""
+    return {"range": range, "choices": choices, "check": check}
 
 
 def where(path: tuple[str, ...]) -> str:
     """A table's name in messages: ``[a.b]``, or ``top level``."""
     return f"[{'.'.join(path)}]" if path else "top level"
+
+
+def origins_at(origins: Mapping[str, str] | None, path: tuple[str, ...]) -> dict[str, str]:
+    """The origins of the keys of the table at ``path``, by key (``origins``: by dotted
+    key, as :func:`build` takes them)."""
+    table = ".".join(path)
+    out = {}
+    for dotted, origin in (origins or {}).items():
+        parent, _, key = dotted.rpartition(".")
+        if parent == table:
+            out[key] = origin
+    return out
 
 
 def short(value: Any) -> str:
@@ -144,18 +170,29 @@ def parse_toml_file(path: str | Path, error: type[Exception], what: str) -> dict
 # -- one table -------------------------------------------------------------------------------
 class TomlTable:
     """Typed access to one parsed TOML table; every error is ``error`` naming the file
-    (``source``), the table (``name``) and the key."""
+    (``source``; a key's own origin when ``origins`` has it), the table (``name``) and
+    the key."""
 
-    def __init__(self, data: Any, source: str, name: str, error: type[Exception]) -> None:
+    def __init__(
+        self,
+        data: Any,
+        source: str,
+        name: str,
+        error: type[Exception],
+        origins: Mapping[str, str] | None = None,
+    ) -> None:
         self.source, self.name, self.error = source, name, error
+        self.origins: Mapping[str, str] = origins or {}
         if not isinstance(data, dict):
             raise self.fail(None, f"expected a table, got {short(data)}")
         self.data: dict[str, Any] = data
 
     def fail(self, key: str | None, message: str) -> Exception:
-        """The error to raise: ``FILE: TABLE: key 'KEY': MESSAGE``."""
-        loc = f"{self.source}: {self.name}" + (f": key '{key}'" if key is not None else "")
-        return self.error(f"{loc}: {message}")
+        """The error to raise: ``ORIGIN: TABLE: key 'KEY': MESSAGE``."""
+        if key is None:
+            return self.error(f"{self.source}: {self.name}: {message}")
+        origin = self.origins.get(key, self.source)
+        return self.error(f"{origin}: {self.name}: key '{key}': {message}")
 
     def check_keys(self, allowed: set[str] | list[str]) -> None:
         unknown = sorted(set(self.data) - set(allowed))
@@ -208,6 +245,23 @@ class TomlTable:
             raise self.fail(key, f"expected true or false, got {short(v)}")
         return v
 
+    def choice(self, key: str, value: Any, choices: Sequence[Any]) -> Any:
+        """One of ``choices`` (``true`` is not ``1``)."""
+        if not any(type(value) is type(c) and value == c for c in choices):
+            allowed = ", ".join(_toml_text(c) for c in choices)
+            raise self.fail(key, f"must be one of {allowed}, got {value!r}")
+        return value
+
+    def strings(self, key: str, value: Any = None) -> tuple[str, ...]:
+        """An array of non-empty strings."""
+        v = self.get(key) if value is None else value
+        if not isinstance(v, list):
+            raise self.fail(key, f"expected an array of strings, got {short(v)}")
+        for x in v:
+            if not isinstance(x, str) or not x.strip():
+                raise self.fail(key, f"expected an array of non-empty strings, got {short(x)}")
+        return tuple(v)
+
     def numbers(
         self,
         key: str,
@@ -238,6 +292,13 @@ class TomlTable:
         sub = f"[{key}]" if self.name == "top level" else f"{self.name}.{key}"
         return TomlTable(self.get(key) if value is None else value, self.source, sub, self.error)
 
+    def mapping(self, key: str, value: Any = None) -> dict[str, Any]:
+        """A sub-table taken as it is (its keys and values are someone else's to check)."""
+        v = self.get(key) if value is None else value
+        if not isinstance(v, dict):
+            raise self.fail(key, f"expected a table, got {short(v)}")
+        return dict(v)
+
     def number_table(self, key: str) -> dict[str, float]:
         """A sub-table whose keys are names and whose values are finite numbers."""
         sub = self.table(key)
@@ -264,13 +325,17 @@ def build(
     path: tuple[str, ...] = (),
     name: str | None = None,
     ranges: Mapping[str, Range] | None = None,
+    origins: Mapping[str, str] | None = None,
 ) -> T:
     """The dataclass ``cls`` from the parsed table ``data`` at ``path`` (dotted keys into
-    ``ranges``; ``name`` overrides the table's name in messages, e.g. ``[[joint]] #2``).
+    ``ranges`` and ``origins``; ``name`` overrides the table's name in messages, e.g.
+    ``[[joint]] #2``). ``origins``: where a value came from when not from ``source``
+    (``{"zenoh.mode": "environment DAQ_ZENOH_MODE"}``), named in its messages instead.
 
-    Unknown keys, missing required ones, wrong types and numbers outside their range are
-    ``error``; nested dataclass fields are sub-tables, built the same way."""
-    table = TomlTable(data, source, name or where(path), error)
+    Unknown keys, missing required ones, wrong types, numbers outside their range, values
+    not among the key's choices and values its check refuses are ``error``; nested
+    dataclass fields are sub-tables, built the same way."""
+    table = TomlTable(data, source, name or where(path), error, origins_at(origins, path))
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
     unknown = sorted(set(table.data) - set(fields))
@@ -289,8 +354,21 @@ def build(
                 raise table.fail(key, "missing")
             continue
         rng = f.metadata.get("range") or (ranges or {}).get(".".join((*path, key)), FINITE)
-        kwargs[key] = _value(table, key, hints[key], rng, path, ranges)
+        choices = f.metadata.get("choices")
+        if choices is not None:
+            kwargs[key] = table.choice(key, table.data[key], choices)
+        else:
+            kwargs[key] = _value(table, key, hints[key], rng, path, ranges, origins)
+        check: Check | None = f.metadata.get("check")
+        refusal = check(kwargs[key]) if check is not None else None
+        if refusal is not None:
+            raise table.fail(key, refusal)
     return cls(**kwargs)
+
+
+def _toml_text(value: Any) -> str:
+    """A value as a message shows it: ``true``, ``'auto'``."""
+    return str(value).lower() if isinstance(value, bool) else repr(value)
 
 
 def _value(
@@ -300,12 +378,13 @@ def _value(
     rng: Range,
     path: tuple[str, ...],
     ranges: Mapping[str, Range] | None,
+    origins: Mapping[str, str] | None,
 ) -> Any:
     value = table.data[key]
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (types.UnionType, typing.Union) and type(None) in args:
         inner = [a for a in args if a is not type(None)]
-        return _value(table, key, inner[0], rng, path, ranges)
+        return _value(table, key, inner[0], rng, path, ranges, origins)
     if isinstance(hint, type) and dataclasses.is_dataclass(hint):
         return build(
             hint,
@@ -314,12 +393,14 @@ def _value(
             error=table.error,
             path=(*path, key),
             ranges=ranges,
+            origins=origins,
         )
     if origin is Literal:
-        if value not in args:
-            choices = ", ".join(repr(a) for a in args)
-            raise table.fail(key, f"must be one of {choices}, got {value!r}")
-        return value
+        return table.choice(key, value, args)
+    if origin is Mapping:
+        return table.mapping(key, value)
+    if origin is tuple and args[0] is str:
+        return table.strings(key, value)
     if origin is tuple:
         integer = args[0] is int
         length = None if len(args) == 2 and args[1] is Ellipsis else len(args)

@@ -109,3 +109,13 @@ def test_client_mode_needs_a_router():
         cfg.loads('[zenoh]\nmode = "client"\n')
     c = cfg.loads('[zenoh]\nmode = "client"\nconnect = ["tcp/127.0.0.1:7447"]\n')
     assert c.zenoh.listen == ()
+
+
+def test_a_list_key_takes_a_comma_separated_string_in_the_file_too():
+    c = cfg.loads(
+        '[zenoh]\nlisten = "tcp/127.0.0.1:1, tcp/127.0.0.1:2"\nconnect = ""\n'
+        '[[device]]\nname = "t"\ndriver = "tracker_ascii"\nurl = "socket://h:1"\n'
+        'channels = { xyz = "x_mm,y_mm, z_mm" }\n'
+    )
+    assert c.zenoh.listen == ("tcp/127.0.0.1:1", "tcp/127.0.0.1:2") and c.zenoh.connect == ()
+    assert c.devices[0].channels == (cfg.ChannelGroup("xyz", ("x_mm", "y_mm", "z_mm")),)

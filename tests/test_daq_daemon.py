@@ -200,7 +200,7 @@ def test_unplug_replug_loses_only_the_time_away(tmp_path):
                     continue
                 seqs.append(got.columns["seq"].copy())
             t.join()
-            health = daemon.streams[0].health(1.0)
+            health = daemon.devices[0].health(1.0)
     finally:
         sink.close()
     seq = np.concatenate(seqs)
@@ -210,3 +210,18 @@ def test_unplug_replug_loses_only_the_time_away(tmp_path):
     assert 900 <= jumps[0] - 1 <= 1300  # ... of about the second it was away (1 kHz)
     assert health["gaps"] == 1 and 900 <= health["samples_missing"] <= 1300
     assert 0.8 <= health["away_s"] <= 1.6 and health["reconnects"] >= 1
+
+
+def test_a_device_that_fails_to_build_is_the_error_the_daemon_raises(tmp_path):
+    """The second device names a channel its driver lacks: the daemon closes the first
+    one (never started) and raises the configuration error, not another."""
+    from daq.config import load
+    from daq.errors import ConfigError
+
+    second = (
+        '[[device]]\nname = "bad"\ndriver = "daq.testing:FakeDriver"\nurl = "fake://"\n'
+        'channels = { samples = ["nope_counts"] }\n'
+    )
+    cfg = load(write_config(tmp_path, free_port(), second), environ={})
+    with pytest.raises(ConfigError, match=r"'bad'.*no channel 'nope_counts'"):
+        Daemon(cfg, driver_factory=lambda dev: FakeDriver(dev.url))  # threads, always

@@ -13,8 +13,9 @@ import numpy as np
 
 from daq.bus import Receiver, SchemaServer, open_session
 from daq.config import DaqConfig, DeviceConfig
+from daq.device_recording import DeviceRecording
 from daq.echo import KeyStats
-from daq.pipeline import DeviceStream
+from daq.pipeline import DeviceStream, build_schemas
 from daq.testing import FAKE_SCHEMA, FakeDriver, free_port, loopback_source
 from drivers.base import SampleBatch
 
@@ -60,13 +61,14 @@ def stream(
     stop: threading.Event,
 ) -> DeviceStream:
     """The device stream of ``DEV`` on ``driver``, recording into ``rec``."""
+    groups = [g for g, _ in build_schemas(cfg, DEV, driver.schema, 0)]
     return DeviceStream(
         cfg,
         DEV,
         driver,
         session,
         schemas,
-        recorder=rec,  # type: ignore[arg-type]
+        recording=DeviceRecording(rec, cfg, DEV, groups),  # type: ignore[arg-type]
         utc_offset_ns=0,
         stop=stop,
     )

@@ -3,8 +3,9 @@ defaults and ranges; every mistake one line naming the file, the table and the k
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import pytest
 from hypothesis import given, settings
@@ -79,6 +80,52 @@ def test_each_mistake_is_one_line_naming_file_table_and_key(text, words):
     assert message.startswith("f.toml: ") and "\n" not in message
     for w in words:
         assert w in message, (w, message)
+
+
+def _odd(value: int) -> str | None:
+    return None if value % 2 else f"must be odd, got {value}"
+
+
+@dataclass(frozen=True)
+class Link:
+    mode: bool | str = field(default="auto", metadata=key_spec(choices=(True, False, "auto")))
+    hosts: tuple[str, ...] = ()
+    extra: Mapping[str, Any] = field(default_factory=dict)
+    port: int = field(default=1, metadata=key_spec(range=Range(1), check=_odd))
+
+
+@dataclass(frozen=True)
+class Doc:
+    link: Link = field(default_factory=Link)
+
+
+def test_choices_string_arrays_data_tables_and_checks():
+    doc = {"link": {"mode": True, "hosts": ["a", "b"], "extra": {"x/y": [1]}, "port": 3}}
+    assert build(Doc, doc, source="f.toml", error=Bad).link == Link(
+        True, ("a", "b"), {"x/y": [1]}, 3
+    )
+    for table, words in [
+        ({"mode": 1}, "key 'mode': must be one of true, false, 'auto', got 1"),  # 1 is not true
+        ({"hosts": "a"}, "key 'hosts': expected an array of strings, got str 'a'"),
+        ({"hosts": ["a", ""]}, "key 'hosts': expected an array of non-empty strings, got str ''"),
+        ({"extra": 3}, "key 'extra': expected a table, got int 3"),
+        ({"port": 0}, "key 'port': must be >= 1, got 0"),
+        ({"port": 4}, "key 'port': must be odd, got 4"),
+    ]:
+        with pytest.raises(Bad) as info:
+            build(Doc, {"link": table}, source="f.toml", error=Bad)
+        assert str(info.value) == f"f.toml: [link]: {words}"
+
+
+def test_a_value_from_elsewhere_is_named_by_its_origin():
+    origins = {"link.port": "environment LINK_PORT", "link": "not a key of [link]"}
+    doc = {"link": {"port": 4, "mode": "auto"}}
+    with pytest.raises(Bad) as info:
+        build(Doc, doc, source="f.toml", error=Bad, origins=origins)
+    assert str(info.value) == "environment LINK_PORT: [link]: key 'port': must be odd, got 4"
+    with pytest.raises(Bad) as info:  # the file's own values are still the file's
+        build(Doc, {"link": {"mode": "x"}}, source="f.toml", error=Bad, origins=origins)
+    assert str(info.value).startswith("f.toml: [link]: key 'mode': ")
 
 
 def test_files_are_read_bounded_and_as_utf8(tmp_path):

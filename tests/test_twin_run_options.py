@@ -24,6 +24,12 @@ PY = sys.executable
         (["--effects-radius-deg", "30"], "--effects-radius-deg"),
         (["--frames-hz", "inf"], "--frames-hz"),
         (["--wait-s", "0"], "--wait-s"),
+        (["--idle-s", "0"], "--idle-s"),
+        (["--idle-s", "nan"], "--idle-s"),
+        (["--collect-s", "-1"], "--collect-s"),
+        (["--collect-s", "inf"], "--collect-s"),
+        (["--publish-s", "nan"], "--publish-s"),
+        (["--publish-s", "-5"], "--publish-s"),
     ],
 )
 def test_live_options_are_refused_in_one_line(tmp_path, extra, word):
