@@ -26,7 +26,7 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
-## The type checker: strict on calibration/, drivers/, edges/, sim_devices/ and view/ (pyproject.toml [tool.mypy]).
+## The type checker: strict on every package (pyproject.toml [tool.mypy]).
 types: $(STAMP)
 	$(BIN)/mypy
 

@@ -104,7 +104,9 @@ class SchemaServer:
         self._schemas: dict[str, bytes] = {}
         self._lock = threading.Lock()
         self._session = session
-        self._queryable = session.declare_queryable(f"{prefix}/**/{SCHEMA_SUFFIX}", self._on_query)
+        self._queryable: zenoh.Queryable[None] | None = session.declare_queryable(
+            f"{prefix}/**/{SCHEMA_SUFFIX}", self._on_query
+        )
 
     def register(self, key: str, schema_json: bytes, *, announce: bool = True) -> None:
         with self._lock:

@@ -97,7 +97,7 @@ class DeviceClockMap:
         wrapped = (raw - prev) < -(w // 2)
         steps = np.cumsum(wrapped)
         self.wraps += int(steps[-1])
-        out = raw + (self._wrap_base + steps * w)
+        out: NDArray[np.int64] = raw + (self._wrap_base + steps * w)
         self._wrap_base += int(steps[-1]) * w
         self._last_raw = int(raw[-1])
         return out

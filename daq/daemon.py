@@ -175,10 +175,10 @@ class Daemon:
         entry = self._twin_channels.get(got.key)
         if entry is None:
             cid = self.recorder.add_columnar(got.schema, recorder_meta(got.schema))
-            viewer = StreamViewer(
+            made = StreamViewer(
                 self.recorder, got.schema, rate_hz=self.cfg.recording.viewer_rate_hz
             )
-            entry = self._twin_channels[got.key] = (cid, viewer if viewer.active else None)
+            entry = self._twin_channels[got.key] = (cid, made if made.active else None)
         cid, viewer = entry
         self.recorder.write(cid, got.payload, t, t, got.header.batch_seq)
         if viewer is not None and viewer.due(t):

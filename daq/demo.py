@@ -90,7 +90,7 @@ def prepare(args: argparse.Namespace, sim: Path) -> tuple[str, float]:
 
 def record(
     args: argparse.Namespace, out_dir: Path, mcap: Path, prepared: tuple[str, float] | None = None
-) -> dict:
+) -> dict[str, Any]:
     sim = out_dir / "sim-cell.toml"
     text, length = prepared or prepare(args, sim)
     sim.write_text(text, encoding="utf-8")

@@ -226,6 +226,7 @@ def run_echo(
             signal.signal(sig, lambda *_: stop.set())
     stats: dict[str, KeyStats] = {}
     health: dict[str, Any] = {}
+    lines: IO[str] | None = None if callable(jsonl) else jsonl  # opened with the session
 
     failed: list[BaseException] = []  # raised on zenoh's thread: re-raised on this one
 
@@ -249,8 +250,8 @@ def run_echo(
         except ValueError:
             return
         health[key] = doc
-        if jsonl is not None:
-            jsonl.write(json.dumps({"key": key, "json": doc}) + "\n")
+        if lines is not None:
+            lines.write(json.dumps({"key": key, "json": doc}) + "\n")
         elif not quiet:
             print(f"{key} {json.dumps(doc)}", flush=True)
 
@@ -267,14 +268,14 @@ def run_echo(
         if st is None:  # not setdefault: that would build a KeyStats for every message
             st = stats[got.key] = KeyStats()
         st.add(got.header, got.columns, got.t_recv_ns)
-        if jsonl is not None:
+        if lines is not None:
             rec = {
                 "key": got.key,
                 "batch_seq": got.header.batch_seq,
                 "t_recv_ns": got.t_recv_ns,
                 "columns": _jsonable(got.columns),
             }
-            jsonl.write(json.dumps(rec) + "\n")
+            lines.write(json.dumps(rec) + "\n")
         elif not quiet:
             c = got.columns
             seq = c.get("seq")
@@ -289,7 +290,7 @@ def run_echo(
     recv: Receiver | None = None
     try:
         if callable(jsonl):
-            jsonl = jsonl()
+            lines = jsonl()
         recv = Receiver(
             session,
             key_expr,

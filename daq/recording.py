@@ -503,10 +503,10 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes:
             import zstandard
 
             with zstandard.ZstdDecompressor().stream_reader(data) as reader:
-                return reader.read(size + 1)
+                return bytes(reader.read(size + 1))
         import lz4.frame
 
-        return lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
+        return bytes(lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1))
     except ImportError as exc:
         raise _Bad(f"cannot decompress {compression}: {exc}") from None
     except Exception as exc:  # zstd/lz4 errors: the compressed bytes are damaged
@@ -791,7 +791,7 @@ class Recording:
 
 def _pread(fh: Any, at: int, n: int) -> bytes:
     fh.seek(at)
-    return fh.read(n)
+    return bytes(fh.read(n))
 
 
 def _top_record(op: int, body: bytes) -> tuple[list[Any], int]:

@@ -73,7 +73,7 @@ def replay(
     schemas = SchemaServer(session, "cell")
     out: dict[str, _Topic] = {}
     skipped: set[str] = set()
-    tokens: dict[str, Any] = {}
+    tokens: dict[tuple[str, str, str], Any] = {}
     cc = zenoh.CongestionControl.BLOCK if congestion == "block" else zenoh.CongestionControl.DROP
     t_wall0 = time.monotonic()
     passes = 0
@@ -116,9 +116,11 @@ def replay(
                     t = out[topic] = _Topic(
                         session.declare_publisher(topic, encoding=enc, congestion_control=cc)
                     )
-                    dev = (meta.get("cell"), meta.get("robot"), meta.get("device"))
-                    if all(dev) and dev not in tokens:
-                        tokens[dev] = session.liveliness().declare_token(device_key(*dev))
+                    cell, robot, device = meta.get("cell"), meta.get("robot"), meta.get("device")
+                    if cell and robot and device and (cell, robot, device) not in tokens:
+                        tokens[cell, robot, device] = session.liveliness().declare_token(
+                            device_key(cell, robot, device)
+                        )
                     if not waited:
                         deadline = time.monotonic() + wait_subscribers_s
                         while (

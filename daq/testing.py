@@ -13,11 +13,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from daq.config import ZenohConfig
-
-try:  # the fake driver needs the drivers package's base classes
-    from drivers.base import BatchSchema, ChannelSchema, Driver, SampleBatch
-except ImportError:  # pragma: no cover - drivers is part of this repository
-    Driver = object  # type: ignore[assignment,misc]
+from drivers.base import BatchSchema, ChannelSchema, Driver, SampleBatch
 
 
 def free_port() -> int:
@@ -60,19 +56,15 @@ def loopback_sink(port: int) -> ZenohConfig:
     return ZenohConfig(listen=(), connect=(f"tcp/127.0.0.1:{port}",))
 
 
-FAKE_SCHEMA = (
-    BatchSchema(
-        kind="fake",
-        channels=tuple(
-            ChannelSchema(f"grating{i + 1}_counts", "count", "int64", f"joint {i + 1}")
-            for i in range(3)
-        ),
-        status_bits={1: "valid"},
-        device_clock="fake µs clock",
-        source="in-process",
-    )
-    if Driver is not object
-    else None
+FAKE_SCHEMA = BatchSchema(
+    kind="fake",
+    channels=tuple(
+        ChannelSchema(f"grating{i + 1}_counts", "count", "int64", f"joint {i + 1}")
+        for i in range(3)
+    ),
+    status_bits={1: "valid"},
+    device_clock="fake µs clock",
+    source="in-process",
 )
 
 
@@ -84,7 +76,7 @@ _ZEROS_I32.flags.writeable = False
 _VALID.flags.writeable = False
 
 
-class FakeDriver(Driver):  # type: ignore[misc,valid-type]
+class FakeDriver(Driver):
     """A device sampling at ``rate_hz`` on its own drifting µs clock, in process.
 
     Samples are latched at host monotonic times ``t0 + k / rate``; the device clock reads
@@ -192,19 +184,15 @@ class FakeDriver(Driver):  # type: ignore[misc,valid-type]
         )
 
 
-GRATING6_SCHEMA = (
-    BatchSchema(
-        kind="fake_grating",
-        channels=tuple(
-            ChannelSchema(f"grating{i + 1}_counts", "count", "int64", f"joint {i + 1}")
-            for i in range(6)
-        ),
-        status_bits={1: "valid"},
-        device_clock="fake µs clock",
-        source="in-process",
-    )
-    if Driver is not object
-    else None
+GRATING6_SCHEMA = BatchSchema(
+    kind="fake_grating",
+    channels=tuple(
+        ChannelSchema(f"grating{i + 1}_counts", "count", "int64", f"joint {i + 1}")
+        for i in range(6)
+    ),
+    status_bits={1: "valid"},
+    device_clock="fake µs clock",
+    source="in-process",
 )
 
 
@@ -250,6 +238,8 @@ def recorded_columns(path: Any, key: str) -> dict[str, np.ndarray]:
 
     parts: dict[str, list[np.ndarray]] = {}
     for m in read_recording(path).messages_iter({key}):
+        if m.schema is None:
+            raise ValueError(f"{path}: {key} has no schema")
         _, cols = decode(StreamSchema.loads(m.schema.data), m.data)
         for k, v in cols.items():
             parts.setdefault(k, []).append(v)
