@@ -353,9 +353,6 @@ def run_closed_loop(
     geometric identification of the same poses. ``kinds`` (or ``settings.kinds``)
     restricts the candidate kinds. ``sweep_referenced``: see :func:`campaign_effect_data`
     (the gravity term then models the deflection relative to each sweep's configuration).
-
-    Long because the rounds of the search share their state (the model so far, its stages,
-    the candidates set aside); each step of a round is a function of its own.
     """
     started = time.perf_counter()
     tell = say or (lambda _text: None)
@@ -379,48 +376,9 @@ def run_closed_loop(
         else settings.penalty_per_parameter
     )
     stages, result = _first_stages(problem, geometric)
-    specs: tuple[EffectSpec, ...] = ()
-    last_round: list[CandidateScore] = []
-    rejected: list[Rejected] = []
-    set_aside: set[EffectSpec] = set()
     tell(f"closed loop: {len(library)} candidate effects")
-    while len(specs) < settings.max_effects:
-        offered = [s for s in library if s not in specs and s not in set_aside]
-        offered = [s for s in offered if not _same_slot(s, specs)]
-        if not offered:
-            last_round = []
-            break
-        scored = _score_round(problem, result, specs, offered, settings, penalty, span)
-        scores = scored.scores
-        if not scores[0].significant:
-            last_round = scores
-            best = scores[0]
-            tell(
-                f"closed loop: nothing significant left (best: {best.label}, "
-                f"CV gain {best.cv_gain:.1f} σ², corrected p {best.p_adjusted:.2g})"
-            )
-            break
-        chosen, reason = choose(scored.lin, scores, scored.columns)
-        step = _guarded(
-            _try_step(problem, result, specs, chosen.spec, scored.lin, scored.columns, tell),
-            problem,
-            stages[-1],
-            settings,
-        )
-        if isinstance(step, str):
-            rejected.append(Rejected(chosen.label, step))
-            set_aside.add(chosen.spec)
-            tell(f"closed loop: set aside {chosen.label}: {step}")
-            if len(rejected) >= settings.max_rejected:
-                last_round = scores
-                break
-            continue
-        specs, result = step.specs, step.result
-        stages.append(_effect_stage(step, chosen, reason, scored, stages[-1], problem))
-        tell(
-            f"closed loop: added {specs[-1].label} (CV gain {chosen.cv_gain:.1f} σ², "
-            f"F {chosen.f_statistic:.1f}, corrected p {chosen.p_adjusted:.2g}; {reason})"
-        )
+    search = _Search(problem, library, penalty, span, settings, tell)
+    last_round, rejected = search.run(stages, result)
     return ClosedLoopResult(
         stages=tuple(stages),
         last_round=tuple(last_round),
@@ -431,6 +389,67 @@ def run_closed_loop(
         kinds=tuple(KINDS) if allowed is None else tuple(allowed),
         rejected=tuple(rejected),
     )
+
+
+@dataclass(frozen=True, eq=False)
+class _Search:
+    """The search's fixed inputs: the problem, the candidate library, the penalty per
+    parameter (σ²), the campaign's time span (s), the settings and where to tell."""
+
+    problem: _Problem
+    library: list[EffectSpec]
+    penalty: float
+    span: tuple[float, ...]
+    settings: LoopSettings
+    tell: Callable[[str], None]
+
+    def run(
+        self, stages: list[Stage], result: IdentificationResult
+    ) -> tuple[list[CandidateScore], list[Rejected]]:
+        """Add effects round by round to ``stages`` (in place) from the geometric
+        ``result`` until no candidate is significant; the last round's scores and the
+        candidates set aside. One loop: its rounds share the model so far and the set aside."""
+        problem, settings, tell = self.problem, self.settings, self.tell
+        specs: tuple[EffectSpec, ...] = ()
+        rejected: list[Rejected] = []
+        set_aside: set[EffectSpec] = set()
+        while len(specs) < settings.max_effects:
+            offered = [s for s in self.library if s not in specs and s not in set_aside]
+            offered = [s for s in offered if not _same_slot(s, specs)]
+            if not offered:
+                return [], rejected
+            scored = _score_round(
+                problem, result, specs, offered, settings, self.penalty, self.span
+            )
+            scores = scored.scores
+            if not scores[0].significant:
+                best = scores[0]
+                tell(
+                    f"closed loop: nothing significant left (best: {best.label}, "
+                    f"CV gain {best.cv_gain:.1f} σ², corrected p {best.p_adjusted:.2g})"
+                )
+                return scores, rejected
+            chosen, reason = choose(scored.lin, scores, scored.columns)
+            step = _guarded(
+                _try_step(problem, result, specs, chosen.spec, scored.lin, scored.columns, tell),
+                problem,
+                stages[-1],
+                settings,
+            )
+            if isinstance(step, str):
+                rejected.append(Rejected(chosen.label, step))
+                set_aside.add(chosen.spec)
+                tell(f"closed loop: set aside {chosen.label}: {step}")
+                if len(rejected) >= settings.max_rejected:
+                    return scores, rejected
+                continue
+            specs, result = step.specs, step.result
+            stages.append(_effect_stage(step, chosen, reason, scored, stages[-1], problem))
+            tell(
+                f"closed loop: added {specs[-1].label} (CV gain {chosen.cv_gain:.1f} σ², "
+                f"F {chosen.f_statistic:.1f}, corrected p {chosen.p_adjusted:.2g}; {reason})"
+            )
+        return [], rejected
 
 
 def _first_stages(
