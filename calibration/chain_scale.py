@@ -154,9 +154,7 @@ def calibrate_scales(
         upstream, missing, largest = _upstream(sweep, done) if chain else ([], (), {})
         unseen = None if link_rotations_rad is None else link_rotations_rad.get(j)
         if unseen is not None:
-            own = (JointAxis.of(circle_only), np.asarray(unseen)[:, j - 1])
-            upstream = [(a, d + np.asarray(unseen)[:, a.joint - 1]) for a, d in upstream]
-            upstream.append(own)  # the swept link itself turns after its ring
+            upstream = _with_unseen(upstream, JointAxis.of(circle_only), np.asarray(unseen), j)
         if not upstream:
             done[j] = circle_only
             continue
@@ -171,25 +169,36 @@ def calibrate_scales(
         if unseen is not None:
             note += f"; modelled deflection after the rings taken out (joints 1..{j})"
         done[j] = replace(done[j], notes=(*done[j].notes, note))
-        own_arcsec: tuple[float, float] | None = None
-        up: dict[int, float] | None = None
-        if unseen is not None:
-            arcsec = np.degrees(np.asarray(unseen, dtype=float)) * 3600.0
-            own_arcsec = (
-                float(np.sqrt(np.mean(arcsec[:, j - 1] ** 2))),
-                float(np.abs(arcsec[:, j - 1]).max()),
-            )
-            up = {i: float(np.abs(arcsec[:, i - 1]).max()) for i in range(1, j)}
         corrections[j] = ChainCorrection(
             j,
             tuple(a.joint for a, _ in upstream if a.joint != j),
             largest,
             circle_only,
             missing,
-            own_arcsec,
-            up,
+            *_modelled_deflection_arcsec(unseen, j),
         )
     return ScaleCampaignResult(tuple(done[j] for j in sorted(done)), corrections)
+
+
+def _with_unseen(
+    upstream: list[tuple[JointAxis, FloatArray]], own_axis: JointAxis, unseen: FloatArray, j: int
+) -> list[tuple[JointAxis, FloatArray]]:
+    """The upstream joints' angles plus the rotations no grating sees ``unseen`` ``(S, n)``
+    rad, and joint ``j``'s own axis with its link's: the swept link itself turns after its
+    ring."""
+    return [(a, d + unseen[:, a.joint - 1]) for a, d in upstream] + [(own_axis, unseen[:, j - 1])]
+
+
+def _modelled_deflection_arcsec(
+    unseen: FloatArray | None, j: int
+) -> tuple[tuple[float, float] | None, dict[int, float] | None]:
+    """The modelled deflection taken out of joint ``j``'s map: its own link's RMS and
+    largest (″), and each upstream link's largest (None without a model)."""
+    if unseen is None:
+        return None, None
+    arcsec = np.degrees(np.asarray(unseen, dtype=float)) * 3600.0
+    own = (float(np.sqrt(np.mean(arcsec[:, j - 1] ** 2))), float(np.abs(arcsec[:, j - 1]).max()))
+    return own, {i: float(np.abs(arcsec[:, i - 1]).max()) for i in range(1, j)}
 
 
 def _upstream(

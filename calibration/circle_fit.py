@@ -384,6 +384,32 @@ def fit_circle_3d(
     noise, exceeds the χ²₂ quantile at ``outlier_alpha / N`` (at most ``max_outliers``
     points, default ``max(1, N // 25)``).
     """
+    pts, sigma = _checked_inputs(points_mm, sigma_mm)
+    n = len(pts)
+    if max_outliers is None:
+        max_outliers = max(1, n // 25)
+    inlier, core = _without_wild_points(pts, sigma, max_outliers, outlier_alpha)
+    fit = CircleFit(
+        centre_mm=core.centre,
+        normal=core.normal,
+        axis_u=core.u,
+        radius_mm=core.radius,
+        points_mm=pts,
+        sigma_mm=sigma,
+        inlier=inlier,
+        variance_factor=core.s2,
+        parameter_covariance=core.s2 * core.covariance_unit,
+        optimize_result=core.result,
+        start_radius_mm=core.start_radius,
+    )
+    steps = np.diff(np.unwrap(fit.angle_rad[inlier]))
+    return fit.flipped() if steps.sum() < 0 else fit
+
+
+def _checked_inputs(
+    points_mm: ArrayLike, sigma_mm: ArrayLike | float | None
+) -> tuple[FloatArray, FloatArray]:
+    """The points ``(N, 3)`` mm and their σ ``(N,)`` (ones when not given), checked."""
     pts = np.asarray(points_mm, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise CircleFitError(f"points must have shape (N, 3), got {pts.shape}")
@@ -393,15 +419,19 @@ def fit_circle_3d(
     if not np.all(np.isfinite(pts)):
         raise CircleFitError("points must be finite (no NaN or inf)")
     if sigma_mm is None:
-        sigma = np.ones(n)
-    else:
-        sigma = np.broadcast_to(np.asarray(sigma_mm, dtype=float), (n,)).copy()
-        if not np.all(np.isfinite(sigma) & (sigma > 0)):
-            raise CircleFitError("sigma must be finite and positive")
-    if max_outliers is None:
-        max_outliers = max(1, n // 25)
+        return pts, np.ones(n)
+    sigma = np.broadcast_to(np.asarray(sigma_mm, dtype=float), (n,)).copy()
+    if not np.all(np.isfinite(sigma) & (sigma > 0)):
+        raise CircleFitError("sigma must be finite and positive")
+    return pts, sigma
 
-    inlier = np.ones(n, dtype=bool)
+
+def _without_wild_points(
+    pts: FloatArray, sigma: FloatArray, max_outliers: int, outlier_alpha: float
+) -> tuple[NDArray[np.bool_], _Core]:
+    """Drop the worst point while, fitted without it, it lies beyond the χ²₂ limit (at
+    most ``max_outliers``); the points kept ``(N,)`` and their fit."""
+    inlier = np.ones(len(pts), dtype=bool)
     core = _fit_core(pts, sigma)
     while (~inlier).sum() < max_outliers and inlier.sum() > MIN_POINTS + 1:
         idx = np.flatnonzero(inlier)
@@ -419,19 +449,4 @@ def fit_circle_3d(
         if deleted / (candidate.s2 * inflation) <= limit:
             break
         inlier, core = trial, candidate
-
-    fit = CircleFit(
-        centre_mm=core.centre,
-        normal=core.normal,
-        axis_u=core.u,
-        radius_mm=core.radius,
-        points_mm=pts,
-        sigma_mm=sigma,
-        inlier=inlier,
-        variance_factor=core.s2,
-        parameter_covariance=core.s2 * core.covariance_unit,
-        optimize_result=core.result,
-        start_radius_mm=core.start_radius,
-    )
-    steps = np.diff(np.unwrap(fit.angle_rad[inlier]))
-    return fit.flipped() if steps.sum() < 0 else fit
+    return inlier, core

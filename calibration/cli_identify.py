@@ -15,6 +15,7 @@ import argparse
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -60,6 +61,11 @@ FloatArray = NDArray[np.float64]
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    _register_identify(sub)
+    _register_predict(sub)
+
+
+def _register_identify(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "identify",
         help="identify kinematic parameters from a campaign",
@@ -116,6 +122,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=run_identify)
 
+
+def _register_predict(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     q = sub.add_parser(
         "predict",
         help="predict tracker points from joint angles",
@@ -215,22 +223,7 @@ def _identify(
     if args.tracker_mpe_um:
         mpe_um, mpe_um_per_m = _mpe(args.tracker_mpe_um)
         point_sigma = tracker_sigma_mm(campaign.xyz_mm[idm], mpe_um, mpe_um_per_m)
-
-    def progress(it: int, norm: float, mu: float) -> None:
-        say(f"LM iteration {it}: error norm {norm:.6f} mm, damping {mu:.1e}")
-
-    def geometric_done(result: IdentificationResult) -> None:
-        _require_converged(result, "geometric")
-        ana = result.identifiability
-        say(
-            f"identified {ana.rank} of {len(ana.parameter_names)} parameters "
-            f"({len(ana.dropped)} dropped), condition number {ana.condition_number:.1f}; "
-            f"{result.optimize_result.message}"
-        )
-        for d in ana.dropped:
-            if d.reason.startswith((NO_EFFECT, RAN_AWAY)):
-                say(f"dropped {d.name}: {d.reason}")
-
+    narrator = _Narrator(say)
     try:
         cal = calibrate(
             desc,
@@ -241,18 +234,53 @@ def _identify(
             f_scale_mm=args.f_scale_mm,
             point_sigma_mm=point_sigma,
             loop_settings=_loop_settings(args),
-            progress=progress,
+            progress=narrator.lm_iteration,
             say=say,
-            on_geometric=geometric_done,
+            on_geometric=narrator.geometric_done,
         )
     except _NotConverged:
         raise
     except CalibrationError as exc:  # the data cannot be fitted: say which data
         raise IdentificationError(f"{args.data}: {exc}") from None
-    result, loop, calibrated = cal.result, cal.loop, cal.description
-    _require_converged(result, "final")
-    calibrated.save(out_path)
+    _require_converged(cal.result, "final")
+    cal.description.save(out_path)
+    return _reported(args, desc, campaign, cal.result, cal.loop, report_dir, say)
 
+
+@dataclass(frozen=True)
+class _Narrator:
+    """Tells the identification's progress through ``say``."""
+
+    say: Callable[[str], None]
+
+    def lm_iteration(self, it: int, norm: float, mu: float) -> None:
+        self.say(f"LM iteration {it}: error norm {norm:.6f} mm, damping {mu:.1e}")
+
+    def geometric_done(self, result: IdentificationResult) -> None:
+        """The geometric identification converged (else it stops the command): what it
+        identified and which parameters it dropped for no effect or running away."""
+        _require_converged(result, "geometric")
+        ana = result.identifiability
+        self.say(
+            f"identified {ana.rank} of {len(ana.parameter_names)} parameters "
+            f"({len(ana.dropped)} dropped), condition number {ana.condition_number:.1f}; "
+            f"{result.optimize_result.message}"
+        )
+        for d in ana.dropped:
+            if d.reason.startswith((NO_EFFECT, RAN_AWAY)):
+                self.say(f"dropped {d.name}: {d.reason}")
+
+
+def _reported(
+    args: argparse.Namespace,
+    desc: RobotDescription,
+    campaign: Campaign,
+    result: IdentificationResult,
+    loop: ClosedLoopResult | None,
+    report_dir: Path | None,
+    say: Callable[[str], None],
+) -> list[str]:
+    """The report written to the staged ``report_dir`` (when asked for); the lines to print."""
     from calibration.identification_report import build_report, write_report
 
     doc, errors = build_report(

@@ -259,6 +259,34 @@ class _Problem:
     def m(self) -> int:
         return len(self.meas)
 
+    @classmethod
+    def of_campaign(
+        cls,
+        description: RobotDescription,
+        campaign: Campaign,
+        identify_kwargs: dict[str, Any],
+        point_sigma_mm: ArrayLike | None,
+        *,
+        sweep_referenced: bool,
+    ) -> _Problem:
+        """The campaign's identification poses (weighted by ``point_sigma_mm`` ``(m,)`` as
+        :func:`~calibration.identification.identify` does) and its validation poses."""
+        nominal = KinematicModel.from_description(description)
+        data = campaign_effect_data(description, campaign, sweep_referenced=sweep_referenced)
+        masks = {s: campaign.mask(s) for s in ("identify", "validate")}
+        masks = {s: m for s, m in masks.items() if m.any()}
+        if "identify" not in masks:
+            raise IdentificationError("the campaign has no identification poses")
+        contexts = {s: EffectContext(description, data.subset(m)) for s, m in masks.items()}
+        points = {s: campaign.xyz_mm[m] for s, m in masks.items()}
+        ctx_id = contexts["identify"]
+        m = len(ctx_id.data)
+        prior = np.ones(m)
+        if point_sigma_mm is not None:
+            ps = np.broadcast_to(np.asarray(point_sigma_mm, dtype=float), (m,))
+            prior = (1.0 / np.sqrt(np.mean(1.0 / ps**2)) / ps) ** 2
+        return cls(nominal, ctx_id, points["identify"], prior, contexts, points, identify_kwargs)
+
     def identify(
         self, specs: tuple[EffectSpec, ...], start: FloatArray | None
     ) -> IdentificationResult:
@@ -328,20 +356,6 @@ def run_closed_loop(
     """
     started = time.perf_counter()
     tell = say or (lambda _text: None)
-    nominal = KinematicModel.from_description(description)
-    data = campaign_effect_data(description, campaign, sweep_referenced=sweep_referenced)
-    masks = {s: campaign.mask(s) for s in ("identify", "validate")}
-    masks = {s: m for s, m in masks.items() if m.any()}
-    if "identify" not in masks:
-        raise IdentificationError("the campaign has no identification poses")
-    contexts = {s: EffectContext(description, data.subset(m)) for s, m in masks.items()}
-    points = {s: campaign.xyz_mm[m] for s, m in masks.items()}
-    ctx_id = contexts["identify"]
-    m = len(ctx_id.data)
-    prior = np.ones(m)
-    if point_sigma_mm is not None:
-        ps = np.broadcast_to(np.asarray(point_sigma_mm, dtype=float), (m,))
-        prior = (1.0 / np.sqrt(np.mean(1.0 / ps**2)) / ps) ** 2
     id_kwargs = dict(
         start=start,
         loss=loss,
@@ -350,104 +364,21 @@ def run_closed_loop(
         point_sigma_mm=point_sigma_mm,
         progress=progress,
     )
-    problem = _Problem(nominal, ctx_id, points["identify"], prior, contexts, points, id_kwargs)
+    problem = _Problem.of_campaign(
+        description, campaign, id_kwargs, point_sigma_mm, sweep_referenced=sweep_referenced
+    )
     allowed = kinds if kinds is not None else settings.kinds
     span = _campaign_span(campaign)
-    library = [_with_span(s, span) for s in candidate_effects(ctx_id, allowed)]
+    library = [_with_span(s, span) for s in candidate_effects(problem.ctx, allowed)]
     penalty = (
-        math.log(3 * m)
+        math.log(3 * problem.m)
         if settings.penalty_per_parameter is None
         else settings.penalty_per_parameter
     )
-    reference = base_start_from_registration(nominal, ctx_id.data.q_rad, problem.meas)
-    stages = [
-        Stage("nominal", "nominal", reference, errors_mm=problem.errors(reference, (), np.zeros(0)))
-    ]
-    result = geometric or problem.identify((), None)
-    stages.append(
-        Stage(
-            "geometric",
-            "geometric calibration",
-            result.model,
-            result=result,
-            errors_mm=problem.errors(result.model, (), np.zeros(0)),
-        )
-    )
-    specs: tuple[EffectSpec, ...] = ()
-    last_round: list[CandidateScore] = []
-    rejected: list[Rejected] = []
-    set_aside: set[EffectSpec] = set()
-    set_name = _set_name(contexts)
+    stages, result = _first_stages(problem, geometric)
     tell(f"closed loop: {len(library)} candidate effects")
-    while len(specs) < settings.max_effects:
-        offered = [s for s in library if s not in specs and s not in set_aside]
-        offered = [s for s in offered if not _same_slot(s, specs)]
-        if not offered:
-            last_round = []
-            break
-        lin, sw, kin = problem.linearized(result, specs, settings)
-        scores, columns, profiles = _score_round(
-            problem, lin, sw, kin, offered, settings, penalty, span
-        )
-        scores.sort(key=lambda c: (not c.significant, c.n_parameters == 0, -c.score))
-        if not scores[0].significant:
-            last_round = scores
-            best = scores[0]
-            tell(
-                f"closed loop: nothing significant left (best: {best.label}, "
-                f"CV gain {best.cv_gain:.1f} σ², corrected p {best.p_adjusted:.2g})"
-            )
-            break
-        chosen, reason = choose(lin, scores, columns)
-        shape: dict[str, Any] = {}
-        if chosen.spec in profiles:
-            shape["time_constant"] = profiles[chosen.spec].as_dict()
-        step = _try_step(problem, result, specs, chosen.spec, lin, columns, tell)
-        errors: dict[str, FloatArray] = {}
-        why = ""
-        previous = stages[-1]
-        if isinstance(step, str):
-            why = step
-        else:
-            new_specs, new_result, form_info = step
-            shape.update(form_info)
-            errors = problem.errors(new_result.model, new_specs, new_result.effect_values)
-            before = previous.mean_ap(set_name)
-            after = mean_ap_mm(errors[set_name])
-            if settings.validation_guard and set_name == "validate" and after > before:
-                why = (
-                    f"the validation mean AP rose from {before:.4f} to {after:.4f} mm: step undone"
-                )
-        if why:
-            rejected.append(Rejected(chosen.label, why))
-            set_aside.add(chosen.spec)
-            tell(f"closed loop: set aside {chosen.label}: {why}")
-            if len(rejected) >= settings.max_rejected:
-                last_round = scores
-                break
-            continue
-        added_spec = new_specs[-1]
-        added = replace(chosen, spec=added_spec)
-        specs, result = new_specs, new_result
-        stage = Stage(
-            "effect",
-            f"+ {added_spec.label}",
-            result.model,
-            specs=specs,
-            effect_values=result.effect_values,
-            result=result,
-            errors_mm=errors,
-            added=added,
-            round_scores=tuple(scores),
-            reason=reason,
-            competitors=competitors(lin, chosen, scores, columns),
-            shape=shape,
-        )
-        stages.append(replace(stage, evidence=_evidence(stage, previous, added_spec, contexts)))
-        tell(
-            f"closed loop: added {added_spec.label} (CV gain {chosen.cv_gain:.1f} σ², "
-            f"F {chosen.f_statistic:.1f}, corrected p {chosen.p_adjusted:.2g}; {reason})"
-        )
+    search = _Search(problem, library, penalty, span, settings, tell)
+    last_round, rejected = search.run(stages, result)
     return ClosedLoopResult(
         stages=tuple(stages),
         last_round=tuple(last_round),
@@ -458,6 +389,150 @@ def run_closed_loop(
         kinds=tuple(KINDS) if allowed is None else tuple(allowed),
         rejected=tuple(rejected),
     )
+
+
+@dataclass(frozen=True, eq=False)
+class _Search:
+    """The search's fixed inputs: the problem, the candidate library, the penalty per
+    parameter (σ²), the campaign's time span (s), the settings and where to tell."""
+
+    problem: _Problem
+    library: list[EffectSpec]
+    penalty: float
+    span: tuple[float, ...]
+    settings: LoopSettings
+    tell: Callable[[str], None]
+
+    def run(
+        self, stages: list[Stage], result: IdentificationResult
+    ) -> tuple[list[CandidateScore], list[Rejected]]:
+        """Add effects round by round to ``stages`` (in place) from the geometric
+        ``result`` until no candidate is significant; the last round's scores and the
+        candidates set aside. One loop: its rounds share the model so far and the set aside."""
+        problem, settings, tell = self.problem, self.settings, self.tell
+        specs: tuple[EffectSpec, ...] = ()
+        rejected: list[Rejected] = []
+        set_aside: set[EffectSpec] = set()
+        while len(specs) < settings.max_effects:
+            offered = [s for s in self.library if s not in specs and s not in set_aside]
+            offered = [s for s in offered if not _same_slot(s, specs)]
+            if not offered:
+                return [], rejected
+            scored = _score_round(
+                problem, result, specs, offered, settings, self.penalty, self.span
+            )
+            scores = scored.scores
+            if not scores[0].significant:
+                best = scores[0]
+                tell(
+                    f"closed loop: nothing significant left (best: {best.label}, "
+                    f"CV gain {best.cv_gain:.1f} σ², corrected p {best.p_adjusted:.2g})"
+                )
+                return scores, rejected
+            chosen, reason = choose(scored.lin, scores, scored.columns)
+            step = _guarded(
+                _try_step(problem, result, specs, chosen.spec, scored.lin, scored.columns, tell),
+                problem,
+                stages[-1],
+                settings,
+            )
+            if isinstance(step, str):
+                rejected.append(Rejected(chosen.label, step))
+                set_aside.add(chosen.spec)
+                tell(f"closed loop: set aside {chosen.label}: {step}")
+                if len(rejected) >= settings.max_rejected:
+                    return scores, rejected
+                continue
+            specs, result = step.specs, step.result
+            stages.append(_effect_stage(step, chosen, reason, scored, stages[-1], problem))
+            tell(
+                f"closed loop: added {specs[-1].label} (CV gain {chosen.cv_gain:.1f} σ², "
+                f"F {chosen.f_statistic:.1f}, corrected p {chosen.p_adjusted:.2g}; {reason})"
+            )
+        return [], rejected
+
+
+def _first_stages(
+    problem: _Problem, geometric: IdentificationResult | None
+) -> tuple[list[Stage], IdentificationResult]:
+    """The nominal stage (its base registered on the points) and the geometric one (
+    ``geometric``, or identified here), and the geometric identification."""
+    reference = base_start_from_registration(problem.nominal, problem.ctx.data.q_rad, problem.meas)
+    nominal = Stage(
+        "nominal", "nominal", reference, errors_mm=problem.errors(reference, (), np.zeros(0))
+    )
+    result = geometric or problem.identify((), None)
+    return [
+        nominal,
+        Stage(
+            "geometric",
+            "geometric calibration",
+            result.model,
+            result=result,
+            errors_mm=problem.errors(result.model, (), np.zeros(0)),
+        ),
+    ], result
+
+
+@dataclass(frozen=True, eq=False)
+class _Step:
+    """A re-identification with one more effect that the validation set accepted."""
+
+    specs: tuple[EffectSpec, ...]  # the model's effects, the new one last
+    result: IdentificationResult
+    form: dict[str, Any]  # the gravity form decision (empty for other kinds)
+    errors_mm: dict[str, FloatArray]  # set -> (m, 3) tracker − twin
+
+
+def _guarded(
+    step: tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str,
+    problem: _Problem,
+    previous: Stage,
+    settings: LoopSettings,
+) -> _Step | str:
+    """The step of :func:`_try_step` with its errors per set, or why it is undone: it
+    failed, or (with the validation guard) it made the validation mean AP worse."""
+    if isinstance(step, str):
+        return step
+    new_specs, new_result, form_info = step
+    errors = problem.errors(new_result.model, new_specs, new_result.effect_values)
+    set_name = _set_name(problem.contexts)
+    before = previous.mean_ap(set_name)
+    after = mean_ap_mm(errors[set_name])
+    if settings.validation_guard and set_name == "validate" and after > before:
+        return f"the validation mean AP rose from {before:.4f} to {after:.4f} mm: step undone"
+    return _Step(new_specs, new_result, form_info, errors)
+
+
+def _effect_stage(
+    step: _Step,
+    chosen: CandidateScore,
+    reason: str,
+    scored: _Round,
+    previous: Stage,
+    problem: _Problem,
+) -> Stage:
+    """The stage of an accepted step: its round's scores, competitors, shape and evidence."""
+    shape: dict[str, Any] = {}
+    if chosen.spec in scored.profiles:
+        shape["time_constant"] = scored.profiles[chosen.spec].as_dict()
+    shape.update(step.form)
+    added_spec = step.specs[-1]
+    stage = Stage(
+        "effect",
+        f"+ {added_spec.label}",
+        step.result.model,
+        specs=step.specs,
+        effect_values=step.result.effect_values,
+        result=step.result,
+        errors_mm=step.errors_mm,
+        added=replace(chosen, spec=added_spec),
+        round_scores=tuple(scored.scores),
+        reason=reason,
+        competitors=competitors(scored.lin, chosen, scored.scores, scored.columns),
+        shape=shape,
+    )
+    return replace(stage, evidence=_evidence(stage, previous, added_spec, problem.contexts))
 
 
 def _campaign_span(campaign: Campaign) -> tuple[float, ...]:
@@ -481,19 +556,30 @@ def _same_slot(spec: EffectSpec, specs: tuple[EffectSpec, ...]) -> bool:
     return any(KINDS[s.kind].slot(s) == slot for s in specs)
 
 
+@dataclass(frozen=True, eq=False)
+class _Round:
+    """One round of the search: the model linearized at its solution, and every offered
+    candidate's weighted columns ``(3m, k)`` and score (significant first, then best CV
+    score first); a drift's time-constant profile."""
+
+    lin: LinearizedModel
+    scores: list[CandidateScore]
+    columns: dict[EffectSpec, FloatArray]
+    profiles: dict[EffectSpec, TimeConstantProfile]
+
+
 def _score_round(
     problem: _Problem,
-    lin: LinearizedModel,
-    sw: FloatArray,
-    kin: Kinematics,
+    result: IdentificationResult,
+    specs: tuple[EffectSpec, ...],
     offered: list[EffectSpec],
     settings: LoopSettings,
     penalty: float,
     span: tuple[float, ...],
-) -> tuple[
-    list[CandidateScore], dict[EffectSpec, FloatArray], dict[EffectSpec, TimeConstantProfile]
-]:
-    """Score every offered candidate; a drift is offered as a lag when the data says so."""
+) -> _Round:
+    """Score every offered candidate against the model ``result`` with ``specs``; a drift
+    is offered as a lag when the data says so."""
+    lin, sw, kin = problem.linearized(result, specs, settings)
     columns: dict[EffectSpec, FloatArray] = {}
     profiles: dict[EffectSpec, TimeConstantProfile] = {}
     extra: dict[EffectSpec, int] = {}
@@ -516,7 +602,8 @@ def _score_round(
         )
         for spec, cols in columns.items()
     ]  # fmt: skip
-    return scores, columns, profiles
+    scores.sort(key=lambda c: (not c.significant, c.n_parameters == 0, -c.score))
+    return _Round(lin, scores, columns, profiles)
 
 
 def _profile_lag(

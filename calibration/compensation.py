@@ -113,44 +113,25 @@ def compensate(
     the stated ``rpy_deg`` ``(m, 3)``. ``t_s`` ``(m,)``: times for drift terms;
     ``force_n`` ``(m, 3)``: a process force on the tool (N, tracker frame)."""
     target = np.asarray(target_mm, dtype=float).reshape(-1, 3)
-    m, n = len(target), description.n_joints
+    m = len(target)
     if (q_programmed_deg is None) == (rpy_deg is None):
         raise CompensationError("give either the programmed joints or the orientation")
     if not np.all(np.isfinite(target)):
         raise CompensationError("target positions must be finite")
-    force = None if force_n is None else np.asarray(force_n, dtype=float).reshape(m, 3)
-    if force is not None and not np.all(np.isfinite(force)):
-        raise CompensationError("process forces must be finite")
-    if force is not None and np.any(force) and not states_stiffness(description):
-        raise StiffnessError(
-            "a process force needs the joints' stiffness, and the model states none "
-            "([[joint]] stiffness_nmm_per_rad; `twin stiffness --load-test` measures them)"
-        )
-
-    def predict(rows: NDArray[np.intp], q_rad: FloatArray) -> FloatArray:
-        p = predict_tcp(description, q_rad, None if times is None else times[rows])
-        if force is not None:
-            p = p + force_deflection_mm(description, q_rad, force[rows])
-        return p
-
+    force = _checked_force(description, force_n, m)
     model = KinematicModel.from_description(description)
-    branch = np.full(m, -1)
     q_prog = None
     if q_programmed_deg is not None:
-        q_prog = np.asarray(q_programmed_deg, dtype=float).reshape(m, n)
-        q = np.radians(q_prog)
+        q_prog = np.asarray(q_programmed_deg, dtype=float).reshape(m, description.n_joints)
+        q, branch = np.radians(q_prog), np.full(m, -1)
         r_target = flange_poses(model, q)[:, :3, :3]
     else:
         r_target = rotation_xyz(np.asarray(rpy_deg, dtype=float).reshape(m, 3))
-        pose = np.zeros((m, 4, 4))
-        pose[:, :3, :3], pose[:, :3, 3], pose[:, 3, 3] = r_target, target, 1.0
-        limits = JointLimits.from_description(description)
-        ik = solve_ik(model, pose, frame="world", target="tcp", limits=limits, branches="chosen")
-        q = ik.chosen_rad.copy()
-        branch = np.where(ik.selection.found, ik.selection.index, -1)
+        q, branch = _ik_start(model, description, target, r_target)
     if not np.all(np.isfinite(q)) and q_prog is not None:
         raise CompensationError("programmed joints must be finite")
     times = None if t_s is None else np.asarray(t_s, dtype=float).reshape(m)
+    predict = _Prediction(description, times, force)
     iterations = _newton(model, predict, q, target, r_target, tol_mm, max_iterations)
     q_deg = np.degrees(q)
     finite = np.all(np.isfinite(q_deg), axis=1)
@@ -167,6 +148,52 @@ def compensate(
             deflection[ok] = force_deflection_mm(description, q[ok], force[ok])
     q_deg[~ok] = np.nan
     return CompensationResult(q_deg, residual, travel, branch, iterations, ok, reasons, deflection)
+
+
+def _checked_force(
+    description: RobotDescription, force_n: ArrayLike | None, m: int
+) -> FloatArray | None:
+    """The process forces ``(m, 3)`` N (None without), finite, and only on a model that
+    states its joints' stiffness."""
+    force = None if force_n is None else np.asarray(force_n, dtype=float).reshape(m, 3)
+    if force is not None and not np.all(np.isfinite(force)):
+        raise CompensationError("process forces must be finite")
+    if force is not None and np.any(force) and not states_stiffness(description):
+        raise StiffnessError(
+            "a process force needs the joints' stiffness, and the model states none "
+            "([[joint]] stiffness_nmm_per_rad; `twin stiffness --load-test` measures them)"
+        )
+    return force
+
+
+def _ik_start(
+    model: KinematicModel, description: RobotDescription, target: FloatArray, r_target: FloatArray
+) -> tuple[FloatArray, NDArray[np.int_]]:
+    """The nominal IK's chosen joints ``(m, n)`` rad for TCPs at ``target`` ``(m, 3)`` with
+    the flange rotations ``r_target`` ``(m, 3, 3)``, and the branch of each (−1: none)."""
+    m = len(target)
+    pose = np.zeros((m, 4, 4))
+    pose[:, :3, :3], pose[:, :3, 3], pose[:, 3, 3] = r_target, target, 1.0
+    limits = JointLimits.from_description(description)
+    ik = solve_ik(model, pose, frame="world", target="tcp", limits=limits, branches="chosen")
+    return ik.chosen_rad.copy(), np.where(ik.selection.found, ik.selection.index, -1)
+
+
+@dataclass(frozen=True)
+class _Prediction:
+    """Where the calibrated model puts the TCP ``(r, 3)`` mm for joints ``(r, n)`` rad of
+    the rows ``rows`` of the problem: effects at their times, deflected by their force."""
+
+    description: RobotDescription
+    times: FloatArray | None  # (m,) s
+    force: FloatArray | None  # (m, 3) N
+
+    def __call__(self, rows: NDArray[np.intp], q_rad: FloatArray) -> FloatArray:
+        times = None if self.times is None else self.times[rows]
+        p = predict_tcp(self.description, q_rad, times)
+        if self.force is not None:
+            p = p + force_deflection_mm(self.description, q_rad, self.force[rows])
+        return p
 
 
 def _newton(

@@ -168,8 +168,41 @@ def fit_physical_gravity(
     joints = tuple(sorted(blocks))
     y = -lin.fit0
     perp = {j: lin.perp(blocks[j]) for j in joints}
+    p, acting = _linear_form(blocks, perp, y)
+    shift = [float(np.linalg.norm(perp[j] @ p[i])) for i, j in enumerate(joints)]
+    ref = int(np.argmax(shift))
+    rho, w = _rank_one(p, acting, joints, ref)
+    free = [i for i in range(len(joints)) if i != ref]
+    # a moment with no column left once the model is projected out (one whose effect the
+    # geometry takes up entirely) is not determined: it starts and stays at 0, else it would
+    # be held at an arbitrary value
+    raw = sum(np.linalg.norm(blocks[j], axis=0) for j in joints)
+    seen = sum(np.linalg.norm(perp[j], axis=0) for j in joints)
+    undetermined = seen <= 1e-6 * raw  # the relative tolerance of the loop's rank test
+    w[undetermined] = 0.0
+    form = _PhysicalForm(perp, joints, free, np.flatnonzero(~undetermined), y)
+    x0 = np.concatenate([rho[free], w[form.keep]])
+    sol = least_squares(form.residual, x0, jac=form.jacobian, method="lm", xtol=1e-12, ftol=1e-12)
+    rho_hat, w_hat = form.unpack(sol.x)
+    sse = float(sol.fun @ sol.fun)
+    dof = max(len(y) - lin.jacobian.shape[1] - len(sol.x), 1)
+    jac = form.jacobian(sol.x)
+    cov = (sse / dof) * np.linalg.pinv(jac.T @ jac)
+    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    ratio_se, moment_se = form.unpack(se, held=0.0)  # an undetermined moment is held at 0
+    return PhysicalGravityFit(
+        joints, joints[ref], rho_hat, ratio_se, w_hat, moment_se, sse, bool(sol.success)
+    )
+
+
+def _linear_form(
+    blocks: dict[int, FloatArray], perp: dict[int, FloatArray], y: FloatArray
+) -> tuple[FloatArray, dict[int, NDArray[np.intp]]]:
+    """The linear form: free ``p_jk`` ``(J, b)`` on the moments acting on each joint j,
+    least squares on the columns with the model projected out ``perp``; the moments
+    acting on each joint."""
+    joints = tuple(sorted(blocks))
     b = next(iter(blocks.values())).shape[1]
-    # linear form: free p_jk on the moments acting on j
     acting = {j: np.flatnonzero(np.any(blocks[j] != 0.0, axis=0)) for j in joints}
     design = np.hstack([perp[j][:, acting[j]] for j in joints])
     coef, *_ = np.linalg.lstsq(design, y, rcond=None)
@@ -178,55 +211,45 @@ def fit_physical_gravity(
     for i, j in enumerate(joints):
         p[i, acting[j]] = coef[pos : pos + len(acting[j])]
         pos += len(acting[j])
-    shift = [float(np.linalg.norm(perp[j] @ p[i])) for i, j in enumerate(joints)]
-    ref = int(np.argmax(shift))
-    rho, w = _rank_one(p, acting, joints, ref)
-    free = [i for i in range(len(joints)) if i != ref]
+    return p, acting
 
-    # a moment with no column left once the model is projected out (one whose effect the
-    # geometry takes up entirely) is not determined: it starts and stays at 0, else it would
-    # be held at an arbitrary value
-    raw = sum(np.linalg.norm(blocks[j], axis=0) for j in joints)
-    seen = sum(np.linalg.norm(perp[j], axis=0) for j in joints)
-    undetermined = seen <= 1e-6 * raw  # the relative tolerance of the loop's rank test
-    w[undetermined] = 0.0
-    keep = np.flatnonzero(~undetermined)
 
-    def unpack(x: FloatArray) -> tuple[FloatArray, FloatArray]:
-        r = np.ones(len(joints))
-        r[free] = x[: len(free)]
-        ww = np.zeros(b)
-        ww[keep] = x[len(free) :]
+@dataclass(frozen=True, eq=False)
+class _PhysicalForm:
+    """``Σ_j ρ_j·C_j·w − y`` over the parameters ``x``: the ratios of the ``free`` joints
+    (the reference's is 1), then the moments ``keep`` (the others are held)."""
+
+    perp: dict[int, FloatArray]  # joint -> (3m, b) columns, the model projected out
+    joints: tuple[int, ...]
+    free: list[int]  # positions in ``joints``
+    keep: NDArray[np.intp]  # the determined moments
+    y: FloatArray  # (3m,)
+
+    def unpack(self, x: FloatArray, held: float = 1.0) -> tuple[FloatArray, FloatArray]:
+        """Ratios ``(J,)`` and moments ``(b,)`` of ``x``: the reference joint's ratio is
+        ``held`` (1; 0 when ``x`` holds standard errors), a held moment's 0."""
+        r = np.full(len(self.joints), held)
+        r[self.free] = x[: len(self.free)]
+        ww = np.zeros(next(iter(self.perp.values())).shape[1])
+        ww[self.keep] = x[len(self.free) :]
         return r, ww
 
-    def residual(x: FloatArray) -> FloatArray:
-        r, ww = unpack(x)
-        res: FloatArray = sum(r[i] * (perp[j] @ ww) for i, j in enumerate(joints)) - y
+    def residual(self, x: FloatArray) -> FloatArray:
+        r, ww = self.unpack(x)
+        res: FloatArray = (
+            sum(r[i] * (self.perp[j] @ ww) for i, j in enumerate(self.joints)) - self.y
+        )
         return res
 
-    def jacobian(x: FloatArray) -> FloatArray:
-        r, ww = unpack(x)
+    def jacobian(self, x: FloatArray) -> FloatArray:
+        r, ww = self.unpack(x)
         d_rho = (
-            np.column_stack([perp[joints[i]] @ ww for i in free]) if free else np.zeros((len(y), 0))
+            np.column_stack([self.perp[self.joints[i]] @ ww for i in self.free])
+            if self.free
+            else np.zeros((len(self.y), 0))
         )
-        d_w = sum(r[i] * perp[j] for i, j in enumerate(joints))
-        return np.hstack([d_rho, d_w[:, keep]])
-
-    x0 = np.concatenate([rho[free], w[keep]])
-    sol = least_squares(residual, x0, jac=jacobian, method="lm", xtol=1e-12, ftol=1e-12)
-    rho_hat, w_hat = unpack(sol.x)
-    sse = float(sol.fun @ sol.fun)
-    dof = max(len(y) - lin.jacobian.shape[1] - len(sol.x), 1)
-    jac = jacobian(sol.x)
-    cov = (sse / dof) * np.linalg.pinv(jac.T @ jac)
-    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    ratio_se = np.zeros(len(joints))
-    ratio_se[free] = se[: len(free)]
-    moment_se = np.zeros(b)  # an undetermined moment is held at 0
-    moment_se[keep] = se[len(free) :]
-    return PhysicalGravityFit(
-        joints, joints[ref], rho_hat, ratio_se, w_hat, moment_se, sse, bool(sol.success)
-    )
+        d_w = sum(r[i] * self.perp[j] for i, j in enumerate(self.joints))
+        return np.hstack([d_rho, d_w[:, self.keep]])
 
 
 def _rank_one(

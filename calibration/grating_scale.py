@@ -810,6 +810,9 @@ def calibrate_joint(
     comes from the sweep stops at the nominal Home, which needs ``home_deg`` and
     ``limits_deg`` of the joint). Raises :class:`ScaleError` when the data cannot give a
     calibration.
+
+    Long for the result's many fields; each step is a function (or a :class:`_Relation`
+    method) of its own.
     """
     opt = options or ScaleOptions()
     candidates = check_terms(opt.candidate_terms)
@@ -836,92 +839,25 @@ def calibrate_joint(
     u = ang.u_raw - zero_u
     s = np.where(ang.pass_name == "backward", 0.5, -0.5)
     two_passes = len(set(ang.pass_name.tolist())) == 2
-
-    def whitener() -> tuple[_Whitener, IntArray]:
-        idx = np.flatnonzero(inlier)
-        return _Whitener.build(d_all[idx], b_all[idx]), idx
-
-    white, idx = whitener()
-    base = _gls(theta[idx], np.column_stack([np.ones(idx.size), u[idx]]), white)
-    g0 = float(base.beta[1])
-    if g0 == 0 or not np.isfinite(g0):
-        raise ScaleError(f"joint {j}: counts do not change with the joint angle")
+    g0 = _first_order_gain(theta, u, _whitened(d_all, b_all, inlier), j)
     # each stop's angle about the relation also carries the read noise of its counts
     read_noise_rad = abs(g0) * math.sqrt(opt.read_noise_counts**2 + 1.0 / 12.0)
     d_circle = d_all
     d_all = d_all + read_noise_rad**2
-    white, idx = whitener()
-    span = u[inlier]
-    basis = RelationBasis(
-        phase_rad_per_count=g0,
-        nonlinear_centre_counts=0.5 * float(span.max() + span.min()),
-        nonlinear_half_span_counts=max(0.5 * float(span.max() - span.min()), 1.0),
-    )
+    basis = _basis_over(g0, u[inlier])
     usable = [t for t in candidates if t != "hysteresis" or two_passes]
-
-    def design(terms: Sequence[str]) -> FloatArray:
-        _, x = basis.columns(u, s, terms)
-        return np.column_stack([np.ones_like(u), x])
-
-    # wild angles (a tangential wild point is invisible to the circle), on the full model
-    for _ in range(max(1, int(inlier.sum()) // 25)):
-        k, z, limit = _worst_residual(theta[idx], design(usable)[idx], white, opt.outlier_alpha)
-        if abs(z) <= limit:
-            break
-        inlier[idx[k]] = False
-        dropped.append((int(ang.order[idx[k]]), f"relation: angle residual {z:+.1f}σ"))
-        white, idx = whitener()
-
-    def fit_angles(terms: Sequence[str]) -> _Gls:  # two-step: the relation to the angles
-        return _gls(theta[idx], design(terms)[idx], white)
-
-    points = StopPoints.of(circle, inlier)
-    joint_fits: dict[tuple[str, ...], RelationToPoints] = {}
-
-    def fit_points(terms: Sequence[str]) -> _Gls:  # the relation and structure to the points
-        key = tuple(terms)
-        if key not in joint_fits:
-            fit = points.fit(design(terms), fit_angles(terms).beta, read_noise_rad)
-            if fit is None:
-                raise _NoJointFit
-            joint_fits[key] = fit
-        fit = joint_fits[key]
-        return _Gls(fit.beta, fit.cov_unit, fit.rss, fit.rank, fit.n)
-
-    threshold = opt.alpha / max(len(usable), 1)
-    for fit_terms in (fit_points, fit_angles):
-        try:
-            kept, tests = _select_terms(usable, fit_terms, threshold)
-            published = fit_terms(kept)
-            scale = _publish(j, zero, published, kept, tests, basis, fit_terms, home_deg)
-            break
-        except _NoJointFit:
-            notes.append(
-                "the fit of the relation to the tracker points did not converge: relation "
-                "fitted to the stop angles (two-step, first order)"
-            )
-    final = fit_angles(kept)
-    x_all = design(kept)
-    theta_pub = theta
-    if tuple(kept) in joint_fits:  # the stops' angles under the refined structure
-        refined = joint_fits[tuple(kept)].angle_rad
-        theta_pub = theta + np.angle(np.exp(1j * (refined - circle.angle_rad)))
+    wild = _WildAngles(theta, _design(basis, u, s, usable), d_all, b_all, ang.order)
+    white, idx = wild.drop(inlier, dropped, opt.outlier_alpha)
+    relation = _Relation(
+        basis, u, s, theta, idx, white, StopPoints.of(circle, inlier), read_noise_rad
+    )
+    kept, tests, published, scale = _selected_scale(j, relation, usable, opt, zero, home_deg, notes)
+    final = relation.fit_angles(kept)
+    x_all = relation.design(kept)
+    theta_pub = relation.refined_angles(kept, circle)
     resid = theta_pub - x_all @ published.beta
-    # angle of each stop from Home by the circle, θ_k − θ̂₀, and its standard deviation:
-    # var = V_kk + var(θ̂₀) − 2 cov(θ̂₀, θ_k), cov(θ̂₀, θ_k) = [Cov·Xᵀ·V⁻¹·V]₀ₖ
-    wb = white.apply(b_all[idx])
-    cov_theta0 = (final.cov_unit @ (white.apply(x_all[idx]).T @ wb))[0] @ b_all.T
-    cov_theta0[idx] = (final.cov_unit @ x_all[idx].T)[0]  # used stops: V⁻¹·V = I
-    var_stop = d_circle + np.einsum("ij,ij->i", b_all, b_all)
-    var_stop = var_stop + final.cov_unit[0, 0] - 2 * cov_theta0
-    if isinstance(circle, CircleFit):
-        crb = crb_covariance(circle, theta[idx], x_all[idx], circle.point_sigma_mm[idx])
-        stored: CircleFit | TargetSetFit = replace(circle, inlier=inlier.copy())
-    else:  # a target set: its own bound; stops dropped by the relation are in `used`
-        crb = crb_covariance_targets(
-            circle, theta[idx], x_all[idx], circle.target_sigma_mm[idx], circle.point_inlier[idx]
-        )
-        stored = circle
+    var_stop = relation.stop_angle_variance(final, x_all, b_all, d_circle)
+    crb, stored = _crb(circle, theta[idx], x_all[idx], idx, inlier)
     return JointScaleResult(
         joint=j,
         scale=scale,
@@ -941,6 +877,178 @@ def calibrate_joint(
         crb_covariance_rad2=crb,
         notes=tuple(notes),
     )
+
+
+def _whitened(
+    d: FloatArray, b: FloatArray, inlier: NDArray[np.bool_]
+) -> tuple[_Whitener, IntArray]:
+    """The whitener of the inlier stops' angle covariance ``diag(d) + B·Bᵀ``, and their indices."""
+    idx = np.flatnonzero(inlier)
+    return _Whitener.build(d[idx], b[idx]), idx
+
+
+def _first_order_gain(
+    theta: FloatArray, u: FloatArray, whitened: tuple[_Whitener, IntArray], joint: int
+) -> float:
+    """The straight line's slope (rad per count) of the stop angles ``theta`` ``(K,)`` on
+    the count offsets ``u`` ``(K,)``, over the stops ``whitened`` holds."""
+    white, idx = whitened
+    base = _gls(theta[idx], np.column_stack([np.ones(idx.size), u[idx]]), white)
+    g0 = float(base.beta[1])
+    if g0 == 0 or not np.isfinite(g0):
+        raise ScaleError(f"joint {joint}: counts do not change with the joint angle")
+    return g0
+
+
+def _basis_over(g0: float, span: FloatArray) -> RelationBasis:
+    """The basis for the count offsets ``span`` ``(K,)`` the relation is fitted on: the cyclic
+    phase from the first-order gain ``g0`` rad per count, the polynomials over their range."""
+    return RelationBasis(
+        phase_rad_per_count=g0,
+        nonlinear_centre_counts=0.5 * float(span.max() + span.min()),
+        nonlinear_half_span_counts=max(0.5 * float(span.max() - span.min()), 1.0),
+    )
+
+
+def _design(basis: RelationBasis, u: FloatArray, s: FloatArray, terms: Sequence[str]) -> FloatArray:
+    """The relation's design ``(K, 2 + …)``: the intercept θ₀, then the basis columns."""
+    _, x = basis.columns(u, s, terms)
+    return np.column_stack([np.ones_like(u), x])
+
+
+@dataclass(frozen=True, eq=False)
+class _WildAngles:
+    """The test for wild stop angles (a tangential wild point is invisible to the circle):
+    the angles ``theta`` ``(K,)`` on the full model ``design`` ``(K, p)``, their covariance
+    factors ``d`` ``(K,)``, ``b`` ``(K, r)``, the stops' rows ``order`` ``(K,)``."""
+
+    theta: FloatArray
+    design: FloatArray
+    d: FloatArray
+    b: FloatArray
+    order: IntArray
+
+    def drop(
+        self, inlier: NDArray[np.bool_], dropped: list[tuple[int, str]], outlier_alpha: float
+    ) -> tuple[_Whitener, IntArray]:
+        """Drop the worst stop while its studentized residual is beyond the limit, at most
+        one stop in 25 (``inlier`` and ``dropped`` in place); the whitener of the stops left
+        and their indices."""
+        white, idx = _whitened(self.d, self.b, inlier)
+        for _ in range(max(1, int(inlier.sum()) // 25)):
+            k, z, limit = _worst_residual(self.theta[idx], self.design[idx], white, outlier_alpha)
+            if abs(z) <= limit:
+                break
+            inlier[idx[k]] = False
+            dropped.append((int(self.order[idx[k]]), f"relation: angle residual {z:+.1f}σ"))
+            white, idx = _whitened(self.d, self.b, inlier)
+        return white, idx
+
+
+@dataclass(frozen=True, eq=False)
+class _Relation:
+    """The relation's fits over one joint's stops (K of them): their count offsets from the
+    zero ``u`` and pass signs ``s`` ``(K,)``, their angles ``theta`` ``(K,)`` rad, the stops
+    used ``idx`` and the whitener of their angles' covariance."""
+
+    basis: RelationBasis
+    u: FloatArray
+    s: FloatArray
+    theta: FloatArray
+    idx: IntArray
+    white: _Whitener
+    points: StopPoints
+    read_noise_rad: float
+    joint_fits: dict[tuple[str, ...], RelationToPoints] = field(default_factory=dict)
+
+    def design(self, terms: Sequence[str]) -> FloatArray:
+        return _design(self.basis, self.u, self.s, terms)
+
+    def fit_angles(self, terms: Sequence[str]) -> _Gls:
+        """Two-step: the relation fitted to the stop angles."""
+        return _gls(self.theta[self.idx], self.design(terms)[self.idx], self.white)
+
+    def fit_points(self, terms: Sequence[str]) -> _Gls:
+        """The relation and the structure fitted to the tracker points (kept per terms)."""
+        key = tuple(terms)
+        if key not in self.joint_fits:
+            fit = self.points.fit(
+                self.design(terms), self.fit_angles(terms).beta, self.read_noise_rad
+            )
+            if fit is None:
+                raise _NoJointFit
+            self.joint_fits[key] = fit
+        fit = self.joint_fits[key]
+        return _Gls(fit.beta, fit.cov_unit, fit.rss, fit.rank, fit.n)
+
+    def refined_angles(self, kept: Sequence[str], circle: CircleFit | TargetSetFit) -> FloatArray:
+        """The stops' angles ``(K,)`` rad under the structure refined with the relation
+        ``kept`` (the circle's when the joint fit did not run)."""
+        if tuple(kept) not in self.joint_fits:
+            return self.theta
+        refined = self.joint_fits[tuple(kept)].angle_rad
+        theta: FloatArray = self.theta + np.angle(np.exp(1j * (refined - circle.angle_rad)))
+        return theta
+
+    def stop_angle_variance(
+        self, final: _Gls, x_all: FloatArray, b_all: FloatArray, d_circle: FloatArray
+    ) -> FloatArray:
+        """Unit variance ``(K,)`` of each stop's angle from Home by the circle, θ_k − θ̂₀:
+        var = V_kk + var(θ̂₀) − 2 cov(θ̂₀, θ_k), cov(θ̂₀, θ_k) = [Cov·Xᵀ·V⁻¹·V]₀ₖ."""
+        idx = self.idx
+        wb = self.white.apply(b_all[idx])
+        cov_theta0 = (final.cov_unit @ (self.white.apply(x_all[idx]).T @ wb))[0] @ b_all.T
+        cov_theta0[idx] = (final.cov_unit @ x_all[idx].T)[0]  # used stops: V⁻¹·V = I
+        var_stop = d_circle + np.einsum("ij,ij->i", b_all, b_all)
+        var: FloatArray = var_stop + final.cov_unit[0, 0] - 2 * cov_theta0
+        return var
+
+
+def _selected_scale(
+    joint: int,
+    relation: _Relation,
+    usable: Sequence[str],
+    opt: ScaleOptions,
+    zero: HomeZero,
+    home_deg: float | None,
+    notes: list[str],
+) -> tuple[list[str], list[TermTest], _Gls, GratingScale]:
+    """The terms kept, their tests, the published fit and the scale: fitted to the points,
+    or to the stop angles when that fit does not converge (said in ``notes``, in place)."""
+    threshold = opt.alpha / max(len(usable), 1)
+    for fit_terms in (relation.fit_points, relation.fit_angles):
+        try:
+            kept, tests = _select_terms(usable, fit_terms, threshold)
+            published = fit_terms(kept)
+            scale = _publish(
+                joint, zero, published, kept, tests, relation.basis, fit_terms, home_deg
+            )
+            break
+        except _NoJointFit:
+            notes.append(
+                "the fit of the relation to the tracker points did not converge: relation "
+                "fitted to the stop angles (two-step, first order)"
+            )
+    return kept, tests, published, scale
+
+
+def _crb(
+    circle: CircleFit | TargetSetFit,
+    theta_used: FloatArray,
+    x_used: FloatArray,
+    idx: IntArray,
+    inlier: NDArray[np.bool_],
+) -> tuple[FloatArray, CircleFit | TargetSetFit]:
+    """The Cramér-Rao bound of the relation's coefficients over the stops used (their angles
+    and design rows), and the angle fit as stored (a circle with the relation's inliers)."""
+    if isinstance(circle, CircleFit):
+        crb = crb_covariance(circle, theta_used, x_used, circle.point_sigma_mm[idx])
+        return crb, replace(circle, inlier=inlier.copy())
+    # a target set: its own bound; stops dropped by the relation are in `used`
+    crb = crb_covariance_targets(
+        circle, theta_used, x_used, circle.target_sigma_mm[idx], circle.point_inlier[idx]
+    )
+    return crb, circle
 
 
 def _stop_label(sweep: JointSweep, i: int) -> str:

@@ -187,60 +187,17 @@ def analyze_identifiability(
     ``excluded`` maps indices to the reason the caller drops them for (e.g. they ran away
     in an earlier fit); the rank test then decides the others without them.
     """
-    a = np.asarray(jac, dtype=float)
-    if a.ndim == 3:
-        a = a.reshape(-1, a.shape[-1])
     p = len(parameter_names)
-    if a.ndim != 2 or a.shape[1] != p:
-        raise IdentifiabilityError(f"Jacobian must have {p} columns, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise IdentifiabilityError("Jacobian contains NaN or infinite values")
-    order = list(range(p)) if priority is None else [int(i) for i in priority]
-    if sorted(order) != list(range(p)):
-        raise IdentifiabilityError("priority must be a permutation of the parameter indices")
-    ref_rms = np.zeros(p) if references is None else np.asarray(references, dtype=float)
-    if ref_rms.shape != (p,):
-        raise IdentifiabilityError(f"references must have shape ({p},), got {ref_rms.shape}")
+    a, order, ref_rms = _checked_inputs(jac, p, priority, references)
     rms = column_rms(a)
     no_effect = (rms == 0.0) | (rms < NO_EFFECT_TOL * ref_rms)
     scale = np.where(no_effect, 1.0, rms)
     scaled = a / scale
     scaled[:, no_effect] = 0.0  # rounding noise must not enter the Gram factor
     r = _gram_factor(scaled)
-    norms = np.linalg.norm(r, axis=0)
-    ref = max(float(norms.max(initial=0.0)), 1e-300)
-    fixed_set = {int(i) for i in fixed}
-    excluded_why = {int(i): str(why) for i, why in (excluded or {}).items()}
-
-    basis = np.zeros((r.shape[0], 0))
-    kept: list[int] = []
-    dropped: list[DroppedParameter] = []
-    for j in order:
-        col = r[:, j]
-        if j in fixed_set:
-            dropped.append(DroppedParameter(parameter_names[j], j, "held fixed by the caller"))
-            continue
-        if j in excluded_why:
-            dropped.append(DroppedParameter(parameter_names[j], j, excluded_why[j]))
-            continue
-        if no_effect[j] or norms[j] <= rtol * ref:
-            dropped.append(DroppedParameter(parameter_names[j], j, NO_EFFECT))
-            continue
-        resid = col - basis @ (basis.T @ col)
-        resid = resid - basis @ (basis.T @ resid)  # re-orthogonalize
-        if np.linalg.norm(resid) <= rtol * norms[j]:
-            partners = _partners(r, kept, j, parameter_names)
-            dropped.append(
-                DroppedParameter(
-                    parameter_names[j],
-                    j,
-                    "redundant with " + ", ".join(partners),
-                    tuple(partners),
-                )
-            )
-            continue
-        basis = np.column_stack([basis, resid / np.linalg.norm(resid)])
-        kept.append(j)
+    held = {int(i): "held fixed by the caller" for i in fixed}
+    held.update({int(i): str(why) for i, why in (excluded or {}).items() if int(i) not in held})
+    kept, dropped = _rank_test(r, parameter_names, order, no_effect, held, rtol)
     if not kept:
         raise IdentifiabilityError("the data identifies no parameter at all")
     free = np.zeros(p, dtype=bool)
@@ -255,6 +212,64 @@ def analyze_identifiability(
         dropped=tuple(dropped),
         rtol=rtol,
     )
+
+
+def _checked_inputs(
+    jac: ArrayLike, p: int, priority: Sequence[int] | None, references: ArrayLike | None
+) -> tuple[FloatArray, list[int], FloatArray]:
+    """The Jacobian as ``(M, p)``, the priority order ``(p,)`` and the reference column
+    RMS ``(p,)``, each checked."""
+    a = np.asarray(jac, dtype=float)
+    if a.ndim == 3:
+        a = a.reshape(-1, a.shape[-1])
+    if a.ndim != 2 or a.shape[1] != p:
+        raise IdentifiabilityError(f"Jacobian must have {p} columns, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise IdentifiabilityError("Jacobian contains NaN or infinite values")
+    order = list(range(p)) if priority is None else [int(i) for i in priority]
+    if sorted(order) != list(range(p)):
+        raise IdentifiabilityError("priority must be a permutation of the parameter indices")
+    ref_rms = np.zeros(p) if references is None else np.asarray(references, dtype=float)
+    if ref_rms.shape != (p,):
+        raise IdentifiabilityError(f"references must have shape ({p},), got {ref_rms.shape}")
+    return a, order, ref_rms
+
+
+def _rank_test(
+    r: FloatArray,
+    parameter_names: Sequence[str],
+    order: list[int],
+    no_effect: NDArray[np.bool_],
+    held: Mapping[int, str],
+    rtol: float,
+) -> tuple[list[int], list[DroppedParameter]]:
+    """Keep the columns of the Gram factor ``r`` ``(p, p)`` in priority ``order`` while
+    each adds a direction (its residual against the kept ones above ``rtol`` of its norm).
+    ``held``: indices dropped whatever the data says, with the reason. The kept indices
+    and the dropped parameters (in test order)."""
+    norms = np.linalg.norm(r, axis=0)
+    ref = max(float(norms.max(initial=0.0)), 1e-300)
+    basis = np.zeros((r.shape[0], 0))
+    kept: list[int] = []
+    dropped: list[DroppedParameter] = []
+    for j in order:
+        col = r[:, j]
+        if j in held:
+            dropped.append(DroppedParameter(parameter_names[j], j, held[j]))
+            continue
+        if no_effect[j] or norms[j] <= rtol * ref:
+            dropped.append(DroppedParameter(parameter_names[j], j, NO_EFFECT))
+            continue
+        resid = col - basis @ (basis.T @ col)
+        resid = resid - basis @ (basis.T @ resid)  # re-orthogonalize
+        if np.linalg.norm(resid) <= rtol * norms[j]:
+            partners = _partners(r, kept, j, parameter_names)
+            why = "redundant with " + ", ".join(partners)
+            dropped.append(DroppedParameter(parameter_names[j], j, why, tuple(partners)))
+            continue
+        basis = np.column_stack([basis, resid / np.linalg.norm(resid)])
+        kept.append(j)
+    return kept, dropped
 
 
 def _gram_factor(scaled: FloatArray) -> FloatArray:

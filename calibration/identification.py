@@ -259,33 +259,14 @@ def levenberg_marquardt(
         if norm == 0.0:
             status = 2
             break
-        js = j * scale
-        a = js.T @ js
-        g = js.T @ f
-        accepted = False
-        norm_new = math.inf
-        while mu <= settings.mu_max:
-            try:
-                step = -np.linalg.solve(a + mu * np.eye(len(x)), g) * scale
-            except np.linalg.LinAlgError:
-                mu *= settings.increase
-                continue
-            x_new = x + step
-            f_new = fun(x_new, *args)
-            nfev += 1
-            norm_new = float(np.linalg.norm(f_new)) if np.all(np.isfinite(f_new)) else math.inf
-            if norm_new < norm:
-                accepted = True
-                mu = max(mu * settings.decrease, 1e-12)
-                break
-            if norm_new - norm <= settings.tol_mm:
-                break  # at the minimum: a step changes the error norm by <= tol_mm
-            mu *= settings.increase
-        if not accepted:
-            status = _rejected_status(norm, norm_new, settings.tol_mm)
+        trial = _damped_step(fun, args, x, f, norm, j * scale, scale, mu, settings)
+        nfev += trial.nfev
+        mu = trial.mu
+        if not trial.accepted:
+            status = _rejected_status(norm, trial.norm, settings.tol_mm)
             break
-        change = norm - norm_new
-        x, f, norm = x_new, f_new, norm_new
+        change = norm - trial.norm
+        x, f, norm = trial.x, trial.f, trial.norm
         j = jac(x, *args)
         njev += 1
         if watch is not None:
@@ -295,6 +276,70 @@ def levenberg_marquardt(
         if change <= settings.tol_mm:
             status = 1
             break
+    return _lm_result(x, f, j, norm, mu, status, nit=nit, nfev=nfev, njev=njev)
+
+
+@dataclass(frozen=True)
+class _Trial:
+    """One LM iteration's search over the damping: the trial point it ended on."""
+
+    accepted: bool  # the error norm fell: x, f, norm are the new iterate
+    x: FloatArray  # (k,) the accepted point (the current one when not accepted)
+    f: FloatArray  # (3m,) its residuals
+    norm: float  # error norm of the last trial step (inf: non-finite residuals)
+    mu: float  # damping after the search
+    nfev: int  # residual evaluations spent
+
+
+def _damped_step(
+    fun: Callable[..., FloatArray],
+    args: tuple[object, ...],
+    x: FloatArray,
+    f: FloatArray,
+    norm: float,
+    js: FloatArray,
+    scale: FloatArray,
+    mu: float,
+    settings: LMSettings,
+) -> _Trial:
+    """Raise the damping μ from ``mu`` until a step on the column-scaled Jacobian ``js``
+    ``(3m, k)`` lowers the error norm, the step changes it by <= tol_mm (at the minimum),
+    or μ passes ``mu_max``."""
+    a = js.T @ js
+    g = js.T @ f
+    norm_new = math.inf
+    nfev = 0
+    while mu <= settings.mu_max:
+        try:
+            step = -np.linalg.solve(a + mu * np.eye(len(x)), g) * scale
+        except np.linalg.LinAlgError:
+            mu *= settings.increase
+            continue
+        x_new = x + step
+        f_new = fun(x_new, *args)
+        nfev += 1
+        norm_new = float(np.linalg.norm(f_new)) if np.all(np.isfinite(f_new)) else math.inf
+        if norm_new < norm:
+            return _Trial(True, x_new, f_new, norm_new, max(mu * settings.decrease, 1e-12), nfev)
+        if norm_new - norm <= settings.tol_mm:
+            break  # at the minimum: a step changes the error norm by <= tol_mm
+        mu *= settings.increase
+    return _Trial(False, x, f, norm_new, mu, nfev)
+
+
+def _lm_result(
+    x: FloatArray,
+    f: FloatArray,
+    j: FloatArray,
+    norm: float,
+    mu: float,
+    status: int,
+    *,
+    nit: int,
+    nfev: int,
+    njev: int,
+) -> OptimizeResult:
+    """The solver's end point as scipy reports it (see :func:`levenberg_marquardt`)."""
     grad = j.T @ f
     from scipy.optimize import OptimizeResult
 
@@ -519,6 +564,40 @@ class _Problem:
     column_sq_start: FloatArray  # (m, p) per pose, Σ over x, y, z of jac_start²
     max_move: FloatArray  # (p,) largest credible |x − x_start| (see _credible_moves)
 
+    @classmethod
+    def at_start(
+        cls,
+        nominal: KinematicModel,
+        start_model: KinematicModel,
+        q: FloatArray,
+        meas: FloatArray,
+        prior: FloatArray,
+        effects: EffectTerms | None,
+    ) -> _Problem:
+        """The problem with its start vector and Jacobian at ``start_model``."""
+        x_start = start_model.parameter_vector()
+        n_effects = 0
+        if effects is not None:
+            x_start = np.concatenate([x_start, effects.start_vector()])
+            n_effects = effects.n_parameters
+        jac_start = stacked_jacobian(start_model, q, effects)
+        return cls(
+            nominal=nominal,
+            q=q,
+            meas=meas,
+            prior=prior,
+            effects=effects,
+            x_start=x_start,
+            jac_start=jac_start,
+            column_sq_start=np.einsum("mip,mip->mp", jac_start, jac_start),
+            max_move=_credible_moves(start_model, meas, n_effects),
+        )
+
+    def residual_args(self, free_idx: NDArray[np.intp], sw: FloatArray) -> tuple[object, ...]:
+        """The data arguments of :func:`position_residuals` and its Jacobian, the poses
+        weighted by ``sw`` ``(m,)``."""
+        return (self.x_start, free_idx, self.nominal, self.q, self.meas, sw, self.effects)
+
 
 def _credible_moves(start: KinematicModel, meas: FloatArray, n_effects: int) -> FloatArray:
     """Largest credible |identified − start| ``(5n + 9 + n_effects,)`` (rad, mm).
@@ -622,15 +701,6 @@ def _robust_fit(
     while irls < (max_irls if loss != "linear" else 1):
         irls += 1
         sw = np.sqrt(problem.prior * weights)
-        args = (
-            problem.x_start,
-            free_idx,
-            problem.nominal,
-            problem.q,
-            problem.meas,
-            sw,
-            problem.effects,
-        )
         start_rms = np.sqrt(sw**2 @ column_sq / (3 * m))  # same weights as this run
         watch = _Watch(
             names, free_idx, problem.x_start[free_idx], problem.max_move[free_idx], start_rms
@@ -639,7 +709,7 @@ def _robust_fit(
             position_residuals,
             position_residual_jacobian,
             x,
-            args=args,
+            args=problem.residual_args(free_idx, sw),
             x_scale=x_scale,
             settings=settings,
             progress=record,
@@ -651,20 +721,31 @@ def _robust_fit(
         sw_last = sw
         if loss == "linear":
             break
-        # 3-D residuals in units of the reference σ's pose (prior-weighted, not robust)
-        dist = np.linalg.norm(result.fun.reshape(-1, 3), axis=1) / np.sqrt(
-            np.maximum(weights, 1e-300)
-        )
-        if f_scale_mm is None:
-            # 3 σ per axis, σ from the median 3-D distance (median of Maxwell = 1.538 σ)
-            scale_used = 3.0 * float(np.median(dist)) / 1.538
-        new_w = LOSSES[loss](dist / max(scale_used or 1e-12, 1e-12))
+        new_w, scale_used = _robust_weights(result.fun, weights, loss, f_scale_mm, scale_used)
         converged = np.max(np.abs(new_w - weights)) < 1e-3
         weights = new_w
         if converged:
             break
     assert result is not None
     return _Fit(result, weights, sw_last, scale_used, irls)
+
+
+def _robust_weights(
+    residuals: FloatArray,
+    weights: FloatArray,
+    loss: str,
+    f_scale_mm: float | None,
+    scale_used: float | None,
+) -> tuple[FloatArray, float | None]:
+    """The robust loss's next pose weights ``(m,)`` from the weighted residuals ``(3m,)`` of
+    a run with ``weights``, and the scale they used (``f_scale_mm``, or estimated from the
+    residuals when it is None)."""
+    # 3-D residuals in units of the reference σ's pose (prior-weighted, not robust)
+    dist = np.linalg.norm(residuals.reshape(-1, 3), axis=1) / np.sqrt(np.maximum(weights, 1e-300))
+    if f_scale_mm is None:
+        # 3 σ per axis, σ from the median 3-D distance (median of Maxwell = 1.538 σ)
+        scale_used = 3.0 * float(np.median(dist)) / 1.538
+    return LOSSES[loss](dist / max(scale_used or 1e-12, 1e-12)), scale_used
 
 
 def _fit_dropping_runaways(
@@ -727,91 +808,30 @@ def identify(
     point's per-axis measurement σ (e.g. :func:`tracker_sigma_mm`): the poses are then
     weighted by 1/σ² (without it, all poses weigh the same). ``effects`` adds non-geometric
     terms built on these poses; their parameters are identified with the geometry.
+
+    Long for its options and its result's fields; each step is a function of its own.
     """
     started = time.perf_counter()
-    q = np.atleast_2d(np.asarray(q_rad, dtype=float))
-    meas = np.atleast_2d(np.asarray(measured_mm, dtype=float))
-    if q.ndim != 2 or q.shape[1] != nominal.n_joints:
-        raise IdentificationError(f"joint array must be (m, {nominal.n_joints}), got {q.shape}")
-    if meas.shape != (len(q), 3):
-        raise IdentificationError(f"points must be ({len(q)}, 3), got {meas.shape}")
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(meas))):
-        raise IdentificationError("joint angles and points must be finite")
-    if loss not in LOSSES:
-        raise IdentificationError(f"unknown loss {loss!r} (valid: {', '.join(LOSSES)})")
-    start = start or "description"
-    if start not in START_METHODS:
-        raise IdentificationError(f"unknown start {start!r} (valid: {', '.join(START_METHODS)})")
-    names = nominal.parameter_names()
-    p_geo = len(names)
-    if effects is not None:
-        names = names + list(effects.names)
-    unknown = [f for f in fixed if f not in names]
-    if unknown:
-        raise IdentificationError(f"unknown parameter(s) to fix: {', '.join(unknown)}")
+    q, meas = _checked_poses(nominal, q_rad, measured_mm)
+    start = _checked_options(loss, start)
+    names = _parameter_names(nominal, effects, fixed)
+    p_geo = nominal.n_parameters
     if len(q) < 4:
         raise IdentificationError(f"need at least 4 poses, got {len(q)}")
-    prior = np.ones(len(q))
-    reference_sigma = None
-    if point_sigma_mm is not None:
-        ps = np.broadcast_to(np.asarray(point_sigma_mm, dtype=float), (len(q),))
-        if not np.all(np.isfinite(ps) & (ps > 0)):
-            raise IdentificationError("point sigmas must be finite and positive")
-        reference_sigma = float(1.0 / np.sqrt(np.mean(1.0 / ps**2)))
-        prior = (reference_sigma / ps) ** 2  # mean 1
-
+    prior, reference_sigma = _prior_weights(point_sigma_mm, len(q))
     start_model = (
         base_start_from_registration(nominal, q, meas) if start == "registration" else nominal
     )
-    x_start = start_model.parameter_vector()
-    if effects is not None:
-        x_start = np.concatenate([x_start, effects.start_vector()])
-    n_effects = len(names) - p_geo
-    jac_start = stacked_jacobian(start_model, q, effects)
-    problem = _Problem(
-        nominal=nominal,
-        q=q,
-        meas=meas,
-        prior=prior,
-        effects=effects,
-        x_start=x_start,
-        jac_start=jac_start,
-        column_sq_start=np.einsum("mip,mip->mp", jac_start, jac_start),
-        max_move=_credible_moves(start_model, meas, n_effects),
+    problem = _Problem.at_start(nominal, start_model, q, meas, prior, effects)
+    analyze = _Analyzer(
+        jac_start=problem.jac_start,
+        names=names,
+        priority=default_priority(nominal) + list(range(p_geo, len(names))),
+        rtol=rtol,
+        fixed=[names.index(f) for f in fixed],
+        references=column_references(nominal, len(names) - p_geo),
     )
-    priority = default_priority(nominal) + list(range(p_geo, len(names)))
-    references = column_references(nominal, n_effects)
-    fixed_idx = [names.index(f) for f in fixed]
-    history: list[tuple[int, float, float]] = []
-
-    def record(it: int, norm: float, mu: float) -> None:
-        history.append((it, norm, mu))
-        if progress is not None:
-            progress(it, norm, mu)
-
-    def analyze(excluded: dict[int, str]) -> IdentifiabilityAnalysis:
-        try:
-            analysis = analyze_identifiability(
-                problem.jac_start,
-                names,
-                priority=priority,
-                rtol=rtol,
-                fixed=fixed_idx,
-                references=references,
-                excluded=excluded,
-            )
-        except IdentifiabilityError as exc:
-            if not excluded:
-                raise
-            raise IdentificationError(
-                f"nothing left to identify without the parameters that ran away: {exc}"
-            ) from None
-        if 3 * len(q) <= analysis.rank:
-            raise IdentificationError(
-                f"{len(q)} poses give {3 * len(q)} equations for {analysis.rank} "
-                "identifiable parameters"
-            )
-        return analysis
+    record = _Recorder(progress)
 
     def fit(analysis: IdentifiabilityAnalysis) -> _Fit:
         return _robust_fit(
@@ -825,14 +845,154 @@ def identify(
         )
 
     analysis, done = _fit_dropping_runaways(analyze, fit)
-    result, weights = done.result, done.weights
-    free_idx = analysis.free_indices
-    k = len(free_idx)
-    final = _full_vector(result.x, x_start, free_idx)
+    final = _full_vector(done.result.x, problem.x_start, analysis.free_indices)
     model = nominal.with_parameters(final[:p_geo])
     effect_values = final[p_geo:]
+    spread = _spread(problem, analysis, done, model, effect_values)
+    return IdentificationResult(
+        model=model,
+        start_model=start_model,
+        start_method=start,
+        identifiability=analysis,
+        covariance=spread.covariance,
+        sigma_mm=spread.sigma_mm,
+        pose_weights=done.weights,
+        outliers=spread.outliers,
+        loss=loss,
+        f_scale_mm=done.f_scale_mm if loss != "linear" else None,
+        optimize_result=done.result,
+        elapsed_s=time.perf_counter() - started,
+        irls_iterations=done.irls,
+        history=record.history,
+        reference_sigma_mm=reference_sigma,
+        effects=effects,
+        effect_values=effect_values,
+    )
+
+
+def _checked_poses(
+    nominal: KinematicModel, q_rad: ArrayLike, measured_mm: ArrayLike
+) -> tuple[FloatArray, FloatArray]:
+    """Joint vectors ``(m, n)`` rad and points ``(m, 3)`` mm as float arrays, their shapes
+    and finiteness checked."""
+    q = np.atleast_2d(np.asarray(q_rad, dtype=float))
+    meas = np.atleast_2d(np.asarray(measured_mm, dtype=float))
+    if q.ndim != 2 or q.shape[1] != nominal.n_joints:
+        raise IdentificationError(f"joint array must be (m, {nominal.n_joints}), got {q.shape}")
+    if meas.shape != (len(q), 3):
+        raise IdentificationError(f"points must be ({len(q)}, 3), got {meas.shape}")
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(meas))):
+        raise IdentificationError("joint angles and points must be finite")
+    return q, meas
+
+
+def _parameter_names(
+    nominal: KinematicModel, effects: EffectTerms | None, fixed: tuple[str, ...]
+) -> list[str]:
+    """The full vector's parameter names, geometry then effects; ``fixed`` must be among them."""
+    names = nominal.parameter_names()
+    if effects is not None:
+        names = names + list(effects.names)
+    unknown = [f for f in fixed if f not in names]
+    if unknown:
+        raise IdentificationError(f"unknown parameter(s) to fix: {', '.join(unknown)}")
+    return names
+
+
+@dataclass(frozen=True)
+class _Recorder:
+    """Keeps every LM iteration's (iteration, error norm mm, damping) across the runs of one
+    identification, and passes each on to ``progress``."""
+
+    progress: ProgressCallback | None
+    history: list[tuple[int, float, float]] = field(default_factory=list)
+
+    def __call__(self, it: int, norm: float, mu: float) -> None:
+        self.history.append((it, norm, mu))
+        if self.progress is not None:
+            self.progress(it, norm, mu)
+
+
+def _checked_options(loss: str, start: str | None) -> str:
+    """Check the loss against :data:`LOSSES`; the start method (default: the description's)."""
+    if loss not in LOSSES:
+        raise IdentificationError(f"unknown loss {loss!r} (valid: {', '.join(LOSSES)})")
+    start = start or "description"
+    if start not in START_METHODS:
+        raise IdentificationError(f"unknown start {start!r} (valid: {', '.join(START_METHODS)})")
+    return start
+
+
+def _prior_weights(point_sigma_mm: ArrayLike | None, m: int) -> tuple[FloatArray, float | None]:
+    """Relative pose weights ``(m,)`` (mean 1) from per-point σ ``(m,)`` mm, and the σ they
+    are relative to (their harmonic RMS); all ones and None without σ."""
+    if point_sigma_mm is None:
+        return np.ones(m), None
+    ps = np.broadcast_to(np.asarray(point_sigma_mm, dtype=float), (m,))
+    if not np.all(np.isfinite(ps) & (ps > 0)):
+        raise IdentificationError("point sigmas must be finite and positive")
+    reference_sigma = float(1.0 / np.sqrt(np.mean(1.0 / ps**2)))
+    return (reference_sigma / ps) ** 2, reference_sigma
+
+
+@dataclass(frozen=True, eq=False)
+class _Analyzer:
+    """The identifiability test at the start point, without the parameters excluded so far."""
+
+    jac_start: FloatArray  # (m, 3, p)
+    names: list[str]  # (p,)
+    priority: list[int]
+    rtol: float
+    fixed: list[int]
+    references: FloatArray  # (p,)
+
+    def __call__(self, excluded: dict[int, str]) -> IdentifiabilityAnalysis:
+        try:
+            analysis = analyze_identifiability(
+                self.jac_start,
+                self.names,
+                priority=self.priority,
+                rtol=self.rtol,
+                fixed=self.fixed,
+                references=self.references,
+                excluded=excluded,
+            )
+        except IdentifiabilityError as exc:
+            if not excluded:
+                raise
+            raise IdentificationError(
+                f"nothing left to identify without the parameters that ran away: {exc}"
+            ) from None
+        m = len(self.jac_start)
+        if 3 * m <= analysis.rank:
+            raise IdentificationError(
+                f"{m} poses give {3 * m} equations for {analysis.rank} identifiable parameters"
+            )
+        return analysis
+
+
+@dataclass(frozen=True)
+class _Spread:
+    """How far the identified parameters and the poses can be trusted."""
+
+    covariance: FloatArray  # (k, k) of the free parameters, model units
+    sigma_mm: float  # per-axis noise from the weighted residuals
+    outliers: NDArray[np.bool_]  # (m,)
+
+
+def _spread(
+    problem: _Problem,
+    analysis: IdentifiabilityAnalysis,
+    done: _Fit,
+    model: KinematicModel,
+    effect_values: FloatArray,
+) -> _Spread:
+    """Covariance, noise and outlier poses of the fit ``done`` at its solution."""
+    result, weights, prior, q = done.result, done.weights, problem.prior, problem.q
+    free_idx = analysis.free_indices
+    k = len(free_idx)
     sw = np.sqrt(prior * weights)
-    resid = predicted_points(model, q, effects, effect_values) - meas
+    resid = predicted_points(model, q, problem.effects, effect_values) - problem.meas
     # the solver's last Jacobian is at x, weighted with the weights of its last run
     jw = result.jac * (sw / np.maximum(done.sw_last, 1e-300)).repeat(3)[:, None]
     dof = max(3 * len(q) - k, 1)
@@ -840,7 +1000,6 @@ def identify(
     sigma2 = wsum / dof * len(q) / max(float(np.sum(weights)), 1e-300)
     d = 1.0 / analysis.column_scale[free_idx]
     covariance = sigma2 * _scaled_covariance(jw * d) * np.outer(d, d)
-    sigma = math.sqrt(sigma2)
     dist = np.linalg.norm(resid, axis=1) * np.sqrt(prior)
     # robust per-axis σ for the outlier test: the median of a Maxwell distance is 1.538 σ,
     # and fitted residuals are smaller than the noise by √(1 − k/3m) on average
@@ -848,22 +1007,4 @@ def identify(
     from scipy.stats import chi2
 
     threshold = robust_sigma * math.sqrt(chi2.ppf(1.0 - OUTLIER_PROBABILITY, 3))
-    return IdentificationResult(
-        model=model,
-        start_model=start_model,
-        start_method=start,
-        identifiability=analysis,
-        covariance=covariance,
-        sigma_mm=sigma,
-        pose_weights=weights,
-        outliers=dist > threshold,
-        loss=loss,
-        f_scale_mm=done.f_scale_mm if loss != "linear" else None,
-        optimize_result=result,
-        elapsed_s=time.perf_counter() - started,
-        irls_iterations=done.irls,
-        history=history,
-        reference_sigma_mm=reference_sigma,
-        effects=effects,
-        effect_values=effect_values,
-    )
+    return _Spread(covariance, math.sqrt(sigma2), dist > threshold)

@@ -170,16 +170,47 @@ def build_report(
     if closed_loop is None:
         errors = set_errors(campaign, reference, result.model)
     else:
-        errors = [
-            SetErrors(
-                name=name,
-                pose=tuple(p for p, m in zip(campaign.pose, campaign.mask(name), strict=True) if m),
-                before_mm=closed_loop.stages[0].errors_mm[name],
-                after_mm=closed_loop.final.errors_mm[name],
-            )
-            for name in ("identify", "validate")
-            if name in closed_loop.final.errors_mm
-        ]
+        errors = _loop_errors(campaign, closed_loop)
+    id_poses = [p for p, m in zip(campaign.pose, idm, strict=True) if m]
+    doc: dict[str, Any] = {
+        "robot": {"name": description.name, "source": robot_source},
+        "data": _data_section(campaign),
+        "encoder_minus_grating_deg": encoder_statistics(campaign),
+        "calibrated_model": calibrated_path,
+        "before_definition": (
+            "nominal geometry and tool, base pose from a rigid registration of the nominal "
+            "TCPs onto the identification points"
+        ),
+        "start": result.start_method,
+        "solver": _solver_section(result),
+        "noise_sigma_mm": result.sigma_mm,
+        "reference_sigma_mm": result.reference_sigma_mm,
+        "identifiability": result.identifiability.as_dict(),
+        "parameters": result.parameter_table(),
+        "outlier_poses": [id_poses[i] for i in np.flatnonzero(result.outliers)],
+        "sets": _set_sections(errors),
+    }
+    if closed_loop is not None:
+        doc["closed_loop"] = closed_loop_document(closed_loop, description.n_joints)
+    return doc, errors
+
+
+def _loop_errors(campaign: Campaign, closed_loop: ClosedLoopResult) -> list[SetErrors]:
+    """Per set: the loop's nominal stage's errors before, its final model's after."""
+    return [
+        SetErrors(
+            name=name,
+            pose=tuple(p for p, m in zip(campaign.pose, campaign.mask(name), strict=True) if m),
+            before_mm=closed_loop.stages[0].errors_mm[name],
+            after_mm=closed_loop.final.errors_mm[name],
+        )
+        for name in ("identify", "validate")
+        if name in closed_loop.final.errors_mm
+    ]
+
+
+def _set_sections(errors: list[SetErrors]) -> dict[str, Any]:
+    """Per set: its poses, the statistics before and after, and the improvement."""
     sets: dict[str, Any] = {}
     for se in errors:
         before = accuracy_statistics(se.before_mm)
@@ -190,55 +221,40 @@ def build_report(
             "after": after,
             "improvement": improvement_factors(before, after),
         }
-    opt = result.optimize_result
-    id_poses = [p for p, m in zip(campaign.pose, idm, strict=True) if m]
-    doc: dict[str, Any] = {
-        "robot": {"name": description.name, "source": robot_source},
-        "data": {
-            "source": campaign.source,
-            "n_rows": len(campaign),
-            "n_identify": int(idm.sum()),
-            "n_validate": int(campaign.mask("validate").sum()),
-            "skipped_rows": len(campaign.skipped),
-            "skipped": [
-                {"line": s.line, "pose": s.pose, "reason": s.reason} for s in campaign.skipped
-            ],
-        },
-        "encoder_minus_grating_deg": encoder_statistics(campaign),
-        "calibrated_model": calibrated_path,
-        "before_definition": (
-            "nominal geometry and tool, base pose from a rigid registration of the nominal "
-            "TCPs onto the identification points"
-        ),
-        "start": result.start_method,
-        "solver": {
-            "method": "Levenberg-Marquardt (analytic Jacobian, column-scaled damping)",
-            "iterations": int(opt.nit),
-            "function_evaluations": int(opt.nfev),
-            "jacobian_evaluations": int(opt.njev),
-            "status": int(opt.status),
-            "message": opt.message,
-            "success": bool(opt.success),
-            "final_cost_mm2": float(opt.cost),
-            "final_damping": float(opt.mu),
-            "loss": result.loss,
-            "f_scale_mm": result.f_scale_mm,
-            "irls_iterations": result.irls_iterations,
-            "elapsed_s": result.elapsed_s,
-            "history": [
-                {"iteration": i, "error_norm_mm": n, "damping": m} for i, n, m in result.history
-            ],
-        },
-        "noise_sigma_mm": result.sigma_mm,
-        "reference_sigma_mm": result.reference_sigma_mm,
-        "identifiability": result.identifiability.as_dict(),
-        "parameters": result.parameter_table(),
-        "outlier_poses": [id_poses[i] for i in np.flatnonzero(result.outliers)],
-        "sets": sets,
+    return sets
+
+
+def _data_section(campaign: Campaign) -> dict[str, Any]:
+    return {
+        "source": campaign.source,
+        "n_rows": len(campaign),
+        "n_identify": int(campaign.mask("identify").sum()),
+        "n_validate": int(campaign.mask("validate").sum()),
+        "skipped_rows": len(campaign.skipped),
+        "skipped": [{"line": s.line, "pose": s.pose, "reason": s.reason} for s in campaign.skipped],
     }
-    if closed_loop is not None:
-        doc["closed_loop"] = closed_loop_document(closed_loop, description.n_joints)
-    return doc, errors
+
+
+def _solver_section(result: IdentificationResult) -> dict[str, Any]:
+    opt = result.optimize_result
+    return {
+        "method": "Levenberg-Marquardt (analytic Jacobian, column-scaled damping)",
+        "iterations": int(opt.nit),
+        "function_evaluations": int(opt.nfev),
+        "jacobian_evaluations": int(opt.njev),
+        "status": int(opt.status),
+        "message": opt.message,
+        "success": bool(opt.success),
+        "final_cost_mm2": float(opt.cost),
+        "final_damping": float(opt.mu),
+        "loss": result.loss,
+        "f_scale_mm": result.f_scale_mm,
+        "irls_iterations": result.irls_iterations,
+        "elapsed_s": result.elapsed_s,
+        "history": [
+            {"iteration": i, "error_norm_mm": n, "damping": m} for i, n, m in result.history
+        ],
+    }
 
 
 # -- the closed loop -----------------------------------------------------------------------
@@ -302,49 +318,8 @@ def closed_loop_document(loop: ClosedLoopResult, n_joints: int) -> dict[str, Any
     stages = []
     previous: Stage | None = None
     for i, stage in enumerate(loop.stages):
-        n_par = n_free = 0
-        if stage.result is not None:
-            n_par = len(stage.result.parameter_names)
-            n_free = stage.result.identifiability.rank
-        entry: dict[str, Any] = {
-            "stage": stage.name,
-            "label": stage.label,
-            "n_parameters": n_par,
-            "n_identified": n_free,
-            "sets": {
-                name: {"n_poses": len(e), **accuracy_statistics(e)}
-                for name, e in stage.errors_mm.items()
-            },
-            "sentence": _sentence(stage, previous, n_par, n_free),
-        }
-        if stage.added is not None:
-            entry["effect"] = {
-                "kind": stage.added.spec.kind,
-                "label": stage.added.label,
-                "generic": stage.added.generic,
-                "parameters": _effect_parameters(stage),
-                "selection": stage.added.as_dict(),
-                "why_chosen": stage.reason,
-                "competitors": [c.as_dict() for c in stage.competitors],
-                "shape": stage.shape,
-                "runners_up": [c.as_dict() for c in stage.round_scores[1:6]],
-                "evidence_plot": evidence_file(i - 1, stage),
-                "evidence_regressor": stage.evidence.x_label if stage.evidence else None,
-            }
-        stages.append(entry)
+        stages.append(_stage_entry(i, stage, previous))
         previous = stage
-    identifiable = [c for c in loop.last_round if c.n_parameters > 0]
-    stopped: dict[str, Any] = {
-        "reason": (
-            "no candidate is significant"
-            if loop.last_round
-            else "maximum number of effects reached or no candidate left"
-        ),
-        "best_remaining": identifiable[0].as_dict() if identifiable else None,
-        "not_identifiable": [
-            {"effect": c.label, "note": c.note} for c in loop.last_round if c.n_parameters == 0
-        ],
-    }
     return {
         "criterion": CRITERION,
         "alpha": loop.settings.alpha,
@@ -356,7 +331,58 @@ def closed_loop_document(loop: ClosedLoopResult, n_joints: int) -> dict[str, Any
         "stages": stages,
         "added": [s["effect"]["label"] for s in stages if "effect" in s],
         "set_aside": [r.as_dict() for r in loop.rejected],
-        "stopped": stopped,
+        "stopped": _stopped(loop),
+    }
+
+
+def _stage_entry(i: int, stage: Stage, previous: Stage | None) -> dict[str, Any]:
+    """One stage of the ``closed_loop`` section: its errors per set, its sentence, and the
+    effect it added."""
+    n_par = n_free = 0
+    if stage.result is not None:
+        n_par = len(stage.result.parameter_names)
+        n_free = stage.result.identifiability.rank
+    entry: dict[str, Any] = {
+        "stage": stage.name,
+        "label": stage.label,
+        "n_parameters": n_par,
+        "n_identified": n_free,
+        "sets": {
+            name: {"n_poses": len(e), **accuracy_statistics(e)}
+            for name, e in stage.errors_mm.items()
+        },
+        "sentence": _sentence(stage, previous, n_par, n_free),
+    }
+    if stage.added is not None:
+        entry["effect"] = {
+            "kind": stage.added.spec.kind,
+            "label": stage.added.label,
+            "generic": stage.added.generic,
+            "parameters": _effect_parameters(stage),
+            "selection": stage.added.as_dict(),
+            "why_chosen": stage.reason,
+            "competitors": [c.as_dict() for c in stage.competitors],
+            "shape": stage.shape,
+            "runners_up": [c.as_dict() for c in stage.round_scores[1:6]],
+            "evidence_plot": evidence_file(i - 1, stage),
+            "evidence_regressor": stage.evidence.x_label if stage.evidence else None,
+        }
+    return entry
+
+
+def _stopped(loop: ClosedLoopResult) -> dict[str, Any]:
+    """Why the search stopped, its best remaining candidate, the ones not identifiable."""
+    identifiable = [c for c in loop.last_round if c.n_parameters > 0]
+    return {
+        "reason": (
+            "no candidate is significant"
+            if loop.last_round
+            else "maximum number of effects reached or no candidate left"
+        ),
+        "best_remaining": identifiable[0].as_dict() if identifiable else None,
+        "not_identifiable": [
+            {"effect": c.label, "note": c.note} for c in loop.last_round if c.n_parameters == 0
+        ],
     }
 
 
@@ -370,58 +396,11 @@ def _f(v: float | None, digits: int = 4) -> str:
 def markdown_report(doc: Mapping[str, Any]) -> str:
     """The report for people: summary, Table 3 per set, parameters, dropped parameters."""
     lines = [f"# Identification report: {doc['robot']['name']}", ""]
-    data = doc["data"]
-    solver = doc["solver"]
-    ident = doc["identifiability"]
-    lines += [
-        f"- Robot description: `{doc['robot']['source']}`",
-        f"- Data: `{data['source']}`: {data['n_identify']} identification poses, "
-        f"{data['n_validate']} validation poses, {data['skipped_rows']} bad row(s) skipped",
-        f"- Start of the base pose: {doc['start']}",
-        f"- Solver: {solver['method']}, {solver['iterations']} iterations, "
-        f"{solver['function_evaluations']} evaluations, {solver['elapsed_s']:.3f} s: "
-        f"{solver['message']}; loss {solver['loss']}",
-        f"- Identified {ident['n_identified']} of {ident['n_parameters']} parameters, "
-        f"condition number of the scaled Jacobian {ident['condition_number']:.1f}",
-        f"- Residual noise σ (per axis): {doc['noise_sigma_mm'] * 1000:.1f} µm"
-        + (
-            f" (stated by the point weights: {doc['reference_sigma_mm'] * 1000:.1f} µm)"
-            if doc.get("reference_sigma_mm")
-            else ""
-        ),
-        f"- Point weights: {solver.get('point_weights', 'none')}",
-        f"- Outlier poses: {', '.join(doc['outlier_poses']) or 'none'}",
-        f"- Before = {doc['before_definition']}",
-        "",
-    ]
+    lines += _summary_markdown(doc)
     if doc.get("closed_loop"):
         lines += _closed_loop_markdown(doc["closed_loop"])
     for set_name, s in doc["sets"].items():
-        lines += [
-            f"## {set_name.capitalize()} set ({s['n_poses']} poses), errors in mm",
-            "",
-            "| | max | min | mean | std | mean+3std |",
-            "|---|---|---|---|---|---|",
-        ]
-        for comp in COMPONENTS:
-            for when in ("before", "after"):
-                st = s[when][comp]
-                lines.append(
-                    f"| {comp} {when} | " + " | ".join(_f(st[k]) for k in STATISTICS) + " |"
-                )
-            imp = s["improvement"][comp]
-            lines.append(
-                f"| {comp} improvement (before/after) | "
-                + " | ".join(_f(imp[k]["ratio"], 2) for k in STATISTICS)
-                + " |"
-            )
-        lines.append("")
-        ap = s["improvement"]["AP"]["mean"]
-        lines += [
-            f"Mean AP improved {_f(ap['ratio'], 2)}× (before/after), "
-            f"{_f(ap['source'], 2)}× by the source's (before − after)/after.",
-            "",
-        ]
+        lines += _set_markdown(set_name, s)
     lines += [
         "## Identified parameters",
         "",
@@ -448,21 +427,78 @@ def markdown_report(doc: Mapping[str, Any]) -> str:
             for e in doc["encoder_minus_grating_deg"]
         ]
     lines += ["", "## Dropped parameters (held at their start values)", ""]
-    lines += [f"- `{d['name']}`: {d['reason']}" for d in ident["dropped"]] or ["- none"]
-    if data["skipped"]:
+    dropped = doc["identifiability"]["dropped"]
+    lines += [f"- `{d['name']}`: {d['reason']}" for d in dropped] or ["- none"]
+    skipped = doc["data"]["skipped"]
+    if skipped:
         lines += ["", "## Skipped rows", ""]
         lines += [
             f"- line {s['line']}"
             + (f" (pose {s['pose']})" if s["pose"] else "")
             + f": {s['reason']}"
-            for s in data["skipped"]
+            for s in skipped
         ]
     return "\n".join(lines) + "\n"
 
 
+def _summary_markdown(doc: Mapping[str, Any]) -> list[str]:
+    """The report's opening list: robot, data, solver, identifiability, noise, outliers."""
+    data = doc["data"]
+    solver = doc["solver"]
+    ident = doc["identifiability"]
+    return [
+        f"- Robot description: `{doc['robot']['source']}`",
+        f"- Data: `{data['source']}`: {data['n_identify']} identification poses, "
+        f"{data['n_validate']} validation poses, {data['skipped_rows']} bad row(s) skipped",
+        f"- Start of the base pose: {doc['start']}",
+        f"- Solver: {solver['method']}, {solver['iterations']} iterations, "
+        f"{solver['function_evaluations']} evaluations, {solver['elapsed_s']:.3f} s: "
+        f"{solver['message']}; loss {solver['loss']}",
+        f"- Identified {ident['n_identified']} of {ident['n_parameters']} parameters, "
+        f"condition number of the scaled Jacobian {ident['condition_number']:.1f}",
+        f"- Residual noise σ (per axis): {doc['noise_sigma_mm'] * 1000:.1f} µm"
+        + (
+            f" (stated by the point weights: {doc['reference_sigma_mm'] * 1000:.1f} µm)"
+            if doc.get("reference_sigma_mm")
+            else ""
+        ),
+        f"- Point weights: {solver.get('point_weights', 'none')}",
+        f"- Outlier poses: {', '.join(doc['outlier_poses']) or 'none'}",
+        f"- Before = {doc['before_definition']}",
+        "",
+    ]
+
+
+def _set_markdown(set_name: str, s: Mapping[str, Any]) -> list[str]:
+    """One set's Table 3: each component's statistics before and after, and the gains."""
+    lines = [
+        f"## {set_name.capitalize()} set ({s['n_poses']} poses), errors in mm",
+        "",
+        "| | max | min | mean | std | mean+3std |",
+        "|---|---|---|---|---|---|",
+    ]
+    for comp in COMPONENTS:
+        for when in ("before", "after"):
+            st = s[when][comp]
+            lines.append(f"| {comp} {when} | " + " | ".join(_f(st[k]) for k in STATISTICS) + " |")
+        imp = s["improvement"][comp]
+        lines.append(
+            f"| {comp} improvement (before/after) | "
+            + " | ".join(_f(imp[k]["ratio"], 2) for k in STATISTICS)
+            + " |"
+        )
+    lines.append("")
+    ap = s["improvement"]["AP"]["mean"]
+    lines += [
+        f"Mean AP improved {_f(ap['ratio'], 2)}× (before/after), "
+        f"{_f(ap['source'], 2)}× by the source's (before − after)/after.",
+        "",
+    ]
+    return lines
+
+
 def _closed_loop_markdown(loop: Mapping[str, Any]) -> list[str]:
     stages = loop["stages"]
-    set_name = "validate" if "validate" in stages[0]["sets"] else "identify"
     lines = [
         "## Closed loop: what the geometric model lacked",
         "",
@@ -471,6 +507,24 @@ def _closed_loop_markdown(loop: Mapping[str, Any]) -> list[str]:
         f"{loop['n_candidates']} candidates, {loop['elapsed_s']:.2f} s).",
         "",
     ]
+    lines += _stage_tables(stages)
+    lines += ["### Stages", ""]
+    lines += [f"{i}. {st['sentence']}" for i, st in enumerate(stages, start=1)]
+    lines += _stopped_markdown(loop["stopped"])
+    for st in stages:
+        if st.get("effect"):
+            lines += _effect_markdown(st["label"], st["effect"])
+    if loop.get("set_aside"):
+        lines += ["", "Set aside (chosen, then undone):"]
+        lines += [f"- {r['effect']}: {r['reason']}" for r in loop["set_aside"]]
+    lines.append("")
+    return lines
+
+
+def _stage_tables(stages: list[Mapping[str, Any]]) -> list[str]:
+    """Per component, every stage's errors on the validation set (else identification)."""
+    set_name = "validate" if "validate" in stages[0]["sets"] else "identify"
+    lines: list[str] = []
     for comp in COMPONENTS:
         lines += [
             f"**{comp}, {set_name} set ({stages[0]['sets'][set_name]['n_poses']} poses), mm**",
@@ -486,9 +540,10 @@ def _closed_loop_markdown(loop: Mapping[str, Any]) -> list[str]:
                 + " |"
             )
         lines.append("")
-    lines += ["### Stages", ""]
-    lines += [f"{i}. {st['sentence']}" for i, st in enumerate(stages, start=1)]
-    stop = loop["stopped"]
+    return lines
+
+
+def _stopped_markdown(stop: Mapping[str, Any]) -> list[str]:
     best = stop["best_remaining"]
     text = f"Stopped: {stop['reason']}"
     if best:
@@ -496,57 +551,55 @@ def _closed_loop_markdown(loop: Mapping[str, Any]) -> list[str]:
             f" (best remaining: {best['effect']}, CV gain {_f(best['cv_gain_sigma2'], 1)} σ², "
             f"corrected p {best['p_adjusted']:.2g})"
         )
-    lines += ["", text + "."]
+    lines = ["", text + "."]
     if stop["not_identifiable"]:
         lines += [
             "Not identifiable from these data: "
             + "; ".join(f"{c['effect']} ({c['note']})" for c in stop["not_identifiable"])
             + "."
         ]
-    for st in stages:
-        eff = st.get("effect")
-        if not eff:
-            continue
+    return lines
+
+
+def _effect_markdown(label: str, eff: Mapping[str, Any]) -> list[str]:
+    """An added effect: its parameters, why it was chosen, its shape, its competitors and
+    its evidence."""
+    lines = [
+        "",
+        f"### {label}",
+        "",
+        "| parameter | value | standard error |",
+        "|---|---|---|",
+    ]
+    lines += [
+        f"| {p['name']} | {p['value']:.6g} | "
+        + (f"{p['standard_error']:.3g}" if p["standard_error"] is not None else "–")
+        + " |"
+        for p in eff["parameters"]
+    ]
+    lines += ["", f"Why this effect: {eff.get('why_chosen') or 'best score'}."]
+    lines += _shape_markdown(eff.get("shape") or {})
+    if eff.get("competitors"):
         lines += [
             "",
-            f"### {st['label']}",
-            "",
-            "| parameter | value | standard error |",
+            "| closest competitor | principal cosines | what separated them |",
             "|---|---|---|",
         ]
         lines += [
-            f"| {p['name']} | {p['value']:.6g} | "
-            + (f"{p['standard_error']:.3g}" if p["standard_error"] is not None else "–")
-            + " |"
-            for p in eff["parameters"]
+            f"| {c['effect']} | {', '.join(f'{x:.3f}' for x in c['principal_cosines'])} | "
+            f"{c['separated_by']} |"
+            for c in eff["competitors"]
         ]
-        lines += ["", f"Why this effect: {eff.get('why_chosen') or 'best score'}."]
-        lines += _shape_markdown(eff.get("shape") or {})
-        if eff.get("competitors"):
-            lines += [
-                "",
-                "| closest competitor | principal cosines | what separated them |",
-                "|---|---|---|",
-            ]
-            lines += [
-                f"| {c['effect']} | {', '.join(f'{x:.3f}' for x in c['principal_cosines'])} | "
-                f"{c['separated_by']} |"
-                for c in eff["competitors"]
-            ]
-        lines += [
-            "",
-            f"Evidence: `{eff['evidence_plot']}` (residuals against "
-            f"{eff['evidence_regressor']}, before and after). Runners-up in that round: "
-            + (
-                ", ".join(f"{c['effect']} ({_f(c['score'], 1)})" for c in eff["runners_up"][:3])
-                or "none"
-            )
-            + " (penalized CV score, σ²).",
-        ]
-    if loop.get("set_aside"):
-        lines += ["", "Set aside (chosen, then undone):"]
-        lines += [f"- {r['effect']}: {r['reason']}" for r in loop["set_aside"]]
-    lines.append("")
+    lines += [
+        "",
+        f"Evidence: `{eff['evidence_plot']}` (residuals against "
+        f"{eff['evidence_regressor']}, before and after). Runners-up in that round: "
+        + (
+            ", ".join(f"{c['effect']} ({_f(c['score'], 1)})" for c in eff["runners_up"][:3])
+            or "none"
+        )
+        + " (penalized CV score, σ²).",
+    ]
     return lines
 
 

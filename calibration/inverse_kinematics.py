@@ -36,6 +36,7 @@ weighted travel, the wrist moving rather than the main axes).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
 from typing import Literal
@@ -340,13 +341,26 @@ def _closed_form(
     and the elbow is kept off stretched/folded so that both elbow branches stay apart.
     """
     sh, el, wr = (BRANCH_SIGNS[None, :, k].astype(float) for k in range(3))
-    off = geo.offsets
     # Wrist centre, in the frame after Rx(alpha1)·Trans_x(a1) and before Rot_z(theta1).
     w = pos - geo.d_flange * rot[:, :, 2]
     v = w @ geo.pre_rot - np.array([geo.a0, 0.0, geo.d0])
-    vx, vy, vz = (v[:, k, None] for k in range(3))
+    t1, ux, uy, shoulder_ok = _shoulder(geo, v, sh, q_ref, seed=seed)
+    t2, t3, elbow_ok = _elbow(geo, ux, uy, el, seed=seed)
+    t4, t5, t6 = _wrist(geo, rot, (t1, t2, t3), wr, q_ref)
+    theta = np.stack(np.broadcast_arrays(t1, t2, t3, t4, t5, t6), axis=-1)
+    q = _wrap(theta - geo.offsets)
+    reachable = shoulder_ok & elbow_ok & np.all(np.isfinite(q), axis=-1)
+    return np.where(reachable[..., None], q, np.nan), reachable
 
-    # Shoulder: Rz(t1)·(r, -s1·h) = (vx, vy), two signs of r.
+
+def _shoulder(
+    geo: _Pieper, v: FloatArray, sh: FloatArray, q_ref: FloatArray, *, seed: bool
+) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray]:
+    """θ1 ``(N, 8)`` from the wrist centre ``v`` ``(N, 3)`` mm (frame of
+    :func:`_closed_form`) for the shoulder signs ``sh`` ``(1, 8)``: Rz(t1)·(r, -s1·h) =
+    (vx, vy), two signs of r. Also the wrist centre in the arm plane ``(ux, uy)`` mm
+    and whether the shoulder reaches it."""
+    vx, vy, vz = (v[:, k, None] for k in range(3))
     rho2 = vx**2 + vy**2
     r2 = rho2 - geo.h**2
     shoulder_ok = r2 >= -1e-9 * max(geo.h**2, 1.0)
@@ -355,12 +369,18 @@ def _closed_form(
         shoulder_ok = np.ones_like(shoulder_ok)
     r = sh * np.sqrt(np.maximum(r2, 0.0))
     t1 = np.arctan2(vy, vx) - np.arctan2(-geo.s1 * geo.h, r)
-    t1 = np.where(np.sqrt(rho2) < _SHOULDER_DEGENERATE_MM, q_ref[:, :1] + off[0], t1)
+    t1 = np.where(np.sqrt(rho2) < _SHOULDER_DEGENERATE_MM, q_ref[:, :1] + geo.offsets[0], t1)
     c1, s1 = np.cos(t1), np.sin(t1)
     r = c1 * vx + s1 * vy  # consistent with the t1 actually used
     ux, uy = r - geo.a1, np.broadcast_to(geo.s1 * vz, r.shape)
+    return t1, ux, uy, shoulder_ok
 
-    # Elbow: law of cosines in the arm plane, psi = t3 + phi.
+
+def _elbow(
+    geo: _Pieper, ux: FloatArray, uy: FloatArray, el: FloatArray, *, seed: bool
+) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """θ2, θ3 ``(N, 8)`` for the elbow signs ``el`` ``(1, 8)``: the law of cosines in the
+    arm plane, psi = t3 + phi; and whether the elbow reaches."""
     cpsi = (ux**2 + uy**2 - geo.a2**2 - geo.forearm**2) / (2.0 * geo.a2 * geo.forearm)
     elbow_ok = np.abs(cpsi) <= 1.0 + (_SEED_ELBOW_SLACK if seed else _ELBOW_SLACK)
     cpsi = np.clip(cpsi, -1.0, 1.0)
@@ -370,10 +390,25 @@ def _closed_form(
     t3 = np.arctan2(spsi, cpsi) - geo.phi
     w2x, w2y = geo.a2 + geo.forearm * cpsi, geo.forearm * spsi
     t2 = np.arctan2(uy, ux) - np.arctan2(w2y, w2x)
+    return t2, t3, elbow_ok
 
-    # Wrist: E = (R03·Rx(alpha4))ᵀ · R · Rx(alpha5 + alpha6)ᵀ
-    #          = Rz(t4) · Ry(-sigma4·t5) · Rz(kappa·t6)   (ZYZ Euler angles),
-    # with R03 = Rx(alpha1)·Rz(t1)·Rx(alpha2)·Rz(t2 + t3) since alpha3 = 0.
+
+def _wrist(
+    geo: _Pieper,
+    rot: FloatArray,
+    arm: tuple[FloatArray, FloatArray, FloatArray],
+    wr: FloatArray,
+    q_ref: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """θ4, θ5, θ6 ``(N, 8)`` for the flange rotations ``rot`` ``(N, 3, 3)``, the arm's θ1–θ3
+    ``arm`` and the wrist signs ``wr`` ``(1, 8)``:
+
+        E = (R03·Rx(alpha4))ᵀ · R · Rx(alpha5 + alpha6)ᵀ
+          = Rz(t4) · Ry(-sigma4·t5) · Rz(kappa·t6)   (ZYZ Euler angles),
+
+    with R03 = Rx(alpha1)·Rz(t1)·Rx(alpha2)·Rz(t2 + t3) since alpha3 = 0.
+    """
+    t1, t2, t3 = arm
     e = geo.pre_rot.T @ rot @ geo.post_rot.T
     e = _turn_z(e[:, None], t1)
     e = _turn_x(e, geo.alpha[1])
@@ -382,16 +417,11 @@ def _closed_form(
     e02, e12 = e[..., 0, 2], e[..., 1, 2]
     flip = -geo.sigma4 * wr  # sign of B = -sigma4·t5 that makes sign(sin t5) = wr
     t4 = np.arctan2(flip * e12, flip * e02)
-    t4 = np.where(np.hypot(e02, e12) < _WRIST_DEGENERATE, q_ref[:, 3:4] + off[3], t4)
+    t4 = np.where(np.hypot(e02, e12) < _WRIST_DEGENERATE, q_ref[:, 3:4] + geo.offsets[3], t4)
     f = _turn_z(e, t4)  # = Ry(B)·Rz(G), exact for any t4
     b = np.arctan2(f[..., 0, 2], f[..., 2, 2])
     g = np.arctan2(f[..., 1, 0], f[..., 1, 1])
-    t5, t6 = -geo.sigma4 * b, geo.kappa * g
-
-    theta = np.stack(np.broadcast_arrays(t1, t2, t3, t4, t5, t6), axis=-1)
-    q = _wrap(theta - off)
-    reachable = shoulder_ok & elbow_ok & np.all(np.isfinite(q), axis=-1)
-    return np.where(reachable[..., None], q, np.nan), reachable
+    return t4, -geo.sigma4 * b, geo.kappa * g
 
 
 def _wrap(q: FloatArray) -> FloatArray:
@@ -624,24 +654,13 @@ def solve_ik(
     ``reachable`` False), except for poses where all three fail or end outside the
     limits, which fall back to all branches. The pick can differ from that of ``"all"``
     when the seeds rank the branches wrongly (in tests, under 1 % of random poses).
+
+    Long for its options and their documentation; each step is a function of its own.
     """
     t = _as_poses(poses)
-    if model.n_joints != 6:
-        raise KinematicsError(f"closed-form IK needs 6 joints, model has {model.n_joints}")
-    if frame not in ("base", "world") or target not in ("flange", "tcp"):
-        raise KinematicsError(
-            f"frame must be 'base' or 'world' and target 'flange' or 'tcp', got {frame!r}, "
-            f"{target!r}"
-        )
-    if branches not in ("all", "chosen"):
-        raise KinematicsError(f"branches must be 'all' or 'chosen', got {branches!r}")
+    _check_options(model, frame, target, branches)
     n_pose = t.shape[0]
-    ref = np.zeros((n_pose, 6))
-    if q_current_rad is not None:
-        cur = np.asarray(q_current_rad, dtype=float)
-        if cur.shape not in ((6,), (n_pose, 6)):
-            raise KinematicsError(f"q_current_rad must be (6,) or ({n_pose}, 6), got {cur.shape}")
-        ref = np.broadcast_to(cur, (n_pose, 6)).copy()
+    ref = _reference(q_current_rad, n_pose)
     rule = _Rule(ref, limits, weights, singular_penalty, margins or SingularityMargins())
 
     rot, pos = _flange_in_base(model, t, frame, target)
@@ -654,9 +673,6 @@ def solve_ik(
 
     iterations = np.zeros((n_pose, N_BRANCHES), dtype=int)
     if not exact:
-        todo = reachable.copy()
-        if branches == "chosen":
-            todo = rule.widened(_SEED_LIMIT_SLACK_RAD).candidates(geo, q, reachable)
         polish = partial(
             _refine_branches,
             model,
@@ -666,26 +682,12 @@ def solve_ik(
             tol_rad=tol_rad,
             max_iterations=max_iterations,
         )
-        seeds = q
-        q, converged, iterations = polish(seeds, todo)
-        usable = converged & nearest_equivalent(q, ref[:, None, :], limits)[1]
-        retry = ~np.any(usable, axis=1) & np.any(reachable & ~todo, axis=1)
-        if retry.any():  # the chosen branch failed: solve the others of those poses
-            more = reachable & ~todo & retry[:, None]
-            q2, c2, it2 = polish(seeds, more)
-            q, converged = np.where(more[..., None], q2, q), converged | c2
-            iterations = np.where(more, it2, iterations)
-        reachable = reachable & converged
+        todo = reachable.copy()
+        if branches == "chosen":
+            todo = rule.widened(_SEED_LIMIT_SLACK_RAD).candidates(geo, q, reachable)
+        q, reachable, iterations = _polished(polish, q, reachable, todo, rule)
 
-    # Every reported solution is checked by the model's own forward kinematics.
-    residual_mm = np.full((n_pose, N_BRANCHES), np.nan)
-    residual_rad = np.full((n_pose, N_BRANCHES), np.nan)
-    if reachable.any():
-        rows = np.nonzero(reachable)[0]
-        dp, dr = _pose_error(model, q[reachable], rot[rows], pos[rows])
-        residual_mm[reachable] = np.linalg.norm(dp, axis=1)
-        residual_rad[reachable] = np.linalg.norm(dr, axis=1)
-
+    residual_mm, residual_rad = _checked_by_forward(model, q, reachable, rot, pos)
     q, within, shoulder, elbow, wrist, selection = rule.assess(geo, q, reachable)
     return IKResult(
         solutions_rad=q,
@@ -699,6 +701,66 @@ def solve_ik(
         iterations=iterations,
         selection=selection,
     )
+
+
+def _check_options(model: KinematicModel, frame: str, target: str, branches: str) -> None:
+    if model.n_joints != 6:
+        raise KinematicsError(f"closed-form IK needs 6 joints, model has {model.n_joints}")
+    if frame not in ("base", "world") or target not in ("flange", "tcp"):
+        raise KinematicsError(
+            f"frame must be 'base' or 'world' and target 'flange' or 'tcp', got {frame!r}, "
+            f"{target!r}"
+        )
+    if branches not in ("all", "chosen"):
+        raise KinematicsError(f"branches must be 'all' or 'chosen', got {branches!r}")
+
+
+def _reference(q_current_rad: ArrayLike | None, n_pose: int) -> FloatArray:
+    """The reference joint vector of every pose ``(N, 6)`` rad (zeros when none is given)."""
+    if q_current_rad is None:
+        return np.zeros((n_pose, 6))
+    cur = np.asarray(q_current_rad, dtype=float)
+    if cur.shape not in ((6,), (n_pose, 6)):
+        raise KinematicsError(f"q_current_rad must be (6,) or ({n_pose}, 6), got {cur.shape}")
+    return np.broadcast_to(cur, (n_pose, 6)).copy()
+
+
+#: Polishes the seeds ``(N, B, 6)`` of the branches in a mask ``(N, B)``: the joint angles,
+#: whether each converged, and its iterations (see :func:`_refine_branches`).
+_Polish = Callable[[FloatArray, BoolArray], tuple[FloatArray, BoolArray, NDArray[np.int_]]]
+
+
+def _polished(
+    polish: _Polish, seeds: FloatArray, reachable: BoolArray, todo: BoolArray, rule: _Rule
+) -> tuple[FloatArray, BoolArray, NDArray[np.int_]]:
+    """The branches ``todo`` polished from the closed form's ``seeds`` ``(N, B, 6)``; where
+    none of a pose's converges within the limits, its other reachable branches too. The
+    joint angles, the branches reachable on the model, and the iterations ``(N, B)``."""
+    q, converged, iterations = polish(seeds, todo)
+    usable = converged & nearest_equivalent(q, rule.ref[:, None, :], rule.limits)[1]
+    retry = ~np.any(usable, axis=1) & np.any(reachable & ~todo, axis=1)
+    if retry.any():  # the chosen branch failed: solve the others of those poses
+        more = reachable & ~todo & retry[:, None]
+        q2, c2, it2 = polish(seeds, more)
+        q, converged = np.where(more[..., None], q2, q), converged | c2
+        iterations = np.where(more, it2, iterations)
+    return q, reachable & converged, iterations
+
+
+def _checked_by_forward(
+    model: KinematicModel, q: FloatArray, reachable: BoolArray, rot: FloatArray, pos: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Every reported solution checked by the model's own forward kinematics: the flange's
+    position (mm) and orientation (rad) errors ``(N, B)``, NaN where unreachable."""
+    n_pose = q.shape[0]
+    residual_mm = np.full((n_pose, N_BRANCHES), np.nan)
+    residual_rad = np.full((n_pose, N_BRANCHES), np.nan)
+    if reachable.any():
+        rows = np.nonzero(reachable)[0]
+        dp, dr = _pose_error(model, q[reachable], rot[rows], pos[rows])
+        residual_mm[reachable] = np.linalg.norm(dp, axis=1)
+        residual_rad[reachable] = np.linalg.norm(dr, axis=1)
+    return residual_mm, residual_rad
 
 
 @dataclass(frozen=True, eq=False)

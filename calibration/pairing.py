@@ -70,54 +70,25 @@ def pair_dwell(
 ) -> StopMeasurement:
     """The tracker ↔ grating pairs of one dwell (module docstring)."""
     opts = opts or PairingOptions()
-    gt = grating.t_ns[dwell.i0 : dwell.i1 + 1]
-    gc = grating.values[dwell.i0 : dwell.i1 + 1].astype(np.float64)
-    span = dwell.t1_ns - dwell.t0_ns
-    margin = int(min(opts.margin_s * 1e9, span / 6))
-    lo, hi = dwell.t0_ns + margin, dwell.t1_ns - margin
-    t_tr = tracker.t_ns
-    a = int(np.searchsorted(t_tr, lo, side="left"))
-    b = int(np.searchsorted(t_tr, hi, side="right"))
-    tt = t_tr[a:b]
+    lo, hi = _window(dwell, opts)
+    a = int(np.searchsorted(tracker.t_ns, lo, side="left"))
+    b = int(np.searchsorted(tracker.t_ns, hi, side="right"))
+    tt = tracker.t_ns[a:b]
     pts = tracker.values[a:b]
-    enc = None
-    if encoders is not None and len(encoders):
-        ea = int(np.searchsorted(encoders.t_ns, lo, side="left"))
-        eb = int(np.searchsorted(encoders.t_ns, hi, side="right"))
-        if eb > ea:
-            enc = encoders.values[ea:eb].astype(np.float64).mean(axis=0)
-    n = gc.shape[1]
+    enc = _encoder_mean(encoders, lo, hi)
     mid = (dwell.t0_ns + dwell.t1_ns) // 2
     if tt.size == 0:
-        return StopMeasurement(
-            dwell.index,
-            False,
-            "no tracker samples in the dwell",
-            0,
-            0,
-            0,
-            mid,
-            dwell.counts,
-            np.full(3, np.nan),
-            float("nan"),
-            enc,
-        )
+        return _lost(dwell, "no tracker samples in the dwell", (0, 0, 0), mid, enc)
     valid = np.all(np.isfinite(pts), axis=1)
     if tracker.status is not None:
         valid &= np.all((tracker.status[a:b] & VALID_BIT) != 0, axis=1)
     n_beam = int(np.count_nonzero(~valid))
-    # grating counts at the tracker instants, within the dwell
-    ci = np.empty((tt.size, n))
-    for k in range(n):
-        ci[:, k] = np.interp(tt, gt, gc[:, k])
+    ci = _counts_at(tt, dwell, grating)
     still = np.all(np.abs(ci - dwell.counts[None, :]) <= opts.still_counts, axis=1)
     ok = valid & still
     n_moving = int(np.count_nonzero(valid & ~still))
     if np.count_nonzero(ok) >= opts.min_pairs:
-        med = np.median(pts[ok], axis=0)
-        dist = np.linalg.norm(pts - med[None, :], axis=1)
-        sig = 1.4826 * float(np.median(dist[ok])) / 1.538 if np.any(ok) else 0.0
-        near = dist <= max(opts.point_floor_mm, 5.0 * sig)
+        near = _near_median(pts, ok, opts.point_floor_mm)
         n_moving += int(np.count_nonzero(ok & ~near))
         ok &= near
     n_ok = int(np.count_nonzero(ok))
@@ -125,32 +96,78 @@ def pair_dwell(
         reason = "beam broken" if n_beam >= tt.size - opts.min_pairs + 1 else "robot moving"
         if n_beam == 0 and n_moving == 0:
             reason = f"only {n_ok} tracker samples in the dwell"
-        return StopMeasurement(
-            dwell.index,
-            False,
-            reason,
-            n_ok,
-            n_beam,
-            n_moving,
-            mid,
-            dwell.counts,
-            np.full(3, np.nan),
-            float("nan"),
-            enc,
-        )
+        return _lost(dwell, reason, (n_ok, n_beam, n_moving), mid, enc)
     p = pts[ok].mean(axis=0)
     spread = float(np.sqrt(np.mean(np.sum((pts[ok] - p) ** 2, axis=1))))
     t_mid = int(np.rint(np.mean((tt[ok] - tt[ok][0]).astype(np.float64)))) + int(tt[ok][0])
     return StopMeasurement(
+        dwell.index, True, "", n_ok, n_beam, n_moving, t_mid, ci[ok].mean(axis=0), p, spread, enc
+    )
+
+
+def _window(dwell: Dwell, opts: PairingOptions) -> tuple[int, int]:
+    """The dwell less the margin at both ends (ns; a sixth of a very short dwell)."""
+    span = dwell.t1_ns - dwell.t0_ns
+    margin = int(min(opts.margin_s * 1e9, span / 6))
+    return dwell.t0_ns + margin, dwell.t1_ns - margin
+
+
+def _encoder_mean(encoders: Stream | None, lo: int, hi: int) -> FloatArray | None:
+    """Mean encoder counts ``(n,)`` of the samples in ``[lo, hi]`` ns (None: no samples)."""
+    if encoders is None or not len(encoders):
+        return None
+    ea = int(np.searchsorted(encoders.t_ns, lo, side="left"))
+    eb = int(np.searchsorted(encoders.t_ns, hi, side="right"))
+    if eb <= ea:
+        return None
+    mean: FloatArray = encoders.values[ea:eb].astype(np.float64).mean(axis=0)
+    return mean
+
+
+def _counts_at(t_ns: NDArray[np.int64], dwell: Dwell, grating: Stream) -> FloatArray:
+    """Grating counts ``(k, n)`` at the instants ``t_ns`` ``(k,)``, interpolated linearly
+    between the grating samples of the dwell."""
+    gt = grating.t_ns[dwell.i0 : dwell.i1 + 1]
+    gc = grating.values[dwell.i0 : dwell.i1 + 1].astype(np.float64)
+    ci = np.empty((t_ns.size, gc.shape[1]))
+    for k in range(gc.shape[1]):
+        ci[:, k] = np.interp(t_ns, gt, gc[:, k])
+    return ci
+
+
+def _near_median(
+    points_mm: FloatArray, ok: NDArray[np.bool_], floor_mm: float
+) -> NDArray[np.bool_]:
+    """Points ``(k, 3)`` mm within ``max(floor_mm, 5 · robust σ)`` of the median of the
+    ``ok`` ones (σ per axis from their median distance: 1.538 σ for a Maxwell distance)."""
+    med = np.median(points_mm[ok], axis=0)
+    dist = np.linalg.norm(points_mm - med[None, :], axis=1)
+    sig = 1.4826 * float(np.median(dist[ok])) / 1.538 if np.any(ok) else 0.0
+    near: NDArray[np.bool_] = dist <= max(floor_mm, 5.0 * sig)
+    return near
+
+
+def _lost(
+    dwell: Dwell,
+    reason: str,
+    tally: tuple[int, int, int],
+    mid_ns: int,
+    enc: FloatArray | None,
+) -> StopMeasurement:
+    """A stop without a measurement: ``tally`` is (accepted pairs, rejected for the beam,
+    rejected as moving)."""
+    n_ok, n_beam, n_moving = tally
+    nan = np.full(3, np.nan)
+    return StopMeasurement(
         dwell.index,
-        True,
-        "",
+        False,
+        reason,
         n_ok,
         n_beam,
         n_moving,
-        t_mid,
-        ci[ok].mean(axis=0),
-        p,
-        spread,
+        mid_ns,
+        dwell.counts,
+        nan,
+        float("nan"),
         enc,
     )

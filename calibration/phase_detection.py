@@ -242,20 +242,7 @@ def find_phases(t_ns: IntArray, counts: IntArray, opts: PhaseOptions | None = No
     stops, step_counts = _find_sweeps(dwells, opts)
     home = _home_vector(dwells, stops, n)
     in_sweep = {s.dwell for s in stops}
-    # sweep speed per joint: fastest |counts per second| seen on the moves between stops
-    sweep_speed: dict[int, float] = {}
-    by_joint: dict[int, list[SweepStop]] = {}
-    for s in stops:
-        by_joint.setdefault(s.joint, []).append(s)
-    for j, ss in by_joint.items():
-        speeds = []
-        for a, b in itertools.pairwise(ss):
-            if b.dwell == a.dwell + 1:
-                speeds.append(
-                    _peak_speed(t_ns, counts[:, j - 1], dwells[a.dwell].i1, dwells[b.dwell].i0)
-                )
-        if speeds:
-            sweep_speed[j] = float(np.median(speeds))
+    sweep_speed = _sweep_speeds(t_ns, counts, dwells, stops)
     # joints without a sweep: the smallest step of the swept joints sets their tolerance
     fallback = min(step_counts.values()) if step_counts else np.nan
     tol = np.array(
@@ -272,33 +259,13 @@ def find_phases(t_ns: IntArray, counts: IntArray, opts: PhaseOptions | None = No
         known = np.isfinite(off) & np.isfinite(tol)
         at_home = bool(np.all(off[known] <= tol[known])) and bool(known.any())
         if at_home and d.i0 > 0:
-            prev_end = dwells[d.index - 1].i1 if d.index > 0 else 0
-            seg = counts[prev_end : d.i0 + 1]
-            # the approaching joint is the one away from Home last; the approach starts
-            # after the last sample with any other joint away from Home
-            dev = np.abs(seg - home[None, :])
-            away = dev > tol[None, :]
-            rows = np.flatnonzero(away.any(axis=1))
-            if rows.size:
-                jj = int(np.argmax(dev[rows[-1]] / tol))
-                others = np.flatnonzero(np.delete(away, jj, axis=1).any(axis=1))
-                if others.size:
-                    prev_end += int(others[-1]) + 1
-                    dev = dev[int(others[-1]) + 1 :]
-            exc = dev.max(axis=0) if dev.shape[0] else np.zeros(n)
-            exc = np.where(np.isfinite(exc), exc, 0.0)
-            j = int(np.argmax(exc))
-            others = np.delete(exc, j)
-            single = others.size == 0 or float(others.max()) <= opts.single_joint_ratio * exc[j]
-            if single and (j + 1) in sweep_speed and exc[j] > 10 * opts.still_counts:
-                i_start = _final_approach_start(counts[:, j], prev_end, d.i0)
-                speed = _peak_speed(t_ns, counts[:, j], i_start, d.i0)
-                if speed <= opts.home_speed_ratio * sweep_speed[j + 1]:
-                    trials[j + 1] = trials.get(j + 1, 0) + 1
-                    approach = int(np.sign(counts[d.i0, j] - counts[i_start, j]))
-                    homes.append(HomeReturn(j + 1, trials[j + 1], d.index, approach))
-                    continue
-            other.append(d.index)
+            ret = _home_approach(t_ns, counts, dwells, d, home, tol, sweep_speed, opts)
+            if ret is None:
+                other.append(d.index)
+                continue
+            joint, approach = ret
+            trials[joint] = trials.get(joint, 0) + 1
+            homes.append(HomeReturn(joint, trials[joint], d.index, approach))
             continue
         n_away = np.count_nonzero(off[known] > tol[known]) if known.any() else n
         if n_away >= 2:
@@ -315,6 +282,68 @@ def find_phases(t_ns: IntArray, counts: IntArray, opts: PhaseOptions | None = No
         for k, di in enumerate(poses_idx)
     ]
     return Phases(dwells, stops, homes, poses, home, step_counts, other)
+
+
+def _sweep_speeds(
+    t_ns: IntArray, counts: IntArray, dwells: list[Dwell], stops: list[SweepStop]
+) -> dict[int, float]:
+    """Sweep speed per joint: the median over the moves between its consecutive stops of
+    their (robust) fastest |counts per second|."""
+    sweep_speed: dict[int, float] = {}
+    by_joint: dict[int, list[SweepStop]] = {}
+    for s in stops:
+        by_joint.setdefault(s.joint, []).append(s)
+    for j, ss in by_joint.items():
+        speeds = []
+        for a, b in itertools.pairwise(ss):
+            if b.dwell == a.dwell + 1:
+                speeds.append(
+                    _peak_speed(t_ns, counts[:, j - 1], dwells[a.dwell].i1, dwells[b.dwell].i0)
+                )
+        if speeds:
+            sweep_speed[j] = float(np.median(speeds))
+    return sweep_speed
+
+
+def _home_approach(
+    t_ns: IntArray,
+    counts: IntArray,
+    dwells: list[Dwell],
+    d: Dwell,
+    home: FloatArray,
+    tol: FloatArray,
+    sweep_speed: dict[int, float],
+    opts: PhaseOptions,
+) -> tuple[int, int] | None:
+    """The joint (1-based) that came back to Home for the dwell ``d`` at Home, and its
+    direction of approach (±1), when one joint alone made the final approach, slowly
+    against its sweep speed; None otherwise."""
+    n = counts.shape[1]
+    prev_end = dwells[d.index - 1].i1 if d.index > 0 else 0
+    seg = counts[prev_end : d.i0 + 1]
+    # the approaching joint is the one away from Home last; the approach starts
+    # after the last sample with any other joint away from Home
+    dev = np.abs(seg - home[None, :])
+    away = dev > tol[None, :]
+    rows = np.flatnonzero(away.any(axis=1))
+    if rows.size:
+        jj = int(np.argmax(dev[rows[-1]] / tol))
+        others = np.flatnonzero(np.delete(away, jj, axis=1).any(axis=1))
+        if others.size:
+            prev_end += int(others[-1]) + 1
+            dev = dev[int(others[-1]) + 1 :]
+    exc = dev.max(axis=0) if dev.shape[0] else np.zeros(n)
+    exc = np.where(np.isfinite(exc), exc, 0.0)
+    j = int(np.argmax(exc))
+    rest = np.delete(exc, j)
+    single = rest.size == 0 or float(rest.max()) <= opts.single_joint_ratio * exc[j]
+    if not (single and (j + 1) in sweep_speed and exc[j] > 10 * opts.still_counts):
+        return None
+    i_start = _final_approach_start(counts[:, j], prev_end, d.i0)
+    speed = _peak_speed(t_ns, counts[:, j], i_start, d.i0)
+    if not speed <= opts.home_speed_ratio * sweep_speed[j + 1]:
+        return None
+    return j + 1, int(np.sign(counts[d.i0, j] - counts[i_start, j]))
 
 
 def _peak_speed(t_ns: IntArray, c: IntArray, i0: int, i1: int) -> float:

@@ -115,64 +115,16 @@ def select_poses(
     h = np.asarray(jac, dtype=float)
     if h.ndim != 3 or h.shape[1] != 3:
         raise PoseSelectionError(f"Jacobian blocks must have shape (N, 3, p), got {h.shape}")
-    n_cand, _, p = h.shape
+    n_cand = h.shape[0]
     if not 1 <= k <= n_cand:
         raise PoseSelectionError(f"cannot pick {k} of {n_cand} candidate poses")
-    blocks = np.einsum("nip,niq->npq", h, h)  # (N, p, p) information of each pose
-    ridge = 1e-9 * float(np.trace(blocks.sum(axis=0))) / p / n_cand
-    reg = ridge * np.eye(p)
-
-    def logdet_gains(info: FloatArray) -> FloatArray:
-        """log det(info + H_iᵀH_i) − log det(info) for all candidates (determinant lemma)."""
-        hv = h @ np.linalg.inv(info)  # (N, 3, p)
-        m3 = hv @ h.transpose(0, 2, 1) + np.eye(3)
-        gains: FloatArray = np.linalg.slogdet(m3)[1]
-        return gains
-
-    chosen: list[int] = []
-    available = np.ones(n_cand, dtype=bool)
-    info = reg.copy()
-    # greedy forward selection; for O2..O4 the first ceil(p/3) poses by O1 (their indices
-    # are zero until the information matrix has full rank)
-    for step in range(k):
-        score = logdet_gains(info)
-        score[~available] = -np.inf
-        best = int(np.argmax(score))
-        if index != "O1" and 3 * step >= p:
-            short = _shortlist(score, shortlist)
-            exact = _index_of_info(info + blocks[short], step + 1, index)
-            best = int(short[np.argmax(exact)])
-        chosen.append(best)
-        available[best] = False
-        info = info + blocks[best]
-
+    cands = _Candidates.of(h)
+    chosen, available, info = _greedy(cands, k, index, shortlist)
     exchanges = 0
     for _ in range(exchange_passes):
-        improved = False
-        for pos in range(k):
-            out = chosen[pos]
-            info_minus = info - blocks[out]
-            current = float(_index_of_info(info, k, index))
-            if index == "O1":
-                gains = logdet_gains(info_minus)
-                gains[~available] = -np.inf
-                cand = int(np.argmax(gains))
-                new = float(_index_of_info(info_minus + blocks[cand], k, index))
-            else:
-                gains = logdet_gains(info_minus)
-                gains[~available] = -np.inf
-                short = _shortlist(gains, shortlist)
-                scores = _index_of_info(info_minus + blocks[short], k, index)
-                cand = int(short[np.argmax(scores)])
-                new = float(np.max(scores))
-            if new > current * (1.0 + 1e-9):
-                chosen[pos] = cand
-                available[cand] = False
-                available[out] = True
-                info = info_minus + blocks[cand]
-                exchanges += 1
-                improved = True
-        if not improved:
+        swaps, info = _exchange_pass(cands, chosen, available, info, index, shortlist)
+        exchanges += swaps
+        if not swaps:
             break
     idx = np.array(chosen, dtype=np.intp)
     values = observability_indices(h[idx])
@@ -185,6 +137,91 @@ def select_poses(
         random_value=baseline,
         exchanges=exchanges,
     )
+
+
+@dataclass(frozen=True, eq=False)
+class _Candidates:
+    """The candidate poses' Jacobian blocks ``h`` ``(N, 3, p)`` and their information
+    ``HᵢᵀHᵢ`` ``(N, p, p)``; a tiny ridge ``(p, p)`` keeps the first steps' information
+    invertible."""
+
+    h: FloatArray
+    blocks: FloatArray
+    ridge: FloatArray
+
+    @classmethod
+    def of(cls, h: FloatArray) -> _Candidates:
+        n_cand, _, p = h.shape
+        blocks = np.einsum("nip,niq->npq", h, h)
+        ridge = 1e-9 * float(np.trace(blocks.sum(axis=0))) / p / n_cand
+        return cls(h, blocks, ridge * np.eye(p))
+
+    def logdet_gains(self, info: FloatArray, available: NDArray[np.bool_]) -> FloatArray:
+        """log det(info + H_iᵀH_i) − log det(info) ``(N,)`` for all candidates (determinant
+        lemma); −inf for those not ``available``."""
+        hv = self.h @ np.linalg.inv(info)  # (N, 3, p)
+        m3 = hv @ self.h.transpose(0, 2, 1) + np.eye(3)
+        gains: FloatArray = np.linalg.slogdet(m3)[1]
+        gains[~available] = -np.inf
+        return gains
+
+
+def _greedy(
+    cands: _Candidates, k: int, index: str, shortlist: int
+) -> tuple[list[int], NDArray[np.bool_], FloatArray]:
+    """Greedy forward selection of ``k`` poses; for O2..O4 the first ceil(p/3) poses by O1
+    (their indices are zero until the information matrix has full rank). The poses, the
+    candidates still available ``(N,)`` and the information of the chosen ``(p, p)``."""
+    p = cands.h.shape[2]
+    chosen: list[int] = []
+    available = np.ones(len(cands.h), dtype=bool)
+    info = cands.ridge.copy()
+    for step in range(k):
+        score = cands.logdet_gains(info, available)
+        best = int(np.argmax(score))
+        if index != "O1" and 3 * step >= p:
+            short = _shortlist(score, shortlist)
+            exact = _index_of_info(info + cands.blocks[short], step + 1, index)
+            best = int(short[np.argmax(exact)])
+        chosen.append(best)
+        available[best] = False
+        info = info + cands.blocks[best]
+    return chosen, available, info
+
+
+def _exchange_pass(
+    cands: _Candidates,
+    chosen: list[int],
+    available: NDArray[np.bool_],
+    info: FloatArray,
+    index: str,
+    shortlist: int,
+) -> tuple[int, FloatArray]:
+    """One exchange pass: each chosen pose in turn is swapped for the candidate that raises
+    the index most, if any (``chosen`` and ``available`` in place). The swaps made and the
+    new information ``(p, p)``."""
+    k = len(chosen)
+    swaps = 0
+    for pos in range(k):
+        out = chosen[pos]
+        info_minus = info - cands.blocks[out]
+        current = float(_index_of_info(info, k, index))
+        gains = cands.logdet_gains(info_minus, available)
+        if index == "O1":
+            cand = int(np.argmax(gains))
+            new = float(_index_of_info(info_minus + cands.blocks[cand], k, index))
+        else:
+            short = _shortlist(gains, shortlist)
+            scores = _index_of_info(info_minus + cands.blocks[short], k, index)
+            cand = int(short[np.argmax(scores)])
+            new = float(np.max(scores))
+        if new > current * (1.0 + 1e-9):
+            chosen[pos] = cand
+            available[cand] = False
+            available[out] = True
+            info = info_minus + cands.blocks[cand]
+            swaps += 1
+    return swaps, info
 
 
 def _shortlist(score: FloatArray, size: int) -> NDArray[np.intp]:

@@ -204,28 +204,8 @@ class StopPoints:
             return whiten((pts - self._positions(x, design)[kk, tt]) * w[:, None]).ravel()
 
         def jacobian(x: FloatArray) -> FloatArray:
-            _, n, a, b, radii, _, phase, beta = self._unpack(x)
-            ang = (design @ beta)[kk] + phase[tt]
-            radial = np.cos(ang)[:, None] * a + np.sin(ang)[:, None] * b  # (M, 3)
-            tangent = -np.sin(ang)[:, None] * a + np.cos(ang)[:, None] * b
-            m = kk.size
-            jac = np.zeros((m, 3, x.size))
-            jac[:, :, :3] = -np.eye(3)
-            for k in (3, 4):  # the tilts move n, a and b: central differences
-                d = np.zeros_like(x)
-                d[k] = _TILT_STEP
-                plus = self._positions(x + d, design)[kk, tt]
-                minus = self._positions(x - d, design)[kk, tt]
-                jac[:, :, k] = -(plus - minus) / (2 * _TILT_STEP)
-            rows = np.arange(m)
-            jac[rows, :, 5 + tt] = -radial
-            lever = radii[tt][:, None] * tangent  # ∂p/∂angle
-            for j in range(1, t):
-                sel = tt == j
-                jac[sel, :, 4 + t + j] = -n
-                jac[sel, :, 3 + 2 * t + j] = -lever[sel]
-            jac[:, :, n_struct:] = -lever[:, :, None] * design[kk][:, None, :]
-            return whiten(jac * w[:, None, None]).reshape(3 * m, -1)
+            jac = self._residual_jacobian(x, design, kk, tt)
+            return whiten(jac * w[:, None, None]).reshape(3 * kk.size, -1)
 
         try:
             result = least_squares(
@@ -242,17 +222,52 @@ class StopPoints:
         x = result.x
         if not (result.success and np.all(np.isfinite(x)) and np.all(x[5 : 5 + t] > 0)):
             return None
-        jac = jacobian(x)
-        scale = np.linalg.norm(jac, axis=0)
-        scale[scale == 0] = 1.0
-        _, sv, vt = np.linalg.svd(jac / scale, full_matrices=False)
-        keep = sv > 1e-10 * sv[0]
-        cov = ((vt[keep].T / sv[keep] ** 2) @ vt[keep]) / np.outer(scale, scale)
+        cov, rank = _unit_covariance(jacobian(x))
         return RelationToPoints(
             beta=x[n_struct:].copy(),
             cov_unit=cov[n_struct:, n_struct:],
             rss=float(result.fun @ result.fun),
             n=3 * kk.size,
-            rank=int(keep.sum()),
+            rank=rank,
             angle_rad=self.stop_angles(x),
         )
+
+    def _residual_jacobian(
+        self, x: FloatArray, design: FloatArray, kk: IndexArray, tt: IndexArray
+    ) -> FloatArray:
+        """∂(point − model)/∂x ``(M, 3, P)`` mm per unit of each parameter, for the used
+        points (stop ``kk``, target ``tt``), unweighted."""
+        t = self.n_targets
+        _, n, a, b, radii, _, phase, beta = self._unpack(x)
+        ang = (design @ beta)[kk] + phase[tt]
+        radial = np.cos(ang)[:, None] * a + np.sin(ang)[:, None] * b  # (M, 3)
+        tangent = -np.sin(ang)[:, None] * a + np.cos(ang)[:, None] * b
+        m = kk.size
+        jac = np.zeros((m, 3, x.size))
+        jac[:, :, :3] = -np.eye(3)
+        for k in (3, 4):  # the tilts move n, a and b: central differences
+            d = np.zeros_like(x)
+            d[k] = _TILT_STEP
+            plus = self._positions(x + d, design)[kk, tt]
+            minus = self._positions(x - d, design)[kk, tt]
+            jac[:, :, k] = -(plus - minus) / (2 * _TILT_STEP)
+        rows = np.arange(m)
+        jac[rows, :, 5 + tt] = -radial
+        lever = radii[tt][:, None] * tangent  # ∂p/∂angle
+        for j in range(1, t):
+            sel = tt == j
+            jac[sel, :, 4 + t + j] = -n
+            jac[sel, :, 3 + 2 * t + j] = -lever[sel]
+        jac[:, :, 3 * t + 3 :] = -lever[:, :, None] * design[kk][:, None, :]
+        return jac
+
+
+def _unit_covariance(jac: FloatArray) -> tuple[FloatArray, int]:
+    """``(JᵀJ)⁻¹`` ``(P, P)`` of a weighted Jacobian ``(N, P)`` (columns scaled, directions
+    below 1e-10 of the largest singular value left out), and its rank."""
+    scale = np.linalg.norm(jac, axis=0)
+    scale[scale == 0] = 1.0
+    _, sv, vt = np.linalg.svd(jac / scale, full_matrices=False)
+    keep = sv > 1e-10 * sv[0]
+    cov: FloatArray = ((vt[keep].T / sv[keep] ** 2) @ vt[keep]) / np.outer(scale, scale)
+    return cov, int(keep.sum())

@@ -232,69 +232,25 @@ def read_sweep_csv(
     if not t.rows:
         raise DataFileError(f"{t.path}: row 2: no data rows after the header")
     chain_columns = _chain_columns(t, n_joints)
-    chain = np.empty((len(t.rows), len(chain_columns)), dtype=np.int64)
-    n = len(t.rows)
-    joint = np.empty(n, dtype=np.int64)
-    step = np.empty(n, dtype=np.int64)
-    counts = np.empty(n, dtype=np.int64)
-    xyz = np.empty((n, 3))
-    pass_name = np.empty(n, dtype=object)
-    lines = np.empty(n, dtype=np.int64)
     has_target = "target" in t.index
-    target = np.ones(n, dtype=np.int64)
-    first: dict[tuple[int, str, int, int], int] = {}
-    stop_counts: dict[tuple[int, str, int], tuple[int, int]] = {}
-    for k, (line, f) in enumerate(t.rows):
-        lines[k] = line
-        joint[k] = t.joint(line, f, n_joints)
-        p = t.value(line, f, "pass")
-        if p not in PASSES:
-            raise t.fail(line, "pass", f"expected one of {', '.join(PASSES)}, got {p!r}")
-        pass_name[k] = p
-        step[k] = t.integer(line, f, "step", minimum=0)
-        counts[k] = t.counts(line, f)
-        xyz[k] = [t.real(line, f, c) for c in ("x_mm", "y_mm", "z_mm")]
-        if chain_columns:
-            chain[k] = [t.counts(line, f, c) for c in chain_columns]
-            own = chain_columns[joint[k] - 1] if joint[k] <= len(chain_columns) else None
-            if own is None:
-                raise t.fail(line, "joint", f"joint {joint[k]} has no g{joint[k]}_counts column")
-            if chain[k, joint[k] - 1] != counts[k]:
-                raise t.fail(
-                    line, own, f"differs from 'counts' ({chain[k, joint[k] - 1]} != {counts[k]})"
-                )
-        if has_target:
-            target[k] = t.integer(line, f, "target", minimum=1)
-        key = (int(joint[k]), p, int(step[k]), int(target[k]))
-        if key in first:
-            what = f" target {key[3]}" if has_target else ""
-            raise t.fail(
-                line,
-                "step",
-                f"joint {key[0]} {p} step {key[2]}{what} already given in row {first[key]}",
-            )
-        first[key] = line
-        seen = stop_counts.setdefault(key[:3], (int(counts[k]), line))
-        if seen[0] != counts[k]:
-            raise t.fail(
-                line, "counts", f"differs from the same stop's reading in row {seen[1]} "
-                f"({counts[k]} != {seen[0]}): the targets of a stop share its readings"
-            )  # fmt: skip
-    pass_name = pass_name.astype(str)
+    stops = _SweepStops(has_target)
+    parsed = []
+    for line, f in t.rows:
+        row = _sweep_row(t, line, f, n_joints, chain_columns, has_target)
+        stops.check(t, row)
+        parsed.append(row)
+    joint = np.array([r.joint for r in parsed], dtype=np.int64)
+    step = np.array([r.step for r in parsed], dtype=np.int64)
+    counts = np.array([r.counts for r in parsed], dtype=np.int64)
+    xyz = np.array([r.xyz_mm for r in parsed], dtype=float)
+    pass_name = np.array([r.pass_name for r in parsed], dtype=object).astype(str)
+    lines = np.array([r.line for r in parsed], dtype=np.int64)
+    target = np.array([r.target for r in parsed], dtype=np.int64)
+    chain = np.array([r.chain for r in parsed], dtype=np.int64).reshape(len(parsed), -1)
     joints = {}
     for j in sorted(set(joint.tolist())):
         m = joint == j
-        for p in PASSES:
-            mp = m & (pass_name == p)
-            n_stops = len(set(step[mp].tolist()))
-            if 0 < n_stops < min_stops_per_pass:
-                rows = lines[mp]
-                raise t.fail(
-                    _row_span(rows),
-                    "step",
-                    f"joint {j} {p} sweep has {n_stops} stops; a circle fit and the "
-                    f"relation need at least {min_stops_per_pass}",
-                )
+        _check_pass_sizes(t, j, step, pass_name, lines, m, min_stops_per_pass)
         joints[j] = JointSweep(
             joint=j,
             pass_name=pass_name[m],
@@ -306,6 +262,97 @@ def read_sweep_csv(
             target=target[m] if has_target else None,
         )
     return SweepTable(t.path, joints)
+
+
+@dataclass(frozen=True)
+class _SweepRow:
+    """One row of sweep.csv, read and checked."""
+
+    line: int
+    joint: int
+    pass_name: str
+    step: int
+    counts: int
+    xyz_mm: tuple[float, float, float]
+    chain: tuple[int, ...]  # g1_counts..gN_counts (empty without them)
+    target: int  # 1 without a target column
+
+
+def _sweep_row(
+    t: _Csv,
+    line: int,
+    f: list[str],
+    n_joints: int | None,
+    chain_columns: tuple[str, ...],
+    has_target: bool,
+) -> _SweepRow:
+    joint = t.joint(line, f, n_joints)
+    p = t.value(line, f, "pass")
+    if p not in PASSES:
+        raise t.fail(line, "pass", f"expected one of {', '.join(PASSES)}, got {p!r}")
+    step = t.integer(line, f, "step", minimum=0)
+    counts = t.counts(line, f)
+    x, y, z = (t.real(line, f, c) for c in ("x_mm", "y_mm", "z_mm"))
+    chain: tuple[int, ...] = ()
+    if chain_columns:
+        chain = tuple(t.counts(line, f, c) for c in chain_columns)
+        own = chain_columns[joint - 1] if joint <= len(chain_columns) else None
+        if own is None:
+            raise t.fail(line, "joint", f"joint {joint} has no g{joint}_counts column")
+        if chain[joint - 1] != counts:
+            raise t.fail(line, own, f"differs from 'counts' ({chain[joint - 1]} != {counts})")
+    target = t.integer(line, f, "target", minimum=1) if has_target else 1
+    return _SweepRow(line, joint, p, step, counts, (x, y, z), chain, target)
+
+
+@dataclass(frozen=True)
+class _SweepStops:
+    """The stops seen so far: each (joint, pass, step, target) once, and the targets of a
+    stop with the same reading."""
+
+    has_target: bool
+    first: dict[tuple[int, str, int, int], int] = field(default_factory=dict)
+    counts: dict[tuple[int, str, int], tuple[int, int]] = field(default_factory=dict)
+
+    def check(self, t: _Csv, row: _SweepRow) -> None:
+        line, p = row.line, row.pass_name
+        key = (row.joint, p, row.step, row.target)
+        if key in self.first:
+            what = f" target {key[3]}" if self.has_target else ""
+            raise t.fail(
+                line,
+                "step",
+                f"joint {key[0]} {p} step {key[2]}{what} already given in row {self.first[key]}",
+            )
+        self.first[key] = line
+        seen = self.counts.setdefault(key[:3], (row.counts, line))
+        if seen[0] != row.counts:
+            raise t.fail(
+                line, "counts", f"differs from the same stop's reading in row {seen[1]} "
+                f"({row.counts} != {seen[0]}): the targets of a stop share its readings"
+            )  # fmt: skip
+
+
+def _check_pass_sizes(
+    t: _Csv,
+    j: int,
+    step: IntArray,
+    pass_name: NDArray[np.str_],
+    lines: IntArray,
+    m: NDArray[np.bool_],
+    min_stops_per_pass: int,
+) -> None:
+    """Each pass of joint ``j`` (its rows ``m``) has none or enough stops."""
+    for p in PASSES:
+        mp = m & (pass_name == p)
+        n_stops = len(set(step[mp].tolist()))
+        if 0 < n_stops < min_stops_per_pass:
+            raise t.fail(
+                _row_span(lines[mp]),
+                "step",
+                f"joint {j} {p} sweep has {n_stops} stops; a circle fit and the "
+                f"relation need at least {min_stops_per_pass}",
+            )
 
 
 def _chain_columns(t: _Csv, n_joints: int | None) -> tuple[str, ...]:
@@ -550,21 +597,9 @@ def _parse_joint(t: TomlTable) -> GratingScale:
     joint = t.get("joint")
     if isinstance(joint, bool) or not isinstance(joint, int) or joint < 1:
         raise t.fail("joint", f"expected a joint number ≥ 1, got {joint!r}")
-    terms_raw = t.get("terms")
-    if not isinstance(terms_raw, list) or not all(isinstance(x, str) for x in terms_raw):
-        raise t.fail("terms", "expected an array of term names")
-    try:
-        terms = check_terms(terms_raw)
-    except CalibrationError as exc:
-        raise t.fail("terms", str(exc)) from None
+    terms = _terms(t)
     names = [SCALE_NAME] + [n for term in terms for n in TERMS[term][0]]
-    coefficients = t.number_table("coefficients")
-    for n in names:
-        if n not in coefficients:
-            raise t.fail("coefficients", f"missing coefficient '{n}' for terms {terms}")
-    coefficients = {n: coefficients[n] for n in names}
-    if coefficients[SCALE_NAME] == 0:
-        raise t.fail("coefficients", f"'{SCALE_NAME}' must not be zero")
+    coefficients = _coefficients(t, names, terms)
     cov_table = t.table("covariance")
     if cov_table.get("names") != names:
         raise cov_table.fail("names", f"expected {names}")
@@ -575,22 +610,7 @@ def _parse_joint(t: TomlTable) -> GratingScale:
     half_span = t.number("nonlinear_half_span_counts", default=1.0)
     if half_span <= 0:
         raise t.fail("nonlinear_half_span_counts", "must be positive")
-    unmodelled = {}
-    raw_un = t.data.get("unmodelled", {})
-    un_table = t.table("unmodelled", raw_un)
-    for term, data in un_table.data.items():
-        if term not in TERMS or term in terms:
-            raise un_table.fail(term, "not a candidate term left out of the relation")
-        sub = un_table.table(term, data)
-        wide = [*names, *TERMS[term][0]]
-        delta = sub.number_table("delta")
-        if set(delta) != set(wide):
-            raise sub.fail("delta", f"expected the coefficients {wide}")
-        unmodelled[term] = UnmodelledTerm(
-            p_value=sub.number("p_value"),
-            delta={n: delta[n] for n in _canonical(terms, term)},
-            delta_covariance_deg2=sub.matrix("delta_covariance_deg2", len(wide)),
-        )
+    unmodelled = _unmodelled(t, names, terms)
     home = t.data.get("home_deg")
     return GratingScale(
         joint=joint,
@@ -607,6 +627,50 @@ def _parse_joint(t: TomlTable) -> GratingScale:
         unmodelled=unmodelled,
         home_deg=None if home is None else t.number("home_deg"),
     )
+
+
+def _terms(t: TomlTable) -> tuple[str, ...]:
+    terms_raw = t.get("terms")
+    if not isinstance(terms_raw, list) or not all(isinstance(x, str) for x in terms_raw):
+        raise t.fail("terms", "expected an array of term names")
+    try:
+        return check_terms(terms_raw)
+    except CalibrationError as exc:
+        raise t.fail("terms", str(exc)) from None
+
+
+def _coefficients(t: TomlTable, names: list[str], terms: tuple[str, ...]) -> dict[str, float]:
+    """The relation's coefficients (deg per unit), exactly ``names``, in their order."""
+    coefficients = t.number_table("coefficients")
+    for n in names:
+        if n not in coefficients:
+            raise t.fail("coefficients", f"missing coefficient '{n}' for terms {terms}")
+    coefficients = {n: coefficients[n] for n in names}
+    if coefficients[SCALE_NAME] == 0:
+        raise t.fail("coefficients", f"'{SCALE_NAME}' must not be zero")
+    return coefficients
+
+
+def _unmodelled(
+    t: TomlTable, names: list[str], terms: tuple[str, ...]
+) -> dict[str, UnmodelledTerm]:
+    """The ``[unmodelled.<term>]`` tables: candidate terms left out of the relation."""
+    unmodelled = {}
+    un_table = t.table("unmodelled", t.data.get("unmodelled", {}))
+    for term, data in un_table.data.items():
+        if term not in TERMS or term in terms:
+            raise un_table.fail(term, "not a candidate term left out of the relation")
+        sub = un_table.table(term, data)
+        wide = [*names, *TERMS[term][0]]
+        delta = sub.number_table("delta")
+        if set(delta) != set(wide):
+            raise sub.fail("delta", f"expected the coefficients {wide}")
+        unmodelled[term] = UnmodelledTerm(
+            p_value=sub.number("p_value"),
+            delta={n: delta[n] for n in _canonical(terms, term)},
+            delta_covariance_deg2=sub.matrix("delta_covariance_deg2", len(wide)),
+        )
+    return unmodelled
 
 
 def _canonical(terms: Sequence[str], extra: str) -> list[str]:

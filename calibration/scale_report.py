@@ -18,7 +18,7 @@ import numpy as np
 
 from calibration.chain_scale import ChainCorrection
 from calibration.circle_fit import CircleFit
-from calibration.grating_scale import ARCSEC_PER_DEG, JointScaleResult
+from calibration.grating_scale import ARCSEC_PER_DEG, JointScaleResult, TermTest
 
 
 def _radius_std_mm(fit: Any) -> float:
@@ -59,29 +59,6 @@ def joint_summary(
     s = r.scale
     c = r.circle
     hyst = r.test("hysteresis")
-    passes = {}
-    for name, pc in r.pass_circles.items():
-        passes[name] = {
-            "radius_mm": pc.radius_mm,
-            "radius_std_mm": _radius_std_mm(pc),
-            "normal": [float(v) for v in pc.normal],
-            "residual_rms_um": 1e3 * pc.residual_rms_mm,
-            "points": pc.n_points,
-            "wild_points": list(pc.outliers),
-        }
-    agreement = {}
-    if len(r.pass_circles) == 2:
-        f, b = r.pass_circles["forward"], r.pass_circles["backward"]
-        d_r = f.radius_mm - b.radius_mm
-        agreement = {
-            "radius_difference_um": 1e3 * d_r,
-            "radius_difference_sigma": d_r / math.hypot(_radius_std_mm(f), _radius_std_mm(b)),
-            "normal_angle_arcsec": math.degrees(
-                math.acos(min(1.0, abs(float(f.normal @ b.normal))))
-            )
-            * ARCSEC_PER_DEG,
-            "centre_distance_um": 1e3 * float(np.linalg.norm(f.centre_mm - b.centre_mm)),
-        }
     std_stops = s.angle_std_deg(r.stop_counts)
     crb_stops = r.crb_angle_std_deg
     return {
@@ -117,20 +94,9 @@ def joint_summary(
         },
         "targets": getattr(c, "n_targets", 1),
         "chain": chain_summary(chain, r),
-        "pass_circles": passes,
-        "pass_agreement": agreement,
-        "tests": [
-            {
-                "term": t.term,
-                "kept": t.kept,
-                "f_statistic": t.f_statistic,
-                "dof_term": t.dof_term,
-                "dof_residual": t.dof_residual,
-                "p_value": t.p_value,
-                "threshold": t.threshold,
-            }
-            for t in r.tests
-        ],
+        "pass_circles": {name: _pass_circle(pc) for name, pc in r.pass_circles.items()},
+        "pass_agreement": _pass_agreement(r),
+        "tests": [_test_row(t) for t in r.tests],
         "stops": int(r.used.size),
         "stops_used": int(r.used.sum()),
         "dropped": [{"stop": i, "reason": why} for i, why in r.dropped],
@@ -138,9 +104,73 @@ def joint_summary(
     }
 
 
+def _test_row(t: TermTest) -> dict[str, Any]:
+    return {
+        "term": t.term,
+        "kept": t.kept,
+        "f_statistic": t.f_statistic,
+        "dof_term": t.dof_term,
+        "dof_residual": t.dof_residual,
+        "p_value": t.p_value,
+        "threshold": t.threshold,
+    }
+
+
+def _pass_circle(pc: Any) -> dict[str, Any]:
+    """One sweep's own circle (or target set)."""
+    return {
+        "radius_mm": pc.radius_mm,
+        "radius_std_mm": _radius_std_mm(pc),
+        "normal": [float(v) for v in pc.normal],
+        "residual_rms_um": 1e3 * pc.residual_rms_mm,
+        "points": pc.n_points,
+        "wild_points": list(pc.outliers),
+    }
+
+
+def _pass_agreement(r: JointScaleResult) -> dict[str, float]:
+    """How the forward and backward sweeps' circles agree (empty with one sweep)."""
+    if len(r.pass_circles) != 2:
+        return {}
+    f, b = r.pass_circles["forward"], r.pass_circles["backward"]
+    d_r = f.radius_mm - b.radius_mm
+    return {
+        "radius_difference_um": 1e3 * d_r,
+        "radius_difference_sigma": d_r / math.hypot(_radius_std_mm(f), _radius_std_mm(b)),
+        "normal_angle_arcsec": math.degrees(math.acos(min(1.0, abs(float(f.normal @ b.normal)))))
+        * ARCSEC_PER_DEG,
+        "centre_distance_um": 1e3 * float(np.linalg.norm(f.centre_mm - b.centre_mm)),
+    }
+
+
 def _markdown(rows: Sequence[Mapping[str, Any]], robot: str | None) -> str:
     out = [f"# Grating-scale calibration{f' — {robot}' if robot else ''}", ""]
-    out += [
+    out += _joint_table(rows)
+    out += ["", "## What the whole chain removed", ""]
+    out += _chain_table(rows)
+    out += ["", "## Term selection (nested F-tests)", ""]
+    out += ["| joint | term | kept | F | dof | p | threshold |", "|---" * 7 + "|"]
+    for r in rows:
+        for t in r["tests"]:
+            out.append(
+                f"| {r['joint']} | {t['term']} | {'yes' if t['kept'] else 'no'} | "
+                f"{t['f_statistic']:.2f} | {t['dof_term']}, {t['dof_residual']} | "
+                f"{t['p_value']:.3g} | {t['threshold']:.3g} |"
+            )
+    out += ["", "## Uncertainty and circles", ""]
+    out += _uncertainty_table(rows)
+    notes = [(r["joint"], n) for r in rows for n in r["notes"]]
+    notes += [
+        (r["joint"], f"dropped stop {d['stop']}: {d['reason']}") for r in rows for d in r["dropped"]
+    ]
+    if notes:
+        out += ["", "## Notes", ""] + [f"- joint {j}: {n}" for j, n in notes]
+    return "\n".join(out) + "\n"
+
+
+def _joint_table(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """One row per joint: zero, scale, terms, residual, hysteresis, circle."""
+    out = [
         "| joint | zero counts (spread, n, source) | deg/count | counts/deg | R_eff mm | "
         "terms | rms deg | rms ″ | hysteresis counts (″, p) | circle R mm | normal | "
         "circle rms µm | dropped |",
@@ -162,8 +192,12 @@ def _markdown(rows: Sequence[Mapping[str, Any]], robot: str | None) -> str:
             f"{r['residual_rms_arcsec']:.2f} | {hyst} | {c['radius_mm']:.4f} | {normal} | "
             f"{c['residual_rms_um']:.1f} | {len(r['dropped'])} |"
         )
-    out += ["", "## What the whole chain removed", ""]
-    out += [
+    return out
+
+
+def _chain_table(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Per joint: the circle-only map beside the whole-chain one, and what moved upstream."""
+    out = [
         "| joint | targets | circle-only rms ″ (terms) | whole-chain rms ″ (terms) | "
         "upstream joints moved (max ″) | modelled deflection taken out: own rms/max ″, "
         "upstream max ″ |",
@@ -188,17 +222,12 @@ def _markdown(rows: Sequence[Mapping[str, Any]], robot: str | None) -> str:
             f"({', '.join(ch['circle_only_terms']) or '—'}) | {r['residual_rms_arcsec']:.2f} "
             f"({', '.join(r['terms']) or '—'}) | {moved or '—'} | {defl} |"
         )
-    out += ["", "## Term selection (nested F-tests)", ""]
-    out += ["| joint | term | kept | F | dof | p | threshold |", "|---" * 7 + "|"]
-    for r in rows:
-        for t in r["tests"]:
-            out.append(
-                f"| {r['joint']} | {t['term']} | {'yes' if t['kept'] else 'no'} | "
-                f"{t['f_statistic']:.2f} | {t['dof_term']}, {t['dof_residual']} | "
-                f"{t['p_value']:.3g} | {t['threshold']:.3g} |"
-            )
-    out += ["", "## Uncertainty and circles", ""]
-    out += [
+    return out
+
+
+def _uncertainty_table(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Per joint: the stop angles' standard deviation and bound, the sweeps' agreement."""
+    out = [
         "| joint | angle std rms ″ | angle std max ″ | CRB rms ″ | tracker σ µm | "
         "sweep circles ΔR µm (σ) | normals ∠ ″ |",
         "|---" * 7 + "|",
@@ -215,13 +244,7 @@ def _markdown(rows: Sequence[Mapping[str, Any]], robot: str | None) -> str:
             f"| {r['joint']} | {r['angle_std_rms_arcsec']:.3f} | {r['angle_std_max_arcsec']:.3f}"
             f" | {r['crb_angle_rms_arcsec']:.3f} | {r['tracker_sigma_um']:.1f} | {agree} |"
         )
-    notes = [(r["joint"], n) for r in rows for n in r["notes"]]
-    notes += [
-        (r["joint"], f"dropped stop {d['stop']}: {d['reason']}") for r in rows for d in r["dropped"]
-    ]
-    if notes:
-        out += ["", "## Notes", ""] + [f"- joint {j}: {n}" for j, n in notes]
-    return "\n".join(out) + "\n"
+    return out
 
 
 def plot_residuals(results: Sequence[JointScaleResult], path: str | Path) -> Path:

@@ -794,7 +794,24 @@ def fit_target_set(
     if lost.any():
         z = _local(geo, filled)[0]
         theta = np.where(lost, _profile_theta(geo, z, weight), theta)
-    w_used = np.where(used, weight, 0.0)
+    result = TargetSetFit(
+        geometry=geo,
+        angle_rad_all=theta,
+        points_mm=pts,
+        sigma_mm=sigma,
+        point_inlier=used,
+        variance_factor=fit.s2,
+        dof=fit.dof,
+        parameter_covariance=fit.s2 * _unit_covariance(geo, theta, np.where(used, weight, 0.0)),
+        iterations=fit.iterations,
+    )
+    return _turning(result)
+
+
+def _unit_covariance(geo: TargetSetGeometry, theta: FloatArray, w_used: FloatArray) -> FloatArray:
+    """Covariance of the structure parameters per unit variance, the stop angles profiled
+    out (Schur complement of the normal matrix), for the weights ``w_used`` ``(K, T)`` of
+    the points in use; an error when the stops do not determine the axis."""
     n_ss, n_ts, n_tt, _ = _normal_blocks(geo, theta, w_used)
     inv_tt = np.where(n_tt > 0, 1.0 / np.where(n_tt > 0, n_tt, 1.0), 0.0)
     reduced = n_ss - n_ts.T @ (n_ts * inv_tt[:, None])
@@ -806,19 +823,12 @@ def fit_target_set(
             "the stops do not determine the axis (singular fit: no rotation between the "
             "stops, or a target on the axis)"
         )
-    cov_unit = np.linalg.inv(a) / np.outer(scale, scale)
+    cov_unit: FloatArray = np.linalg.inv(a) / np.outer(scale, scale)
+    return cov_unit
 
-    result = TargetSetFit(
-        geometry=geo,
-        angle_rad_all=theta,
-        points_mm=pts,
-        sigma_mm=sigma,
-        point_inlier=used,
-        variance_factor=fit.s2,
-        dof=fit.dof,
-        parameter_covariance=fit.s2 * cov_unit,
-        iterations=fit.iterations,
-    )
+
+def _turning(result: TargetSetFit) -> TargetSetFit:
+    """``result`` oriented with the stops' order, once they turn the link measurably."""
     angles = result.unwrapped_angle_rad()[result.inlier]
     noise = float(np.median(np.sqrt(result.angle_covariance_factors()[0][result.inlier])))
     if np.ptp(angles) <= MIN_SPREAD_NOISE * noise:

@@ -49,7 +49,9 @@ U8, U16, U32 = "0x0005", "0x0006", "0x0007"
 
 
 def eds_text(counts_per_rev: int = 131072, turns: int = 4096) -> str:
-    """The EDS of an encoder with ``counts_per_rev`` single-turn and ``turns`` multi-turn."""
+    """The EDS of an encoder with ``counts_per_rev`` single-turn and ``turns`` multi-turn.
+
+    Long because it is the file's text: one entry per object, in the file's order."""
     parts = [
         "[FileInfo]\nFileName=cia406_encoder.eds\nFileVersion=1\nDescription=CiA 406 encoder\n",
         "[DeviceInfo]\nVendorName=grating-twin emulator\nProductName=MT encoder\n"
