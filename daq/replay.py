@@ -41,6 +41,27 @@ class _Topic:
         self.bytes = 0
 
 
+class _Pace(NamedTuple):
+    """How a pass sends: ``speed`` × real time, or as ``fast`` as it can, from ``start_s``
+    (s) after the recording's first message, until ``duration_s`` (s, wall time; None:
+    no limit) since the replay began."""
+
+    speed: float
+    fast: bool
+    start_s: float
+    duration_s: float | None
+
+    @classmethod
+    def checked(cls, speed: float, fast: bool, start_s: float, duration_s: float | None) -> _Pace:
+        """Refused with :class:`RecordingError`: a non-finite or non-positive ``speed``,
+        a non-finite or negative ``start_s``."""
+        if not math.isfinite(speed) or speed <= 0:
+            raise RecordingError(f"--speed: must be a finite number > 0, got {speed}")
+        if not math.isfinite(start_s) or start_s < 0:
+            raise RecordingError(f"--start: must be a finite number >= 0 (seconds), got {start_s}")
+        return cls(speed, fast, start_s, duration_s)
+
+
 class _Pass(NamedTuple):
     """What one pass over the recording sent: messages, and the first and last
     ``log_time`` it read (ns; None: no message passed the filter)."""
@@ -145,10 +166,7 @@ def replay(
     nothing to send (no readable message, a ``--topic`` that matches no recorded key,
     a ``--start`` past the end), a non-finite or non-positive ``speed``, a negative
     ``start_s``."""
-    if not math.isfinite(speed) or speed <= 0:
-        raise RecordingError(f"--speed: must be a finite number > 0, got {speed}")
-    if not math.isfinite(start_s) or start_s < 0:
-        raise RecordingError(f"--start: must be a finite number >= 0 (seconds), got {start_s}")
+    pace = _Pace.checked(speed, fast, start_s, duration_s)
     read_recording(path)  # not a recording: said before any session opens
     stop = stop or threading.Event()
     filters = [zenoh.KeyExpr(t) for t in topics] if topics else None
@@ -161,16 +179,7 @@ def replay(
     try:
         while not stop.is_set():
             rec = read_recording(path)
-            got = _one_pass(
-                rec,
-                pubs,
-                speed=speed,
-                fast=fast,
-                start_s=start_s,
-                t_wall0=t_wall0,
-                duration_s=duration_s,
-                stop=stop,
-            )
+            got = _one_pass(rec, pubs, pace, t_wall0, stop)
             truncated = truncated or rec.truncated
             if passes == 0:
                 damaged = [d.as_dict() for d in rec.damaged if d.record != "footer"]
@@ -195,20 +204,12 @@ def replay(
 
 
 def _one_pass(
-    rec: Recording,
-    pubs: _Publishers,
-    *,
-    speed: float,
-    fast: bool,
-    start_s: float,
-    t_wall0: float,
-    duration_s: float | None,
-    stop: threading.Event,
+    rec: Recording, pubs: _Publishers, pace: _Pace, t_wall0: float, stop: threading.Event
 ) -> _Pass:
-    """Publish ``rec``'s messages once, paced by their ``log_time`` (``speed`` × real
-    time, or ``fast``), from ``start_s`` after its first message; ``duration_s`` after
-    ``t_wall0`` (``time.monotonic()``, the replay's start) sets ``stop``."""
+    """Publish ``rec``'s messages once, paced by their ``log_time``; ``pace.duration_s``
+    after ``t_wall0`` (``time.monotonic()``, the replay's start) sets ``stop``."""
     out, skipped = pubs.out, pubs.skipped
+    speed, fast, start_s, duration_s = pace
     t_first: int | None = None
     t_last: int | None = None
     t_rec0: int | None = None
