@@ -114,8 +114,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-v", "--verbose", action="count", default=0)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _run_options(sub.add_parser("run", help=COMMANDS["run"]))
+    _record_options(sub.add_parser("record", help=COMMANDS["record"]))
+    _replay_options(sub.add_parser("replay", help=COMMANDS["replay"]))
+    _recover_options(sub.add_parser("recover", help=COMMANDS["recover"]))
+    p = sub.add_parser("info", help=COMMANDS["info"])
+    p.add_argument("file", type=path_text)
+    _echo_options(sub.add_parser("echo", help=COMMANDS["echo"]))
+    _schema_options(sub.add_parser("schema", help=COMMANDS["schema"]))
+    return parser
 
-    p = sub.add_parser("run", help=COMMANDS["run"])
+
+def _run_options(p: argparse.ArgumentParser) -> None:
+    """The options of ``daq run``."""
     p.add_argument(
         "--config", type=path_text, help="cell TOML (default: $DAQ_CONFIG, else the emulated cell)"
     )
@@ -141,7 +152,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cell", help="cell name (key chunk)")
     _zenoh_args(p)
 
-    p = sub.add_parser("record", help=COMMANDS["record"])
+
+def _record_options(p: argparse.ArgumentParser) -> None:
+    """The options of ``daq record``."""
     p.add_argument(
         "key", nargs="?", type=key_expr, default="cell/**", help="key expression (cell/**)"
     )
@@ -151,7 +164,9 @@ def build_parser() -> argparse.ArgumentParser:
     _realtime_arg(p)
     _zenoh_args(p)
 
-    p = sub.add_parser("replay", help=COMMANDS["replay"])
+
+def _replay_options(p: argparse.ArgumentParser) -> None:
+    """The options of ``daq replay``."""
     p.add_argument("file", type=path_text, help="MCAP recording")
     speed = p.add_mutually_exclusive_group()
     speed.add_argument("--speed", type=POSITIVE_S, default=1.0, help="×N of real time (default 1)")
@@ -172,7 +187,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=path_text, help="take zenoh settings from this cell TOML")
     _zenoh_args(p)
 
-    p = sub.add_parser("recover", help=COMMANDS["recover"])
+
+def _recover_options(p: argparse.ArgumentParser) -> None:
+    """The options of ``daq recover``."""
     p.add_argument("file", type=path_text)
     out = p.add_mutually_exclusive_group()
     out.add_argument(
@@ -184,10 +201,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="replace FILE, keeping the original as FILE.bak",
     )
 
-    p = sub.add_parser("info", help=COMMANDS["info"])
-    p.add_argument("file", type=path_text)
 
-    p = sub.add_parser("echo", help=COMMANDS["echo"])
+def _echo_options(p: argparse.ArgumentParser) -> None:
+    """The options of ``daq echo``."""
     p.add_argument("key", nargs="?", type=key_expr, default="cell/**")
     p.add_argument("--config", type=path_text, help="take zenoh settings from this cell TOML")
     p.add_argument("--duration", type=POSITIVE_S, help="stop after S seconds")
@@ -213,12 +229,13 @@ def build_parser() -> argparse.ArgumentParser:
     _realtime_arg(p)
     _zenoh_args(p)
 
-    p = sub.add_parser("schema", help=COMMANDS["schema"])
+
+def _schema_options(p: argparse.ArgumentParser) -> None:
+    """The options of ``daq schema``."""
     p.add_argument("key", type=key_expr, help="a data key or a key expression (cell/**)")
     p.add_argument("--config", type=path_text, help="take zenoh settings from this cell TOML")
     p.add_argument("--timeout", type=POSITIVE_S, default=2.0, help="seconds to wait (2)")
     _zenoh_args(p)
-    return parser
 
 
 def _realtime_arg(p: argparse.ArgumentParser) -> None:

@@ -28,10 +28,10 @@ import time
 from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from daq.bus import Received, Receiver, SchemaServer, open_session, utc_offset_ns
-from daq.config import DaqConfig, resolve, zenoh_overrides
+from daq.config import DaqConfig, DeviceConfig, ZenohConfig, resolve, zenoh_overrides
 from daq.device_drivers import keep_freed_heap, make_driver
 from daq.device_recording import DeviceRecording, recorder_meta
 from daq.errors import DaqError
@@ -47,6 +47,9 @@ from daq.recording import (
 from daq.scheduling import set_realtime_of
 from daq.viewer import StreamViewer
 from daq.worker import DeviceWorker, worker_zenoh
+
+if TYPE_CHECKING:  # the emulated cell loads only for a daemon that runs one
+    from daq.emulated import EmulatedCell
 
 log = logging.getLogger(__name__)
 
@@ -76,21 +79,8 @@ class Daemon:
             sys.setswitchinterval(min(sys.getswitchinterval(), interval))
         keep_freed_heap()
         self.utc_offset_ns = utc_offset_ns()
-        # worker processes need a driver made from its configured name (a test's factory
-        # of in-process fakes runs in threads here)
         self._worker_dir: str | None = None
-        zc, worker_zc = cfg.zenoh, None
-        enabled = sum(1 for d in cfg.devices if d.enabled)
-        per_device = cfg.publish.process_per_device
-        if per_device == "auto":
-            per_device = enabled > 1
-        if per_device and driver_factory is make_driver:
-            unix = None
-            if zc.mode != "client":  # workers connect to this session over a unix socket
-                self._worker_dir = tempfile.mkdtemp(prefix="daq-")
-                unix = f"unixsock-stream/{self._worker_dir}/workers.sock"
-                zc = replace(zc, listen=(*zc.listen, unix))
-            worker_zc = worker_zenoh(cfg.zenoh, unix)
+        zc, worker_zc = self._zenoh_with_workers(driver_factory)
         self.session = open_session(zc)
         self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")
         self.recorder: BackgroundRecorder | None = None
@@ -104,57 +94,11 @@ class Daemon:
         self._closed = False
         try:
             if record_path is not None:
-                meta = {
-                    "daq": {
-                        "cell": cfg.cell.name,
-                        "config": cfg.source,
-                        "host_utc_minus_monotonic_ns": str(self.utc_offset_ns),
-                        "started_utc": datetime.now(UTC).isoformat(),
-                    }
-                }
-                self.recorder = BackgroundRecorder(
-                    McapRecorder(
-                        record_path,
-                        compression=cfg.recording.compression,
-                        chunk_size_bytes=cfg.recording.chunk_size_bytes,
-                        chunk_interval_s=cfg.recording.chunk_interval_s,
-                        metadata=meta,
-                    )
-                )
+                self.recorder = self._open_recorder(record_path)
             for dev in cfg.devices:
-                if not dev.enabled:
-                    continue
-                driver = driver_factory(dev)  # a worker's: made for its schema, not opened
-                groups = build_schemas(cfg, dev, driver.schema, self.utc_offset_ns)
-                recording = None
-                if self.recorder is not None:
-                    recording = DeviceRecording(self.recorder, cfg, dev, [g for g, _ in groups])
-                    self.recordings.append(recording)
-                if worker_zc is not None:
-                    worker = DeviceWorker(
-                        cfg,
-                        dev,
-                        [g for g, _ in groups],
-                        self.session,
-                        worker_zc,
-                        self.utc_offset_ns,
-                        recording=recording,
-                    )
-                    self.devices.append(worker)
-                    self.workers.append(worker)
-                    continue
-                stream = DeviceStream(
-                    cfg,
-                    dev,
-                    driver,
-                    self.session,
-                    self.schemas,
-                    recording=recording,
-                    utc_offset_ns=self.utc_offset_ns,
-                    stop=self.stop,
-                )
-                self.devices.append(stream)
-                self.health.add(stream)
+                if dev.enabled:
+                    # a worker's driver: made for its schema, not opened
+                    self._add_device(dev, driver_factory(dev), worker_zc)
             if self.recorder is not None and cfg.recording.twin:
                 # the live twin's keys too, when a twin publishes (its schemas by query)
                 self._twin_rx = Receiver(
@@ -166,6 +110,82 @@ class Daemon:
         except BaseException:
             self.close()
             raise
+
+    def _zenoh_with_workers(self, driver_factory: Any) -> tuple[ZenohConfig, ZenohConfig | None]:
+        """The daemon's zenoh settings and, when devices run in worker processes, the
+        workers' (None: threads); a daemon that listens gets a unix socket for them in a
+        directory of its own (``_worker_dir``, removed at close). Workers need a driver
+        made from its configured name: a test's factory of in-process fakes runs in
+        threads."""
+        cfg = self.cfg
+        zc = cfg.zenoh
+        per_device = cfg.publish.process_per_device
+        if per_device == "auto":
+            per_device = sum(1 for d in cfg.devices if d.enabled) > 1
+        if not (per_device and driver_factory is make_driver):
+            return zc, None
+        unix = None
+        if zc.mode != "client":  # workers connect to this session over a unix socket
+            self._worker_dir = tempfile.mkdtemp(prefix="daq-")
+            unix = f"unixsock-stream/{self._worker_dir}/workers.sock"
+            zc = replace(zc, listen=(*zc.listen, unix))
+        return zc, worker_zenoh(cfg.zenoh, unix)
+
+    def _open_recorder(self, record_path: str | Path) -> BackgroundRecorder:
+        """The MCAP recorder of ``record_path``, its metadata the daemon's run."""
+        cfg = self.cfg
+        meta = {
+            "daq": {
+                "cell": cfg.cell.name,
+                "config": cfg.source,
+                "host_utc_minus_monotonic_ns": str(self.utc_offset_ns),
+                "started_utc": datetime.now(UTC).isoformat(),
+            }
+        }
+        return BackgroundRecorder(
+            McapRecorder(
+                record_path,
+                compression=cfg.recording.compression,
+                chunk_size_bytes=cfg.recording.chunk_size_bytes,
+                chunk_interval_s=cfg.recording.chunk_interval_s,
+                metadata=meta,
+            )
+        )
+
+    def _add_device(self, dev: DeviceConfig, driver: Any, worker_zc: ZenohConfig | None) -> None:
+        """``dev``'s stream, its recorder channels and its health: in a worker process
+        with ``worker_zc``, else in a thread of this process."""
+        cfg = self.cfg
+        groups = build_schemas(cfg, dev, driver.schema, self.utc_offset_ns)
+        recording = None
+        if self.recorder is not None:
+            recording = DeviceRecording(self.recorder, cfg, dev, [g for g, _ in groups])
+            self.recordings.append(recording)
+        if worker_zc is not None:
+            worker = DeviceWorker(
+                cfg,
+                dev,
+                [g for g, _ in groups],
+                self.session,
+                worker_zc,
+                self.utc_offset_ns,
+                recording=recording,
+            )
+            self.devices.append(worker)
+            self.workers.append(worker)
+            return
+        stream = DeviceStream(
+            cfg,
+            dev,
+            driver,
+            self.session,
+            self.schemas,
+            recording=recording,
+            utc_offset_ns=self.utc_offset_ns,
+            stop=self.stop,
+        )
+        self.devices.append(stream)
+        self.health.add(stream)
 
     def _record_twin(self, got: Received) -> None:
         """A batch of a twin key (zenoh's callback thread): recorded as it came, and its
@@ -249,22 +269,8 @@ class Daemon:
 
 
 def main_run(args: Any) -> int:
-    extra: dict[str, dict[str, Any]] = {}
-    if getattr(args, "cell", None):
-        extra["cell"] = {"name": args.cell}
-    emulated = None
-    if args.config is None and not _env_config():
-        from daq.emulated import EmulatedCell
-
-        emulated = EmulatedCell(sim_config=args.sim_config, rate_hz=args.rate)
-        base = emulated.start()
-        from daq.config import load
-
-        cfg = load(None, overrides=_with_zenoh(args, extra), base=base)
-        record = not args.no_record
-    else:
-        cfg = resolve(args, extra)
-        record = cfg.recording.enabled or args.record is not None
+    """``daq run``: the daemon of ``args`` until ``--duration`` or a signal; exit 0."""
+    cfg, emulated, record = _run_config(args)
     path = None
     if record:
         path = recording_path(cfg, args.record or None)
@@ -285,23 +291,7 @@ def main_run(args: Any) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
     try:
-        print(
-            json.dumps(
-                {
-                    "daq": "running",
-                    "cell": cfg.cell.name,
-                    "keys": daemon.keys,
-                    "listen": list(cfg.zenoh.listen),
-                    "connect": list(cfg.zenoh.connect),
-                    "recording": str(path) if path is not None else None,
-                    "emulated": emulated.devices if emulated is not None else None,
-                    "emulator_t0_monotonic_ns": (
-                        emulated.t0_monotonic_ns if emulated is not None else None
-                    ),
-                }
-            ),
-            flush=True,
-        )
+        print(json.dumps(_running_line(cfg, daemon, path, emulated)), flush=True)
         docs = daemon.run(args.duration)
     finally:
         daemon.close()
@@ -320,6 +310,41 @@ def main_run(args: Any) -> int:
     if path is not None:
         print(f"recorded to {path}", file=sys.stderr)
     return 0
+
+
+def _run_config(args: Any) -> tuple[DaqConfig, EmulatedCell | None, bool]:
+    """The daemon's configuration, the emulated cell it reads (started; None: a
+    configured cell, ``--config`` or ``$DAQ_CONFIG``) and whether it records."""
+    extra: dict[str, dict[str, Any]] = {}
+    if getattr(args, "cell", None):
+        extra["cell"] = {"name": args.cell}
+    if args.config is None and not _env_config():
+        from daq.emulated import EmulatedCell
+
+        emulated = EmulatedCell(sim_config=args.sim_config, rate_hz=args.rate)
+        base = emulated.start()
+        from daq.config import load
+
+        cfg = load(None, overrides=_with_zenoh(args, extra), base=base)
+        return cfg, emulated, not args.no_record
+    cfg = resolve(args, extra)
+    return cfg, None, cfg.recording.enabled or args.record is not None
+
+
+def _running_line(
+    cfg: DaqConfig, daemon: Daemon, path: Path | None, emulated: EmulatedCell | None
+) -> dict[str, Any]:
+    """The ``{"daq": "running", ...}`` line printed on start."""
+    return {
+        "daq": "running",
+        "cell": cfg.cell.name,
+        "keys": daemon.keys,
+        "listen": list(cfg.zenoh.listen),
+        "connect": list(cfg.zenoh.connect),
+        "recording": str(path) if path is not None else None,
+        "emulated": emulated.devices if emulated is not None else None,
+        "emulator_t0_monotonic_ns": (emulated.t0_monotonic_ns if emulated is not None else None),
+    }
 
 
 def _env_config() -> bool:

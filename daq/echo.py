@@ -203,6 +203,96 @@ def _jsonable(cols: dict[str, np.ndarray]) -> dict[str, Any]:
     return {k: v.tolist() for k, v in cols.items()}
 
 
+class _Echo:
+    """What an echo received (counts per key, the last JSON document per key) and where
+    it goes (``lines``: JSON lines; else one printed line per message unless ``quiet``).
+    Its handlers run on zenoh's callback thread, one message at a time."""
+
+    def __init__(
+        self, lines: IO[str] | None, *, quiet: bool, count: int | None, stop: threading.Event
+    ) -> None:
+        self.lines = lines
+        self.quiet = quiet
+        self.count = count
+        self.stop = stop
+        self.stats: dict[str, KeyStats] = {}
+        self.health: dict[str, Any] = {}
+        self.failed: list[BaseException] = []  # raised on zenoh's thread: re-raised on the caller's
+        self.batches = 0
+        self.last_rx = 0.0
+
+    def on_zenoh_thread(self, handler: Callable[[Any], None]) -> Callable[[Any], None]:
+        """``handler``, its exception kept and ``stop`` set: zenoh would only log it, and an
+        output that fails (a closed pipe, a full disk) must stop the echo with that error,
+        as it did on the main thread."""
+
+        def call(arg: Any) -> None:
+            try:
+                handler(arg)
+            except BaseException as exc:
+                if not self.failed:
+                    self.failed.append(exc)
+                self.stop.set()
+
+        return call
+
+    def other(self, sample: Any) -> None:
+        """A JSON message (a health document); anything else is ignored."""
+        key = str(sample.key_expr)
+        try:
+            doc = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        self.health[key] = doc
+        if self.lines is not None:
+            self.lines.write(json.dumps({"key": key, "json": doc}) + "\n")
+        elif not self.quiet:
+            print(f"{key} {json.dumps(doc)}", flush=True)
+
+    def batch(self, got: Any) -> None:
+        """A decoded batch: counted, written or printed; ``stop`` set at ``count``."""
+        # zenoh's callback thread (one message at a time): no hand-over to the caller's
+        # thread, whose wake-up per message added to the latency (docs/daq.md "Speed")
+        count = self.count
+        if self.failed or (count is not None and self.batches >= count):
+            return  # enough: the main thread is closing
+        self.last_rx = time.monotonic()
+        self.batches += 1
+        st = self.stats.get(got.key)
+        if st is None:  # not setdefault: that would build a KeyStats for every message
+            st = self.stats[got.key] = KeyStats()
+        st.add(got.header, got.columns, got.t_recv_ns)
+        if self.lines is not None:
+            rec = {
+                "key": got.key,
+                "batch_seq": got.header.batch_seq,
+                "t_recv_ns": got.t_recv_ns,
+                "columns": _jsonable(got.columns),
+            }
+            self.lines.write(json.dumps(rec) + "\n")
+        elif not self.quiet:
+            c = got.columns
+            seq = c.get("seq")
+            span = f"seq {int(seq[0])}..{int(seq[-1])}" if seq is not None and len(seq) else ""
+            h = got.header
+            print(f"{got.key} #{h.batch_seq} n={h.n_samples} {span}", flush=True)
+        if count is not None and self.batches >= count:
+            self.stop.set()
+
+    def wait(
+        self, recv: Receiver, t0: float, duration_s: float | None, idle_s: float | None
+    ) -> None:
+        """Until ``stop``, ``duration_s`` after ``t0`` (``time.monotonic()``), or ``idle_s``
+        without a batch once one came and none is pending."""
+        while not self.stop.wait(0.05):
+            now = time.monotonic()
+            if duration_s is not None and now - t0 >= duration_s:
+                break
+            idle = now - self.last_rx >= idle_s if idle_s is not None else False
+            if idle and self.batches and not recv.pending:  # a backlog is not idle
+                break
+
+
 def run_echo(
     key_expr: str,
     zc: ZenohConfig,
@@ -224,97 +314,32 @@ def run_echo(
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
-    stats: dict[str, KeyStats] = {}
-    health: dict[str, Any] = {}
-    lines: IO[str] | None = None if callable(jsonl) else jsonl  # opened with the session
-
-    failed: list[BaseException] = []  # raised on zenoh's thread: re-raised on this one
-
-    def on_zenoh_thread(handler: Callable[[Any], None]) -> Callable[[Any], None]:
-        # zenoh would only log an exception: an output that fails (a closed pipe, a full
-        # disk) must stop the echo with that error, as it did on the main thread
-        def call(arg: Any) -> None:
-            try:
-                handler(arg)
-            except BaseException as exc:
-                if not failed:
-                    failed.append(exc)
-                stop.set()
-
-        return call
-
-    def handle_other(sample: Any) -> None:
-        key = str(sample.key_expr)
-        try:
-            doc = json.loads(sample.payload.to_bytes())
-        except ValueError:
-            return
-        health[key] = doc
-        if lines is not None:
-            lines.write(json.dumps({"key": key, "json": doc}) + "\n")
-        elif not quiet:
-            print(f"{key} {json.dumps(doc)}", flush=True)
-
-    progress = {"batches": 0, "last_rx": 0.0}
-
-    def handle_batch(got: Any) -> None:
-        # zenoh's callback thread (one message at a time): no hand-over to this thread,
-        # whose wake-up per message added to the latency (docs/daq.md "Speed")
-        if failed or (count is not None and progress["batches"] >= count):
-            return  # enough: the main thread is closing
-        progress["last_rx"] = time.monotonic()
-        progress["batches"] += 1
-        st = stats.get(got.key)
-        if st is None:  # not setdefault: that would build a KeyStats for every message
-            st = stats[got.key] = KeyStats()
-        st.add(got.header, got.columns, got.t_recv_ns)
-        if lines is not None:
-            rec = {
-                "key": got.key,
-                "batch_seq": got.header.batch_seq,
-                "t_recv_ns": got.t_recv_ns,
-                "columns": _jsonable(got.columns),
-            }
-            lines.write(json.dumps(rec) + "\n")
-        elif not quiet:
-            c = got.columns
-            seq = c.get("seq")
-            span = f"seq {int(seq[0])}..{int(seq[-1])}" if seq is not None and len(seq) else ""
-            h = got.header
-            print(f"{got.key} #{h.batch_seq} n={h.n_samples} {span}", flush=True)
-        if count is not None and progress["batches"] >= count:
-            stop.set()
-
+    # the lines of a function are opened with the session
+    echo = _Echo(None if callable(jsonl) else jsonl, quiet=quiet, count=count, stop=stop)
     session = open_session(zc)
     t0 = time.monotonic()
     recv: Receiver | None = None
     try:
         if callable(jsonl):
-            lines = jsonl()
+            echo.lines = jsonl()
         recv = Receiver(
             session,
             key_expr,
-            on_other=on_zenoh_thread(handle_other),
-            on_batch=on_zenoh_thread(handle_batch),
+            on_other=echo.on_zenoh_thread(echo.other),
+            on_batch=echo.on_zenoh_thread(echo.batch),
         )
         if ready_out is not None:
             ready_out.write(json.dumps({"ready": key_expr}) + "\n")
             ready_out.flush()
-        while not stop.wait(0.05):
-            now = time.monotonic()
-            if duration_s is not None and now - t0 >= duration_s:
-                break
-            idle = now - progress["last_rx"] >= idle_s if idle_s is not None else False
-            if idle and progress["batches"] and not recv.pending:  # a backlog is not idle
-                break
+        echo.wait(recv, t0, duration_s, idle_s)
         recv.close()  # no batch is handed over after this
     finally:
         session.close()
-    if failed:
-        raise failed[0]
+    if echo.failed:
+        raise echo.failed[0]
     result = {
-        "keys": {k: s.summary(stats_window_s) for k, s in sorted(stats.items())},
-        "health": health,
+        "keys": {k: s.summary(stats_window_s) for k, s in sorted(echo.stats.items())},
+        "health": echo.health,
         "undecodable": recv.undecodable if recv is not None else 0,
         "elapsed_s": time.monotonic() - t0,
     }

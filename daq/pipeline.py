@@ -77,37 +77,7 @@ def build_schemas(
                 f"{dev.driver!r} has no channel {missing[0]!r} (it has: {', '.join(names)})"
             )
         idx = np.array([names.index(m) for m in members], dtype=np.intp)
-        cols = [
-            Column("seq", "uint64", description="sample sequence number (device's, unwrapped)"),
-            Column("epoch", "int32", description="device restarts seen before this sample"),
-            Column(
-                "t_device_us",
-                "int64",
-                unit="us",
-                clock=f"device:{dev.name}",
-                description="device clock at the latch, unwrapped, valid within one epoch",
-            ),
-            Column(
-                "t_host_rx_ns",
-                "int64",
-                unit="ns",
-                clock=HOST_CLOCK,
-                description="host time when the frame carrying the sample was received",
-            ),
-            Column(
-                "t_mapped_ns",
-                "int64",
-                unit="ns",
-                clock=HOST_CLOCK,
-                description="device time mapped to the host clock (online offset+drift fit)",
-            ),
-            Column(
-                "t_mapped_ok",
-                "uint8",
-                description="1: the clock fit had settled when this sample was mapped; 0: "
-                "provisional (first seconds after a start or restart, backlog catch-up)",
-            ),
-        ]
+        cols = _time_columns(dev.name)
         chans = [driver_schema.channels[i] for i in idx]
         for c in chans:
             cols.append(Column(c.name, c.dtype, unit=c.unit, description=c.description))
@@ -122,26 +92,75 @@ def build_schemas(
         joints = None
         if dev.joints is not None:
             joints = [dev.joints[i] if i < len(dev.joints) else None for i in idx.tolist()]
-        meta = {
-            "cell": cfg.cell.name,
-            "robot": dev.robot,
-            "device": dev.name,
-            "channel": g.name,
-            "driver": dev.driver,
-            "driver_kind": driver_schema.kind,
-            "url": dev.url,
-            "source": driver_schema.source,
-            "device_clock": driver_schema.device_clock,
-            "host_clock": "host_utc: CLOCK_REALTIME ns since 1970 (monotonic + offset at start)",
-            "host_utc_minus_monotonic_ns": utc_offset_ns,
-            "status_channels": [c.name for c in chans],
-            "status_bits": {str(k): v for k, v in driver_schema.status_bits.items()},
-            "joints": joints,
-            "rate_hz": dev.rate_hz,
-        }
+        meta = _group_meta(cfg, dev, g.name, driver_schema, chans, joints, utc_offset_ns)
         key = channel_key(cfg.cell.name, dev.robot, dev.name, g.name)
         out.append((StreamSchema(key, tuple(cols), meta), idx))
     return out
+
+
+def _time_columns(device: str) -> list[Column]:
+    """The columns every group of ``device`` starts with (:data:`TIME_COLUMNS`)."""
+    return [
+        Column("seq", "uint64", description="sample sequence number (device's, unwrapped)"),
+        Column("epoch", "int32", description="device restarts seen before this sample"),
+        Column(
+            "t_device_us",
+            "int64",
+            unit="us",
+            clock=f"device:{device}",
+            description="device clock at the latch, unwrapped, valid within one epoch",
+        ),
+        Column(
+            "t_host_rx_ns",
+            "int64",
+            unit="ns",
+            clock=HOST_CLOCK,
+            description="host time when the frame carrying the sample was received",
+        ),
+        Column(
+            "t_mapped_ns",
+            "int64",
+            unit="ns",
+            clock=HOST_CLOCK,
+            description="device time mapped to the host clock (online offset+drift fit)",
+        ),
+        Column(
+            "t_mapped_ok",
+            "uint8",
+            description="1: the clock fit had settled when this sample was mapped; 0: "
+            "provisional (first seconds after a start or restart, backlog catch-up)",
+        ),
+    ]
+
+
+def _group_meta(
+    cfg: DaqConfig,
+    dev: DeviceConfig,
+    group: str,
+    driver_schema: Any,
+    chans: list[Any],
+    joints: list[int | None] | None,
+    utc_offset_ns: int,
+) -> dict[str, Any]:
+    """The schema metadata of channel group ``group`` of ``dev``: where its samples come
+    from, its clocks, its status channels (``chans``) and the joint of each."""
+    return {
+        "cell": cfg.cell.name,
+        "robot": dev.robot,
+        "device": dev.name,
+        "channel": group,
+        "driver": dev.driver,
+        "driver_kind": driver_schema.kind,
+        "url": dev.url,
+        "source": driver_schema.source,
+        "device_clock": driver_schema.device_clock,
+        "host_clock": "host_utc: CLOCK_REALTIME ns since 1970 (monotonic + offset at start)",
+        "host_utc_minus_monotonic_ns": utc_offset_ns,
+        "status_channels": [c.name for c in chans],
+        "status_bits": {str(k): v for k, v in driver_schema.status_bits.items()},
+        "joints": joints,
+        "rate_hz": dev.rate_hz,
+    }
 
 
 @dataclass
@@ -352,6 +371,9 @@ class DeviceStream:
 
     # -- one batch ------------------------------------------------------------------------
     def _process(self, batches: list[Any]) -> None:
+        """Map, count, publish and record one read's batches (concatenated when several).
+        Long because it is the per-batch hot path: its arrays and counters are locals the
+        steps share, and a split would add calls per batch and per channel group."""
         if len(batches) == 1:
             b0 = batches[0]
             seq, t_dev, epoch = b0.seq, b0.t_device_us, b0.epoch

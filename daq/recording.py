@@ -37,13 +37,13 @@ import zlib
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
-from daq.columnar import ENCODING_NAME, SCHEMA_ENCODING, StreamSchema
-from daq.errors import RecordingError
+from daq.columnar import ENCODING_NAME, SCHEMA_ENCODING, StreamSchema, decode
+from daq.errors import DaqError, RecordingError
 from daq.scheduling import normal_for_this_thread
 from edges.outputs import OutputSet
 
@@ -259,44 +259,52 @@ def check_stream_output(
     except OSError as exc:
         raise RecordingError(f"{option} {shown}: {exc.strerror or exc}") from None
     if st is not None:
-        if stat.S_ISDIR(st.st_mode):
-            raise RecordingError(f"{option} {shown}: is a directory, expected a file path")
-        for q in inputs:
-            if q is None or not str(q):
-                continue
-            try:
-                qs = Path(q).stat()
-            except OSError:
-                continue
-            if (qs.st_dev, qs.st_ino) == (st.st_dev, st.st_ino):
-                raise RecordingError(
-                    f"{option} {shown}: is an input of this run ({q}); choose another path"
-                )
-        if not stat.S_ISREG(st.st_mode):
-            if regular:
-                raise RecordingError(
-                    f"{option} {shown}: not a regular file (a device or pipe); give a file path"
-                )
-            return p
+        return _check_existing_output(p, st, f"{option} {shown}", inputs, regular)
+    return _check_new_output(p, f"{option} {shown}", create_dirs)
+
+
+def _check_existing_output(
+    p: Path, st: os.stat_result, said: str, inputs: Iterable[str | Path | None], regular: bool
+) -> Path:
+    """:func:`check_stream_output` of a path that exists (``st``); ``said``: the option
+    and the path as given, the start of every refusal."""
+    if stat.S_ISDIR(st.st_mode):
+        raise RecordingError(f"{said}: is a directory, expected a file path")
+    for q in inputs:
+        if q is None or not str(q):
+            continue
         try:
-            open(p, "ab").close()  # writable? (appends nothing)
-        except OSError as exc:
-            raise RecordingError(f"{option} {shown}: cannot write: {exc.strerror or exc}") from None
+            qs = Path(q).stat()
+        except OSError:
+            continue
+        if (qs.st_dev, qs.st_ino) == (st.st_dev, st.st_ino):
+            raise RecordingError(f"{said}: is an input of this run ({q}); choose another path")
+    if not stat.S_ISREG(st.st_mode):
+        if regular:
+            raise RecordingError(f"{said}: not a regular file (a device or pipe); give a file path")
         return p
+    try:
+        open(p, "ab").close()  # writable? (appends nothing)
+    except OSError as exc:
+        raise RecordingError(f"{said}: cannot write: {exc.strerror or exc}") from None
+    return p
+
+
+def _check_new_output(p: Path, said: str, create_dirs: bool) -> Path:
+    """:func:`check_stream_output` of a path that does not exist yet: its directory is
+    there (or creatable) and takes a file."""
     parent = p.parent
     if not parent.is_dir():
         if parent.exists() or not create_dirs:
             what = "is not a directory" if parent.exists() else "does not exist (create it first)"
-            raise RecordingError(f"{option} {shown}: directory {parent} {what}")
+            raise RecordingError(f"{said}: directory {parent} {what}")
         parent = next((a for a in p.parents if a.exists()), Path("/"))
         if not parent.is_dir():
-            raise RecordingError(f"{option} {shown}: {parent} is not a directory")
+            raise RecordingError(f"{said}: {parent} is not a directory")
     try:
         fd, probe = tempfile.mkstemp(prefix=f".{p.name}.probe-", dir=parent)
     except OSError as exc:
-        raise RecordingError(
-            f"{option} {shown}: cannot write in {parent}: {exc.strerror or exc}"
-        ) from None
+        raise RecordingError(f"{said}: cannot write in {parent}: {exc.strerror or exc}") from None
     os.close(fd)
     os.unlink(probe)
     return p
@@ -696,6 +704,8 @@ class Recording:
         fallback: tuple[dict[int, Schema], dict[int, Channel]],
         topics: set[str] | None,
     ) -> Iterator[RecordedMessage]:
+        """The messages of ``fh`` (``size`` bytes), top-level record after record; an
+        unreadable one is noted in ``damaged`` and skipped to the next good chunk."""
         pos = len(MAGIC)
         while True:
             if pos >= size:
@@ -707,59 +717,14 @@ class Recording:
                     "that was not closed: killed, crashed or out of disk)",
                 )
                 return
-            head = _pread(fh, pos, 9)
-            kind, problem, length = "record", "", 0
-            records: list[Any] = []
-            resume: int | None = None
-            if len(head) < 9:
-                problem = f"truncated: the file ends {len(head)} bytes into a record header"
-            else:
-                op, length = head[0], int.from_bytes(head[1:], "little")
-                kind = RECORD_KINDS.get(
-                    op, "unknown record" if op < 0x80 else f"private record {op:#04x}"
-                )
-                if op not in RECORD_KINDS and op < 0x80:
-                    problem = f"bad opcode {op:#04x}"
-                elif pos == len(MAGIC) and op != OP_HEADER:
-                    kind, problem = "header", f"missing: the first record is a {kind}"
-                elif length > size - pos - 9:
-                    problem = "length"  # decided below: truncated, or a bad length
-                elif length > MAX_RECORD_BYTES:
-                    problem = (
-                        f"bad length: {length} bytes is over the reader's limit of "
-                        f"{MAX_RECORD_BYTES} bytes"
-                    )
-                else:
-                    body = _pread(fh, pos + 9, length)
-                    try:
-                        records, fields_end = _top_record(op, body)
-                    except _Bad as exc:
-                        problem = str(exc)
-                    else:  # a length too large swallows what follows: a chunk, say
-                        if fields_end < length:
-                            body_at = pos + 9
-                            resume = _resync(fh, body_at + fields_end, size, body_at + length)
-                        if resume is not None:
-                            problem = (
-                                f"bad length: {length} bytes, but a chunk starts inside it "
-                                f"at byte {resume}"
-                            )
-            if problem:
-                if resume is None:
-                    resume = _resync(fh, pos + 1, size)
-                if problem == "length":
-                    problem = (
-                        f"bad length: {length} bytes would run past the end of the file"
-                        if resume is not None
-                        else f"truncated: the file ends {size - pos - 9} bytes into a record "
-                        f"of {length} bytes"
-                    )
-                self._damage(pos, size if resume is None else resume, kind, problem)
+            top = _read_top(fh, pos, size)
+            if top.problem:
+                resume = self._skip(fh, pos, size, top)
                 if resume is None:
                     return
                 pos = resume
                 continue
-            for r in records:
+            for r in top.records:
                 if isinstance(r, Schema):
                     self.schemas[r.id] = r
                 elif isinstance(r, Channel):
@@ -770,23 +735,93 @@ class Recording:
                     got = self._message(r, fallback, topics)
                     if got is not None:
                         yield got
-            if head[0] == OP_CHUNK:
+            if top.op == OP_CHUNK:
                 self.chunks += 1
-            pos += 9 + length
-            if head[0] == OP_FOOTER:
-                tail = _pread(fh, pos, len(MAGIC) + 1)
-                if tail[: len(MAGIC)] != MAGIC:
-                    self._damage(pos, size, "end magic", "missing or wrong after the footer")
-                elif len(tail) > len(MAGIC):
-                    self._damage(
-                        pos + len(MAGIC),
-                        size,
-                        "end",
-                        f"{size - pos - len(MAGIC)} bytes after the end magic",
-                    )
-                else:
-                    self.complete = not self.damaged
+            pos += 9 + top.length
+            if top.op == OP_FOOTER:
+                self._after_footer(fh, pos, size)
                 return
+
+    def _skip(self, fh: Any, pos: int, size: int, top: _TopRecord) -> int | None:
+        """Note the damage of the unreadable record ``top`` at ``pos``; where reading
+        resumes: the next chunk that checks out (None: there is none, the walk ends)."""
+        resume = top.resume
+        if resume is None:
+            resume = _resync(fh, pos + 1, size)
+        problem, length = top.problem, top.length
+        if problem == "length":
+            problem = (
+                f"bad length: {length} bytes would run past the end of the file"
+                if resume is not None
+                else f"truncated: the file ends {size - pos - 9} bytes into a record "
+                f"of {length} bytes"
+            )
+        self._damage(pos, size if resume is None else resume, top.kind, problem)
+        return resume
+
+    def _after_footer(self, fh: Any, pos: int, size: int) -> None:
+        """The end magic after the footer (which ends at ``pos``), and nothing after it:
+        the file is ``complete`` when it holds and nothing was damaged."""
+        tail = _pread(fh, pos, len(MAGIC) + 1)
+        if tail[: len(MAGIC)] != MAGIC:
+            self._damage(pos, size, "end magic", "missing or wrong after the footer")
+        elif len(tail) > len(MAGIC):
+            self._damage(
+                pos + len(MAGIC),
+                size,
+                "end",
+                f"{size - pos - len(MAGIC)} bytes after the end magic",
+            )
+        else:
+            self.complete = not self.damaged
+
+
+class _TopRecord(NamedTuple):
+    """A top-level record as read: ``op`` (-1: its header is cut short), ``kind`` (in
+    words), ``length`` (bytes after the 9-byte header), the ``records`` it stands for;
+    ``problem``: why it cannot be used ("": it can; "length": past the end of the file,
+    worded once the reader knows whether a chunk follows), ``resume``: a chunk found
+    inside a record whose length is too large."""
+
+    op: int
+    kind: str
+    length: int
+    records: list[Any]
+    problem: str = ""
+    resume: int | None = None
+
+
+def _read_top(fh: Any, pos: int, size: int) -> _TopRecord:
+    """The top-level record at ``pos`` of ``fh`` (``size`` bytes), checked."""
+    head = _pread(fh, pos, 9)
+    if len(head) < 9:
+        problem = f"truncated: the file ends {len(head)} bytes into a record header"
+        return _TopRecord(-1, "record", 0, [], problem)
+    op, length = head[0], int.from_bytes(head[1:], "little")
+    kind = RECORD_KINDS.get(op, "unknown record" if op < 0x80 else f"private record {op:#04x}")
+    if op not in RECORD_KINDS and op < 0x80:
+        return _TopRecord(op, kind, length, [], f"bad opcode {op:#04x}")
+    if pos == len(MAGIC) and op != OP_HEADER:
+        return _TopRecord(op, "header", length, [], f"missing: the first record is a {kind}")
+    if length > size - pos - 9:
+        return _TopRecord(op, kind, length, [], "length")  # worded by Recording._skip
+    if length > MAX_RECORD_BYTES:
+        problem = (
+            f"bad length: {length} bytes is over the reader's limit of {MAX_RECORD_BYTES} bytes"
+        )
+        return _TopRecord(op, kind, length, [], problem)
+    body = _pread(fh, pos + 9, length)
+    try:
+        records, fields_end = _top_record(op, body)
+    except _Bad as exc:
+        return _TopRecord(op, kind, length, [], str(exc))
+    if fields_end < length:  # a length too large swallows what follows: a chunk, say
+        body_at = pos + 9
+        resume = _resync(fh, body_at + fields_end, size, body_at + length)
+        if resume is not None:
+            problem = f"bad length: {length} bytes, but a chunk starts inside it at byte {resume}"
+            return _TopRecord(op, kind, length, records, problem, resume)
+    return _TopRecord(op, kind, length, records)
 
 
 def _pread(fh: Any, at: int, n: int) -> bytes:
@@ -1141,10 +1176,7 @@ def main_record(args: Any, zc: Any) -> int:
 
     import zenoh
 
-    from daq.bus import fetch_schema, fetch_schemas, open_session
-    from daq.columnar import decode
-    from daq.errors import DaqError
-    from daq.viewer import StreamViewer
+    from daq.bus import fetch_schemas, open_session
 
     # the file is written as samples come (a crash keeps what was closed): checked up
     # front, not staged
@@ -1162,10 +1194,8 @@ def main_record(args: Any, zc: Any) -> int:
     # schemas first, then the subscriber (a schema get on a young subscription coincided
     # with lost messages: daq.bus.Receiver)
     known = fetch_schemas(session, args.key)
-    channels: dict[str, int] = {}
-    # viewer channels (daq.viewer) of the columnar keys, at their bounded rate
-    viewers: dict[str, tuple[Any, StreamSchema]] = {}
     rate = float(getattr(args, "viewer_rate_hz", 30.0))
+    channels = _SubscribedChannels(rec, session, known, rate)
     sub = session.declare_subscriber(args.key, zenoh.handlers.FifoChannel(65536))
     print(json.dumps({"recording": str(rec.path), "key": args.key}), flush=True)
     t_end = None if args.duration is None else time.monotonic() + args.duration
@@ -1175,44 +1205,76 @@ def main_record(args: Any, zc: Any) -> int:
             if sample is None:
                 time.sleep(0.0005)
                 continue
-            key = str(sample.key_expr)
-            now = time.time_ns()
-            cid = channels.get(key)
-            if cid is None:
-                enc = str(sample.encoding)
-                if enc.endswith(ENCODING_NAME):
-                    try:
-                        schema = known.get(key) or fetch_schema(session, key)
-                        cid = rec.add_columnar(schema)
-                        viewer = StreamViewer(rec, schema, rate_hz=rate)
-                        if viewer.active:
-                            viewers[key] = (viewer, schema)
-                    except Exception as exc:
-                        log.warning("no schema for %s, not recorded: %s", key, exc)
-                        channels[key] = -1
-                        continue
-                elif enc.startswith("application/json"):
-                    cid = rec.add_json(
-                        key, HEALTH_SCHEMA_NAME, HEALTH_SCHEMA, {"daq.kind": KIND_HEALTH}
-                    )
-                else:
-                    channels[key] = -1
-                    continue
-                channels[key] = cid
-            if cid < 0:
-                continue
-            payload = sample.payload.to_bytes()
-            rec.write(cid, payload, now, now)
-            view = viewers.get(key)
-            if view is not None and view[0].due(now):
-                try:
-                    view[0].add(decode(view[1], payload)[1], now)
-                except DaqError as exc:  # a payload of another schema: the data is kept
-                    log.warning("%s: no viewer message: %s", key, exc)
+            channels.write(sample)
     finally:
         sub.undeclare()
-        for viewer, _ in viewers.values():  # the last points into the viewer channels
-            viewer.flush(time.time_ns())
+        channels.flush()
         rec.close()
         session.close()
     return 0
+
+
+class _SubscribedChannels:
+    """The channels ``daq record`` writes: one per key, made at the key's first sample
+    (a columnar key with its schema, fetched if it was not ``known``, and its viewer
+    channels at ``rate_hz``; a JSON key as health), or none (a key it cannot record)."""
+
+    def __init__(
+        self,
+        rec: BackgroundRecorder,
+        session: Any,
+        known: Mapping[str, StreamSchema],
+        rate_hz: float,
+    ) -> None:
+        self.rec = rec
+        self.session = session
+        self.known = known
+        self.rate_hz = rate_hz
+        self.ids: dict[str, int] = {}  # -1: not recorded
+        # viewer channels (daq.viewer) of the columnar keys, at their bounded rate
+        self.viewers: dict[str, tuple[Any, StreamSchema]] = {}
+
+    def write(self, sample: Any) -> None:
+        """Record one zenoh sample, at the time it is written (host UTC ns)."""
+        key = str(sample.key_expr)
+        now = time.time_ns()
+        cid = self.ids.get(key)
+        if cid is None:
+            cid = self.ids[key] = self._open(key, str(sample.encoding))
+        if cid < 0:
+            return
+        payload = sample.payload.to_bytes()
+        self.rec.write(cid, payload, now, now)
+        view = self.viewers.get(key)
+        if view is not None and view[0].due(now):
+            try:
+                view[0].add(decode(view[1], payload)[1], now)
+            except DaqError as exc:  # a payload of another schema: the data is kept
+                log.warning("%s: no viewer message: %s", key, exc)
+
+    def _open(self, key: str, encoding: str) -> int:
+        """The channel id of ``key`` (-1: not recorded)."""
+        from daq.bus import fetch_schema
+        from daq.viewer import StreamViewer
+
+        if encoding.endswith(ENCODING_NAME):
+            try:
+                schema = self.known.get(key) or fetch_schema(self.session, key)
+                cid = self.rec.add_columnar(schema)
+                viewer = StreamViewer(self.rec, schema, rate_hz=self.rate_hz)
+                if viewer.active:
+                    self.viewers[key] = (viewer, schema)
+            except Exception as exc:
+                log.warning("no schema for %s, not recorded: %s", key, exc)
+                return -1
+            return cid
+        if encoding.startswith("application/json"):
+            return self.rec.add_json(
+                key, HEALTH_SCHEMA_NAME, HEALTH_SCHEMA, {"daq.kind": KIND_HEALTH}
+            )
+        return -1
+
+    def flush(self) -> None:
+        """The last points into the viewer channels."""
+        for viewer, _ in self.viewers.values():
+            viewer.flush(time.time_ns())

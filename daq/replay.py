@@ -21,7 +21,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Any
+from typing import Any, NamedTuple
 
 import zenoh
 
@@ -29,7 +29,7 @@ from daq.bus import DATA_ENCODING, JSON_ENCODING, SchemaServer, device_key, open
 from daq.columnar import ENCODING_NAME
 from daq.config import ZenohConfig
 from daq.errors import RecordingError
-from daq.recording import KIND_FOXGLOVE, Recording, read_recording
+from daq.recording import KIND_FOXGLOVE, RecordedMessage, Recording, read_recording
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +39,110 @@ class _Topic:
         self.publisher = publisher
         self.messages = 0
         self.bytes = 0
+
+
+class _Pace(NamedTuple):
+    """How a pass sends: ``speed`` × real time, or as ``fast`` as it can, from ``start_s``
+    (s) after the recording's first message, until ``duration_s`` (s, wall time; None:
+    no limit) since the replay began."""
+
+    speed: float
+    fast: bool
+    start_s: float
+    duration_s: float | None
+
+    @classmethod
+    def checked(cls, speed: float, fast: bool, start_s: float, duration_s: float | None) -> _Pace:
+        """Refused with :class:`RecordingError`: a non-finite or non-positive ``speed``,
+        a non-finite or negative ``start_s``."""
+        if not math.isfinite(speed) or speed <= 0:
+            raise RecordingError(f"--speed: must be a finite number > 0, got {speed}")
+        if not math.isfinite(start_s) or start_s < 0:
+            raise RecordingError(f"--start: must be a finite number >= 0 (seconds), got {start_s}")
+        return cls(speed, fast, start_s, duration_s)
+
+
+class _Pass(NamedTuple):
+    """What one pass over the recording sent: messages, and the first and last
+    ``log_time`` it read (ns; None: no message passed the filter)."""
+
+    sent: int
+    t_first: int | None
+    t_last: int | None
+
+
+class _Publishers:
+    """The zenoh side of a replay: a publisher per republished key, declared at the key's
+    first message, with its schema served and its device's liveliness token held."""
+
+    def __init__(
+        self,
+        session: Any,
+        filters: list[zenoh.KeyExpr] | None,
+        congestion: str,
+        wait_subscribers_s: float,
+        stop: threading.Event,
+    ) -> None:
+        self.session = session
+        self.schemas = SchemaServer(session, "cell")
+        self.filters = filters
+        self.out: dict[str, _Topic] = {}
+        self.skipped: set[str] = set()
+        self.tokens: dict[tuple[str, str, str], Any] = {}
+        self.cc = (
+            zenoh.CongestionControl.BLOCK if congestion == "block" else zenoh.CongestionControl.DROP
+        )
+        self.wait_subscribers_s = wait_subscribers_s
+        self.waited = wait_subscribers_s <= 0
+        self.stop = stop
+
+    def open(self, m: RecordedMessage) -> _Topic | None:
+        """The publisher of ``m``'s key, declared now; None: the key is not republished
+        (a viewer channel, or outside the filter), and is skipped from now on."""
+        topic = m.topic
+        meta = m.channel.metadata
+        kind = meta.get("daq.kind", "")
+        wanted = kind != KIND_FOXGLOVE and (
+            self.filters is None or any(zenoh.KeyExpr(topic).intersects(f) for f in self.filters)
+        )
+        if not wanted:
+            self.skipped.add(topic)
+            return None
+        if m.channel.message_encoding == ENCODING_NAME:
+            enc = DATA_ENCODING
+            if m.schema is not None:
+                self.schemas.register(topic, m.schema.data)
+        else:
+            enc = JSON_ENCODING
+        t = self.out[topic] = _Topic(
+            self.session.declare_publisher(topic, encoding=enc, congestion_control=self.cc)
+        )
+        cell, robot, device = meta.get("cell"), meta.get("robot"), meta.get("device")
+        if cell and robot and device and (cell, robot, device) not in self.tokens:
+            self.tokens[cell, robot, device] = self.session.liveliness().declare_token(
+                device_key(cell, robot, device)
+            )
+        if not self.waited:
+            self._wait_for_subscriber(t)
+        return t
+
+    def _wait_for_subscriber(self, t: _Topic) -> None:
+        """Up to ``wait_subscribers_s`` for a subscriber of the first key (once a replay)."""
+        deadline = time.monotonic() + self.wait_subscribers_s
+        while (
+            not t.publisher.matching_status.matching
+            and time.monotonic() < deadline
+            and not self.stop.is_set()
+        ):
+            time.sleep(0.01)
+        self.waited = True
+
+    def close(self) -> None:
+        for t in self.out.values():
+            t.publisher.undeclare()
+        for tok in self.tokens.values():
+            tok.undeclare()
+        self.schemas.close()
 
 
 def replay(
@@ -62,105 +166,30 @@ def replay(
     nothing to send (no readable message, a ``--topic`` that matches no recorded key,
     a ``--start`` past the end), a non-finite or non-positive ``speed``, a negative
     ``start_s``."""
-    if not math.isfinite(speed) or speed <= 0:
-        raise RecordingError(f"--speed: must be a finite number > 0, got {speed}")
-    if not math.isfinite(start_s) or start_s < 0:
-        raise RecordingError(f"--start: must be a finite number >= 0 (seconds), got {start_s}")
+    pace = _Pace.checked(speed, fast, start_s, duration_s)
     read_recording(path)  # not a recording: said before any session opens
     stop = stop or threading.Event()
     filters = [zenoh.KeyExpr(t) for t in topics] if topics else None
     session = open_session(zc)
-    schemas = SchemaServer(session, "cell")
-    out: dict[str, _Topic] = {}
-    skipped: set[str] = set()
-    tokens: dict[tuple[str, str, str], Any] = {}
-    cc = zenoh.CongestionControl.BLOCK if congestion == "block" else zenoh.CongestionControl.DROP
+    pubs = _Publishers(session, filters, congestion, wait_subscribers_s, stop)
     t_wall0 = time.monotonic()
     passes = 0
     truncated = False
     damaged: list[dict[str, Any]] = []
-    waited = wait_subscribers_s <= 0
     try:
         while not stop.is_set():
             rec = read_recording(path)
-            t_first: int | None = None
-            t_last: int | None = None
-            t_rec0: int | None = None
-            w0 = 0.0
-            sent = 0
-            for m in rec.messages_iter():
-                if stop.is_set():
-                    break
-                if duration_s is not None and time.monotonic() - t_wall0 >= duration_s:
-                    stop.set()
-                    break
-                topic = m.topic
-                if topic in skipped:
-                    continue
-                t = out.get(topic)
-                if t is None:
-                    meta = m.channel.metadata
-                    kind = meta.get("daq.kind", "")
-                    wanted = kind != KIND_FOXGLOVE and (
-                        filters is None or any(zenoh.KeyExpr(topic).intersects(f) for f in filters)
-                    )
-                    if not wanted:
-                        skipped.add(topic)
-                        continue
-                    if m.channel.message_encoding == ENCODING_NAME:
-                        enc = DATA_ENCODING
-                        if m.schema is not None:
-                            schemas.register(topic, m.schema.data)
-                    else:
-                        enc = JSON_ENCODING
-                    t = out[topic] = _Topic(
-                        session.declare_publisher(topic, encoding=enc, congestion_control=cc)
-                    )
-                    cell, robot, device = meta.get("cell"), meta.get("robot"), meta.get("device")
-                    if cell and robot and device and (cell, robot, device) not in tokens:
-                        tokens[cell, robot, device] = session.liveliness().declare_token(
-                            device_key(cell, robot, device)
-                        )
-                    if not waited:
-                        deadline = time.monotonic() + wait_subscribers_s
-                        while (
-                            not t.publisher.matching_status.matching
-                            and time.monotonic() < deadline
-                            and not stop.is_set()
-                        ):
-                            time.sleep(0.01)
-                        waited = True
-                if t_first is None:
-                    t_first = m.log_time
-                t_last = m.log_time
-                if m.log_time < t_first + int(start_s * 1e9):
-                    continue
-                if t_rec0 is None:
-                    t_rec0 = m.log_time
-                    w0 = time.monotonic()
-                if not fast:
-                    target = w0 + (m.log_time - t_rec0) / 1e9 / speed
-                    delay = target - time.monotonic()
-                    if delay > 0 and stop.wait(delay):
-                        break
-                t.publisher.put(m.data)
-                t.messages += 1
-                t.bytes += len(m.data)
-                sent += 1
+            got = _one_pass(rec, pubs, pace, t_wall0, stop)
             truncated = truncated or rec.truncated
             if passes == 0:
                 damaged = [d.as_dict() for d in rec.damaged if d.record != "footer"]
             passes += 1
-            if sent == 0 and not stop.is_set():
-                _nothing_sent(path, rec, topics, start_s, t_first, t_last)
+            if got.sent == 0 and not stop.is_set():
+                _nothing_sent(path, rec, topics, start_s, got.t_first, got.t_last)
             if not loop:
                 break
     finally:
-        for t in out.values():
-            t.publisher.undeclare()
-        for tok in tokens.values():
-            tok.undeclare()
-        schemas.close()
+        pubs.close()
         session.close()
     return {
         "file": str(path),
@@ -168,8 +197,56 @@ def replay(
         "truncated": truncated,
         "damaged": damaged,
         "elapsed_s": time.monotonic() - t_wall0,
-        "topics": {k: {"messages": v.messages, "bytes": v.bytes} for k, v in sorted(out.items())},
+        "topics": {
+            k: {"messages": v.messages, "bytes": v.bytes} for k, v in sorted(pubs.out.items())
+        },
     }
+
+
+def _one_pass(
+    rec: Recording, pubs: _Publishers, pace: _Pace, t_wall0: float, stop: threading.Event
+) -> _Pass:
+    """Publish ``rec``'s messages once, paced by their ``log_time``; ``pace.duration_s``
+    after ``t_wall0`` (``time.monotonic()``, the replay's start) sets ``stop``."""
+    out, skipped = pubs.out, pubs.skipped
+    speed, fast, start_s, duration_s = pace
+    t_first: int | None = None
+    t_last: int | None = None
+    t_rec0: int | None = None
+    w0 = 0.0
+    sent = 0
+    for m in rec.messages_iter():
+        if stop.is_set():
+            break
+        if duration_s is not None and time.monotonic() - t_wall0 >= duration_s:
+            stop.set()
+            break
+        topic = m.topic
+        if topic in skipped:
+            continue
+        t = out.get(topic)
+        if t is None:
+            t = pubs.open(m)
+            if t is None:
+                continue
+        if t_first is None:
+            t_first = m.log_time
+        t_last = m.log_time
+        if m.log_time < t_first + int(start_s * 1e9):
+            continue
+        if t_rec0 is None:
+            t_rec0 = m.log_time
+            w0 = time.monotonic()
+        if not fast:
+            target = w0 + (m.log_time - t_rec0) / 1e9 / speed
+            delay = target - time.monotonic()
+            if delay > 0 and stop.wait(delay):
+                break
+        t.publisher.put(m.data)
+        t.messages += 1
+        t.bytes += len(m.data)
+        sent += 1
+    return _Pass(sent, t_first, t_last)
 
 
 def _nothing_sent(

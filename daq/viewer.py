@@ -86,59 +86,77 @@ class StreamViewer:
             return
         counts = [n for n in names if _COUNTS.match(n)]
         if {"q_deg", "tcp_mm", "flange_quat"} <= set(names):  # the live twin's state
-            n = int(schema.column("q_deg").shape[0])
-            j = [f"j{i + 1}" for i in range(n)]
-            groups = {"grating_deg": (j, "deg, from the gratings through the scale maps")}
-            spec = [("grating_deg", "q_deg", j)]
-            if "encoder_minus_grating_deg" in names:
-                groups["encoder_deg"] = (j, "deg, motor encoder (NaN/null: none yet)")
-                groups["encoder_minus_grating_deg"] = (j, "deg")
-                spec += [("encoder_deg", "", j), ("encoder_minus_grating_deg", "", j)]
-            cid = recorder.add_json(
-                f"{self.key}/joints",
-                foxglove.JOINTS,
-                foxglove.joints_schema(groups, f"joint angles of {self.key}"),
-                meta,
-            )
-            self._joints = (cid, spec)
-            self._tcp = recorder.add_json(
-                f"{self.key}/tcp",
-                foxglove.POSE_IN_FRAME,
-                foxglove.schema_bytes(foxglove.POSE_IN_FRAME),
-                {**meta, "frame_id": frame_id},
-            )
+            self._add_twin_state(names, meta)
         elif {"frame_mm", "frame_quat"} <= set(names):  # the live twin's link frames
-            frames = [str(f) for f in schema.meta.get("frames", [])]
-            parents = [str(p) for p in schema.meta.get("parents", [])]
-            if frames and len(parents) == len(frames):
-                cid = recorder.add_json(
-                    f"{self.key}/tf",
-                    foxglove.FRAME_TRANSFORM,
-                    foxglove.schema_bytes(foxglove.FRAME_TRANSFORM),
-                    meta,
-                )
-                self._tf = (cid, frames, parents)
+            self._add_twin_frames(meta)
         elif counts:  # gratings, encoders: raw counts per named joint
-            j = _joint_names(schema, counts)
-            unit = "counts (raw; angles: the live twin's <twin key>/joints)"
-            cid = recorder.add_json(
-                f"{self.key}/joints",
-                foxglove.JOINTS,
-                foxglove.joints_schema({"counts": (j, unit)}, f"joint counters of {self.key}"),
-                meta,
-            )
-            self._joints = (cid, [("counts", "", j)])
-            self._counts_columns = counts
+            self._add_counts(counts, meta)
         xyz = foxglove.xyz_columns(names)
         if xyz is not None and points in ("points", "poses", "auto"):
-            name = foxglove.POSES_IN_FRAME if points == "poses" else foxglove.POINT_CLOUD
-            cid = recorder.add_json(
-                f"{self.key}/{'poses' if points == 'poses' else 'points'}",
-                name,
-                foxglove.schema_bytes(name),
-                {**meta, "frame_id": frame_id},
+            self._add_points(xyz, points, meta)
+
+    def _add_twin_state(self, names: list[str], meta: dict[str, str]) -> None:
+        """The live twin's joints (grating angles, and the encoders' when it has them)
+        and its TCP pose."""
+        n = int(self.schema.column("q_deg").shape[0])
+        j = [f"j{i + 1}" for i in range(n)]
+        groups = {"grating_deg": (j, "deg, from the gratings through the scale maps")}
+        spec = [("grating_deg", "q_deg", j)]
+        if "encoder_minus_grating_deg" in names:
+            groups["encoder_deg"] = (j, "deg, motor encoder (NaN/null: none yet)")
+            groups["encoder_minus_grating_deg"] = (j, "deg")
+            spec += [("encoder_deg", "", j), ("encoder_minus_grating_deg", "", j)]
+        cid = self.rec.add_json(
+            f"{self.key}/joints",
+            foxglove.JOINTS,
+            foxglove.joints_schema(groups, f"joint angles of {self.key}"),
+            meta,
+        )
+        self._joints = (cid, spec)
+        self._tcp = self.rec.add_json(
+            f"{self.key}/tcp",
+            foxglove.POSE_IN_FRAME,
+            foxglove.schema_bytes(foxglove.POSE_IN_FRAME),
+            {**meta, "frame_id": self.frame_id},
+        )
+
+    def _add_twin_frames(self, meta: dict[str, str]) -> None:
+        """The live twin's link frames as transforms (when the schema names them and
+        their parents)."""
+        frames = [str(f) for f in self.schema.meta.get("frames", [])]
+        parents = [str(p) for p in self.schema.meta.get("parents", [])]
+        if frames and len(parents) == len(frames):
+            cid = self.rec.add_json(
+                f"{self.key}/tf",
+                foxglove.FRAME_TRANSFORM,
+                foxglove.schema_bytes(foxglove.FRAME_TRANSFORM),
+                meta,
             )
-            self._points = (cid, name, xyz)
+            self._tf = (cid, frames, parents)
+
+    def _add_counts(self, counts: list[str], meta: dict[str, str]) -> None:
+        """A device's raw counts per named joint."""
+        j = _joint_names(self.schema, counts)
+        unit = "counts (raw; angles: the live twin's <twin key>/joints)"
+        cid = self.rec.add_json(
+            f"{self.key}/joints",
+            foxglove.JOINTS,
+            foxglove.joints_schema({"counts": (j, unit)}, f"joint counters of {self.key}"),
+            meta,
+        )
+        self._joints = (cid, [("counts", "", j)])
+        self._counts_columns = counts
+
+    def _add_points(self, xyz: tuple[str, str, str], points: str, meta: dict[str, str]) -> None:
+        """The xyz columns as a point cloud, or as poses (``points`` "poses")."""
+        name = foxglove.POSES_IN_FRAME if points == "poses" else foxglove.POINT_CLOUD
+        cid = self.rec.add_json(
+            f"{self.key}/{'poses' if points == 'poses' else 'points'}",
+            name,
+            foxglove.schema_bytes(name),
+            {**meta, "frame_id": self.frame_id},
+        )
+        self._points = (cid, name, xyz)
 
     @property
     def active(self) -> bool:

@@ -55,88 +55,104 @@ class Cell:
         self._closers: list[Any] = []
 
     def start(self) -> list[dict[str, Any]]:
+        """Start the enabled devices; one record per device (what ``serve`` prints)."""
         cfg = self.config
         if cfg.grating.enabled:
-            from sim_devices.grating_reader import GratingReaderDevice, ModbusRtuSlave
-            from sim_devices.pty_link import PtyLink
-
-            link = PtyLink(self.run_dir / "grating0")
-            self.grating = GratingReaderDevice(self.plant, cfg.grating)
-            slave = ModbusRtuSlave(self.grating, link).start()
-            self._closers += [slave.stop, link.close]
-            self.records.append(
-                {
-                    "kind": "grating_reader",
-                    "protocol": "modbus-rtu",
-                    "path": link.path,
-                    "tty": link.tty_path,
-                    "unit_id": cfg.grating.unit_id,
-                    "rate_hz": cfg.grating.rate_hz,
-                    "driver": "grating_modbus",
-                }
-            )
+            self._start_grating()
         if cfg.tracker.enabled:
-            from sim_devices.pty_link import PtyLink
-            from sim_devices.tracker import TrackerInstrument, TrackerServer
+            self._start_tracker()
+        if cfg.encoders.enabled:
+            self._start_encoders()
+        return self.records
 
-            inst = TrackerInstrument(self.plant, cfg.tracker, cfg.effects)
-            pty = PtyLink(self.run_dir / "tracker0") if cfg.tracker.serial else None
-            server = TrackerServer(inst, tcp_port=cfg.tracker.tcp_port, pty=pty).start()
-            self.tracker = inst
-            self._closers.append(server.stop)
-            if pty is not None:
-                self._closers.append(pty.close)
+    def _start_grating(self) -> None:
+        """The grating reader: Modbus RTU on a pty."""
+        from sim_devices.grating_reader import GratingReaderDevice, ModbusRtuSlave
+        from sim_devices.pty_link import PtyLink
+
+        cfg = self.config
+        link = PtyLink(self.run_dir / "grating0")
+        self.grating = GratingReaderDevice(self.plant, cfg.grating)
+        slave = ModbusRtuSlave(self.grating, link).start()
+        self._closers += [slave.stop, link.close]
+        self.records.append(
+            {
+                "kind": "grating_reader",
+                "protocol": "modbus-rtu",
+                "path": link.path,
+                "tty": link.tty_path,
+                "unit_id": cfg.grating.unit_id,
+                "rate_hz": cfg.grating.rate_hz,
+                "driver": "grating_modbus",
+            }
+        )
+
+    def _start_tracker(self) -> None:
+        """The laser tracker: ASCII over TCP, and over a pty when ``serial``."""
+        from sim_devices.pty_link import PtyLink
+        from sim_devices.tracker import TrackerInstrument, TrackerServer
+
+        cfg = self.config
+        inst = TrackerInstrument(self.plant, cfg.tracker, cfg.effects)
+        pty = PtyLink(self.run_dir / "tracker0") if cfg.tracker.serial else None
+        server = TrackerServer(inst, tcp_port=cfg.tracker.tcp_port, pty=pty).start()
+        self.tracker = inst
+        self._closers.append(server.stop)
+        if pty is not None:
+            self._closers.append(pty.close)
+        self.records.append(
+            {
+                "kind": "laser_tracker",
+                "protocol": "ascii-tcp",
+                "url": server.url,
+                "host": "127.0.0.1",
+                "port": server.port,
+                "driver": "tracker_ascii",
+            }
+        )
+        if pty is not None:
             self.records.append(
                 {
                     "kind": "laser_tracker",
-                    "protocol": "ascii-tcp",
-                    "url": server.url,
-                    "host": "127.0.0.1",
-                    "port": server.port,
+                    "protocol": "ascii-serial",
+                    "path": pty.path,
+                    "tty": pty.tty_path,
                     "driver": "tracker_ascii",
                 }
             )
-            if pty is not None:
-                self.records.append(
-                    {
-                        "kind": "laser_tracker",
-                        "protocol": "ascii-serial",
-                        "path": pty.path,
-                        "tty": pty.tty_path,
-                        "driver": "tracker_ascii",
-                    }
-                )
-        if cfg.encoders.enabled:
-            from sim_devices.encoders import EncoderNodes
-            from sim_devices.socketcand import SocketcandServer
 
-            channel = f"simcell-{os.getpid()}-{id(self)}"
-            nodes = EncoderNodes(self.plant, cfg.encoders, channel=channel)
-            nodes.start_fault_schedule()
-            can_server = SocketcandServer(
-                channel,
-                bus_name=cfg.encoders.channel,
-                port=cfg.encoders.socketcand_port,
-                clock=nodes.clock,
-                sim_clock=self.plant.clock,
-                sync_responder=nodes.sync_frames,
-            ).start()
-            self.encoders = nodes
-            self._closers += [can_server.stop, nodes.close]
-            self.records.append(
-                {
-                    "kind": "motor_encoders",
-                    "protocol": "canopen-socketcand",
-                    "url": can_server.url,
-                    "host": "127.0.0.1",
-                    "port": can_server.port,
-                    "channel": cfg.encoders.channel,
-                    "node_ids": list(nodes.node_ids),
-                    "profile": "CiA 406",
-                    "driver": "encoder_canopen",
-                }
-            )
-        return self.records
+    def _start_encoders(self) -> None:
+        """The motor encoders: CANopen nodes behind a socketcand server."""
+        from sim_devices.encoders import EncoderNodes
+        from sim_devices.socketcand import SocketcandServer
+
+        cfg = self.config
+        channel = f"simcell-{os.getpid()}-{id(self)}"
+        nodes = EncoderNodes(self.plant, cfg.encoders, channel=channel)
+        nodes.start_fault_schedule()
+        can_server = SocketcandServer(
+            channel,
+            bus_name=cfg.encoders.channel,
+            port=cfg.encoders.socketcand_port,
+            clock=nodes.clock,
+            sim_clock=self.plant.clock,
+            sync_responder=nodes.sync_frames,
+        ).start()
+        self.encoders = nodes
+        self._closers += [can_server.stop, nodes.close]
+        self.records.append(
+            {
+                "kind": "motor_encoders",
+                "protocol": "canopen-socketcand",
+                "url": can_server.url,
+                "host": "127.0.0.1",
+                "port": can_server.port,
+                "channel": cfg.encoders.channel,
+                "node_ids": list(nodes.node_ids),
+                "profile": "CiA 406",
+                "driver": "encoder_canopen",
+            }
+        )
 
     def stop(self) -> None:
         closers, self._closers = self._closers, []
@@ -309,19 +325,11 @@ def _serve(
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     t0 = time.monotonic()
-    children = []
+    children: list[tuple[str, Any, Any]] = []  # kind, process, its end of the pipe
     summary: dict[str, Any] = {"kind": "summary"}
     started = False
     try:
-        for kind in KINDS:
-            if not getattr(config, kind).enabled:
-                continue
-            parent_conn, child_conn = ctx.Pipe()
-            proc = ctx.Process(
-                target=_child, args=(_only(config, kind), run_dir, t0, child_conn), daemon=True
-            )
-            proc.start()
-            children.append((kind, proc, parent_conn))
+        _spawn_devices(children, config, run_dir, t0, ctx)
         # every device listens before any is announced: a reader never sees half a cell
         records = [
             rec for kind, _p, conn in children for rec in _started(kind, conn, config, source)
@@ -333,29 +341,58 @@ def _serve(
             # t_us of a sample latched at wall second w is clock.device_us(w), and w is
             # seconds since this instant (what a test compares mapped timestamps with)
             print(json.dumps({**rec, "t0_monotonic_ns": round(t0 * 1e9)}), flush=True)
-        end = time.monotonic() + duration if duration else None
-        while not stop.is_set():
-            if end is not None and time.monotonic() >= end:
-                break
-            if any(not p.is_alive() for _, p, _ in children):
-                log.error("a device process died")
-                break
-            stop.wait(0.1 if end is None else max(0.0, min(0.1, end - time.monotonic())))
+        _wait_devices(stop, children, duration)
     finally:
-        for _kind, proc, _conn in children:
-            if proc.is_alive():
-                os.kill(proc.pid, signal.SIGTERM)
-        for kind, proc, conn in children:
-            if started and conn.poll(10):
-                with contextlib.suppress(EOFError):
-                    summary[kind] = conn.recv()
-            proc.join(5)
-            if proc.is_alive():
-                proc.kill()
+        _stop_devices(children, summary if started else None)
         summary["cpu_s_parent"] = time.process_time()
         if started:
             print(json.dumps(summary), file=sys.stderr, flush=True)
     return 0
+
+
+def _spawn_devices(
+    children: list[tuple[str, Any, Any]], config: CellConfig, run_dir: Path, t0: float, ctx: Any
+) -> None:
+    """A process per enabled device kind, appended to ``children`` as it starts (so a
+    failure part way stops those already running)."""
+    for kind in KINDS:
+        if not getattr(config, kind).enabled:
+            continue
+        parent_conn, child_conn = ctx.Pipe()
+        proc = ctx.Process(
+            target=_child, args=(_only(config, kind), run_dir, t0, child_conn), daemon=True
+        )
+        proc.start()
+        children.append((kind, proc, parent_conn))
+
+
+def _wait_devices(
+    stop: threading.Event, children: list[tuple[str, Any, Any]], duration: float
+) -> None:
+    """Until ``stop``, ``duration`` seconds (0: no limit) or a device process dies."""
+    end = time.monotonic() + duration if duration else None
+    while not stop.is_set():
+        if end is not None and time.monotonic() >= end:
+            break
+        if any(not p.is_alive() for _, p, _ in children):
+            log.error("a device process died")
+            break
+        stop.wait(0.1 if end is None else max(0.0, min(0.1, end - time.monotonic())))
+
+
+def _stop_devices(children: list[tuple[str, Any, Any]], summary: dict[str, Any] | None) -> None:
+    """SIGTERM to every device process, then each one's last counters into ``summary``
+    (None: the cell never started, nothing is waited for), killed if it lingers."""
+    for _kind, proc, _conn in children:
+        if proc.is_alive():
+            os.kill(proc.pid, signal.SIGTERM)
+    for kind, proc, conn in children:
+        if summary is not None and conn.poll(10):
+            with contextlib.suppress(EOFError):
+                summary[kind] = conn.recv()
+        proc.join(5)
+        if proc.is_alive():
+            proc.kill()
 
 
 def cmd_truth(args: argparse.Namespace) -> int:

@@ -354,6 +354,9 @@ class ModbusRtuSlave:
         )
 
     def _run(self) -> None:
+        """Serve the link until stopped: latch samples, reassemble frames, answer them.
+        Long because it is the per-frame hot loop: the buffer, clock and unit are locals
+        it shares across the steps, and the FIFO fast path must not pay extra calls."""
         buf = b""
         last_rx = 0.0
         last_produce = -1.0

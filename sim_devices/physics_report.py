@@ -17,13 +17,14 @@ from dataclasses import replace
 
 import numpy as np
 
-from calibration.description import load_robot
+from calibration.description import RobotDescription, load_robot
 from calibration.errors import CalibrationError
 from edges.command import run_command, take_debug_flag
 from edges.options import OptionParser
 from sim_devices.config import SEED_OPTION, integer_option, robot_option
 from sim_devices.effects import UndeclaredEffects, deflection_stiffness_nmm_per_rad
 from sim_devices.errors import SimError
+from sim_devices.physical_arm import PhysicalArm
 from sim_devices.pose_campaign import CampaignSettings, generate_campaign
 from sim_devices.scale_campaign import CampaignOptions, run_campaign
 from sim_devices.truth import TrueCell
@@ -35,14 +36,23 @@ def report(robot: str, seed: int, poses: int) -> list[str]:
     """Lines of text for one preset and seed."""
     nominal = load_robot(robot)
     cell = TrueCell.create(nominal, seed)
-    arm = cell.arm
+    return [
+        f"== {robot}, seed {seed}",
+        *_arm_lines(nominal, cell.arm),
+        *_deflection_lines(nominal, cell, seed, poses),
+        *_scale_campaign_lines(nominal, cell),
+    ]
+
+
+def _arm_lines(nominal: RobotDescription, arm: PhysicalArm) -> list[str]:
+    """The arm's masses against the description's, its counterbalance, and the RMS joint
+    torques over the joint ranges."""
     nom_kg = np.array([j.mass_kg or 0.0 for j in nominal.joints])
-    lines = [f"== {robot}, seed {seed}"]
-    lines.append(
+    lines = [
         f"links {arm.masses.arm_kg:.0f} kg (description {nom_kg.sum():.0f} kg), mass ratios "
         + " ".join(f"{r:.2f}" for r in arm.masses.mass_kg / np.where(nom_kg > 0, nom_kg, 1))
         + f"; payload {arm.masses.payload_kg:.1f} kg (description {nominal.tool.mass_kg} kg)"
-    )
+    ]
     cb = arm.counterbalance
     if cb is None:
         lines.append("counterbalance: none")
@@ -62,25 +72,37 @@ def report(robot: str, seed: int, poses: int) -> list[str]:
         "RMS torque over the ranges (kN·m), weights / with counterbalance: "
         + " ".join(f"{w / 1e6:.2f}/{t / 1e6:.2f}" for w, t in zip(rms_w, rms_t, strict=True))
     )
+    return lines
+
+
+def _deflection_lines(
+    nominal: RobotDescription, cell: TrueCell, seed: int, poses: int
+) -> list[str]:
+    """The after-ring stiffness, and the deflection it gives at the TCP over ``poses``
+    reachable poses (two campaigns of the same draws, with and without it)."""
     eff = UndeclaredEffects.named("gravity_deflection")
-    k = deflection_stiffness_nmm_per_rad(eff, arm)
+    k = deflection_stiffness_nmm_per_rad(eff, cell.arm)
     k_desc = deflection_stiffness_nmm_per_rad(eff, nominal)
     settings = CampaignSettings(n_identify=poses // 2, n_validate=poses - poses // 2)
     rng_seed = [seed, 6]
     soft = generate_campaign(cell, np.random.default_rng(rng_seed), replace(settings, effects=eff))
     stiff = generate_campaign(cell, np.random.default_rng(rng_seed), settings)
     ap = np.linalg.norm(soft.tcp_true_mm - stiff.tcp_true_mm, axis=1)
-    lines.append(
+    return [
         "after-ring stiffness (N·mm/rad, inf rigid): "
         + " ".join(f"{v:.2e}" for v in k)
         + " (from the description's masses: "
         + " ".join(f"{v:.2e}" for v in k_desc)
-        + ")"
-    )
-    lines.append(
+        + ")",
         f"after-ring deflection at the TCP over {poses} reachable poses: "
-        f"RMS {np.sqrt(np.mean(ap**2)):.3f} mm, max {ap.max():.3f} mm"
-    )
+        f"RMS {np.sqrt(np.mean(ap**2)):.3f} mm, max {ap.max():.3f} mm",
+    ]
+
+
+def _scale_campaign_lines(nominal: RobotDescription, cell: TrueCell) -> list[str]:
+    """How far the joints upstream of each swept joint turn (gear torsion and backlash
+    on), and where the rings stand at the Home returns."""
+    lines: list[str] = []
     camp = run_campaign(cell, CampaignOptions(torsion=True, backlash=True))
     for j in range(2, nominal.n_joints + 1):
         turn = camp.upstream_motion_rad(j)[: j - 1] * ARCSEC_PER_RAD

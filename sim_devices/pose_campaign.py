@@ -214,13 +214,7 @@ def generate_campaign(
     q_true = np.vstack([q_id, q_val])
     m = len(q_true)
     tcp = cell.tcp_mm(q_true)
-    measured, ok = cell.tracker.measure(tcp, rng)
-    for _ in range(100):  # a broken beam is measured again
-        if ok.all():
-            break
-        again, ok_again = cell.tracker.measure(tcp[~ok], rng)
-        measured[~ok] = again
-        ok[~ok] = ok_again
+    measured = _measure(cell, tcp, rng)
     eff = with_derived_stiffness(settings.effects, cell.arm)
     grating = grating_reading_rad(eff, q_true) * (1.0 + 1e-6 * settings.grating_scale_error_ppm)
     grating = grating + np.radians(rng.normal(0.0, settings.grating_noise_deg, q_true.shape))
@@ -257,6 +251,19 @@ def generate_campaign(
         expected_mm=expected,
         effects=eff,
     )
+
+
+def _measure(cell: TrueCell, tcp_mm: FloatArray, rng: np.random.Generator) -> FloatArray:
+    """The tracker's points of ``tcp_mm`` ``(m, 3)``; a broken beam is measured again, up
+    to 100 times (draws from ``rng``)."""
+    measured, ok = cell.tracker.measure(tcp_mm, rng)
+    for _ in range(100):
+        if ok.all():
+            break
+        again, ok_again = cell.tracker.measure(tcp_mm[~ok], rng)
+        measured[~ok] = again
+        ok[~ok] = ok_again
+    return measured
 
 
 def emulated_campaign(

@@ -492,16 +492,7 @@ def _sweep(
     reflectors ``(T, 3)`` in the link's frame."""
     i = joint - 1
     nominal = cell.nominal
-    n = nominal.n_joints
-    jnt = nominal.joints[i]
-    fwd = sweep_stops_deg(
-        jnt.lower_deg,
-        jnt.upper_deg,
-        nominal.home[i],
-        step_deg=opt.step_deg,
-        arc_deg=opt.arc_deg,
-        stops_per_arc=opt.stops_per_arc,
-    )
+    fwd = _forward_stops_deg(cell, opt, i)
     cmd = np.concatenate([fwd, fwd[::-1]])
     k = cmd.size
     h = opt.hysteresis_counts
@@ -517,24 +508,9 @@ def _sweep(
     targets = target_set_mm(cell.link_targets_mm[i], opt.targets, opt.target_spacing_mm)
     n_t = len(targets)
     true_pts = physics.points_mm(i, targets, ring, t_stop, direction)
-    measured, ok = cell.tracker.measure(true_pts, rng)
-    while not ok.all():  # a broken beam is simply measured again
-        again, ok_again = cell.tracker.measure(true_pts[~ok], rng)
-        measured[~ok] = again
-        ok[~ok] = ok_again
-    wild = np.zeros(0, dtype=np.int64)
-    if opt.wild_points:
-        rows = rng.choice(k * n_t, size=min(opt.wild_points, k * n_t), replace=False)
-        offset = rng.normal(size=(rows.size, 3))
-        offset /= np.linalg.norm(offset, axis=1, keepdims=True)
-        measured[rows] += opt.wild_point_mm * offset
-        wild = np.sort(rows)
-    # every joint's reading at every stop; the others' read noise from their own stream,
-    # their hysteresis offset that of their last move
-    all_counts = np.empty((k, n), dtype=np.int64)
-    for j in range(n):
-        rest = np.full(k, 0.5 * h * state.last_direction[j])
-        all_counts[:, j] = counts if j == i else _read(cell.strips[j], read[:, j], rest, chain_rng)
+    measured = _measure(cell, true_pts, rng)
+    wild = _displace_wild(measured, opt, rng)
+    all_counts = _all_counts(cell, state, i, counts, read, h, chain_rng)
     state.t_s = float(t_stop[-1])
     back = np.sign(nominal.home[i] - cmd[-1])  # the return to Home after the sweep
     state.last_direction[i] = back if back != 0 else direction[-1, i]
@@ -556,6 +532,65 @@ def _sweep(
         "wild": wild,
         "targets": targets,
     }
+
+
+def _forward_stops_deg(cell: TrueCell, opt: CampaignOptions, i: int) -> FloatArray:
+    """The commanded stops (deg) of joint ``i``'s (0-based) forward pass."""
+    jnt = cell.nominal.joints[i]
+    return sweep_stops_deg(
+        jnt.lower_deg,
+        jnt.upper_deg,
+        cell.nominal.home[i],
+        step_deg=opt.step_deg,
+        arc_deg=opt.arc_deg,
+        stops_per_arc=opt.stops_per_arc,
+    )
+
+
+def _measure(cell: TrueCell, true_pts: FloatArray, rng: np.random.Generator) -> FloatArray:
+    """The tracker's points of ``true_pts`` ``(m, 3)`` mm; a broken beam is simply
+    measured again (draws from ``rng`` until every point is measured)."""
+    measured, ok = cell.tracker.measure(true_pts, rng)
+    while not ok.all():
+        again, ok_again = cell.tracker.measure(true_pts[~ok], rng)
+        measured[~ok] = again
+        ok[~ok] = ok_again
+    return measured
+
+
+def _displace_wild(
+    measured: FloatArray, opt: CampaignOptions, rng: np.random.Generator
+) -> IntArray:
+    """Move ``opt.wild_points`` random rows of ``measured`` ``(m, 3)`` mm (in place) by
+    ``opt.wild_point_mm`` in a random direction; the rows moved, sorted."""
+    if not opt.wild_points:
+        return np.zeros(0, dtype=np.int64)
+    m = len(measured)
+    rows = rng.choice(m, size=min(opt.wild_points, m), replace=False)
+    offset = rng.normal(size=(rows.size, 3))
+    offset /= np.linalg.norm(offset, axis=1, keepdims=True)
+    measured[rows] += opt.wild_point_mm * offset
+    return np.sort(rows)
+
+
+def _all_counts(
+    cell: TrueCell,
+    state: _ArmState,
+    i: int,
+    counts: IntArray,
+    read: FloatArray,
+    h: float,
+    chain_rng: np.random.Generator,
+) -> IntArray:
+    """Every joint's reading ``(k, n)`` at the ``k`` stops of joint ``i``'s (0-based) sweep:
+    its own ``counts``; the others' read noise from their own stream (``chain_rng``),
+    their hysteresis offset (``h`` counts) that of their last move."""
+    k, n = len(counts), cell.nominal.n_joints
+    all_counts = np.empty((k, n), dtype=np.int64)
+    for j in range(n):
+        rest = np.full(k, 0.5 * h * state.last_direction[j])
+        all_counts[:, j] = counts if j == i else _read(cell.strips[j], read[:, j], rest, chain_rng)
+    return all_counts
 
 
 def run_campaign(
@@ -624,7 +659,8 @@ MAX_STOPS = 10_000
 
 def build_parser() -> argparse.ArgumentParser:
     """The generator's options; every value is checked as it is parsed (finite, in range,
-    joint lists well formed) and against the robot in :func:`main`."""
+    joint lists well formed) and against the robot in :func:`main`. Long as a flat list
+    of ``add_argument`` calls, one per option, in the order ``--help`` shows them."""
     parser = OptionParser(
         prog="python -m sim_devices.scale_campaign",
         description="Write home.csv, sweep.csv and truth.toml of an emulated scale campaign.",

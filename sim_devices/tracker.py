@@ -206,6 +206,9 @@ class TrackerSession:
         return int(self.inst.clock.device_us(self.inst.plant.clock.wall_s()))
 
     def command(self, line: str) -> str:
+        """The reply to one command ``line`` ("" to an empty line). Long because it is
+        the protocol's dispatcher: one flat branch per command, like the manual's table;
+        a split would add a call to every request (``MEAS:POINT?`` polls)."""
         if not line:
             return ""
         self.inst.stats["commands"] += 1

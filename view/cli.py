@@ -26,6 +26,8 @@ DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """``twin view`` and its options, on the ``twin`` command's subparsers ``sub``. Long
+    as a flat list of ``add_argument`` calls, one per option, in ``--help``'s order."""
     p = sub.add_parser(
         "view",
         help="the twin in the browser: the arm, the TCP, the tracker's errors, the phase",
