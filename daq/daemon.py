@@ -17,6 +17,7 @@ On start it prints one JSON line to stdout: ``{"daq": "running", "cell": ..., "k
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
@@ -80,9 +81,13 @@ class Daemon:
         keep_freed_heap()
         self.utc_offset_ns = utc_offset_ns()
         self._worker_dir: str | None = None
-        zc, worker_zc = self._zenoh_with_workers(driver_factory)
-        self.session = open_session(zc)
-        self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")
+        with contextlib.ExitStack() as undo:  # what is made so far, should the next fail
+            zc, worker_zc = self._zenoh_with_workers(driver_factory)
+            undo.callback(self._remove_worker_dir)
+            self.session = open_session(zc)
+            undo.callback(self.session.close)
+            self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")
+            undo.pop_all()
         self.recorder: BackgroundRecorder | None = None
         # every enabled device, in a thread or a worker process (the same calls either way)
         self.devices: list[DeviceStream | DeviceWorker] = []
@@ -258,8 +263,12 @@ class Daemon:
             self.recorder.close()
         self.schemas.close()
         self.session.close()
+        self._remove_worker_dir()
+
+    def _remove_worker_dir(self) -> None:
         if self._worker_dir is not None:
             shutil.rmtree(self._worker_dir, ignore_errors=True)
+            self._worker_dir = None
 
     def __enter__(self) -> Daemon:
         return self
@@ -271,11 +280,9 @@ class Daemon:
 def main_run(args: Any) -> int:
     """``daq run``: the daemon of ``args`` until ``--duration`` or a signal; exit 0."""
     cfg, emulated, record = _run_config(args)
-    path = None
-    if record:
-        path = recording_path(cfg, args.record or None)
     stopping = threading.Event()
     try:
+        path = recording_path(cfg, args.record or None) if record else None
         # before any session or worker exists: their threads and processes inherit it
         set_realtime_of(cfg)
         daemon = Daemon(cfg, record_path=path)
@@ -319,13 +326,16 @@ def _run_config(args: Any) -> tuple[DaqConfig, EmulatedCell | None, bool]:
     if getattr(args, "cell", None):
         extra["cell"] = {"name": args.cell}
     if args.config is None and not _env_config():
+        from daq.config import load
         from daq.emulated import EmulatedCell
 
         emulated = EmulatedCell(sim_config=args.sim_config, rate_hz=args.rate)
         base = emulated.start()
-        from daq.config import load
-
-        cfg = load(None, overrides=_with_zenoh(args, extra), base=base)
+        try:
+            cfg = load(None, overrides=_with_zenoh(args, extra), base=base)
+        except BaseException:
+            emulated.close()  # the emulator's processes must not outlive a refused option
+            raise
         return cfg, emulated, not args.no_record
     cfg = resolve(args, extra)
     return cfg, None, cfg.recording.enabled or args.record is not None

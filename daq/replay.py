@@ -171,7 +171,11 @@ def replay(
     stop = stop or threading.Event()
     filters = [zenoh.KeyExpr(t) for t in topics] if topics else None
     session = open_session(zc)
-    pubs = _Publishers(session, filters, congestion, wait_subscribers_s, stop)
+    try:
+        pubs = _Publishers(session, filters, congestion, wait_subscribers_s, stop)
+    except BaseException:
+        session.close()
+        raise
     t_wall0 = time.monotonic()
     passes = 0
     truncated = False

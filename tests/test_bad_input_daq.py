@@ -55,15 +55,18 @@ wrong results, runs that changed files.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
 import math
 import os
+import signal
 import socket
 import struct
 import subprocess
 import sys
+import time
 from collections import Counter
 from pathlib import Path
 
@@ -668,6 +671,38 @@ def test_run_options(work):
         ["--record", "is an input"],
     )
     refused(work, daq("run", "--record", "{nope}.mcap"), ["--record", "{nope}"])
+
+
+def _processes_with(marker: str) -> list[int]:
+    """The processes whose environment holds ``marker`` (Linux /proc)."""
+    pids = []
+    for environ in Path("/proc").glob("[0-9]*/environ"):
+        try:
+            if marker.encode() in environ.read_bytes():
+                pids.append(int(environ.parent.name))
+        except OSError:  # gone, or not ours to read
+            continue
+    return pids
+
+
+def test_a_refused_run_of_the_emulated_cell_leaves_no_emulator_behind(work):
+    """``daq run`` without a configuration starts the emulated cell before it reads its
+    zenoh options and its recording path: a refusal of either stops the emulator too (it
+    was left running, orphaned)."""
+    marker = f"GRATING_TEST_MARKER=refused-run-{os.getpid()}"
+    for argv, words in (
+        (daq("run", "--mode", "client", "--connect", "none", "--duration", "5"), ["connect"]),
+        (daq("run", "--record", "{nope}.mcap", "--duration", "5"), ["--record", "{nope}"]),
+    ):
+        refused(work, argv, words, env={"GRATING_TEST_MARKER": marker.split("=", 1)[1]})
+        deadline = time.monotonic() + 10.0
+        while _processes_with(marker) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        left = _processes_with(marker)
+        for pid in left:  # not to leave them to the rest of the run
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+        assert not left, f"{argv[1:]}: emulator processes left running: {left}"
 
 
 def test_record_outputs_checked_before_subscribing(work):
