@@ -60,7 +60,6 @@ from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
 
 from calibration.circle_fit import CircleFit, fit_circle_3d
 from calibration.errors import CircleFitError, ScaleError
@@ -523,6 +522,7 @@ def _gls(y: FloatArray, x: FloatArray, white: _Whitener) -> _Gls:
 
 def _f_test(full: _Gls, reduced: _Gls) -> tuple[float, int, int, float]:
     """Nested-model F-test: statistic, term dof, residual dof, p-value."""
+    from scipy import stats  # loads when a fit runs: a refused input is said at once
     d1 = full.rank - reduced.rank
     d2 = full.n - full.rank
     if d1 <= 0 or d2 <= 0 or full.rss <= 0:
@@ -787,6 +787,7 @@ def _worst_residual(
     theta: FloatArray, x: FloatArray, white: _Whitener, outlier_alpha: float
 ) -> tuple[int, float, float]:
     """Index of the largest studentized residual (robust scale), its z, and the limit."""
+    from scipy import stats  # loads when a fit runs: a refused input is said at once
     fit = _gls(theta, x, white)
     resid = theta - x @ fit.beta
     var = white.diag - np.einsum("ij,jk,ik->i", x, fit.cov_unit, x)

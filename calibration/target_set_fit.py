@@ -101,7 +101,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
 
 from calibration.circle_fit import MIN_POINTS, CircleFit, FactoredAngleCovariance, fit_circle_3d
 from calibration.errors import TargetSetFitError
@@ -448,6 +447,7 @@ def _reject_wild(
     max_outliers: int,
 ) -> tuple[BoolArray, _Fit]:
     """Drop wild points one at a time (screen, refit without, test the deleted residual)."""
+    from scipy import stats  # loads when a fit runs: a refused input is said at once
     n_par = 3 * fit.geo.n_targets + 3
     dropped = 0
     while dropped < max_outliers and used.any(axis=1).sum() > MIN_STOPS + 1:
