@@ -16,12 +16,14 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/python -m daq.demo
 
-## The test suite (what CI runs): lint, types, then pytest without the slow soak/accuracy sweeps.
+## The test suite (what CI runs): lint, types, then pytest without the slow soak/accuracy sweeps:
+## the tests that measure real time alone, the others on two workers (tests/conftest.py).
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -m "not slow and not realtime" -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -m "not slow and realtime"
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
