@@ -523,6 +523,7 @@ def _gls(y: FloatArray, x: FloatArray, white: _Whitener) -> _Gls:
 def _f_test(full: _Gls, reduced: _Gls) -> tuple[float, int, int, float]:
     """Nested-model F-test: statistic, term dof, residual dof, p-value."""
     from scipy import stats  # loads when a fit runs: a refused input is said at once
+
     d1 = full.rank - reduced.rank
     d2 = full.n - full.rank
     if d1 <= 0 or d2 <= 0 or full.rss <= 0:
@@ -788,6 +789,7 @@ def _worst_residual(
 ) -> tuple[int, float, float]:
     """Index of the largest studentized residual (robust scale), its z, and the limit."""
     from scipy import stats  # loads when a fit runs: a refused input is said at once
+
     fit = _gls(theta, x, white)
     resid = theta - x @ fit.beta
     var = white.diag - np.einsum("ij,jk,ik->i", x, fit.cov_unit, x)

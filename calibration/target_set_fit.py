@@ -448,6 +448,7 @@ def _reject_wild(
 ) -> tuple[BoolArray, _Fit]:
     """Drop wild points one at a time (screen, refit without, test the deleted residual)."""
     from scipy import stats  # loads when a fit runs: a refused input is said at once
+
     n_par = 3 * fit.geo.n_targets + 3
     dropped = 0
     while dropped < max_outliers and used.any(axis=1).sum() > MIN_STOPS + 1:
