@@ -56,16 +56,21 @@ def loopback_sink(port: int) -> ZenohConfig:
     return ZenohConfig(listen=(), connect=(f"tcp/127.0.0.1:{port}",))
 
 
-FAKE_SCHEMA = BatchSchema(
-    kind="fake",
-    channels=tuple(
-        ChannelSchema(f"grating{i + 1}_counts", "count", "int64", f"joint {i + 1}")
-        for i in range(3)
-    ),
-    status_bits={1: "valid"},
-    device_clock="fake µs clock",
-    source="in-process",
-)
+def _counts_schema(kind: str, n_joints: int) -> BatchSchema:
+    """A fake device's schema: one grating count per joint, a valid bit."""
+    return BatchSchema(
+        kind=kind,
+        channels=tuple(
+            ChannelSchema(f"grating{i + 1}_counts", "count", "int64", f"joint {i + 1}")
+            for i in range(n_joints)
+        ),
+        status_bits={1: "valid"},
+        device_clock="fake µs clock",
+        source="in-process",
+    )
+
+
+FAKE_SCHEMA = _counts_schema("fake", 3)
 
 
 # read-only constants, sliced per read: contiguous like a real driver's arrays (a
@@ -184,16 +189,7 @@ class FakeDriver(Driver):
         )
 
 
-GRATING6_SCHEMA = BatchSchema(
-    kind="fake_grating",
-    channels=tuple(
-        ChannelSchema(f"grating{i + 1}_counts", "count", "int64", f"joint {i + 1}")
-        for i in range(6)
-    ),
-    status_bits={1: "valid"},
-    device_clock="fake µs clock",
-    source="in-process",
-)
+GRATING6_SCHEMA = _counts_schema("fake_grating", 6)
 
 
 class FakeGratingDriver(FakeDriver):
