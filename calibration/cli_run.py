@@ -76,20 +76,20 @@ def _add_live_options(live: argparse._ArgumentGroup) -> None:
     """What the live twin publishes, and when collection and publication end."""
     live.add_argument(
         "--effects-radius-deg",
-        type=float,
+        type=number(0.0, hi=5.0),
         default=0.25,
         help="the modelled effects' share of the TCP is linearised within this many degrees "
         "of the pose it was evaluated at (0.25; 0: the full predictor for every batch)",
     )
     live.add_argument(
         "--frames-hz",
-        type=float,
+        type=number(0.0),
         default=30.0,
         help="publish the link frames (twin/.../frames) at most this often (30; 0: never)",
     )
     live.add_argument(
         "--wait-s",
-        type=float,
+        type=number(0.0, above=True),
         default=60.0,
         help="--from: wait at most this long for the first grating batch (60 s)",
     )
@@ -194,24 +194,15 @@ def run_run(args: argparse.Namespace) -> int:
 
 
 def _check_live_options(args: argparse.Namespace) -> None:
-    """The live options checked together (one line naming the option, exit 2); ``--mode``
-    resolved: ``peer`` when listening, else ``client``."""
+    """The zenoh options checked together (one line naming the option, exit 2; the numbers
+    are checked by their argparse types); ``--mode`` resolved: ``peer`` when listening,
+    else ``client``."""
     if args.mode is None:
         args.mode = "peer" if args.listen and args.listen != ["none"] else "client"
     elif args.mode == "client" and args.listen and args.listen != ["none"]:
         raise OptionError("--listen: a zenoh client listens nowhere; use --mode peer")
     if args.mode == "client" and args.connect == ["none"]:
         raise OptionError("--connect none: a zenoh client needs an endpoint to connect to")
-    for name, value in (
-        ("--effects-radius-deg", args.effects_radius_deg),
-        ("--frames-hz", args.frames_hz),
-    ):
-        if not 0 <= value < float("inf"):
-            raise OptionError(f"{name}: expected a finite number >= 0, got {value}")
-    if args.effects_radius_deg > 5:
-        raise OptionError(f"--effects-radius-deg: at most 5 degrees, got {args.effects_radius_deg}")
-    if not args.wait_s > 0 or args.wait_s == float("inf"):
-        raise OptionError(f"--wait-s: expected a finite number of seconds > 0, got {args.wait_s}")
 
 
 def _publish_earlier(args: argparse.Namespace, say: Callable[[str], None]) -> int:
