@@ -185,6 +185,7 @@ class Daemon:
             driver,
             self.session,
             self.schemas,
+            groups=groups,
             recording=recording,
             utc_offset_ns=self.utc_offset_ns,
             stop=self.stop,

@@ -61,9 +61,13 @@ RX_DELAY_SAMPLES = 64
 CLOCK_FEED_NS = 20_000_000
 
 
+#: a device's channel groups: each one's schema and the driver columns it carries
+ChannelGroups = list[tuple[StreamSchema, NDArray[np.intp]]]
+
+
 def build_schemas(
     cfg: DaqConfig, dev: DeviceConfig, driver_schema: Any, utc_offset_ns: int
-) -> list[tuple[StreamSchema, NDArray[np.intp]]]:
+) -> ChannelGroups:
     """The columnar schema of every channel group of ``dev`` and its driver columns."""
     names = [c.name for c in driver_schema.channels]
     groups = dev.channels or (ChannelGroup(DEFAULT_CHANNEL, ()),)
@@ -197,6 +201,7 @@ class DeviceStream:
         session: zenoh.Session,
         schemas: SchemaServer,
         *,
+        groups: ChannelGroups,
         recording: DeviceRecording | None = None,
         utc_offset_ns: int,
         stop: threading.Event,
@@ -209,7 +214,7 @@ class DeviceStream:
         self.utc_offset_ns = utc_offset_ns
         self._stop = stop
         self.counters = Counters()
-        self.groups = build_schemas(cfg, dev, driver.schema, utc_offset_ns)
+        self.groups = groups  # build_schemas of the driver's schema (the caller's: once)
         # groups carrying every driver channel in order pass the status array as it is
         n_ch = driver.schema.n_channels
         self._all_channels = [np.array_equal(idx, np.arange(n_ch)) for _, idx in self.groups]

@@ -115,7 +115,7 @@ def _stop_on_eof(stop: threading.Event) -> None:
 def main() -> int:
     from daq.device_drivers import keep_freed_heap, make_driver
     from daq.health import HealthLoop
-    from daq.pipeline import DeviceStream
+    from daq.pipeline import DeviceStream, build_schemas
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     spec = json.loads(sys.stdin.readline())
@@ -129,8 +129,10 @@ def main() -> int:
     keep_freed_heap()
     session = open_session(cfg.zenoh)
     schemas = SchemaServer(session, f"cell/{cfg.cell.name}")
+    driver = make_driver(dev)
+    groups = build_schemas(cfg, dev, driver.schema, utc_offset)
     stream = DeviceStream(
-        cfg, dev, make_driver(dev), session, schemas, utc_offset_ns=utc_offset, stop=stop
+        cfg, dev, driver, session, schemas, groups=groups, utc_offset_ns=utc_offset, stop=stop
     )
     health = HealthLoop(session, cfg.publish.health_period_s)
     try:

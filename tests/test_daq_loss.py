@@ -61,14 +61,15 @@ def stream(
     stop: threading.Event,
 ) -> DeviceStream:
     """The device stream of ``DEV`` on ``driver``, recording into ``rec``."""
-    groups = [g for g, _ in build_schemas(cfg, DEV, driver.schema, 0)]
+    groups = build_schemas(cfg, DEV, driver.schema, 0)
     return DeviceStream(
         cfg,
         DEV,
         driver,
         session,
         schemas,
-        recording=DeviceRecording(rec, cfg, DEV, groups),  # type: ignore[arg-type]
+        groups=groups,
+        recording=DeviceRecording(rec, cfg, DEV, [g for g, _ in groups]),  # type: ignore[arg-type]
         utc_offset_ns=0,
         stop=stop,
     )
