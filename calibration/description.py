@@ -38,6 +38,10 @@ PRESET_PACKAGE = "calibration.presets"
 _T = TypeVar("_T", bound="DataclassInstance")
 
 
+#: Motor turns per joint turn assumed for a joint whose description states none.
+DEFAULT_GEAR_RATIO = 100.0
+
+
 @dataclass(frozen=True)
 class JointDescription:
     """One revolute joint: modified D-H row (mm, degrees), limits and optional mass model."""
@@ -123,6 +127,12 @@ class RobotDescription:
     def home(self) -> tuple[float, ...]:
         """The Home joint vector in degrees (zeros when the file gives none)."""
         return self.home_deg if self.home_deg is not None else (0.0,) * self.n_joints
+
+    @property
+    def gear_ratios(self) -> tuple[float, ...]:
+        """Motor turns per joint turn, per joint (:data:`DEFAULT_GEAR_RATIO` where the
+        file gives none): how the motor encoders' counts become joint angles."""
+        return tuple(j.gear_ratio or DEFAULT_GEAR_RATIO for j in self.joints)
 
     # -- I/O ---------------------------------------------------------------------------
     @classmethod

@@ -432,10 +432,15 @@ class LiveTwin:
         self.closed = False
 
     # -- collection ------------------------------------------------------------------
-    def _add(self, got: Received) -> None:
+    def _builder(self, got: Received) -> StreamBuilder:
+        """The stream of ``got``'s key (made from its schema on its first batch)."""
         b = self.builders.get(got.key)
         if b is None:
             b = self.builders[got.key] = StreamBuilder(got.key, got.schema.to_json())
+        return b
+
+    def _add(self, got: Received) -> None:
+        b = self._builder(got)
         if b.kind in ("grating", "tracker", "encoders"):
             b.add(got.header.batch_seq, got.columns)
 
@@ -555,11 +560,11 @@ class LiveTwin:
         say(f"published {out.seq} twin samples")
         return 0
 
-    def _drain(self) -> list[Any]:
+    def _drain(self) -> list[Received]:
         """The batches that have arrived (at most ~500; the first waited for at most
         0.1 s): the daemon sends ~1 ms batches, one model evaluation per batch would fall
         behind, so they are evaluated together."""
-        batch: list[Any] = []
+        batch: list[Received] = []
         got = self.receiver.receive(0.1)
         while got is not None and len(batch) < 500:
             batch.append(got)
@@ -569,16 +574,14 @@ class LiveTwin:
         return batch
 
     def _gratings_of(
-        self, batch: list[Any], out: TwinPublication
+        self, batch: list[Received], out: TwinPublication
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """The batch's grating samples joined: counts ``(m, n)``, mapped times ``(m,)`` ns,
         whether each one's clock map had settled ``(m,)``, when the twin received it
         ``(m,)`` ns (None: no grating sample); the encoders' samples go to ``out``."""
         counts, t_map, ok, recv = [], [], [], []
         for got in batch:
-            b = self.builders.get(got.key)
-            if b is None:
-                b = self.builders[got.key] = StreamBuilder(got.key, got.schema.to_json())
+            b = self._builder(got)
             cols = got.columns
             if b.kind == "grating":
                 counts.append(np.column_stack([cols[c] for c in b.channels]))
@@ -619,7 +622,7 @@ class TwinPublication:
         self.twin = twin
         self.cell, self.robot = cell, robot
         self.keys = twin_keys(cell, robot)
-        self.gear = np.array([j.gear_ratio or 100.0 for j in desc.joints], dtype=float)
+        self.gear = np.array(desc.gear_ratios, dtype=float)
         radius = settings.effects_radius_deg
         self.predictor = TwinPredictor(desc, radius_deg=radius)
         self.reader = AngleReader(twin.scale, n, desc.home, radius_deg=radius)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -23,17 +22,15 @@ from calibration.twin_run import (
     CALIBRATED_FILE,
     CAMPAIGN_FILES,
     CampaignExport,
+    Say,
     TwinRun,
     home_table,
+    quiet,
     sweep_table,
 )
 
 #: run.json's ``paths_relative_to``: its paths are relative to its own directory
 RUN_PATHS_RELATIVE_TO = "run.json"
-
-
-def _quiet(_text: str) -> None:
-    pass
 
 
 def write_campaign_files(dest: Path, export: CampaignExport) -> dict[str, Path]:
@@ -58,7 +55,7 @@ def _without_timings(obj: Any) -> Any:
     return obj
 
 
-def _write_reports(dest: Path, run: TwinRun, *, figures: bool, say: Callable[[str], None]) -> Path:
+def _write_reports(dest: Path, run: TwinRun, *, figures: bool, say: Say) -> Path:
     """report/ (report.json without the solver times; with ``figures``, report.md and the
     figures too) and, with ``figures``, scale-report/; the report directory."""
     from calibration.identification_report import write_report
@@ -104,7 +101,7 @@ def write_twin_run(
     run: TwinRun,
     *,
     report: bool = True,
-    say: Callable[[str], None] = _quiet,
+    say: Say = quiet,
 ) -> dict[str, Any]:
     """Every file of ``twin run`` into ``dest`` (``report``: with report.md, the figures
     and scale-report/), run.json last; run.json's document with its paths named as under

@@ -62,8 +62,8 @@ Say = Callable[[str], None]
 MAX_ROUNDS = 3
 
 
-def _quiet(_text: str) -> None:
-    pass
+def quiet(_text: str) -> None:
+    """A :data:`Say` that says nothing."""
 
 
 #: The motor encoders' counts per turn unless told (17-bit single turn, the emulated cell's
@@ -111,7 +111,7 @@ def measure_campaign(
     phase_options: PhaseOptions | None = None,
     pairing_options: PairingOptions | None = None,
     encoder_counts_per_rev: int = ENCODER_COUNTS_PER_REV,
-    say: Say = _quiet,
+    say: Say = quiet,
 ) -> CampaignMeasurements:
     """Find the phases in the streams and pair every stop and pose that needs a point."""
     g = streams.grating
@@ -286,7 +286,7 @@ def _encoder_deg(
 ) -> tuple[FloatArray, FloatArray]:
     """Encoder joint angles (deg) of the poses; each joint's zero from the Home returns."""
     n = robot.n_joints
-    gear = np.array([j.gear_ratio or 100.0 for j in robot.joints], dtype=float)
+    gear = np.array(robot.gear_ratios, dtype=float)
     raw = np.array([meas[p.dwell].encoder_counts for p in pose_ok]) / cpr * 360.0 / gear
     enc = streams.encoders
     assert enc is not None
@@ -384,7 +384,7 @@ def calibrate_twin(
     effects: bool = True,
     scale_options: ScaleOptions | None = None,
     loop_settings: Any = None,
-    say: Say = _quiet,
+    say: Say = quiet,
 ) -> TwinCalibration:
     """Scale maps, identification and closed loop, fitted jointly (module docstring).
 
@@ -782,7 +782,7 @@ def export_campaign(
     pairing_options: PairingOptions | None = None,
     scale_options: ScaleOptions | None = None,
     encoder_counts_per_rev: int = ENCODER_COUNTS_PER_REV,
-    say: Say = _quiet,
+    say: Say = quiet,
 ) -> CampaignExport:
     """``twin export``: the measurements and the scale maps in chain order, without the
     loop's gravity feedback (:func:`calibrate_twin` has it)."""
@@ -903,7 +903,7 @@ def run_twin(
     robot: str | RobotDescription,
     *,
     effects: bool = True,
-    say: Say = _quiet,
+    say: Say = quiet,
 ) -> TwinRun:
     """Measurements, the twin (maps and loop fitted jointly) and its documents; writes
     nothing (:mod:`calibration.run_files` writes the files). ``robot``: a preset name, a
