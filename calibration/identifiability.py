@@ -114,13 +114,6 @@ def column_rms(jac: ArrayLike) -> FloatArray:
     return rms
 
 
-def column_scales(jac: ArrayLike) -> FloatArray:
-    """RMS of each column of a stacked Jacobian ``(M, p)``; zero columns get scale 1."""
-    scale = column_rms(jac)
-    scale[scale == 0.0] = 1.0
-    return scale
-
-
 def arm_reach_mm(model: KinematicModel) -> float:
     """Σ|a| + Σ|d| + |tool| (mm): a bound on the TCP's distance from the robot's base
     frame, hence on any ∂TCP/∂angle of the arm (mm/rad)."""

@@ -74,12 +74,6 @@ def observability_indices(jac: ArrayLike) -> dict[str, float]:
     return {name: float(f(s, a.shape[0])) for name, f in OBSERVABILITY_INDICES.items()}
 
 
-def observability_index(jac: ArrayLike, index: str = "O1") -> float:
-    """One index of a Jacobian ``(m, 3, k)``."""
-    _check_index(index)
-    return observability_indices(jac)[index]
-
-
 @dataclass(frozen=True)
 class PoseSelection:
     """The chosen candidates and the index values of the chosen set."""

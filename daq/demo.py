@@ -61,14 +61,6 @@ def sim_config_text(
     return "\n".join(lines)
 
 
-def program_length_s(sim_config: Path) -> float:
-    """Simulated length of the configured robot program (the demo knows it; the twin not)."""
-    from sim_devices.config import CellConfig
-    from sim_devices.plant import Plant
-
-    return float(Plant.from_config(CellConfig.load(sim_config)).trajectory.end_s)
-
-
 def prepare(args: argparse.Namespace, sim: Path) -> tuple[str, float]:
     """The emulated cell's configuration text and its program's length in simulated
     seconds, checked before anything is written (``--robot`` is named when it is wrong)."""
