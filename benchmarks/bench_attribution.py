@@ -33,11 +33,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.closed_loop import ClosedLoopResult, run_closed_loop
-from calibration.description import RobotDescription
-from calibration.gravity_regressor import base_moments
-from calibration.identification import EffectTerms, identify, predicted_points
-from calibration.kinematics import KinematicModel, identification_jacobian
+from calibration.effects.closed_loop import ClosedLoopResult, run_closed_loop
+from calibration.identify.identification import EffectTerms, identify, predicted_points
+from calibration.model.description import RobotDescription
+from calibration.model.gravity_regressor import base_moments
+from calibration.model.kinematics import KinematicModel, identification_jacobian
 from sim_devices.effects import UndeclaredEffects, approach_direction
 from sim_devices.pose_campaign import CampaignData, CampaignSettings, emulated_campaign
 

@@ -17,11 +17,11 @@ from typing import Any
 
 from benchmarks import best_time
 from benchmarks.bench_attribution import twin_description
-from calibration.campaign_files import Campaign
-from calibration.closed_loop import run_closed_loop
-from calibration.description import RobotDescription
-from calibration.identification import identify
-from calibration.kinematics import KinematicModel
+from calibration.effects.closed_loop import run_closed_loop
+from calibration.identify.campaign_files import Campaign
+from calibration.identify.identification import identify
+from calibration.model.description import RobotDescription
+from calibration.model.kinematics import KinematicModel
 from sim_devices.effects import UndeclaredEffects
 from sim_devices.pose_campaign import CampaignSettings, emulated_campaign
 

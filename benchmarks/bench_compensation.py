@@ -3,7 +3,7 @@
     python -m benchmarks --only compensation          # speed: 10 000 targets, vs a loop, vs rtb
     python -m benchmarks.bench_compensation           # the before/after tables (~2 min)
 
-Speed: :func:`calibration.compensation.compensate` on all targets at once against the
+Speed: :func:`calibration.twin.compensation.compensate` on all targets at once against the
 same function called once per target (measured on a subset, scaled), and against
 roboticstoolbox's ``ik_LM`` on the same targets (the calibrated geometry as an ETS, the
 same orientation, seeded at the programmed joints; rtb knows no effects, so it solves
@@ -26,9 +26,9 @@ import numpy as np
 
 from benchmarks import Row, best_time, format_table
 from benchmarks.bench_kinematics import RTB_IK_TOL, reference_ets
-from calibration.compensation import compensate
-from calibration.description import load_robot
-from calibration.kinematics import KinematicModel, flange_poses, tcp_positions
+from calibration.model.description import load_robot
+from calibration.model.kinematics import KinematicModel, flange_poses, tcp_positions
+from calibration.twin.compensation import compensate
 from sim_devices.pose_campaign import sample_reachable_poses
 from sim_devices.program import compensation_trial, force_compensation_trial
 

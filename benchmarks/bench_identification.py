@@ -8,7 +8,7 @@ geometry and the description's base guess.
 Rows:
 
 * ``identify`` at n = 100 (the source's campaign size) and, for the scaling, 1k, 10k and
-  100k poses: ``ours_s`` is :func:`calibration.identification.identify` end to end
+  100k poses: ``ours_s`` is :func:`calibration.identify.identification.identify` end to end
   (identifiability analysis, LM, covariance), ``us_per_pose`` shows the linear scaling.
 * ``scipy_lm_s``: ``scipy.optimize.least_squares(method="lm")`` (MINPACK) on the same
   residuals, analytic Jacobian, same free parameters and start; ``ours_lm_only_s`` is our
@@ -39,14 +39,14 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
-from calibration.description import load_robot
-from calibration.identification import (
+from calibration.identify.identification import (
     identify,
     levenberg_marquardt,
     position_residual_jacobian,
     position_residuals,
 )
-from calibration.kinematics import KinematicModel, tcp_positions
+from calibration.model.description import load_robot
+from calibration.model.kinematics import KinematicModel, tcp_positions
 from sim_devices.pose_campaign import sample_reachable_poses
 from sim_devices.truth import TrueCell
 

@@ -24,9 +24,9 @@ from typing import Any, Literal
 import numpy as np
 
 from benchmarks import Row, best_time
-from calibration.description import load_robot
-from calibration.inverse_kinematics import JointLimits, solve_ik
-from calibration.kinematics import (
+from calibration.model.description import load_robot
+from calibration.model.inverse_kinematics import JointLimits, solve_ik
+from calibration.model.kinematics import (
     KinematicModel,
     flange_poses,
     geometric_jacobian,

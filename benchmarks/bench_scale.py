@@ -37,10 +37,10 @@ from typing import Any
 import numpy as np
 
 from benchmarks import best_time
-from calibration.chain_scale import calibrate_scales
-from calibration.circle_fit import fit_circle_3d
-from calibration.description import RobotDescription, load_robot
-from calibration.grating_scale import (
+from calibration.model.description import RobotDescription, load_robot
+from calibration.scales.chain_scale import calibrate_scales
+from calibration.scales.circle_fit import fit_circle_3d
+from calibration.scales.grating_scale import (
     ARCSEC_PER_DEG,
     JointScaleResult,
     JointSweep,
@@ -48,7 +48,7 @@ from calibration.grating_scale import (
     calibrate_joint,
     crb_covariance,
 )
-from calibration.target_set_fit import fit_target_set
+from calibration.scales.target_set_fit import fit_target_set
 from sim_devices.scale_campaign import CampaignOptions, ScaleCampaign, run_campaign
 from sim_devices.truth import TrueCell
 

@@ -49,8 +49,8 @@ def _free_port() -> int:
 def publish(endpoint: str, seconds: float, rate_hz: float = 1000.0) -> None:
     """The stand-in twin and daemon (a process of its own): one sample per key per
     period, for ``seconds``."""
-    from calibration.description import load_robot
-    from calibration.kinematics import KinematicModel, tcp_positions
+    from calibration.model.description import load_robot
+    from calibration.model.kinematics import KinematicModel, tcp_positions
     from daq.bus import ChannelPublisher, SchemaServer, open_session
     from daq.columnar import Column, StreamSchema
     from daq.config import ZenohConfig

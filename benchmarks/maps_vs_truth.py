@@ -2,7 +2,7 @@
 
     python -m benchmarks.maps_vs_truth demo-out/campaign.mcap demo-out/sim-cell.toml
 
-Runs the twin's joint fit on the recording (``calibration.twin_run``: phases, pairing,
+Runs the twin's joint fit on the recording (``calibration.twin.twin_run``: phases, pairing,
 maps in chain order, identification, closed loop, the deflection taken out of the sweeps)
 and prints, per round and joint, the terms the map kept, its relation residual, the RMS
 over the sweep stops of the map minus the true strip relation (from the emulator's
@@ -17,10 +17,10 @@ import sys
 
 import numpy as np
 
-from calibration.description import load_robot
-from calibration.grating_scale import ARCSEC_PER_DEG, COUNTER_MODULUS
-from calibration.streams import read_recording_streams
-from calibration.twin_run import calibrate_twin, measure_campaign
+from calibration.model.description import load_robot
+from calibration.scales.grating_scale import ARCSEC_PER_DEG, COUNTER_MODULUS
+from calibration.twin.streams import read_recording_streams
+from calibration.twin.twin_run import calibrate_twin, measure_campaign
 from sim_devices.config import CellConfig
 from sim_devices.plant import Plant
 from sim_devices.truth import GratingStrip

@@ -22,12 +22,12 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from calibration.calibrate import CalibrationResult, calibrate
-from calibration.campaign_files import Campaign, read_campaign, read_joint_readings
-from calibration.description import RobotDescription, load_robot, preset_names
+from calibration.effects.calibrate import CalibrationResult, calibrate
 from calibration.errors import CalibrationError, DataFileError, DescriptionError
-from calibration.inverse_kinematics import IKResult, JointLimits, select_solution, solve_ik
-from calibration.kinematics import (
+from calibration.identify.campaign_files import Campaign, read_campaign, read_joint_readings
+from calibration.model.description import RobotDescription, load_robot, preset_names
+from calibration.model.inverse_kinematics import IKResult, JointLimits, select_solution, solve_ik
+from calibration.model.kinematics import (
     KinematicModel,
     flange_poses,
     geometric_jacobian,
@@ -36,24 +36,24 @@ from calibration.kinematics import (
 )
 
 if TYPE_CHECKING:
-    from calibration.chain_scale import calibrate_scales
-    from calibration.closed_loop import ClosedLoopResult, run_closed_loop
-    from calibration.compensation import CompensationResult, compensate
-    from calibration.identification import IdentificationResult, identify
-    from calibration.model_effects import predict_tcp
-    from calibration.scale_files import read_scale_toml
+    from calibration.effects.closed_loop import ClosedLoopResult, run_closed_loop
+    from calibration.effects.model_effects import predict_tcp
+    from calibration.identify.identification import IdentificationResult, identify
+    from calibration.scales.chain_scale import calibrate_scales
+    from calibration.scales.scale_files import read_scale_toml
+    from calibration.twin.compensation import CompensationResult, compensate
 
 #: name -> module, imported on first use
 _LAZY = {
-    "calibrate_scales": "calibration.chain_scale",
-    "ClosedLoopResult": "calibration.closed_loop",
-    "run_closed_loop": "calibration.closed_loop",
-    "CompensationResult": "calibration.compensation",
-    "compensate": "calibration.compensation",
-    "IdentificationResult": "calibration.identification",
-    "identify": "calibration.identification",
-    "predict_tcp": "calibration.model_effects",
-    "read_scale_toml": "calibration.scale_files",
+    "calibrate_scales": "calibration.scales.chain_scale",
+    "ClosedLoopResult": "calibration.effects.closed_loop",
+    "run_closed_loop": "calibration.effects.closed_loop",
+    "CompensationResult": "calibration.twin.compensation",
+    "compensate": "calibration.twin.compensation",
+    "IdentificationResult": "calibration.identify.identification",
+    "identify": "calibration.identify.identification",
+    "predict_tcp": "calibration.effects.model_effects",
+    "read_scale_toml": "calibration.scales.scale_files",
 }
 
 

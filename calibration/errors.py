@@ -1,7 +1,7 @@
 """The calibration package's one root exception and its children.
 
 Every public exception of the package is defined here. The module that raises one
-imports it from here, so its older path (``from calibration.circle_fit import
+imports it from here, so its older path (``from calibration.scales.circle_fit import
 CircleFitError``) still works.
 """
 

@@ -5,7 +5,7 @@ A robot description's mass model is a catalogue estimate; the real arm differs f
 the tracker target sits. The emulator therefore draws its own (:func:`draw_arm_masses`)
 from a generator of its own, so the twin's description never holds the truth.
 
-Conventions (the same as :mod:`calibration.statics`, so the two can be compared): link i
+Conventions (the same as :mod:`calibration.model.statics`, so the two can be compared): link i
 (frame i of the modified D-H chain, after joint i's rotation and its ``d``) carries
 ``mass_kg[i]`` at ``com_mm[i]`` in frame i; the payload carries ``payload_kg`` at
 ``payload_com_mm`` in the flange frame (frame n).
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.description import RobotDescription, load_robot
+from calibration.model.description import RobotDescription, load_robot
 
 FloatArray = NDArray[np.float64]
 

@@ -406,8 +406,8 @@ def check_joints(joints: tuple[int, ...] | None, n_joints: int, option: str) -> 
 def robot_option(name: str, prefix: str = "--robot") -> Any:
     """The robot description ``name`` (preset or file), its errors a :class:`SimError`
     starting with ``prefix`` (the option, or file and key)."""
-    from calibration.description import load_robot
     from calibration.errors import CalibrationError
+    from calibration.model.description import load_robot
 
     try:
         return load_robot(name)

@@ -40,8 +40,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.description import RobotDescription
-from calibration.kinematics import geometric_jacobian, tcp_positions
+from calibration.model.description import RobotDescription
+from calibration.model.kinematics import geometric_jacobian, tcp_positions
 from sim_devices.physical_arm import PhysicalArm
 
 FloatArray = NDArray[np.float64]

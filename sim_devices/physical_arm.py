@@ -7,7 +7,7 @@ deflection after the grating ring (:mod:`sim_devices.effects`), the static scale
 emulator's own (:mod:`sim_devices.arm_masses`, :mod:`sim_devices.counterbalance`); the
 twin is never given them, and this module does not use the twin's statics.
 
-Frames: the true modified D-H chain (:class:`calibration.kinematics.KinematicModel`, the
+Frames: the true modified D-H chain (:class:`calibration.model.kinematics.KinematicModel`, the
 forward kinematics the emulator shares with the twin) in the robot base frame; gravity
 along −z of that frame. Sign: ``tau[:, j]`` is the torque (N·mm) about joint j's axis
 ``z_j`` that the loads exert on everything outboard of joint j; a joint of stiffness K
@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.description import RobotDescription
-from calibration.kinematics import KinematicModel
+from calibration.model.description import RobotDescription
+from calibration.model.kinematics import KinematicModel
 from sim_devices.arm_masses import ArmMasses
 from sim_devices.counterbalance import (
     DEFAULT_SHARE,

@@ -17,8 +17,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from calibration.description import RobotDescription, load_robot
 from calibration.errors import CalibrationError
+from calibration.model.description import RobotDescription, load_robot
 from edges.command import run_command, take_debug_flag
 from edges.options import OptionParser
 from sim_devices.config import SEED_OPTION, integer_option, robot_option

@@ -40,8 +40,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.description import RobotDescription, load_robot
-from calibration.kinematics import KinematicModel, tcp_positions
+from calibration.model.description import RobotDescription, load_robot
+from calibration.model.kinematics import KinematicModel, tcp_positions
 from sim_devices.config import CellConfig
 from sim_devices.effects import (
     grating_reading_rad,

@@ -3,7 +3,7 @@
 From a :class:`~sim_devices.truth.TrueCell`: sample reachable joint vectors within limits and
 away from singularities, choose the identification poses by an observability index, measure
 the true TCP with the tracker model, read the joints with the (scale-calibrated) gratings and
-the motor encoders, and write ``campaign.csv`` (see :mod:`calibration.campaign_files`).
+the motor encoders, and write ``campaign.csv`` (see :mod:`calibration.identify.campaign_files`).
 
     python -m sim_devices.pose_campaign --robot kr500 --seed 1 --out campaign.csv
 """
@@ -20,11 +20,11 @@ import numpy as np
 import tomli_w
 from numpy.typing import NDArray
 
-from calibration.campaign_files import Campaign, write_campaign
-from calibration.description import RobotDescription, load_robot
 from calibration.errors import CalibrationError
-from calibration.kinematics import KinematicModel, flange_poses, tcp_positions
-from calibration.pose_selection import OBSERVABILITY_INDICES, select_poses_for_model
+from calibration.identify.campaign_files import Campaign, write_campaign
+from calibration.identify.pose_selection import OBSERVABILITY_INDICES, select_poses_for_model
+from calibration.model.description import RobotDescription, load_robot
+from calibration.model.kinematics import KinematicModel, flange_poses, tcp_positions
 from edges.command import run_command, take_debug_flag
 from edges.options import OptionParser
 from edges.outputs import OutputSet

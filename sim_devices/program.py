@@ -17,11 +17,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.closed_loop import run_closed_loop
-from calibration.compensation import compensate
-from calibration.description import RobotDescription, load_robot
-from calibration.kinematics import KinematicModel, tcp_positions
-from calibration.stiffness import ComplianceFit, fit_joint_compliance
+from calibration.effects.closed_loop import run_closed_loop
+from calibration.model.description import RobotDescription, load_robot
+from calibration.model.kinematics import KinematicModel, tcp_positions
+from calibration.model.stiffness import ComplianceFit, fit_joint_compliance
+from calibration.twin.compensation import compensate
 from sim_devices.effects import (
     UndeclaredEffects,
     approach_direction,

@@ -20,8 +20,8 @@ import numpy as np
 import tomli_w
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.description import BaseDescription, RobotDescription, ToolDescription
-from calibration.kinematics import KinematicModel, nearly_parallel_joints, tcp_positions
+from calibration.model.description import BaseDescription, RobotDescription, ToolDescription
+from calibration.model.kinematics import KinematicModel, nearly_parallel_joints, tcp_positions
 from sim_devices.arm_masses import ArmMasses, draw_arm_masses
 from sim_devices.physical_arm import PhysicalArm
 

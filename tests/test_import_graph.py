@@ -1,6 +1,7 @@
 """The import graph of the project's packages: no cycles (function-level imports
-included: a lazy import is still a dependency), and no module imports a ``cli_*`` command
-module except the command line itself."""
+included: a lazy import is still a dependency), the layers between packages and between
+calibration's subpackages, and no module imports a command module of the twin
+(``calibration.cli.*``) except the command line itself."""
 
 from __future__ import annotations
 
@@ -20,6 +21,19 @@ MAY_IMPORT: dict[str, set[str]] = {
     "sim_devices": {"calibration", "drivers", "edges"},
     "view": {"calibration", "daq", "edges"},
 }
+#: What each of calibration's subpackages may import of the others (docs/architecture.md).
+#: ``errors`` is the package's exception tree, open to all; ``calibration`` itself (its
+#: ``__init__``, the public API) re-exports from the layers and is imported by none.
+CALIBRATION_MAY_IMPORT: dict[str, set[str]] = {
+    "errors": set(),
+    "model": {"errors"},
+    "scales": {"errors", "model"},
+    "identify": {"errors", "model"},
+    "effects": {"errors", "model", "identify"},
+    "twin": {"errors", "model", "scales", "identify", "effects"},
+    "cli": {"errors", "model", "scales", "identify", "effects", "twin"},
+}
+
 #: Modules above their package's layer, each with the reason it may reach higher.
 APPLICATIONS: dict[str, str] = {
     "daq.demo": "the main job: runs the emulated cell, the daemon and the twin together",
@@ -111,18 +125,44 @@ def test_calibration_reads_daq_formats_only():
     assert {d for d in reached if d.startswith("daq.")} <= formats
 
 
+def _layer(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "(the public API)"
+
+
+def test_calibration_subpackages_import_only_their_lower_layers():
+    g = graph()
+    layers = {_layer(n) for n in g if n.startswith("calibration.")}
+    assert layers <= set(CALIBRATION_MAY_IMPORT), layers - set(CALIBRATION_MAY_IMPORT)
+    offenders = sorted(
+        f"{name} -> {dep}"
+        for name, deps in g.items()
+        if name.startswith("calibration.")
+        for dep in deps
+        if dep.startswith("calibration")
+        and _layer(dep) != _layer(name)
+        and _layer(dep) not in CALIBRATION_MAY_IMPORT[_layer(name)]
+    )
+    assert offenders == []
+
+
+def test_the_subpackage_check_sees_a_wrong_arrow():
+    assert "identify" not in CALIBRATION_MAY_IMPORT["model"]
+    assert _layer("calibration.model.kinematics") == "model"
+
+
 def test_only_the_command_line_imports_command_modules():
     offenders = {
         (name, dep)
         for name, deps in graph().items()
         for dep in deps
-        if dep.split(".")[-1].startswith("cli_") and name != "calibration.cli"
+        if dep.startswith("calibration.cli.") and not name.startswith("calibration.cli")
     }
     assert offenders == set()
 
 
 def test_only_the_command_line_writes_the_twins_run_files():
-    """``calibration.run_files`` writes what ``twin export`` and ``twin run`` computed in
+    """``calibration.cli.run_files`` writes what ``twin export`` and ``twin run`` computed in
     memory: only command modules import it (files at the edges)."""
-    importers = {name for name, deps in graph().items() if "calibration.run_files" in deps}
-    assert importers == {"calibration.cli_export", "calibration.cli_run"}
+    importers = {name for name, deps in graph().items() if "calibration.cli.run_files" in deps}
+    assert importers == {"calibration.cli.export", "calibration.cli.run"}

@@ -51,7 +51,7 @@ def forbidden_imports(source: str, filename: str) -> list[str]:
 
 def test_the_package_has_modules_to_check():
     names = {module_name(p) for p in MODULE_FILES}
-    assert {"calibration", "calibration.kinematics", "calibration.description"} <= names
+    assert {"calibration", "calibration.model.kinematics", "calibration.model.description"} <= names
 
 
 @pytest.mark.parametrize("path", MODULE_FILES, ids=module_name)

@@ -10,7 +10,7 @@ import sys
 import textwrap
 
 import calibration
-from calibration.campaign_files import write_campaign
+from calibration.identify.campaign_files import write_campaign
 from sim_devices.pose_campaign import CampaignSettings, emulated_campaign
 
 
@@ -41,7 +41,7 @@ def test_the_package_example_calibrates_a_campaign(tmp_path):
 
 
 def test_importing_the_package_does_not_load_the_solvers():
-    code = "import sys, calibration; print('calibration.closed_loop' in sys.modules)"
+    code = "import sys, calibration; print('calibration.effects.closed_loop' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.stdout.strip() == "False", out.stderr
 
@@ -64,8 +64,9 @@ def test_drivers_exports_its_interface_and_registry():
 
 
 def test_the_drivers_example_reads_a_tracker():
-    import drivers
     from tests.test_driver_tracker import Tracker
+
+    import drivers
 
     tracker = Tracker()
     try:

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.description import load_robot
-from calibration.kinematics import (
+from calibration.model.description import load_robot
+from calibration.model.kinematics import (
     KinematicModel,
     flange_poses,
     geometric_jacobian,

@@ -22,10 +22,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.description import BaseDescription, RobotDescription, load_robot
-from calibration.grating_scale import GratingScale
-from calibration.kinematics import KinematicModel
-from calibration.model_effects import predict_tcp
+from calibration.effects.model_effects import predict_tcp
+from calibration.model.description import BaseDescription, RobotDescription, load_robot
+from calibration.model.kinematics import KinematicModel
+from calibration.scales.grating_scale import GratingScale
 from view.errors import ViewError
 from view.scene import ghost_model
 
@@ -97,8 +97,8 @@ def load_calibration(model_path: str | Path, robot: str | None = None) -> TwinMo
     table, the added effects and the nominal robot (``robot``, a preset or file,
     overrides it).
     """
-    from calibration.scale_files import read_scale_toml
-    from calibration.twin_run import stage_table
+    from calibration.scales.scale_files import read_scale_toml
+    from calibration.twin.twin_run import stage_table
 
     path = Path(model_path)
     desc = RobotDescription.load(path)
@@ -157,13 +157,13 @@ def nominal_twin(robot: str) -> TwinModel:
 def provisional_twin(robot: str, meas: Any) -> TwinModel:
     """The nominal ``robot`` read through scale maps fitted from a recording's sweeps.
 
-    ``meas``: the recording's :class:`~calibration.twin_run.CampaignMeasurements`. The
+    ``meas``: the recording's :class:`~calibration.twin.twin_run.CampaignMeasurements`. The
     base is the rigid registration of the nominal TCPs onto the tracker's pose points
     (the identification's own starting point) when there are at least 3 poses.
     """
-    from calibration.chain_scale import calibrate_scales
-    from calibration.kinematics import tcp_positions
-    from calibration.registration import rigid_registration
+    from calibration.model.kinematics import tcp_positions
+    from calibration.model.registration import rigid_registration
+    from calibration.scales.chain_scale import calibrate_scales
 
     desc = load_robot(robot)
     limits = [(j.lower_deg, j.upper_deg) for j in desc.joints]

@@ -1,6 +1,6 @@
 """The campaign phase at a given instant, from the phases the twin found in the gratings.
 
-The twin's phase detection (:mod:`calibration.phase_detection`) classifies every dwell
+The twin's phase detection (:mod:`calibration.twin.phase_detection`) classifies every dwell
 (sweep stop, Home return, pose, other). :class:`PhaseTimeline` answers "what is the
 robot doing at time t": the dwell it stands in, or the move between two dwells, named by
 what it leads to.
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.phase_detection import Phases
+from calibration.twin.phase_detection import Phases
 
 
 @dataclass(frozen=True)

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.description import RobotDescription
-from calibration.kinematics import KinematicModel, flange_poses
+from calibration.model.description import RobotDescription
+from calibration.model.kinematics import KinematicModel, flange_poses
 
 FloatArray = NDArray[np.float64]
 #: the page's switch for error vectors and the ghost's deviation: drawn this many times

@@ -5,7 +5,7 @@ asks at its own frame rate, so a 1 kHz stream never queues up behind the drawing
 latest sample wins and the ones between two frames are only counted.
 
 * :class:`ReplaySource` reads the recording once with the project's reader
-  (:func:`calibration.streams.read_recording_streams`, built on
+  (:func:`calibration.twin.streams.read_recording_streams`, built on
   :mod:`daq.recording` and :mod:`daq.columnar`) and answers for any time of a
   :class:`ReplayClock` (play, pause, speed, seek): a pure function of the time.
 * :class:`LiveSource` subscribes to the daemon's data keys (``cell/**``) and the live
@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.phase_detection import PhaseOptions, find_phases
-from calibration.streams import CellStreams, stream_kind
+from calibration.twin.phase_detection import PhaseOptions, find_phases
+from calibration.twin.streams import CellStreams, stream_kind
 from view.model import TwinModel
 from view.phases import PhaseTimeline
 
@@ -147,7 +147,7 @@ class PosePoints:
 
 
 def pose_points(meas: Any, twin: TwinModel) -> PosePoints:
-    """The poses of :class:`~calibration.twin_run.CampaignMeasurements` with the twin's
+    """The poses of :class:`~calibration.twin.twin_run.CampaignMeasurements` with the twin's
     TCP at each (one vectorized evaluation)."""
     if not meas.poses:
         return PosePoints.empty()

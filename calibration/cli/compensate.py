@@ -1,0 +1,116 @@
+"""``twin compensate``: joint commands that put the calibrated robot on its targets.
+
+twin compensate --model calibrated.toml --targets targets.csv --out joints.csv [--skip-bad]
+
+See docs/compensation.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from calibration.effects.model_effects import load_checked_robot
+from calibration.errors import DataFileError, OutputFileError
+from calibration.identify.campaign_files import joint_columns, read_targets
+from edges.outputs import OutputSet
+
+if TYPE_CHECKING:  # the solver loads when the command runs, not for --help
+    from calibration.twin.compensation import CompensationResult
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "compensate",
+        help="joint commands that put the calibrated TCP on target positions",
+        description="For each target (tracker frame, mm), the joints whose calibrated "
+        "prediction (every modelled effect applied) is the target, keeping the tool "
+        "orientation of the programmed joints or a stated one. See docs/compensation.md.",
+    )
+    p.add_argument("--model", required=True, help="calibrated robot description (.toml)")
+    p.add_argument(
+        "--targets",
+        required=True,
+        help="targets.csv: target,x_mm,y_mm,z_mm and q1_deg..qN_deg or rx_deg,ry_deg,rz_deg; "
+        "optional fx_n,fy_n,fz_n (a process force on the tool, N)",
+    )
+    p.add_argument("--out", required=True, help="joints.csv to write")
+    p.add_argument(
+        "--skip-bad",
+        action="store_true",
+        help="leave out unreachable targets (listed on stderr) instead of refusing the file",
+    )
+    p.set_defaults(func=run_compensate)
+
+
+def run_compensate(args: argparse.Namespace) -> int:
+    from calibration.model.stiffness import states_stiffness
+    from calibration.twin.compensation import compensate
+
+    with OutputSet([args.model, args.targets], error=OutputFileError) as outputs:
+        out_path = outputs.file(args.out, "--out")
+        desc = load_checked_robot(args.model)
+        limits = [(j.lower_deg, j.upper_deg) for j in desc.joints]
+        targets = read_targets(args.targets, desc.n_joints, limits_deg=limits)
+        force = targets.force_n
+        if force is not None and np.any(force) and not states_stiffness(desc):
+            raise DataFileError(
+                f"{targets.source}: columns fx_n,fy_n,fz_n give a process force, but "
+                f"{args.model} states no joint stiffness ([[joint]] stiffness_nmm_per_rad; "
+                "`twin stiffness --load-test` measures them)"
+            )
+        res = compensate(
+            desc,
+            targets.xyz_mm,
+            q_programmed_deg=targets.q_deg,
+            rpy_deg=targets.rpy_deg,
+            t_s=targets.t_s,
+            force_n=force,
+        )
+        bad = np.flatnonzero(~res.ok)
+        if bad.size and not args.skip_bad:
+            first = int(bad[0])
+            raise DataFileError(
+                f"{targets.source}: line {targets.lines[first]} "
+                f"(target {targets.target[first]!r}): "
+                f"{res.reason[first]} ({bad.size} such target(s); --skip-bad leaves them out)"
+            )
+        _write_joints(out_path, desc.n_joints, targets.target, res)
+    for k in bad:
+        print(
+            f"twin compensate: skipped target {targets.target[k]!r} (line "
+            f"{targets.lines[k]}): {res.reason[k]}",
+            file=sys.stderr,
+        )
+    travel = res.travel_deg[res.ok]
+    extra = f"; largest joint change {np.max(travel):.4f}°" if np.isfinite(travel).any() else ""
+    if res.force_deflection_mm is not None and res.ok.any():
+        largest = np.max(np.linalg.norm(res.force_deflection_mm[res.ok], axis=1))
+        extra += f"; force deflection taken out ≤ {largest:.4f} mm"
+    print(
+        f"wrote {args.out}: {int(res.ok.sum())} targets, residual ≤ "
+        f"{np.nanmax(res.residual_mm[res.ok]) if res.ok.any() else 0:.1e} mm{extra}"
+    )
+    return 0
+
+
+def _write_joints(path: Path, n_joints: int, ids: tuple[str, ...], res: CompensationResult) -> None:
+    """joints.csv: the reached targets; ``force_deflection_mm`` (the process force's
+    deflection taken out, mm) only when the targets gave a force."""
+    deflection = res.force_deflection_mm
+    header = ["target", *joint_columns(n_joints), "residual_mm", "branch", "travel_deg"]
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow([*header, *([] if deflection is None else ["force_deflection_mm"])])
+        for i in np.flatnonzero(res.ok):
+            travel = f"{res.travel_deg[i]:.6f}" if np.isfinite(res.travel_deg[i]) else ""
+            row: list[str | int] = [ids[i], *(f"{v:.9f}" for v in res.q_deg[i])]
+            row += [f"{res.residual_mm[i]:.3e}", int(res.branch[i]), travel]
+            if deflection is not None:
+                row.append(f"{np.linalg.norm(deflection[i]):.6f}")
+            w.writerow(row)

@@ -1,0 +1,106 @@
+"""The one way from a campaign to a calibrated robot: identification, then the closed loop.
+
+``twin identify`` (a campaign file), ``twin run`` (each round of its joint fit with the
+scale maps) and library users call :func:`calibrate`; it returns a
+:class:`CalibrationResult` holding the geometric identification, the closed loop (None
+without effects) and the calibrated description. Like ``scipy.optimize.least_squares``: a
+plain function over typed values, a rich result, no files.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
+
+from numpy.typing import ArrayLike
+
+from calibration.identify.campaign_files import Campaign
+from calibration.model.description import RobotDescription
+
+if TYPE_CHECKING:  # the solvers load when calibrate runs
+    from calibration.effects.closed_loop import ClosedLoopResult, LoopSettings
+    from calibration.identify.identification import IdentificationResult, ProgressCallback
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """``geometric``: the identification of the geometry alone; ``loop``: the closed loop
+    (None when effects were not asked for); ``description``: the calibrated robot (the
+    loop's model with its ``[[effect]]`` tables, or the geometry alone)."""
+
+    geometric: IdentificationResult
+    loop: ClosedLoopResult | None
+    description: RobotDescription
+
+    @property
+    def result(self) -> IdentificationResult:
+        """The final identification: the loop's, or the geometric one without it."""
+        return self.geometric if self.loop is None else self.loop.result
+
+
+def start_for(description: RobotDescription, start: str = "auto") -> str:
+    """The identification's base start: ``auto`` is the description's base when it states
+    one, else a registration of the points."""
+    if start != "auto":
+        return start
+    return "description" if description.base is not None else "registration"
+
+
+def calibrate(
+    description: RobotDescription,
+    campaign: Campaign,
+    *,
+    effects: bool = True,
+    start: str = "auto",
+    loss: str = "linear",
+    f_scale_mm: float | None = None,
+    point_sigma_mm: ArrayLike | None = None,
+    loop_settings: LoopSettings | None = None,
+    sweep_referenced: bool = False,
+    progress: ProgressCallback | None = None,
+    say: Callable[[str], None] | None = None,
+    on_geometric: Callable[[IdentificationResult], None] | None = None,
+) -> CalibrationResult:
+    """Identify ``description``'s geometry from the campaign's ``identify`` rows, then (with
+    ``effects``) run the closed loop on the whole campaign.
+
+    ``loss``, ``f_scale_mm``, ``point_sigma_mm`` ``(m_identify,)`` and ``progress`` go to
+    the identification (:func:`~calibration.identify.identification.identify`) and the loop;
+    ``sweep_referenced`` to the loop (:func:`~calibration.effects.closed_loop.run_closed_loop`).
+    ``on_geometric`` sees the geometric result before the loop starts (a caller's checks
+    and messages, in order)."""
+    from calibration.effects.closed_loop import LoopSettings, run_closed_loop
+    from calibration.identify.identification import identify
+    from calibration.model.kinematics import KinematicModel
+
+    start = start_for(description, start)
+    idm = campaign.mask("identify")
+    geometric = identify(
+        KinematicModel.from_description(description),
+        campaign.q_rad[idm],
+        campaign.xyz_mm[idm],
+        start=start,
+        loss=loss,
+        f_scale_mm=f_scale_mm,
+        point_sigma_mm=point_sigma_mm,
+        progress=progress,
+    )
+    if on_geometric is not None:
+        on_geometric(geometric)
+    if not effects:
+        calibrated = replace(geometric.model.to_description(description), effects=())
+        return CalibrationResult(geometric, None, calibrated)
+    loop = run_closed_loop(
+        description,
+        campaign,
+        start=start,
+        loss=loss,
+        f_scale_mm=f_scale_mm,
+        point_sigma_mm=point_sigma_mm,
+        settings=loop_settings or LoopSettings(),
+        geometric=geometric,
+        say=say,
+        sweep_referenced=sweep_referenced,
+    )
+    return CalibrationResult(geometric, loop, loop.calibrated_description(description))

@@ -1,0 +1,372 @@
+"""How the closed loop scores candidate effects and tells look-alikes apart.
+
+Everything here works on the current model linearized at its solution: ``residual``
+``(3m,)`` and ``jacobian`` ``(3m, p)`` weighted like the fit, and each candidate's weighted
+regressor ``(3m, k)``. Columns are scaled to unit RMS so that units do not matter.
+
+* **Score** (:func:`score_candidates`): the drop of the K-fold cross-validated error in
+  units of the noise variance, minus a penalty per parameter, and the partial F-test of
+  the candidate's parameters, Bonferroni-corrected over the round's candidates.
+* **Overlap** (:func:`principal_cosines`): the cosines of the principal angles between two
+  candidates' column spaces after the model's is projected out (1: the data cannot tell
+  them apart along that direction), and how much of a candidate the model already spans.
+* **Physical priority** (:data:`PRIORITY`): when the best-scoring candidate lies within the
+  span of a significant candidate of a more physical kind (every principal cosine at
+  least :data:`INDISTINGUISHABLE_COSINE`), that one is chosen: a gravity term before a
+  harmonic on a joint gravity loads (after geometry is removed, a joint-2
+  once-per-revolution harmonic spans exactly the columns of link 2's own gravity term,
+  method.md §6), a physical effect before the generic search.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import f as f_distribution
+
+from calibration.effects.effect_library import EffectSpec
+
+FloatArray = NDArray[np.float64]
+
+#: Physical priority of effect kinds (lower first) when the data cannot tell them apart.
+PRIORITY: dict[str, int] = {
+    "gravity_deflection": 0,
+    "gravity_compliance": 0,
+    "length_drift": 1,
+    "lost_motion": 1,
+    "instrument_scale": 1,
+    "instrument_scale_drift": 1,
+    "joint_harmonic": 2,
+}
+GENERIC_PRIORITY = 3
+#: Two candidates whose principal cosines are all at least this cannot be told apart.
+INDISTINGUISHABLE_COSINE = 0.95
+
+
+def priority(spec: EffectSpec) -> int:
+    return GENERIC_PRIORITY if spec.generic else PRIORITY.get(spec.kind, GENERIC_PRIORITY)
+
+
+@dataclass(frozen=True)
+class CandidateScore:
+    """How one candidate did in one round."""
+
+    spec: EffectSpec
+    n_parameters: int  # identifiable parameters (columns not redundant with the model)
+    cv_gain: float  # held-out SSE reduction / σ̂²
+    score: float  # cv_gain − penalty · n_parameters
+    f_statistic: float
+    p_value: float
+    p_adjusted: float  # Bonferroni: p · number of candidates (at most 1)
+    significant: bool
+    note: str = ""
+    in_model: float = 0.0  # fraction of the candidate's (scaled) columns the model spans
+
+    @property
+    def label(self) -> str:
+        return self.spec.label
+
+    @property
+    def generic(self) -> bool:
+        return self.spec.generic
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "effect": self.label,
+            "kind": self.spec.kind,
+            "generic": self.generic,
+            "n_parameters": self.n_parameters,
+            "cv_gain_sigma2": _finite(self.cv_gain),
+            "score": _finite(self.score),
+            "f_statistic": _finite(self.f_statistic),
+            "p_value": self.p_value,
+            "p_adjusted": self.p_adjusted,
+            "significant": self.significant,
+            "in_model_fraction": round(float(self.in_model), 4),
+            "note": self.note,
+        }
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def scaled(a: FloatArray) -> FloatArray:
+    """Columns divided by their RMS (zero columns left as they are)."""
+    s = np.sqrt(np.mean(a * a, axis=0))
+    s[s == 0.0] = 1.0
+    out: FloatArray = a / s
+    return out
+
+
+def keep_columns(basis_q: FloatArray, cols: FloatArray, rtol: float) -> NDArray[np.bool_]:
+    """Which columns of ``cols`` ``(N, k)`` add a direction to the orthonormal ``basis_q``
+    and to the columns kept before them (relative residual > rtol)."""
+    q = basis_q
+    keep = np.zeros(cols.shape[1], dtype=bool)
+    for i in range(cols.shape[1]):
+        c = cols[:, i]
+        norm = float(np.linalg.norm(c))
+        if norm == 0.0:
+            continue
+        r = c - q @ (q.T @ c)
+        r = r - q @ (q.T @ r)
+        rn = float(np.linalg.norm(r))
+        if rn > rtol * norm:
+            keep[i] = True
+            q = np.column_stack([q, r / rn])
+    return keep
+
+
+@dataclass(frozen=True, eq=False)
+class LinearizedModel:
+    """The current model at its solution: orthonormal basis of its scaled columns, the
+    residual with the model projected out, noise variance and CV folds."""
+
+    residual: FloatArray  # (3m,)
+    jacobian: FloatArray  # (3m, p) scaled
+    basis: FloatArray  # (3m, p) orthonormal
+    fit0: FloatArray  # (3m,) residual ⊥ model
+    sigma2: float
+    folds: list[NDArray[np.intp]]
+    cv0: float
+    gram: FloatArray  # (p, p) JᵀJ
+    rhs: FloatArray  # (p,) Jᵀr
+    fold_gram: tuple[FloatArray, ...]  # per fold, its rows' JᵀJ
+    fold_rhs: tuple[FloatArray, ...]  # per fold, its rows' Jᵀr
+
+    @classmethod
+    def build(
+        cls, residual: FloatArray, jacobian: FloatArray, n_poses: int, n_folds: int, seed: int
+    ) -> LinearizedModel:
+        j = scaled(jacobian)
+        basis, _ = np.linalg.qr(j)
+        fit0 = residual - basis @ (basis.T @ residual)
+        sigma2 = float(fit0 @ fit0) / max(len(residual) - j.shape[1], 1)
+        pose_fold = np.random.default_rng(seed).permutation(n_poses) % n_folds
+        row_fold = np.repeat(pose_fold, 3)
+        folds = [np.flatnonzero(row_fold == f) for f in range(n_folds)]
+        gram, rhs = j.T @ j, j.T @ residual
+        fold_gram = tuple(j[f].T @ j[f] for f in folds)
+        fold_rhs = tuple(j[f].T @ residual[f] for f in folds)
+        cv0 = 0.0
+        for f, fg, fr in zip(folds, fold_gram, fold_rhs, strict=True):
+            coef, *_ = np.linalg.lstsq(gram - fg, rhs - fr, rcond=None)
+            e = residual[f] - j[f] @ coef
+            cv0 += float(e @ e)
+        return cls(
+            residual, j, basis, fit0, sigma2, folds, cv0, gram, rhs, fold_gram, fold_rhs
+        )  # fmt: skip
+
+    def cv_sse_with(self, cols: FloatArray) -> float:
+        """Held-out sum of squared errors of the model plus ``cols`` ``(3m, k)``, each fold
+        refitted without its test rows. The training normal equations are the full ones
+        minus the test rows', so a fold costs ``O(N_test·q²)`` whatever the number of poses;
+        the model's own blocks are computed once, only the candidate's cross blocks are new;
+        a ``(q, q)`` least-squares solve keeps nearly dependent columns harmless."""
+        j, r = self.jacobian, self.residual
+        jc, cc, cr = j.T @ cols, cols.T @ cols, cols.T @ r
+        gram = np.block([[self.gram, jc], [jc.T, cc]])
+        rhs = np.concatenate([self.rhs, cr])
+        total = 0.0
+        for f, fg, fr in zip(self.folds, self.fold_gram, self.fold_rhs, strict=True):
+            jf, cf, rf = j[f], cols[f], r[f]
+            jcf = jf.T @ cf
+            g = gram - np.block([[fg, jcf], [jcf.T, cf.T @ cf]])
+            coef, *_ = np.linalg.lstsq(g, rhs - np.concatenate([fr, cf.T @ rf]), rcond=None)
+            e = rf - jf @ coef[: j.shape[1]] - cf @ coef[j.shape[1] :]
+            total += float(e @ e)
+        return total
+
+    @property
+    def sse0(self) -> float:
+        return float(self.fit0 @ self.fit0)
+
+    def perp(self, cols: FloatArray) -> FloatArray:
+        """``cols`` with the model's span projected out."""
+        return cols - self.basis @ (self.basis.T @ cols)
+
+    def sse_with_perp(self, perp: FloatArray) -> float:
+        """Residual SSE with extra columns added to the model, given them with the model's
+        span projected out (:meth:`perp`) ``(3m, k)``."""
+        coef, *_ = np.linalg.lstsq(perp, self.fit0, rcond=None)
+        e = self.fit0 - perp @ coef
+        return float(e @ e)
+
+
+def score_candidate(
+    lin: LinearizedModel,
+    spec: EffectSpec,
+    cols: FloatArray,
+    *,
+    n_candidates: int,
+    alpha: float,
+    penalty: float,
+    rtol: float,
+    extra_parameters: int = 0,
+) -> CandidateScore:
+    """Score one candidate's weighted columns ``(3m, k)`` against the linearized model.
+
+    ``extra_parameters`` counts shape parameters profiled for this candidate (a lag's τ):
+    they are charged in the F-test's degrees of freedom and the penalty like linear ones.
+    """
+    cs = scaled(cols)
+    energy = float(np.sum(cs * cs))
+    perp_all = lin.perp(cs)
+    in_model = 1.0 - float(np.sum(perp_all * perp_all)) / energy if energy > 0 else 1.0
+    keep = keep_columns(lin.basis, cs, rtol)
+    k = int(keep.sum())
+    if k == 0:
+        return CandidateScore(
+            spec, 0, 0.0, 0.0, 0.0, 1.0, 1.0, False,
+            "a combination of the parameters already in the model", in_model,
+        )  # fmt: skip
+    ck = cs[:, keep]
+    sse1 = lin.sse_with_perp(perp_all[:, keep])
+    k_eff = k + extra_parameters
+    dof = len(lin.residual) - lin.jacobian.shape[1] - k_eff
+    f_stat = ((lin.sse0 - sse1) / k_eff) / (sse1 / dof) if dof > 0 and sse1 > 0 else math.inf
+    p_value = float(f_distribution.sf(f_stat, k_eff, dof)) if dof > 0 else 1.0
+    p_adj = min(1.0, p_value * max(n_candidates, 1))
+    cv1 = lin.cv_sse_with(ck)
+    gain = (lin.cv0 - cv1) / lin.sigma2
+    score = gain - penalty * k_eff
+    note = "" if k == cols.shape[1] else f"{cols.shape[1] - k} parameter(s) redundant"
+    significant = bool(p_adj < alpha and score > 0.0)
+    return CandidateScore(spec, k, gain, score, f_stat, p_value, p_adj, significant, note, in_model)
+
+
+def principal_cosines(lin: LinearizedModel, a: FloatArray, b: FloatArray) -> FloatArray:
+    """Cosines of the principal angles (largest first) between the column spaces of ``a``
+    and ``b`` (each ``(3m, k)``) after the model's span is projected out of both."""
+    return cosines_between(residual_basis(lin, a), residual_basis(lin, b))
+
+
+def residual_basis(lin: LinearizedModel, cols: FloatArray) -> FloatArray:
+    """Orthonormal basis ``(3m, r)`` of a candidate's columns with the model projected out."""
+    a = lin.perp(scaled(cols))
+    if a.size == 0:
+        return a
+    q, r = np.linalg.qr(a)
+    d = np.abs(np.diag(r))
+    keep = d > 1e-8 * max(float(d.max(initial=0.0)), 1e-300)
+    if keep.all():
+        return q
+    u, sv, _ = np.linalg.svd(a, full_matrices=False)  # rank-deficient: the robust way
+    return u[:, sv > 1e-8 * max(float(sv.max(initial=0.0)), 1e-300)]
+
+
+def cosines_between(qa: FloatArray, qb: FloatArray) -> FloatArray:
+    """Principal cosines (largest first) of two orthonormal bases."""
+    if qa.shape[1] == 0 or qb.shape[1] == 0:
+        return np.zeros(0)
+    return np.clip(np.linalg.svd(qa.T @ qb, compute_uv=False), 0.0, 1.0)
+
+
+def contained_in(cosines: FloatArray, k_smaller: int) -> bool:
+    """Whether a candidate of ``k_smaller`` independent columns lies within another's span:
+    its every principal cosine is at least :data:`INDISTINGUISHABLE_COSINE`."""
+    return (
+        k_smaller > 0
+        and len(cosines) >= k_smaller
+        and bool(np.all(cosines[:k_smaller] >= INDISTINGUISHABLE_COSINE))
+    )
+
+
+@dataclass(frozen=True)
+class Competitor:
+    """A candidate close to an added effect: how close, and what separated them."""
+
+    label: str
+    kind: str
+    cosines: tuple[float, ...]  # principal cosines with the added effect, largest first
+    score: float
+    significant: bool
+    separated_by: str
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "effect": self.label,
+            "kind": self.kind,
+            "principal_cosines": [round(c, 4) for c in self.cosines],
+            "score": _finite(self.score),
+            "significant": self.significant,
+            "separated_by": self.separated_by,
+        }
+
+
+def choose(
+    lin: LinearizedModel,
+    scores: Sequence[CandidateScore],
+    columns: dict[EffectSpec, FloatArray],
+) -> tuple[CandidateScore, str]:
+    """The candidate to add from a round's scores (significant ones only), and why.
+
+    The best penalized CV score wins, unless it lies within the span of a significant
+    candidate of higher physical priority (:func:`contained_in`): then the best-scoring of
+    those is chosen, and the reason says so.
+    """
+    ranked = sorted((s for s in scores if s.significant), key=lambda s: -s.score)
+    best = ranked[0]
+    prior = [s for s in ranked if priority(s.spec) < priority(best.spec)]
+    if prior:
+        best_basis = residual_basis(lin, columns[best.spec])
+        for other in prior:  # by score
+            cos = cosines_between(best_basis, residual_basis(lin, columns[other.spec]))
+            if contained_in(cos, best.n_parameters):
+                shown = ", ".join(f"{c:.3f}" for c in cos[:3])
+                reason = (
+                    f"physical priority: {best.label} (score {best.score:.1f}) lies within "
+                    f"{other.label} (principal cosines {shown}); "
+                    f"a {other.spec.kind.replace('_', ' ')} comes before a "
+                    f"{best.spec.kind.replace('_', ' ')} when the data cannot tell them apart"
+                )
+                return other, reason
+    return best, "best penalized cross-validated score of the significant candidates"
+
+
+def competitors(
+    lin: LinearizedModel,
+    chosen: CandidateScore,
+    scores: Sequence[CandidateScore],
+    columns: dict[EffectSpec, FloatArray],
+    *,
+    top: int = 3,
+) -> tuple[Competitor, ...]:
+    """The ``top`` candidates closest to ``chosen`` (largest principal cosine) and the
+    evidence that separated each from it."""
+    rows = []
+    chosen_basis = residual_basis(lin, columns[chosen.spec])
+    for s in scores:
+        if s.spec == chosen.spec or s.n_parameters == 0:
+            continue
+        cos = cosines_between(chosen_basis, residual_basis(lin, columns[s.spec]))
+        if cos.size:
+            rows.append((float(cos[0]), s, cos))
+    rows.sort(key=lambda r: -r[0])
+    out = []
+    for _, s, cos in rows[:top]:
+        by_score = f"score {chosen.score:.1f} against {s.score:.1f} σ²"
+        shown = ", ".join(f"{c:.2f}" for c in cos[:3])
+        if contained_in(cos, s.n_parameters) or contained_in(cos, chosen.n_parameters):
+            by = "physical priority" if priority(chosen.spec) < priority(s.spec) else by_score
+            why = f"cannot be told apart by the data (principal cosines {shown}); {by}"
+        elif not s.significant:
+            why = f"not significant (corrected p {s.p_adjusted:.2g}, score {s.score:.1f} σ²)"
+        elif s.score > chosen.score:
+            why = (
+                f"scored higher ({s.score:.1f} against {chosen.score:.1f} σ²), but through "
+                f"directions the chosen effect spans (principal cosines {shown}); "
+                "physical priority"
+            )
+        else:
+            why = by_score
+        out.append(
+            Competitor(s.label, s.spec.kind, tuple(float(c) for c in cos[:3]), s.score,
+                       s.significant, why)
+        )  # fmt: skip
+    return tuple(out)

@@ -1,0 +1,775 @@
+"""The closed loop: residual → missing effect → extended model → before/after.
+
+After the geometric identification, the residuals are searched for structure the tracker
+noise cannot explain. Each candidate of :mod:`calibration.effects.effect_library` (the physical
+library, then the generic search) is scored on the identification poses
+(:mod:`calibration.effects.candidate_scoring`):
+
+* **cross-validation**: the poses are split into K folds (5); the current model plus the
+  candidate is refitted on K − 1 folds and predicts the held-out one. The score is the drop
+  of the held-out sum of squared errors, in units of the noise variance σ̂², minus a
+  penalty of ``ln(3m)`` per added parameter (BIC-like, m poses);
+* **significance**: the partial F-test of the candidate's parameters on all identification
+  poses, Bonferroni-corrected over the candidates of the round (``p·N < α``, α = 1e-3).
+
+A candidate is significant when both hold. A drift candidate is also tried as a
+first-order lag, its time constant profiled (:mod:`calibration.effects.effect_shapes`). Of the
+significant candidates the best penalized CV score is added, unless the data cannot tell
+it from a significant candidate of a more physical kind (its columns lie within that
+one's, principal angles after the model is projected out): then the physical priority
+decides (a gravity term before a harmonic on a joint gravity loads). All parameters
+(geometry and every effect so far) are then re-identified together by the LM of
+:mod:`calibration.identify.identification`; a gravity term found in its linear form is refitted in
+its physical form (shared moments, compliance ratios), kept when the linear form is not
+significantly better. A step that makes the validation error worse is undone and its
+candidate set aside. The search repeats until no candidate is significant. Candidate
+columns a combination of the current model's are dropped first (a constant tracker scale,
+for one, is exactly a scaling of every length and the base position: it is reported as not
+identifiable rather than scored).
+
+Refits inside the scoring are linear least squares on the model linearized at the current
+solution (effects are sub-mm, the linearization error is far below the noise); only the
+chosen model is refitted by the LM. The validation poses take no part in the choice of a
+candidate; they give the before/after numbers of every stage and the evidence plots, and
+they veto a step that made them worse.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Collection
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.stats import f as f_distribution
+
+from calibration.effects.candidate_scoring import (
+    CandidateScore,
+    Competitor,
+    LinearizedModel,
+    choose,
+    competitors,
+    score_candidate,
+)
+from calibration.effects.effect_library import (
+    KINDS,
+    EffectContext,
+    EffectData,
+    EffectSpec,
+    Evidence,
+    Kinematics,
+    candidate_effects,
+    check_kinds,
+    counterbalance_term,
+    effect_terms,
+    joint_moment,
+    predict_points,
+    regressor_matrix,
+    split_values,
+    to_descriptions,
+)
+from calibration.effects.effect_shapes import (
+    PhysicalGravityFit,
+    TimeConstantProfile,
+    fit_physical_gravity,
+    profile_time_constant,
+)
+from calibration.errors import IdentificationError
+from calibration.identify.campaign_files import Campaign
+from calibration.identify.identification import (
+    IdentificationResult,
+    LMSettings,
+    ProgressCallback,
+    base_start_from_registration,
+    identify,
+)
+from calibration.model.description import RobotDescription
+from calibration.model.kinematics import KinematicModel
+
+FloatArray = NDArray[np.float64]
+
+CRITERION = (
+    "a candidate is added when its 5-fold cross-validated error reduction on the "
+    "identification poses, in units of the noise variance, exceeds ln(3m) per parameter, "
+    "and the partial F-test of its parameters, Bonferroni-corrected over the candidates of "
+    "the round, is significant (p·N < α); the best such candidate by penalized CV score "
+    "is added (unless the data cannot tell it from a significant candidate of a more "
+    "physical kind: then that one), everything is re-identified, and a step that makes the "
+    "validation error worse is undone"
+)
+#: Significance of the linear gravity form's extra freedom over the physical form.
+PHYSICAL_FORM_ALPHA = 0.01
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """How the loop searches (see the module docstring for the criterion)."""
+
+    folds: int = 5
+    alpha: float = 1e-3  # family-wise false-positive probability per round
+    penalty_per_parameter: float | None = None  # σ² per parameter; None: ln(3m)
+    max_effects: int = 6
+    kinds: tuple[str, ...] | None = None  # candidate kinds offered (None: all)
+    fold_seed: int = 0
+    rtol: float = 1e-6  # a candidate column this close to the model's span is dropped
+    validation_guard: bool = True  # undo a step that makes the validation error worse
+    max_rejected: int = 4  # candidates set aside by the validation guard before stopping
+
+    def __post_init__(self) -> None:
+        if self.folds < 2:
+            raise IdentificationError("the closed loop needs at least 2 folds")
+        if not 0.0 < self.alpha < 1.0:
+            raise IdentificationError("alpha must be in (0, 1)")
+        if self.kinds is not None:
+            check_kinds(self.kinds)
+
+
+@dataclass(frozen=True, eq=False)
+class EvidencePlot:
+    """Validation residuals (``tracker − twin``) in the added effect's coordinate, each
+    ``(m,)``: before it (the previous stage's), with it added back (this stage's residual
+    plus the effect's own term: what the effect explains, the geometry refitted), and
+    after it; ``model`` is the effect's term in the same coordinate."""
+
+    x: FloatArray
+    x_label: str
+    y_label: str
+    before: FloatArray
+    partial: FloatArray
+    after: FloatArray
+    model: FloatArray
+
+
+@dataclass(frozen=True, eq=False)
+class Stage:
+    """One row of the stage table: a model and its errors ``tracker − twin`` per set."""
+
+    name: str  # "nominal", "geometric" or "effect"
+    label: str
+    model: KinematicModel
+    specs: tuple[EffectSpec, ...] = ()
+    effect_values: FloatArray = field(default_factory=lambda: np.zeros(0))
+    result: IdentificationResult | None = None
+    errors_mm: dict[str, FloatArray] = field(default_factory=dict)  # set -> (m, 3)
+    added: CandidateScore | None = None
+    round_scores: tuple[CandidateScore, ...] = ()
+    evidence: EvidencePlot | None = None
+    reason: str = ""  # why this candidate was chosen
+    competitors: tuple[Competitor, ...] = ()
+    shape: dict[str, Any] = field(default_factory=dict)  # profiled shape parameters
+
+    def values_of(self, spec: EffectSpec) -> FloatArray:
+        return split_values(self.specs, self.effect_values)[self.specs.index(spec)]
+
+    def standard_errors_of(self, spec: EffectSpec) -> FloatArray:
+        """Standard errors of one effect's parameters (NaN: held, not identified)."""
+        assert self.result is not None
+        se = self.result.standard_errors()[self.result.n_geometric :]
+        return split_values(self.specs, se)[self.specs.index(spec)]
+
+    def mean_ap(self, set_name: str) -> float:
+        return mean_ap_mm(self.errors_mm[set_name])
+
+
+def mean_ap_mm(errors_mm: FloatArray) -> float:
+    """Mean absolute positioning error of point errors ``(m, 3)`` mm."""
+    return float(np.linalg.norm(errors_mm, axis=1).mean())
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A candidate set aside: chosen, but the step made the validation error worse (or its
+    re-identification failed)."""
+
+    label: str
+    reason: str
+
+    def as_dict(self) -> dict[str, str]:
+        return {"effect": self.label, "reason": self.reason}
+
+
+@dataclass(frozen=True, eq=False)
+class ClosedLoopResult:
+    """Every stage (nominal, geometric, + each added effect), and the round that stopped."""
+
+    stages: tuple[Stage, ...]
+    last_round: tuple[CandidateScore, ...]
+    settings: LoopSettings
+    n_candidates: int
+    penalty_per_parameter: float
+    elapsed_s: float
+    kinds: tuple[str, ...] = ()  # the candidate kinds offered
+    rejected: tuple[Rejected, ...] = ()
+
+    @property
+    def final(self) -> Stage:
+        return self.stages[-1]
+
+    @property
+    def geometric(self) -> Stage:
+        return self.stages[1]
+
+    @property
+    def added(self) -> tuple[EffectSpec, ...]:
+        return self.final.specs
+
+    @property
+    def result(self) -> IdentificationResult:
+        assert self.final.result is not None
+        return self.final.result
+
+    def calibrated_description(self, template: RobotDescription) -> RobotDescription:
+        """``template`` with the final geometry, base, tool and ``[[effect]]`` tables."""
+        final = self.final
+        desc = final.model.to_description(template)
+        effects = to_descriptions(final.specs, final.effect_values, template.n_joints)
+        return replace(desc, effects=effects)
+
+
+def campaign_effect_data(
+    description: RobotDescription, campaign: Campaign, *, sweep_referenced: bool = False
+) -> EffectData:
+    """Effect data of a whole campaign: directions from its pose sequence (from Home).
+
+    ``sweep_referenced``: the joint readings come from scale maps fitted on sweeps with
+    the other joints at Home, which absorbed each swept link's deflection there.
+    """
+    home = np.radians(description.home)
+    data = EffectData.from_sequence(campaign.q_rad, campaign.t_s, home)
+    return replace(data, sweep_reference=home) if sweep_referenced else data
+
+
+# -- the loop ---------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class _Problem:
+    """The identification poses and how they are weighted; the validation sets."""
+
+    nominal: KinematicModel
+    ctx: EffectContext  # identification poses
+    meas: FloatArray  # (m, 3)
+    prior: FloatArray  # (m,) relative weights of the points
+    contexts: dict[str, EffectContext]
+    points: dict[str, FloatArray]
+    identify_kwargs: dict[str, Any]
+
+    @property
+    def m(self) -> int:
+        return len(self.meas)
+
+    @classmethod
+    def of_campaign(
+        cls,
+        description: RobotDescription,
+        campaign: Campaign,
+        identify_kwargs: dict[str, Any],
+        point_sigma_mm: ArrayLike | None,
+        *,
+        sweep_referenced: bool,
+    ) -> _Problem:
+        """The campaign's identification poses (weighted by ``point_sigma_mm`` ``(m,)`` as
+        :func:`~calibration.identify.identification.identify` does) and its validation poses."""
+        nominal = KinematicModel.from_description(description)
+        data = campaign_effect_data(description, campaign, sweep_referenced=sweep_referenced)
+        masks = {s: campaign.mask(s) for s in ("identify", "validate")}
+        masks = {s: m for s, m in masks.items() if m.any()}
+        if "identify" not in masks:
+            raise IdentificationError("the campaign has no identification poses")
+        contexts = {s: EffectContext(description, data.subset(m)) for s, m in masks.items()}
+        points = {s: campaign.xyz_mm[m] for s, m in masks.items()}
+        ctx_id = contexts["identify"]
+        m = len(ctx_id.data)
+        prior = np.ones(m)
+        if point_sigma_mm is not None:
+            ps = np.broadcast_to(np.asarray(point_sigma_mm, dtype=float), (m,))
+            prior = (1.0 / np.sqrt(np.mean(1.0 / ps**2)) / ps) ** 2
+        return cls(nominal, ctx_id, points["identify"], prior, contexts, points, identify_kwargs)
+
+    def identify(
+        self, specs: tuple[EffectSpec, ...], start: FloatArray | None
+    ) -> IdentificationResult:
+        terms = effect_terms(specs, self.ctx, start=start) if specs else None
+        q = self.ctx.data.q_rad
+        return identify(self.nominal, q, self.meas, effects=terms, **self.identify_kwargs)
+
+    def errors(
+        self, model: KinematicModel, specs: tuple[EffectSpec, ...], values: FloatArray
+    ) -> dict[str, FloatArray]:
+        return {
+            s: self.points[s] - predict_points(model, specs, values, self.contexts[s])
+            for s in self.contexts
+        }
+
+    def linearized(
+        self, result: IdentificationResult, specs: tuple[EffectSpec, ...], settings: LoopSettings
+    ) -> tuple[LinearizedModel, FloatArray, Kinematics]:
+        """The model at its solution, weighted like the fit; the weights ``(m,)``."""
+        model, values = result.model, result.effect_values
+        kin = Kinematics.of(model, self.ctx.data.q_rad)
+        sw = np.sqrt(self.prior * result.pose_weights)
+        pred = predict_points(model, specs, values, self.ctx)
+        residual = ((pred - self.meas) * sw[:, None]).ravel()
+        effects = regressor_matrix(specs, self.ctx, slice(0, self.m), kin)
+        jac = np.concatenate([kin.jacobian, effects], axis=2)[:, :, result.free]
+        jac = jac * sw[:, None, None]
+        lin = LinearizedModel.build(
+            residual, jac.reshape(-1, jac.shape[-1]), self.m, settings.folds, settings.fold_seed
+        )
+        return lin, sw, kin
+
+    def columns(self, spec: EffectSpec, sw: FloatArray, kin: Kinematics) -> FloatArray:
+        """A candidate's weighted regressor ``(3m, k)``."""
+        sel = slice(0, self.m)
+        r = KINDS[spec.kind].regressor(spec, self.ctx, sel, kin) * sw[:, None, None]
+        return r.reshape(3 * self.m, -1)
+
+
+def _set_name(contexts: dict[str, EffectContext]) -> str:
+    return "validate" if "validate" in contexts else "identify"
+
+
+def run_closed_loop(
+    description: RobotDescription,
+    campaign: Campaign,
+    *,
+    start: str = "description",
+    loss: str = "linear",
+    f_scale_mm: float | None = None,
+    point_sigma_mm: ArrayLike | None = None,
+    lm_settings: LMSettings | None = None,
+    settings: LoopSettings = LoopSettings(),
+    geometric: IdentificationResult | None = None,
+    progress: ProgressCallback | None = None,
+    say: Callable[[str], None] | None = None,
+    kinds: Collection[str] | None = None,
+    sweep_referenced: bool = False,
+) -> ClosedLoopResult:
+    """Run the loop on a campaign (identification rows fit, validation rows report).
+
+    ``point_sigma_mm`` ``(m_identify,)`` weights the identification poses as in
+    :func:`~calibration.identify.identification.identify`; ``geometric`` reuses an existing
+    geometric identification of the same poses. ``kinds`` (or ``settings.kinds``)
+    restricts the candidate kinds. ``sweep_referenced``: see :func:`campaign_effect_data`
+    (the gravity term then models the deflection relative to each sweep's configuration).
+    """
+    started = time.perf_counter()
+    tell = say or (lambda _text: None)
+    id_kwargs = dict(
+        start=start,
+        loss=loss,
+        f_scale_mm=f_scale_mm,
+        settings=lm_settings or LMSettings(),
+        point_sigma_mm=point_sigma_mm,
+        progress=progress,
+    )
+    problem = _Problem.of_campaign(
+        description, campaign, id_kwargs, point_sigma_mm, sweep_referenced=sweep_referenced
+    )
+    allowed = kinds if kinds is not None else settings.kinds
+    span = _campaign_span(campaign)
+    library = [_with_span(s, span) for s in candidate_effects(problem.ctx, allowed)]
+    penalty = (
+        math.log(3 * problem.m)
+        if settings.penalty_per_parameter is None
+        else settings.penalty_per_parameter
+    )
+    stages, result = _first_stages(problem, geometric)
+    tell(f"closed loop: {len(library)} candidate effects")
+    search = _Search(problem, library, penalty, span, settings, tell)
+    last_round, rejected = search.run(stages, result)
+    return ClosedLoopResult(
+        stages=tuple(stages),
+        last_round=tuple(last_round),
+        settings=settings,
+        n_candidates=len(library),
+        penalty_per_parameter=penalty,
+        elapsed_s=time.perf_counter() - started,
+        kinds=tuple(KINDS) if allowed is None else tuple(allowed),
+        rejected=tuple(rejected),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class _Search:
+    """The search's fixed inputs: the problem, the candidate library, the penalty per
+    parameter (σ²), the campaign's time span (s), the settings and where to tell."""
+
+    problem: _Problem
+    library: list[EffectSpec]
+    penalty: float
+    span: tuple[float, ...]
+    settings: LoopSettings
+    tell: Callable[[str], None]
+
+    def run(
+        self, stages: list[Stage], result: IdentificationResult
+    ) -> tuple[list[CandidateScore], list[Rejected]]:
+        """Add effects round by round to ``stages`` (in place) from the geometric
+        ``result`` until no candidate is significant; the last round's scores and the
+        candidates set aside. One loop: its rounds share the model so far and the set aside."""
+        problem, settings, tell = self.problem, self.settings, self.tell
+        specs: tuple[EffectSpec, ...] = ()
+        rejected: list[Rejected] = []
+        set_aside: set[EffectSpec] = set()
+        while len(specs) < settings.max_effects:
+            offered = [s for s in self.library if s not in specs and s not in set_aside]
+            offered = [s for s in offered if not _same_slot(s, specs)]
+            if not offered:
+                return [], rejected
+            scored = _score_round(
+                problem, result, specs, offered, settings, self.penalty, self.span
+            )
+            scores = scored.scores
+            if not scores[0].significant:
+                best = scores[0]
+                tell(
+                    f"closed loop: nothing significant left (best: {best.label}, "
+                    f"CV gain {best.cv_gain:.1f} σ², corrected p {best.p_adjusted:.2g})"
+                )
+                return scores, rejected
+            chosen, reason = choose(scored.lin, scores, scored.columns)
+            step = _guarded(
+                _try_step(problem, result, specs, chosen.spec, scored.lin, scored.columns, tell),
+                problem,
+                stages[-1],
+                settings,
+            )
+            if isinstance(step, str):
+                rejected.append(Rejected(chosen.label, step))
+                set_aside.add(chosen.spec)
+                tell(f"closed loop: set aside {chosen.label}: {step}")
+                if len(rejected) >= settings.max_rejected:
+                    return scores, rejected
+                continue
+            specs, result = step.specs, step.result
+            stages.append(_effect_stage(step, chosen, reason, scored, stages[-1], problem))
+            tell(
+                f"closed loop: added {specs[-1].label} (CV gain {chosen.cv_gain:.1f} σ², "
+                f"F {chosen.f_statistic:.1f}, corrected p {chosen.p_adjusted:.2g}; {reason})"
+            )
+        return [], rejected
+
+
+def _first_stages(
+    problem: _Problem, geometric: IdentificationResult | None
+) -> tuple[list[Stage], IdentificationResult]:
+    """The nominal stage (its base registered on the points) and the geometric one (
+    ``geometric``, or identified here), and the geometric identification."""
+    reference = base_start_from_registration(problem.nominal, problem.ctx.data.q_rad, problem.meas)
+    nominal = Stage(
+        "nominal", "nominal", reference, errors_mm=problem.errors(reference, (), np.zeros(0))
+    )
+    result = geometric or problem.identify((), None)
+    return [
+        nominal,
+        Stage(
+            "geometric",
+            "geometric calibration",
+            result.model,
+            result=result,
+            errors_mm=problem.errors(result.model, (), np.zeros(0)),
+        ),
+    ], result
+
+
+@dataclass(frozen=True, eq=False)
+class _Step:
+    """A re-identification with one more effect that the validation set accepted."""
+
+    specs: tuple[EffectSpec, ...]  # the model's effects, the new one last
+    result: IdentificationResult
+    form: dict[str, Any]  # the gravity form decision (empty for other kinds)
+    errors_mm: dict[str, FloatArray]  # set -> (m, 3) tracker − twin
+
+
+def _guarded(
+    step: tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str,
+    problem: _Problem,
+    previous: Stage,
+    settings: LoopSettings,
+) -> _Step | str:
+    """The step of :func:`_try_step` with its errors per set, or why it is undone: it
+    failed, or (with the validation guard) it made the validation mean AP worse."""
+    if isinstance(step, str):
+        return step
+    new_specs, new_result, form_info = step
+    errors = problem.errors(new_result.model, new_specs, new_result.effect_values)
+    set_name = _set_name(problem.contexts)
+    before = previous.mean_ap(set_name)
+    after = mean_ap_mm(errors[set_name])
+    if settings.validation_guard and set_name == "validate" and after > before:
+        return f"the validation mean AP rose from {before:.4f} to {after:.4f} mm: step undone"
+    return _Step(new_specs, new_result, form_info, errors)
+
+
+def _effect_stage(
+    step: _Step,
+    chosen: CandidateScore,
+    reason: str,
+    scored: _Round,
+    previous: Stage,
+    problem: _Problem,
+) -> Stage:
+    """The stage of an accepted step: its round's scores, competitors, shape and evidence."""
+    shape: dict[str, Any] = {}
+    if chosen.spec in scored.profiles:
+        shape["time_constant"] = scored.profiles[chosen.spec].as_dict()
+    shape.update(step.form)
+    added_spec = step.specs[-1]
+    stage = Stage(
+        "effect",
+        f"+ {added_spec.label}",
+        step.result.model,
+        specs=step.specs,
+        effect_values=step.result.effect_values,
+        result=step.result,
+        errors_mm=step.errors_mm,
+        added=replace(chosen, spec=added_spec),
+        round_scores=tuple(scored.scores),
+        reason=reason,
+        competitors=competitors(scored.lin, chosen, scored.scores, scored.columns),
+        shape=shape,
+    )
+    return replace(stage, evidence=_evidence(stage, previous, added_spec, problem.contexts))
+
+
+def _campaign_span(campaign: Campaign) -> tuple[float, ...]:
+    t = campaign.t_s
+    if t is None or len(t) == 0 or not np.all(np.isfinite(t)):
+        return ()
+    return (float(np.min(t)), float(np.max(t)))
+
+
+def _with_span(spec: EffectSpec, span: tuple[float, ...]) -> EffectSpec:
+    """Polynomial time terms carry the campaign's span (held outside it when predicting)."""
+    if KINDS[spec.kind].needs_time and not spec.shape:
+        return replace(spec, span_s=span)
+    return spec
+
+
+def _same_slot(spec: EffectSpec, specs: tuple[EffectSpec, ...]) -> bool:
+    """Whether the model already has this term in another form (a lag for a drift, the
+    physical form of a gravity term)."""
+    slot = KINDS[spec.kind].slot(spec)
+    return any(KINDS[s.kind].slot(s) == slot for s in specs)
+
+
+@dataclass(frozen=True, eq=False)
+class _Round:
+    """One round of the search: the model linearized at its solution, and every offered
+    candidate's weighted columns ``(3m, k)`` and score (significant first, then best CV
+    score first); a drift's time-constant profile."""
+
+    lin: LinearizedModel
+    scores: list[CandidateScore]
+    columns: dict[EffectSpec, FloatArray]
+    profiles: dict[EffectSpec, TimeConstantProfile]
+
+
+def _score_round(
+    problem: _Problem,
+    result: IdentificationResult,
+    specs: tuple[EffectSpec, ...],
+    offered: list[EffectSpec],
+    settings: LoopSettings,
+    penalty: float,
+    span: tuple[float, ...],
+) -> _Round:
+    """Score every offered candidate against the model ``result`` with ``specs``; a drift
+    is offered as a lag when the data says so."""
+    lin, sw, kin = problem.linearized(result, specs, settings)
+    columns: dict[EffectSpec, FloatArray] = {}
+    profiles: dict[EffectSpec, TimeConstantProfile] = {}
+    extra: dict[EffectSpec, int] = {}
+    for spec in offered:
+        if spec.kind == "length_drift" and len(span) == 2 and span[1] > span[0]:
+            profile = _profile_lag(problem, spec, sw, kin, lin, span)
+            if profile.tau_s is not None:
+                lag = replace(spec, shape=(profile.tau_s,), span_s=())
+                profiles[lag] = profile
+                extra[lag] = 1
+                spec = lag
+            else:
+                profiles[spec] = profile
+        columns[spec] = problem.columns(spec, sw, kin)
+    n = len(columns)
+    scores = [
+        score_candidate(
+            lin, spec, cols, n_candidates=n, alpha=settings.alpha, penalty=penalty,
+            rtol=settings.rtol, extra_parameters=extra.get(spec, 0),
+        )
+        for spec, cols in columns.items()
+    ]  # fmt: skip
+    scores.sort(key=lambda c: (not c.significant, c.n_parameters == 0, -c.score))
+    return _Round(lin, scores, columns, profiles)
+
+
+def _profile_lag(
+    problem: _Problem,
+    spec: EffectSpec,
+    sw: FloatArray,
+    kin: Kinematics,
+    lin: LinearizedModel,
+    span: tuple[float, ...],
+) -> TimeConstantProfile:
+    def column_at(tau: float | None) -> FloatArray:
+        s = replace(spec, shape=() if tau is None else (tau,), span_s=())
+        return problem.columns(s, sw, kin)[:, 0]
+
+    return profile_time_constant(lin, column_at, span[1] - span[0])
+
+
+def _try_step(
+    problem: _Problem,
+    result: IdentificationResult,
+    specs: tuple[EffectSpec, ...],
+    spec: EffectSpec,
+    lin: LinearizedModel,
+    columns: dict[EffectSpec, FloatArray],
+    tell: Callable[[str], None],
+) -> tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str:
+    """Re-identify with ``spec`` added (a gravity term in the form the data supports);
+    a string says why the step failed."""
+    new_specs = (*specs, spec)
+    start = np.concatenate([result.effect_values, np.zeros(len(spec.parameter_names()))])
+    try:
+        linear = problem.identify(new_specs, start)
+    except IdentificationError as exc:
+        return f"re-identification failed: {exc}"
+    if spec.kind != "gravity_deflection" or spec.parameter == "physical":
+        return new_specs, linear, {}
+    physical = _physical_gravity(problem, spec, lin, columns[spec])
+    if physical is None:
+        return new_specs, linear, {}
+    phys_spec, fit = physical
+    phys_specs = (*specs, phys_spec)
+    own = len(phys_spec.names) - len(fit.moments)
+    start = np.concatenate([result.effect_values, fit.moments, np.zeros(own)])
+    try:
+        phys = problem.identify(phys_specs, start)
+    except IdentificationError as exc:
+        tell(f"closed loop: physical gravity form not kept: {exc}")
+        return new_specs, linear, {"gravity_form": {"kept": "linear", "reason": str(exc)}}
+    info = _form_decision(problem, linear, phys, spec, phys_spec, fit)
+    tell(f"closed loop: gravity deflection, {info['gravity_form']['reason']}")
+    if info["gravity_form"]["kept"] == "physical":
+        return phys_specs, phys, info
+    return new_specs, linear, info
+
+
+def _physical_gravity(
+    problem: _Problem,
+    spec: EffectSpec,
+    lin: LinearizedModel,
+    cols: FloatArray,
+) -> tuple[EffectSpec, PhysicalGravityFit] | None:
+    """The physical form's spec and fit from the linear candidate's columns."""
+    base = problem.ctx.base_moments
+    names = base.names
+    blocks: dict[int, FloatArray] = {}
+    own: list[int] = []  # counterbalance terms: a joint's own torque profile, not shared
+    n_joints = problem.ctx.description.n_joints
+    for c, term in enumerate(spec.names):
+        if counterbalance_term(term) is not None:
+            own.append(c)
+            continue
+        j, moment = joint_moment(term, spec.kind, n_joints)
+        block = blocks.setdefault(j, np.zeros((cols.shape[0], len(names))))
+        block[:, names.index(moment)] = cols[:, c]
+    if len(blocks) < 1:
+        return None
+    if own:  # fitted freely beside the shared moments: part of the model for the profile
+        lin = LinearizedModel.build(  # (folds unused by the profile)
+            lin.residual, np.hstack([lin.jacobian, cols[:, own]]), problem.m, len(lin.folds), 0
+        )
+    fit = fit_physical_gravity(lin, blocks)
+    if not fit.success or not np.all(np.isfinite(fit.ratios)):
+        return None
+    phys = EffectSpec(
+        "gravity_deflection",
+        parameter="physical",
+        joints=fit.joints,
+        names=names + tuple(spec.names[c] for c in own),
+        shape=tuple(float(r) for r in fit.ratios),
+    )
+    return phys, fit
+
+
+def _form_decision(
+    problem: _Problem,
+    linear: IdentificationResult,
+    phys: IdentificationResult,
+    spec: EffectSpec,
+    phys_spec: EffectSpec,
+    fit: PhysicalGravityFit,
+) -> dict[str, Any]:
+    """Keep the physical form unless the linear one is significantly better (F-test)."""
+    sse_lin = _weighted_sse(linear)
+    sse_phys = _weighted_sse(phys)
+    k_lin = len(spec.names)
+    k_phys = len(phys_spec.names) + len(phys_spec.joints) - 1  # moments, own terms, ratios
+    dof = 3 * problem.m - int(np.count_nonzero(linear.free))
+    d1 = max(k_lin - k_phys, 1)
+    f_stat = ((sse_phys - sse_lin) / d1) / max(sse_lin / max(dof, 1), 1e-300)
+    p = float(f_distribution.sf(max(f_stat, 0.0), d1, max(dof, 1)))
+    kept = "physical" if p >= PHYSICAL_FORM_ALPHA else "linear"
+    reason = (
+        f"physical form kept ({k_phys} parameters against {k_lin}; the linear form's extra "
+        f"freedom: F = {f_stat:.2f}, p = {p:.2g})"
+        if kept == "physical"
+        else f"linear form kept: the joints do not share the same moments (F = {f_stat:.2f}, "
+        f"p = {p:.2g} < {PHYSICAL_FORM_ALPHA})"
+    )
+    stated = problem.ctx.description.base is not None and (
+        problem.ctx.description.base.gravity is not None
+    )
+    return {
+        "gravity_form": {
+            "kept": kept,
+            "reason": reason,
+            "gravity_direction": [float(v) for v in problem.ctx.gravity],
+            "gravity_source": "the description's [base] gravity"
+            if stated
+            else "−z of the robot base frame (floor mounting, the default)",
+            "f_statistic": float(f_stat),
+            "p_value": p,
+            "reference_joint": fit.reference,
+            "joints": list(fit.joints),
+            "compliance_ratio": [float(r) for r in fit.ratios],
+            "compliance_ratio_se": [float(r) for r in fit.ratio_se],
+            "moments": list(phys_spec.names[: len(fit.moments)]),
+            "weighted_moment_urad": [float(w) for w in fit.moments],
+            "weighted_moment_se_urad": [float(w) for w in fit.moment_se],
+        }
+    }
+
+
+def _weighted_sse(result: IdentificationResult) -> float:
+    """The LM's weighted residual sum of squares at its solution."""
+    r = np.asarray(result.optimize_result.fun, dtype=float)
+    return float(r @ r)
+
+
+def _evidence(
+    stage: Stage, previous: Stage, spec: EffectSpec, contexts: dict[str, EffectContext]
+) -> EvidencePlot | None:
+    """The added effect's evidence on the validation set (identification set without one)."""
+    set_name = _set_name(contexts)
+    ctx = contexts[set_name]
+    kin = Kinematics.of(stage.model, ctx.data.q_rad)
+    values = stage.values_of(spec)
+    sel = slice(0, len(ctx.data))
+    ev: Evidence = KINDS[spec.kind].evidence(spec, values, ctx, sel, kin)
+    term = regressor_matrix((spec,), ctx, sel, kin) @ values
+    after = stage.errors_mm[set_name]
+    return EvidencePlot(
+        x=ev.x,
+        x_label=ev.x_label,
+        y_label=ev.y_label + f" ({set_name} set)",
+        before=ev.project(previous.errors_mm[set_name]),
+        partial=ev.project(after + term),
+        after=ev.project(after),
+        model=ev.project(term),
+    )

@@ -1,0 +1,275 @@
+"""Nonlinear shape parameters of effect terms, fitted on the linearized model.
+
+Two effects of the library are not linear in all their parameters:
+
+* **A thermal lag** ``A·(1 − e^(−t/τ))``: linear in ``A`` for a fixed time constant τ
+  (variable projection). :func:`profile_time_constant` profiles τ on a log grid over the
+  campaign's span, refines the minimum, and gives the 95 % profile-likelihood interval
+  (``SSE(τ) ≤ SSE_min + χ²₁(0.95)·σ²``). As τ → ∞ the lag becomes a straight line, so an
+  interval unbounded above means the data cannot tell the lag from a linear drift: the
+  linear form is then kept (method.md §6: τ is identifiable only when the campaign spans
+  a few τ).
+* **The physical gravity form** ``Δθ_j = ρ_j·Σ_k Ŷ_jk·w_k``: bilinear in the compliance
+  ratios ρ and the compliance-weighted moments w. :func:`fit_physical_gravity` starts from
+  the linear form's free deflections ``p_jk`` (a rank-one factorization ``p_jk ≈ ρ_j·w_k``)
+  and minimizes the residual over (ρ, w) with the model's span projected out
+  (``scipy.optimize.least_squares``), ρ of the reference joint fixed at 1.
+
+Both work on :class:`~calibration.effects.candidate_scoring.LinearizedModel`: the identification's
+weighted residual and Jacobian at the current solution, so the geometry is refitted
+implicitly (projected out) and the result is the same to first order as a joint fit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.stats import chi2
+
+from calibration.effects.candidate_scoring import LinearizedModel
+
+FloatArray = NDArray[np.float64]
+
+#: Grid of the τ profile, relative to the campaign's span.
+TAU_GRID_RELATIVE = (1.0 / 50.0, 20.0)
+TAU_GRID_POINTS = 60
+#: Confidence of the τ interval (profile likelihood).
+TAU_CONFIDENCE = 0.95
+
+
+@dataclass(frozen=True, eq=False)
+class TimeConstantProfile:
+    """The profile of a lag's time constant over a grid, and what it decided."""
+
+    tau_s: float | None  # None: the data cannot tell the lag from a linear drift
+    best_tau_s: float  # the profile's minimum, even when the linear form is kept
+    interval_s: tuple[float, float]  # 95 % interval; upper inf: unbounded
+    sse_linear: float
+    sse_lag: float
+    sigma2: float
+    grid_s: FloatArray
+    sse_grid: FloatArray
+    reason: str
+
+    def as_dict(self) -> dict[str, object]:
+        lo, hi = self.interval_s
+        return {
+            "time_constant_s": self.tau_s,
+            "profile_minimum_s": self.best_tau_s,
+            "interval_s": [lo, hi if math.isfinite(hi) else None],
+            "confidence": TAU_CONFIDENCE,
+            "sse_drop_vs_linear_sigma2": (self.sse_linear - self.sse_lag) / self.sigma2,
+            "decision": self.reason,
+        }
+
+
+def _sse_one(lin: LinearizedModel, col: FloatArray) -> float:
+    p = lin.perp(col[:, None])[:, 0]
+    pp = float(p @ p)
+    if pp <= 1e-300:
+        return lin.sse0
+    return lin.sse0 - float(p @ lin.fit0) ** 2 / pp
+
+
+def profile_time_constant(
+    lin: LinearizedModel,
+    column_at: Callable[[float | None], FloatArray],
+    span_s: float,
+) -> TimeConstantProfile:
+    """Profile τ of a lag whose weighted column ``(3m,)`` is ``column_at(τ)`` (``None``:
+    the linear drift), over a campaign spanning ``span_s`` seconds."""
+    span = max(float(span_s), 1.0)
+    grid = np.geomspace(span * TAU_GRID_RELATIVE[0], span * TAU_GRID_RELATIVE[1], TAU_GRID_POINTS)
+    sse = np.array([_sse_one(lin, column_at(float(t))) for t in grid])
+    i = int(np.argmin(sse))
+    lo_t, hi_t = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    best_tau, best_sse = _golden(lambda t: _sse_one(lin, column_at(t)), lo_t, hi_t)
+    if sse[i] < best_sse:
+        best_tau, best_sse = float(grid[i]), float(sse[i])
+    sse_lin = _sse_one(lin, column_at(None))
+    dof = len(lin.residual) - lin.jacobian.shape[1] - 2
+    sigma2 = best_sse / max(dof, 1)
+    limit = best_sse + float(chi2.ppf(TAU_CONFIDENCE, 1)) * sigma2
+    inside = sse <= limit
+    lower = float(grid[np.argmax(inside)]) if inside.any() else best_tau
+    upper = (
+        math.inf if inside[-1] or sse_lin <= limit else float(grid[::-1][np.argmax(inside[::-1])])
+    )
+    lower = min(lower, best_tau)
+    if math.isfinite(upper):
+        upper = max(upper, best_tau)
+        return TimeConstantProfile(
+            best_tau, best_tau, (lower, upper), sse_lin, best_sse, sigma2, grid, sse,
+            f"lag: the linear drift is {(sse_lin - best_sse) / sigma2:.1f} σ² worse",
+        )  # fmt: skip
+    return TimeConstantProfile(
+        None, best_tau, (lower, upper), sse_lin, best_sse, sigma2, grid, sse,
+        "linear: the data cannot tell the lag from a straight line "
+        f"(τ interval unbounded; the campaign spans {span / 60.0:.0f} min)",
+    )  # fmt: skip
+
+
+def _golden(
+    f: Callable[[float], float], lo: float, hi: float, iterations: int = 30
+) -> tuple[float, float]:
+    """Minimum of ``f`` over log τ in [lo, hi] by golden-section search."""
+    a, b = math.log(lo), math.log(hi)
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = f(math.exp(c)), f(math.exp(d))
+    for _ in range(iterations):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = f(math.exp(c))
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = f(math.exp(d))
+    t = math.exp(0.5 * (a + b))
+    return t, f(t)
+
+
+@dataclass(frozen=True, eq=False)
+class PhysicalGravityFit:
+    """The physical gravity form fitted on the linearized model.
+
+    ``ratios`` ``(J,)`` are the compliance ratios of ``joints`` (1 at ``reference``),
+    ``moments`` ``(b,)`` the compliance-weighted base moments in the columns' units
+    (µrad), with their standard errors; ``sse`` the weighted residual sum of squares.
+    """
+
+    joints: tuple[int, ...]
+    reference: int
+    ratios: FloatArray
+    ratio_se: FloatArray
+    moments: FloatArray
+    moment_se: FloatArray
+    sse: float
+    success: bool
+
+
+def fit_physical_gravity(
+    lin: LinearizedModel,
+    blocks: dict[int, FloatArray],
+) -> PhysicalGravityFit:
+    """Fit ``Σ_j ρ_j·C_j·w`` to the model's residual, ``C_j`` ``(3m, b)`` the weighted
+    columns of joint j per base moment (zero where a moment does not act on it).
+
+    The residual convention is the identification's (model − tracker), so the effect
+    explains ``−residual``. The reference joint (ρ = 1) is the one whose linear-form
+    deflection moves the TCP most.
+    """
+    joints = tuple(sorted(blocks))
+    y = -lin.fit0
+    perp = {j: lin.perp(blocks[j]) for j in joints}
+    p, acting = _linear_form(blocks, perp, y)
+    shift = [float(np.linalg.norm(perp[j] @ p[i])) for i, j in enumerate(joints)]
+    ref = int(np.argmax(shift))
+    rho, w = _rank_one(p, acting, joints, ref)
+    free = [i for i in range(len(joints)) if i != ref]
+    # a moment with no column left once the model is projected out (one whose effect the
+    # geometry takes up entirely) is not determined: it starts and stays at 0, else it would
+    # be held at an arbitrary value
+    raw = sum(np.linalg.norm(blocks[j], axis=0) for j in joints)
+    seen = sum(np.linalg.norm(perp[j], axis=0) for j in joints)
+    undetermined = seen <= 1e-6 * raw  # the relative tolerance of the loop's rank test
+    w[undetermined] = 0.0
+    form = _PhysicalForm(perp, joints, free, np.flatnonzero(~undetermined), y)
+    x0 = np.concatenate([rho[free], w[form.keep]])
+    sol = least_squares(form.residual, x0, jac=form.jacobian, method="lm", xtol=1e-12, ftol=1e-12)
+    rho_hat, w_hat = form.unpack(sol.x)
+    sse = float(sol.fun @ sol.fun)
+    dof = max(len(y) - lin.jacobian.shape[1] - len(sol.x), 1)
+    jac = form.jacobian(sol.x)
+    cov = (sse / dof) * np.linalg.pinv(jac.T @ jac)
+    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    ratio_se, moment_se = form.unpack(se, held=0.0)  # an undetermined moment is held at 0
+    return PhysicalGravityFit(
+        joints, joints[ref], rho_hat, ratio_se, w_hat, moment_se, sse, bool(sol.success)
+    )
+
+
+def _linear_form(
+    blocks: dict[int, FloatArray], perp: dict[int, FloatArray], y: FloatArray
+) -> tuple[FloatArray, dict[int, NDArray[np.intp]]]:
+    """The linear form: free ``p_jk`` ``(J, b)`` on the moments acting on each joint j,
+    least squares on the columns with the model projected out ``perp``; the moments
+    acting on each joint."""
+    joints = tuple(sorted(blocks))
+    b = next(iter(blocks.values())).shape[1]
+    acting = {j: np.flatnonzero(np.any(blocks[j] != 0.0, axis=0)) for j in joints}
+    design = np.hstack([perp[j][:, acting[j]] for j in joints])
+    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+    p = np.zeros((len(joints), b))
+    pos = 0
+    for i, j in enumerate(joints):
+        p[i, acting[j]] = coef[pos : pos + len(acting[j])]
+        pos += len(acting[j])
+    return p, acting
+
+
+@dataclass(frozen=True, eq=False)
+class _PhysicalForm:
+    """``Σ_j ρ_j·C_j·w − y`` over the parameters ``x``: the ratios of the ``free`` joints
+    (the reference's is 1), then the moments ``keep`` (the others are held)."""
+
+    perp: dict[int, FloatArray]  # joint -> (3m, b) columns, the model projected out
+    joints: tuple[int, ...]
+    free: list[int]  # positions in ``joints``
+    keep: NDArray[np.intp]  # the determined moments
+    y: FloatArray  # (3m,)
+
+    def unpack(self, x: FloatArray, held: float = 1.0) -> tuple[FloatArray, FloatArray]:
+        """Ratios ``(J,)`` and moments ``(b,)`` of ``x``: the reference joint's ratio is
+        ``held`` (1; 0 when ``x`` holds standard errors), a held moment's 0."""
+        r = np.full(len(self.joints), held)
+        r[self.free] = x[: len(self.free)]
+        ww = np.zeros(next(iter(self.perp.values())).shape[1])
+        ww[self.keep] = x[len(self.free) :]
+        return r, ww
+
+    def residual(self, x: FloatArray) -> FloatArray:
+        r, ww = self.unpack(x)
+        res: FloatArray = (
+            sum(r[i] * (self.perp[j] @ ww) for i, j in enumerate(self.joints)) - self.y
+        )
+        return res
+
+    def jacobian(self, x: FloatArray) -> FloatArray:
+        r, ww = self.unpack(x)
+        d_rho = (
+            np.column_stack([self.perp[self.joints[i]] @ ww for i in self.free])
+            if self.free
+            else np.zeros((len(self.y), 0))
+        )
+        d_w = sum(r[i] * self.perp[j] for i, j in enumerate(self.joints))
+        return np.hstack([d_rho, d_w[:, self.keep]])
+
+
+def _rank_one(
+    p: FloatArray,
+    acting: dict[int, NDArray[np.intp]],
+    joints: tuple[int, ...],
+    ref: int,
+) -> tuple[FloatArray, FloatArray]:
+    """``p_jk ≈ ρ_j·w_k`` over the acting entries (alternating least squares, ρ_ref = 1)."""
+    rho = np.ones(len(joints))
+    w = np.zeros(p.shape[1])
+    for _ in range(50):
+        for k in range(p.shape[1]):
+            rows = [i for i, j in enumerate(joints) if k in acting[j]]
+            if rows:
+                rr = rho[rows]
+                w[k] = float(rr @ p[rows, k]) / max(float(rr @ rr), 1e-300)
+        for i, j in enumerate(joints):
+            if i == ref:
+                continue
+            wk = w[acting[j]]
+            rho[i] = float(wk @ p[i, acting[j]]) / max(float(wk @ wk), 1e-300)
+    return rho, w

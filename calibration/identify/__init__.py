@@ -1,0 +1,3 @@
+"""Parameter identification: the campaign file, identifiability, Levenberg-Marquardt, recursive
+identification and pose selection.
+"""

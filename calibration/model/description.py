@@ -1,0 +1,271 @@
+"""Robot description files: a TOML a person can write, and the calibrated model written back.
+
+Units are mm and degrees. Craig's modified D-H with a Hayati ``beta``: row i of
+``[[joint]]`` is the transform from frame i-1 to frame i,
+
+    T_i = Rot_x(alpha) · Trans_x(a) · Rot_y(beta) · Rot_z(theta + theta_offset) · Trans_z(d)
+
+``[base]`` is the robot base in the measuring-instrument (tracker) frame, fixed-axis XYZ
+angles (R = Rz(rz) · Ry(ry) · Rx(rx)); ``[tool]`` is the tracker target in the flange frame.
+See docs/robot-description.md for the full schema.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import tomli_w
+
+from calibration.errors import DescriptionError
+from edges.toml_schema import (
+    REQUIRED,
+    Range,
+    TomlTable,
+    build,
+    key_spec,
+    parse_toml_file,
+    parse_toml_text,
+)
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+PRESET_PACKAGE = "calibration.presets"
+_T = TypeVar("_T", bound="DataclassInstance")
+
+
+#: Motor turns per joint turn assumed for a joint whose description states none.
+DEFAULT_GEAR_RATIO = 100.0
+
+
+@dataclass(frozen=True)
+class JointDescription:
+    """One revolute joint: modified D-H row (mm, degrees), limits and optional mass model."""
+
+    a_mm: float
+    alpha_deg: float
+    d_mm: float
+    theta_offset_deg: float
+    lower_deg: float
+    upper_deg: float
+    beta_deg: float = 0.0
+    gear_ratio: float | None = None
+    mass_kg: float | None = field(
+        default=None, metadata=key_spec(range=Range(0.0, what="kg, not negative"))
+    )
+    com_mm: tuple[float, float, float] | None = None
+    #: a spring or gas counterbalance acts on this joint (heavy arms, joint 2): the twin's
+    #: gravity term then allows it a torque profile of its own angle
+    counterbalance: bool = False
+    #: the joint's torsional stiffness (N·mm/rad), stated or identified by a load test
+    #: (``twin stiffness --load-test``); None: not known (taken as rigid under a force)
+    stiffness_nmm_per_rad: float | None = field(
+        default=None, metadata=key_spec(range=Range(0.0, lo_open=True, what="N·mm/rad, positive"))
+    )
+
+
+@dataclass(frozen=True)
+class ToolDescription:
+    """Tracker target in the flange frame (mm) and optional payload mass (kg)."""
+
+    x_mm: float = field(default=0.0, metadata=REQUIRED)
+    y_mm: float = field(default=0.0, metadata=REQUIRED)
+    z_mm: float = field(default=0.0, metadata=REQUIRED)
+    mass_kg: float | None = None
+
+
+@dataclass(frozen=True)
+class BaseDescription:
+    """Robot base pose in the instrument frame: mm and fixed-axis XYZ degrees; optionally
+    the direction of gravity in the robot base frame (None: −z, a floor-mounted arm)."""
+
+    x_mm: float = field(default=0.0, metadata=REQUIRED)
+    y_mm: float = field(default=0.0, metadata=REQUIRED)
+    z_mm: float = field(default=0.0, metadata=REQUIRED)
+    rx_deg: float = field(default=0.0, metadata=REQUIRED)
+    ry_deg: float = field(default=0.0, metadata=REQUIRED)
+    rz_deg: float = field(default=0.0, metadata=REQUIRED)
+    gravity: tuple[float, float, float] | None = None
+
+
+#: An ``[[effect]]`` value: a number, a name, or an array of numbers or of names.
+EffectValue = float | str | tuple[float, ...] | tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class EffectDescription:
+    """A non-geometric effect term of a calibrated model (written by the closed loop).
+
+    ``kind`` names the effect (validated by the effect library that applies it);
+    ``parameters`` maps parameter names to values, in the units their names carry.
+    """
+
+    kind: str
+    parameters: Mapping[str, EffectValue] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class RobotDescription:
+    """A whole robot: joints from base to flange, tool, optional base guess, Home."""
+
+    name: str
+    joints: tuple[JointDescription, ...]
+    tool: ToolDescription = ToolDescription()
+    base: BaseDescription | None = None
+    home_deg: tuple[float, ...] | None = None
+    effects: tuple[EffectDescription, ...] = ()
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joints)
+
+    @property
+    def home(self) -> tuple[float, ...]:
+        """The Home joint vector in degrees (zeros when the file gives none)."""
+        return self.home_deg if self.home_deg is not None else (0.0,) * self.n_joints
+
+    @property
+    def gear_ratios(self) -> tuple[float, ...]:
+        """Motor turns per joint turn, per joint (:data:`DEFAULT_GEAR_RATIO` where the
+        file gives none): how the motor encoders' counts become joint angles."""
+        return tuple(j.gear_ratio or DEFAULT_GEAR_RATIO for j in self.joints)
+
+    # -- I/O ---------------------------------------------------------------------------
+    @classmethod
+    def load(cls, path: str | Path) -> RobotDescription:
+        """Read a description file; errors name the file, table and key."""
+        doc = parse_toml_file(path, DescriptionError, "a robot description")
+        return _parse(doc, str(path))
+
+    @classmethod
+    def loads(cls, text: str, source: str = "<string>") -> RobotDescription:
+        return _parse(parse_toml_text(text, source, DescriptionError), source)
+
+    def dumps(self) -> str:
+        return tomli_w.dumps(_to_document(self))
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(self.dumps(), encoding="utf-8")
+
+    def with_joints(self, joints: tuple[JointDescription, ...]) -> RobotDescription:
+        return replace(self, joints=joints)
+
+
+def preset_names() -> list[str]:
+    """Names of the robot descriptions shipped in ``calibration/presets``."""
+    root = resources.files(PRESET_PACKAGE)
+    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
+
+
+def load_robot(name_or_path: str | Path) -> RobotDescription:
+    """Load a description from a file path, or a shipped preset by name (e.g. ``kr500``)."""
+    path = Path(name_or_path)
+    if path.suffix == ".toml" or path.exists():
+        return RobotDescription.load(path)
+    name = str(name_or_path)
+    if name in preset_names():
+        res = resources.files(PRESET_PACKAGE) / f"{name}.toml"
+        return RobotDescription.loads(res.read_text(encoding="utf-8"), source=f"preset:{name}")
+    raise DescriptionError(
+        f"{name_or_path}: no such file and no preset of that name "
+        f"(presets: {', '.join(preset_names())})"
+    )
+
+
+# -- parsing ----------------------------------------------------------------------------
+_TOP_KEYS = {"name", "home_deg", "joint", "tool", "base", "effect"}
+
+
+def _parse_joint(data: Any, source: str, index: int) -> JointDescription:
+    name = f"[[joint]] #{index + 1}"
+    joint = build(JointDescription, data, source=source, error=DescriptionError, name=name)
+    t = TomlTable(data, source, name, DescriptionError)
+    if joint.lower_deg >= joint.upper_deg:
+        raise t.fail("upper_deg", f"must exceed lower_deg ({joint.lower_deg})")
+    if joint.gear_ratio is not None and joint.gear_ratio == 0:
+        raise t.fail("gear_ratio", "must not be zero")
+    return joint
+
+
+def _parse_effect(data: Any, source: str, index: int) -> EffectDescription:
+    """Numbers, names and arrays of either; what they mean is the effect library's to
+    check (:func:`calibration.effects.model_effects.description_effects`)."""
+    t = TomlTable(data, source, f"[[effect]] #{index + 1}", DescriptionError)
+    kind = t.string("kind")
+    params: dict[str, EffectValue] = {}
+    for key, value in t.data.items():
+        if key == "kind":
+            continue
+        if isinstance(value, str):
+            params[key] = t.string(key)
+        elif isinstance(value, list) and value and all(isinstance(v, str) for v in value):
+            params[key] = tuple(value)
+        elif isinstance(value, list):
+            params[key] = t.numbers(key)
+        else:
+            params[key] = t.number(key)
+    return EffectDescription(kind=kind, parameters=params)
+
+
+def _parse(doc: dict[str, Any], source: str) -> RobotDescription:
+    top = TomlTable(doc, source, "top level", DescriptionError)
+    top.check_keys(_TOP_KEYS)
+    name = top.string("name")
+    raw_joints = doc.get("joint")
+    if not isinstance(raw_joints, list) or not raw_joints:
+        raise top.fail("joint", "expected one or more [[joint]] tables")
+    joints = tuple(_parse_joint(j, source, i) for i, j in enumerate(raw_joints))
+
+    home = top.numbers("home_deg", length=len(joints)) if "home_deg" in doc else None
+    for i, (h, j) in enumerate(zip(home or (), joints, strict=False)):
+        if not j.lower_deg <= h <= j.upper_deg:
+            raise top.fail(
+                "home_deg", f"joint {i + 1} Home {h} outside [{j.lower_deg}, {j.upper_deg}]"
+            )
+
+    def table(cls: type[_T], key: str) -> _T:
+        return build(cls, doc[key], source=source, error=DescriptionError, path=(key,))
+
+    tool = table(ToolDescription, "tool") if "tool" in doc else ToolDescription()
+    base = table(BaseDescription, "base") if "base" in doc else None
+    if base is not None and base.gravity is not None and not any(base.gravity):
+        raise top.table("base").fail("gravity", "must be a direction, not [0, 0, 0]")
+    raw_effects = doc.get("effect", [])
+    if not isinstance(raw_effects, list):
+        raise top.fail("effect", "expected [[effect]] tables")
+    effects = tuple(_parse_effect(e, source, i) for i, e in enumerate(raw_effects))
+    return RobotDescription(
+        name=name, joints=joints, tool=tool, base=base, home_deg=home, effects=effects
+    )
+
+
+def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items() if v is not None}
+
+
+def _to_document(desc: RobotDescription) -> dict[str, Any]:
+    doc: dict[str, Any] = {"name": desc.name}
+    if desc.home_deg is not None:
+        doc["home_deg"] = list(desc.home_deg)
+    doc["tool"] = _drop_none({f.name: getattr(desc.tool, f.name) for f in fields(ToolDescription)})
+    if desc.base is not None:
+        doc["base"] = _drop_none(
+            {f.name: getattr(desc.base, f.name) for f in fields(BaseDescription)}
+        )
+    doc["joint"] = [
+        {
+            k: v
+            for k, v in _drop_none(
+                {f.name: getattr(j, f.name) for f in fields(JointDescription)}
+            ).items()
+            if k != "counterbalance" or v  # written only where there is one
+        }
+        for j in desc.joints
+    ]
+    if desc.effects:
+        doc["effect"] = [{"kind": e.kind, **_drop_none(dict(e.parameters))} for e in desc.effects]
+    return doc

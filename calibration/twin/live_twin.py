@@ -1,0 +1,760 @@
+"""``twin run`` live: collect the campaign from the daemon's zenoh keys, then publish the twin.
+
+Collection subscribes to the daemon's data keys (default ``cell/**``; schemas by query),
+accumulates the grating, tracker and encoder streams and prints progress (samples, dwells,
+sweeps, Home returns, poses found so far). The campaign is over when poses have been found
+and the gratings have been still for ``--idle-s``, when no data came for ``--idle-s`` (the
+source stopped), or after ``--collect-s``. The same
+pipeline as a replay then runs on the collected streams
+(:func:`~calibration.twin.twin_run.run_twin`), and the twin it gives is published as it is in
+memory (:meth:`CalibratedTwin.from_twin_run`).
+
+The live twin (docs/topics.md, "Twin keys") is published per grating batch, at the grating
+rate, on ``twin/<cell>/robot/<robot>/state`` (columnar ``daq.columnar.v1``, schema by
+``<key>/@schema``): per grating sample its mapped time, the joint angles from the scale
+calibration, the TCP from the calibrated model with its effects, the flange pose
+(position and quaternion), and the encoder-minus-grating joint difference (the encoder
+sample nearest in mapped time). ``twin/<cell>/robot/<robot>/health`` (JSON, once a second)
+carries the end-to-end latency: publication time minus the grating sample's mapped time
+(latch → twin), p50/p99/max over the period, for samples whose clock map had settled
+(all samples, with ``clock_settled: false``, while none has).
+The batches that arrived together are evaluated in one vectorized call (one TCP, flange
+and scale evaluation per drain, not per 1 ms batch), and published as one batch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration.errors import LiveTwinError
+from calibration.twin.phase_detection import PhaseOptions, find_dwells, find_phases
+from calibration.twin.streams import CellStreams, StreamBuilder, pick_streams
+
+if TYPE_CHECKING:
+    from calibration.model.description import RobotDescription
+    from calibration.scales.scale_files import ScaleCalibration
+    from calibration.twin.twin_run import TwinRun
+    from daq.bus import Received
+
+FloatArray = NDArray[np.float64]
+
+TWIN_PREFIX = "twin"
+
+
+def twin_keys(cell: str, robot: str) -> dict[str, str]:
+    base = f"{TWIN_PREFIX}/{cell}/robot/{robot}"
+    return {"state": f"{base}/state", "health": f"{base}/health", "frames": f"{base}/frames"}
+
+
+def state_schema(key: str, n: int, cell: str, robot: str, model: str) -> Any:
+    """The columns of ``twin/<cell>/robot/<robot>/state`` (docs/topics.md, "Twin keys")."""
+    from daq.columnar import Column, StreamSchema
+
+    return StreamSchema(
+        key,
+        (
+            Column("seq", "uint64", (), "", None, "twin sample number"),
+            Column("t_mapped_ns", "int64", (), "ns", "host_utc", "grating sample time"),
+            Column("t_publish_ns", "int64", (), "ns", "host_utc", "when published"),
+            Column("q_deg", "float64", (n,), "deg", None, "joint angles from the gratings"),
+            Column("tcp_mm", "float64", (3,), "mm", None, "TCP, tracker frame"),
+            Column("flange_mm", "float64", (3,), "mm", None, "flange origin"),
+            Column("flange_quat", "float64", (4,), "", None, "flange rotation w, x, y, z"),
+            Column(
+                "encoder_minus_grating_deg",
+                "float64",
+                (n,),
+                "deg",
+                None,
+                "motor encoder joint angle minus grating angle (NaN: no encoder)",
+            ),
+        ),
+        {"cell": cell, "robot": robot, "model": model, "source": "twin run"},
+    )
+
+
+def frames_schema(key: str, names: tuple[str, ...], cell: str, robot: str, model: str) -> Any:
+    """The columns of ``twin/<cell>/robot/<robot>/frames``: every link frame of the
+    calibrated model at one grating sample, in the tracker frame (``meta.frames``: their
+    names, ``meta.parents``: each one's parent frame, the first one's is ``tracker``)."""
+    from daq.columnar import Column, StreamSchema
+
+    k = len(names)
+    return StreamSchema(
+        key,
+        (
+            Column("seq", "uint64", (), "", None, "frames sample number"),
+            Column("t_mapped_ns", "int64", (), "ns", "host_utc", "grating sample time"),
+            Column("frame_mm", "float64", (k, 3), "mm", None, "frame origins, tracker frame"),
+            Column("frame_quat", "float64", (k, 4), "", None, "frame rotations w, x, y, z"),
+        ),
+        {
+            "cell": cell,
+            "robot": robot,
+            "model": model,
+            "source": "twin run",
+            "frames": list(names),
+            "parents": ["tracker", *names[:-1]],
+        },
+    )
+
+
+def _percentiles(parts: list[np.ndarray]) -> dict[str, float]:
+    a = np.concatenate(parts) if parts else np.zeros(0)
+    if not a.size:
+        return {"p50": 0.0, "p99": 0.0, "max": 0.0, "n": 0}
+    p50, p99 = np.percentile(a, [50, 99])
+    return {"p50": float(p50), "p99": float(p99), "max": float(a.max()), "n": int(a.size)}
+
+
+class AngleReader:
+    """Joint angles (deg) from grating counts through the scale maps, cheap per batch.
+
+    The scale maps are smooth functions of the counts (a scale, harmonics of the ring,
+    at most a slow polynomial), evaluated per joint by
+    :meth:`~calibration.scales.grating_scale.GratingScale.counts_to_angle_deg` at a cost per
+    call (~0.2-0.3 ms for six joints here). As :class:`TwinPredictor` does for the
+    effects, each map is linearised at the newest sample's counts (value and slope from
+    one call with ``c0``, ``c0 ± h``) and used within ``radius_deg`` of it; a sample
+    farther away moves the linearisation there, a batch wider than the radius gets the
+    maps themselves. Error: second order, ~2e-6° at most at 0.25° for the demo's maps
+    (far below one count, ~1e-4°; tests/test_twin_predictor.py); ``radius_deg = 0``:
+    the maps for every batch."""
+
+    def __init__(self, scale: Any, n: int, home_deg: Any, *, radius_deg: float = 0.25) -> None:
+        self.maps = [scale.scale(j) for j in range(1, n + 1)]
+        self.home = np.asarray(home_deg, dtype=float)
+        self.radius_deg = float(radius_deg)
+        self.h = 64  # counts
+        self._c0: np.ndarray | None = None
+        self._a0 = np.zeros(n)
+        self._slope = np.zeros(n)
+        self._radius_counts = np.zeros(n)
+        self.refreshes = 0
+        self.full_calls = 0
+
+    def exact(self, counts: np.ndarray) -> np.ndarray:
+        self.full_calls += 1
+        cols = [mp.counts_to_angle_deg(counts[:, j]) for j, mp in enumerate(self.maps)]
+        out: np.ndarray = self.home + np.column_stack(cols)
+        return out
+
+    def _linearise(self, c0: np.ndarray) -> None:
+        h = self.h
+        for j, mp in enumerate(self.maps):
+            a = mp.counts_to_angle_deg(np.array([c0[j], c0[j] + h, c0[j] - h], dtype=np.int64))
+            self._a0[j] = a[0]
+            self._slope[j] = (a[1] - a[2]) / (2 * h)
+        with np.errstate(divide="ignore"):
+            self._radius_counts = np.where(
+                self._slope != 0, self.radius_deg / np.abs(self._slope), 0.0
+            )
+        self._c0 = c0.copy()
+        self.refreshes += 1
+
+    def _offsets(self, counts: np.ndarray) -> np.ndarray:
+        assert self._c0 is not None  # counts since c0, undoing 32-bit counter wraps
+        out: np.ndarray = (counts - self._c0 + (1 << 31)) % (1 << 32) - (1 << 31)
+        return out
+
+    def angles(self, counts: np.ndarray) -> np.ndarray:
+        """Joint angles ``(m, n)`` deg (Home + map) of counts ``(m, n)``."""
+        if self.radius_deg <= 0:
+            return self.exact(counts)
+        if self._c0 is None or bool(
+            np.any(np.abs(self._offsets(counts[-1])) > self._radius_counts)
+        ):
+            self._linearise(counts[-1])
+        d = self._offsets(counts)
+        if bool(np.any(np.abs(d) > self._radius_counts)):  # a batch wider than the radius
+            return self.exact(counts)
+        return self.home + self._a0 + d * self._slope
+
+
+class TwinPredictor:
+    """TCP and flange poses of the calibrated model, cheap enough per grating batch.
+
+    The geometric TCP and flange are evaluated for every sample (one vectorized chain
+    walk). What the modelled effects add to the TCP, ``c(q, t)``, comes from the full
+    predictor (:func:`~calibration.effects.model_effects.predict_tcp`), whose cost is per call
+    (1.5-5 ms here for one pose of the demo's model with its gravity deflection, ~90 % of
+    the twin's time per batch before), so it is *linearised*: at a pose ``q0`` the
+    predictor is evaluated once for ``q0`` and ``q0 ± h·e_j`` (one call, 2n + 1 poses) and
+    the samples within ``radius_deg`` of ``q0`` (every joint) get ``c(q0) + G·(q − q0)``.
+    The linearisation moves with the robot: a sample farther than the radius, or more
+    than ``max_age_s`` later (time terms), makes the newest sample the next ``q0``; a
+    batch that spans more than the radius gets the full predictor. The error is second
+    order: ≈ ½·|c''|·Δq², below 1e-4 mm for the emulated cell's gravity deflection at
+    0.25° (tests/test_twin_predictor.py against the full predictor).
+    ``radius_deg = 0``: the full predictor for every batch (as the twin did before).
+    """
+
+    def __init__(
+        self, desc: Any, *, radius_deg: float = 0.25, max_age_s: float = 1.0, h_rad: float = 4e-6
+    ) -> None:
+        from calibration.effects.model_effects import description_effects
+        from calibration.model.kinematics import KinematicModel
+
+        self.desc = desc
+        self.model = KinematicModel.from_description(desc)
+        specs, _ = description_effects(desc)
+        self.has_effects = bool(specs)
+        self.radius = float(np.radians(radius_deg))
+        self.radius_deg = float(radius_deg)
+        self.max_age_s = float(max_age_s)
+        # below calibration.effects.effect_library.MIN_MOVE_RAD: the stencil's poses keep q0's
+        # approach directions (direction-dependent terms see one pose, not a motion)
+        self.h = float(h_rad)
+        self._q0: np.ndarray | None = None
+        self._t0 = 0.0
+        self._c0 = np.zeros(3)
+        self._g = np.zeros((desc.n_joints, 3))
+        self.refreshes = 0
+        self.full_calls = 0
+        n = desc.n_joints
+        self.frame_names: tuple[str, ...] = ("base", *(f"link{i + 1}" for i in range(n)), "tcp")
+        # the chain as 4x4 matrices, constants once: joint i is Trans_x(a)·Rx(α)Ry(β) ·
+        # Rz(θ + offset)·Trans_z(d), as calibration.model.kinematics walks it
+        md = self.model
+        self._base = np.eye(4)
+        self._base[:3, :3] = md.base_rotation()
+        self._base[:3, 3] = md.base_mm
+        self._link = np.zeros((n, 4, 4))
+        self._link[:, :3, :3] = md.link_constants()
+        self._link[:, 0, 3] = md.a_mm
+        self._link[:, 3, 3] = 1.0
+        self._tool = np.append(md.tool_mm, 1.0)
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "modelled": self.has_effects,
+            "linearised_radius_deg": self.radius_deg,
+            "linearisations": self.refreshes,
+            "full_predictor_calls": self.full_calls,
+        }
+
+    def _chain(self, q_rad: np.ndarray, keep: bool) -> list[np.ndarray]:
+        """Poses ``(m, 4, 4)`` of the base and of the frame after each joint (``keep``),
+        else of the flange alone; one small matmul per joint and factor."""
+        q = np.atleast_2d(q_rad)
+        m, n = q.shape
+        theta = q + self.model.theta_offset_rad
+        c, s_ = np.cos(theta), np.sin(theta)
+        z = np.zeros((m, n, 4, 4))  # Rz(θ)·Trans_z(d)
+        z[:, :, 0, 0] = c
+        z[:, :, 0, 1] = -s_
+        z[:, :, 1, 0] = s_
+        z[:, :, 1, 1] = c
+        z[:, :, 2, 2] = 1.0
+        z[:, :, 2, 3] = self.model.d_mm
+        z[:, :, 3, 3] = 1.0
+        t = np.broadcast_to(self._base, (m, 4, 4))
+        out = [t] if keep else []
+        for i in range(n):
+            t = t @ self._link[i] @ z[:, i]
+            if keep:
+                out.append(t)
+        return out if keep else [t]
+
+    def _geometric(self, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        fl = self._chain(q_rad, keep=False)[0]
+        return (fl @ self._tool)[:, :3], fl
+
+    def _full(self, q_rad: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+        from calibration.effects.model_effects import predict_tcp
+
+        self.full_calls += 1
+        return predict_tcp(self.desc, q_rad, t_s)
+
+    def _linearise(self, q0: np.ndarray, t0: float) -> None:
+        n = len(q0)
+        step = self.h * np.eye(n)
+        qs = np.vstack([q0, q0 + step, q0 - step])
+        c = self._full(qs, np.full(len(qs), t0)) - self._geometric(qs)[0]
+        self._c0 = c[0]
+        self._g = (c[1 : n + 1] - c[n + 1 :]) / (2 * self.h)  # (n, 3): dc/dq_j
+        self._q0 = q0.copy()
+        self._t0 = t0
+        self.refreshes += 1
+
+    def tcp_and_flange(self, q_rad: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """TCP ``(m, 3)`` mm with the modelled effects and flange poses ``(m, 4, 4)``."""
+        tcp, fl = self._geometric(q_rad)
+        if not self.has_effects:
+            return tcp, fl
+        if self.radius <= 0:
+            return self._full(q_rad, t_s), fl
+        q_new, t_new = q_rad[-1], float(t_s[-1])
+        if (
+            self._q0 is None
+            or float(np.max(np.abs(q_new - self._q0))) > self.radius
+            or abs(t_new - self._t0) > self.max_age_s
+        ):
+            self._linearise(q_new, t_new)
+        assert self._q0 is not None
+        dq = q_rad - self._q0
+        if float(np.max(np.abs(dq))) > self.radius:  # a batch wider than the radius
+            return self._full(q_rad, t_s), fl
+        return tcp + self._c0 + dq @ self._g, fl
+
+    def frames(self, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Origins ``(m, k, 3)`` mm and rotations ``(m, k, 4)`` (w, x, y, z) of the frames
+        ``frame_names`` (base, the frame after each joint, the TCP), tracker frame,
+        geometry only (the modelled effects move the TCP by well under a millimetre)."""
+        poses = self._chain(q_rad, keep=True)
+        t = np.stack(poses, axis=1)  # (m, n + 1, 4, 4)
+        m, k = t.shape[0], t.shape[1] + 1
+        pos = np.empty((m, k, 3))
+        pos[:, :-1] = t[:, :, :3, 3]
+        pos[:, -1] = (poses[-1] @ self._tool)[:, :3]
+        rot = np.concatenate([t[:, :, :3, :3], t[:, -1:, :3, :3]], axis=1)
+        quat = _quaternions(rot.reshape(-1, 3, 3)).reshape(m, k, 4)
+        return pos, quat
+
+
+@dataclass(frozen=True)
+class LiveSettings:
+    """How the live twin meets the daemon and when it stops (``twin run``'s options).
+
+    ``key``: the key expression of the cell's streams; ``connect``/``listen``: zenoh
+    endpoints (``none`` left out); ``mode``: ``client`` (default: the daemon's session then
+    routes the twin's keys to everyone connected to it) or ``peer``; ``idle_s``: a silence
+    that ends the collection; ``collect_s``/``publish_s``: time limits (0: none);
+    ``wait_s``: the longest wait for the first grating batch; ``effects_radius_deg``: the
+    effects are linearised within this radius (0: the full predictor per batch);
+    ``frames_hz``: the rate of the link frames (0: none)."""
+
+    key: str = "cell/**"
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    listen: tuple[str, ...] = ()
+    mode: str = "client"
+    idle_s: float = 5.0
+    collect_s: float = 0.0
+    publish_s: float = 0.0
+    wait_s: float = 60.0
+    effects_radius_deg: float = 0.25
+    frames_hz: float = 30.0
+
+    @classmethod
+    def from_options(cls, args: argparse.Namespace) -> LiveSettings:
+        """The settings from ``twin run``'s parsed options (the command line's edge)."""
+        return cls(
+            key=args.key,
+            connect=tuple(e for e in (args.connect or ["tcp/127.0.0.1:7447"]) if e != "none"),
+            listen=tuple(e for e in (args.listen or ()) if e != "none"),
+            mode=getattr(args, "mode", None) or "client",
+            idle_s=float(args.idle_s),
+            collect_s=float(args.collect_s or 0.0),
+            publish_s=float(args.publish_s or 0.0),
+            wait_s=float(getattr(args, "wait_s", 60.0)),
+            effects_radius_deg=float(getattr(args, "effects_radius_deg", 0.25)),
+            frames_hz=float(getattr(args, "frames_hz", 30.0)),
+        )
+
+    def zenoh_config(self) -> Any:
+        from daq.config import ZenohConfig
+
+        # two peers connected to the daemon are not routed to each other: docs/topics.md,
+        # "One endpoint reaches everything"
+        listen = () if self.mode == "client" else self.listen
+        return ZenohConfig(mode=self.mode, listen=listen, connect=self.connect)
+
+
+@dataclass(frozen=True, eq=False)
+class CalibratedTwin:
+    """What the live twin computes with: the calibrated description, the gratings' scale
+    maps, the motor encoders' relation to the gratings (offsets ``(n,)`` deg, counts per
+    turn) and the campaign clock's origin (ns); ``name`` names the model in the schemas."""
+
+    description: RobotDescription
+    scale: ScaleCalibration
+    encoder_offset_deg: FloatArray
+    encoder_counts_per_rev: float
+    t0_ns: int
+    name: str
+
+    @classmethod
+    def from_run(cls, run: Mapping[str, Any]) -> CalibratedTwin:
+        """The twin an earlier ``twin run`` wrote (run.json's ``calibrated`` and
+        ``files.scale``/``files.phases``, resolved paths): read at the command line's edge."""
+        from calibration.model.description import load_robot
+        from calibration.scales.scale_files import read_scale_toml
+
+        desc = load_robot(run["calibrated"])
+        phases = json.loads(Path(run["files"]["phases"]).read_text(encoding="utf-8"))
+        return cls.of(desc, read_scale_toml(run["files"]["scale"]), phases, str(run["calibrated"]))
+
+    @classmethod
+    def from_twin_run(cls, run: TwinRun, name: str) -> CalibratedTwin:
+        """The twin of a ``twin run`` in memory, as :meth:`from_run` reads it back from the
+        files written of it (``name``: where its calibrated.toml is, as run.json says)."""
+        export = run.export
+        return cls.of(run.calibrated, export.scale_calibration(), export.phases, name)
+
+    @classmethod
+    def of(
+        cls,
+        description: RobotDescription,
+        scale: ScaleCalibration,
+        phases: Mapping[str, Any],
+        name: str,
+    ) -> CalibratedTwin:
+        """From a run's values in memory (``phases``: the summary phases.json holds)."""
+        from calibration.twin.twin_run import ENCODER_COUNTS_PER_REV
+
+        n = description.n_joints
+        offset = np.asarray(phases.get("encoder_offset_deg") or [0.0] * n, dtype=float)
+        cpr = float(phases.get("encoder_counts_per_rev", ENCODER_COUNTS_PER_REV))
+        t0_ns = int(phases.get("campaign", {}).get("t0_ns", 0))
+        return cls(description, scale, offset, cpr, t0_ns, name)
+
+
+class LiveTwin:
+    """One zenoh session: collect the campaign, then publish the twin."""
+
+    def __init__(self, settings: LiveSettings, say: Callable[[str], None]) -> None:
+        from daq.bus import Receiver, open_session
+
+        self.args = settings
+        self.say = say
+        self.session = open_session(settings.zenoh_config())
+        self.receiver = Receiver(self.session, settings.key)
+        self.builders: dict[str, StreamBuilder] = {}
+        self.closed = False
+
+    # -- collection ------------------------------------------------------------------
+    def _builder(self, got: Received) -> StreamBuilder:
+        """The stream of ``got``'s key (made from its schema on its first batch)."""
+        b = self.builders.get(got.key)
+        if b is None:
+            b = self.builders[got.key] = StreamBuilder(got.key, got.schema.to_json())
+        return b
+
+    def _add(self, got: Received) -> None:
+        b = self._builder(got)
+        if b.kind in ("grating", "tracker", "encoders"):
+            b.add(got.header.batch_seq, got.columns)
+
+    def collect(self) -> CellStreams:
+        args, say = self.args, self.say
+        started = time.monotonic()
+        last_report = started
+        opts = PhaseOptions()
+        say(f"collecting {args.key} (connect {list(args.connect)})")
+        last_data = None
+        while True:
+            got = self.receiver.receive(0.2)
+            now = time.monotonic()
+            if got is not None:
+                self._add(got)
+                last_data = now
+            elif last_data is not None and now - last_data >= args.idle_s:
+                say(f"no data for {args.idle_s:g} s: the source stopped, campaign over")
+                break
+            if args.collect_s and now - started >= args.collect_s:
+                say("collection time is up")
+                break
+            if now - last_report < 5.0:
+                continue
+            last_report = now
+            g = next((b for b in self.builders.values() if b.kind == "grating"), None)
+            if g is None or not g._parts["t"]:
+                say("waiting for grating samples")
+                continue
+            gs = g.build()
+            ph = find_phases(gs.t_ns, gs.values, opts)
+            s = ph.summary()
+            n_sweep = sum(sum(v.values()) for v in s["sweep_stops"].values())
+            say(
+                f"{now - started:.0f} s: {len(gs)} grating samples, {s['dwells']} dwells, "
+                f"{n_sweep} sweep stops, {sum(s['home_returns'].values())} Home returns, "
+                f"{s['poses']['identify'] + s['poses']['validate']} poses"
+            )
+            if ph.poses:
+                tail = find_dwells(gs.t_ns[-20000:], gs.values[-20000:], opts)
+                if tail and tail[-1].i1 >= min(len(gs), 20000) - 2:
+                    still_s = tail[-1].duration_s
+                    if still_s >= args.idle_s:
+                        say(f"the robot has been still for {still_s:.1f} s: campaign over")
+                        break
+        return pick_streams(self.builders, "live zenoh")
+
+    # -- publication -----------------------------------------------------------------
+    def _wait_for_grating(self) -> StreamBuilder:
+        """The grating stream: collected already, or named by its first batch (--from),
+        waited for at most ``--wait-s``."""
+        args = self.args
+        grating = next((b for b in self.builders.values() if b.kind == "grating"), None)
+        wait_s = args.wait_s
+        deadline = time.monotonic() + wait_s
+        while grating is None:  # no collection (--from): the first grating batch names it
+            if time.monotonic() >= deadline:
+                raise LiveTwinError(
+                    f"no grating samples on {args.key} within {wait_s:g} s "
+                    f"(--connect {' '.join(args.connect)}, --wait-s)"
+                )
+            got = self.receiver.receive(min(1.0, max(0.0, deadline - time.monotonic())))
+            if got is not None:
+                self._add(got)
+                grating = next((b for b in self.builders.values() if b.kind == "grating"), None)
+        return grating
+
+    def _narrow_to(self, grating: StreamBuilder) -> None:
+        """Subscribe to the grating key and the encoders' keys only (not the tracker and
+        whatever else ``--key`` matches): the twin's thread is woken for what it uses."""
+        from calibration.twin.streams import stream_kind
+        from daq.bus import Receiver, fetch_schemas
+
+        keys = [grating.key]
+        for key, schema in sorted(fetch_schemas(self.session, self.args.key).items()):
+            if key != grating.key and stream_kind(c.name for c in schema.columns) == "encoders":
+                keys.append(key)
+        for key, b in sorted(self.builders.items()):
+            if b.kind == "encoders" and key not in keys:
+                keys.append(key)
+        narrow = Receiver(self.session, keys)
+        old, self.receiver = self.receiver, narrow
+        old.close()
+
+    def publish(self, twin: CalibratedTwin) -> int:
+        """Publish ``twin`` as the gratings drive it until ``publish_s`` (or forever)."""
+        import sys
+
+        args, say = self.args, self.say
+        grating = self._wait_for_grating()
+        self._narrow_to(grating)
+        cell = str(grating.meta.get("cell", "cell"))
+        robot = str(grating.meta.get("robot", "robot"))
+        out = TwinPublication(self.session, twin, args, cell, robot)
+        say(f"publishing the live twin on {out.keys['state']} (health: {out.keys['health']})")
+        print(json.dumps({"twin": "live", "keys": out.keys}), flush=True)
+        # the receiving thread waits for the interpreter at most this long while this
+        # one computes (Python's default is 5 ms; the daemon uses the same)
+        sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
+        started = time.monotonic()
+        while not (args.publish_s and time.monotonic() - started >= args.publish_s):
+            batch = self._drain()
+            now_m = time.monotonic()
+            gratings = self._gratings_of(batch, out)
+            if gratings is not None:
+                out.state(*gratings)
+            doc = out.health(now_m)
+            if doc is not None:
+                end_to_end, own_share = doc["latency_ms"], doc["twin_ms"]
+                say(
+                    f"live twin: {doc['rate_hz']:.0f} samples/s, latency p50 "
+                    f"{end_to_end['p50']:.1f} ms, p99 {end_to_end['p99']:.1f} ms "
+                    f"(the twin's own p50 {own_share['p50']:.2f} ms)"
+                    + ("" if doc["clock_settled"] else " (clock map not settled yet)")
+                )
+        out.close()
+        say(f"published {out.seq} twin samples")
+        return 0
+
+    def _drain(self) -> list[Received]:
+        """The batches that have arrived (at most ~500; the first waited for at most
+        0.1 s): the daemon sends ~1 ms batches, one model evaluation per batch would fall
+        behind, so they are evaluated together."""
+        batch: list[Received] = []
+        got = self.receiver.receive(0.1)
+        while got is not None and len(batch) < 500:
+            batch.append(got)
+            got = self.receiver.receive(0.0)
+        if got is not None:
+            batch.append(got)
+        return batch
+
+    def _gratings_of(
+        self, batch: list[Received], out: TwinPublication
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The batch's grating samples joined: counts ``(m, n)``, mapped times ``(m,)`` ns,
+        whether each one's clock map had settled ``(m,)``, when the twin received it
+        ``(m,)`` ns (None: no grating sample); the encoders' samples go to ``out``."""
+        counts, t_map, ok, recv = [], [], [], []
+        for got in batch:
+            b = self._builder(got)
+            cols = got.columns
+            if b.kind == "grating":
+                counts.append(np.column_stack([cols[c] for c in b.channels]))
+                t_map.append(np.asarray(cols["t_mapped_ns"], dtype=np.int64))
+                ok.append(np.asarray(cols["t_mapped_ok"], dtype=np.uint8))
+                recv.append(np.full(len(t_map[-1]), got.t_recv_ns, dtype=np.int64))
+            elif b.kind == "encoders":
+                out.encoders(cols["t_mapped_ns"], np.column_stack([cols[c] for c in b.channels]))
+        if not counts:
+            return None
+        return _joined(counts), _joined(t_map), _joined(ok) == 1, _joined(recv)
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self.receiver.close()
+        self.session.close()
+
+
+def _joined(parts: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(parts) if len(parts) > 1 else parts[0]
+
+
+class TwinPublication:
+    """One publication of a :class:`CalibratedTwin` on a cell's twin keys: the publishers,
+    the model's evaluators (:class:`AngleReader`, :class:`TwinPredictor`) and what runs on
+    between batches (sample numbers, the encoders' recent samples, this period's
+    latencies). :meth:`LiveTwin.publish` feeds it."""
+
+    def __init__(
+        self, session: Any, twin: CalibratedTwin, settings: LiveSettings, cell: str, robot: str
+    ) -> None:
+        from daq.bus import JSON_ENCODING, ChannelPublisher, SchemaServer
+
+        desc = twin.description
+        n = desc.n_joints
+        self.twin = twin
+        self.cell, self.robot = cell, robot
+        self.keys = twin_keys(cell, robot)
+        self.gear = np.array(desc.gear_ratios, dtype=float)
+        radius = settings.effects_radius_deg
+        self.predictor = TwinPredictor(desc, radius_deg=radius)
+        self.reader = AngleReader(twin.scale, n, desc.home, radius_deg=radius)
+        self.schemas = SchemaServer(session, TWIN_PREFIX)
+        state = state_schema(self.keys["state"], n, cell, robot, twin.name)
+        self.state_pub = ChannelPublisher(session, state, schemas=self.schemas)
+        names = self.predictor.frame_names
+        frames = frames_schema(self.keys["frames"], names, cell, robot, twin.name)
+        self.frames_pub = ChannelPublisher(session, frames, schemas=self.schemas)
+        self.health_pub = session.declare_publisher(self.keys["health"], encoding=JSON_ENCODING)
+        hz = settings.frames_hz
+        self.frames_every_ns = int(1e9 / hz) if hz > 0 else None
+        self.next_frames_ns = 0
+        self.enc_t = np.empty(0, dtype=np.int64)
+        self.enc_v = np.empty((0, n))
+        self.seq = self.frames_seq = 0
+        self.lat: list[np.ndarray] = []  # end to end, settled clock maps (ms)
+        self.lat_all: list[np.ndarray] = []
+        self.upstream: list[np.ndarray] = []  # latch -> zenoh handed the batch to the twin
+        self.own: list[np.ndarray] = []  # zenoh handed it over -> the twin published
+        self.period_start = time.monotonic()
+        self.samples_period = 0
+
+    def encoders(self, t_mapped_ns: np.ndarray, counts: np.ndarray) -> None:
+        """Motor encoder samples (counts ``(m, n)``) as joint angles, the newest 2000 kept."""
+        twin = self.twin
+        deg = counts.astype(float) / twin.encoder_counts_per_rev * 360.0 / self.gear
+        deg += twin.encoder_offset_deg
+        self.enc_t = np.concatenate((self.enc_t, t_mapped_ns))[-2000:]
+        self.enc_v = np.concatenate((self.enc_v, deg))[-2000:]
+
+    def state(
+        self, counts: np.ndarray, t_map: np.ndarray, settled: np.ndarray, recv: np.ndarray
+    ) -> None:
+        """Publish the twin's state of grating samples (counts ``(m, n)``, mapped times
+        ``(m,)`` ns, clock maps settled ``(m,)``, received ``(m,)`` ns), note their
+        latencies, and the link frames of the newest one when they are due."""
+        m, n = counts.shape
+        q = self.reader.angles(counts)
+        t_s = (t_map - self.twin.t0_ns) * 1e-9
+        tcp, fl = self.predictor.tcp_and_flange(np.radians(q), t_s)
+        diff = np.full((m, n), np.nan)
+        if self.enc_t.size:
+            idx = np.clip(np.searchsorted(self.enc_t, t_map), 0, self.enc_t.size - 1)
+            diff = self.enc_v[idx] - q
+        t_pub = time.time_ns()
+        self.state_pub.publish(
+            {
+                "seq": np.arange(self.seq, self.seq + m, dtype=np.uint64),
+                "t_mapped_ns": t_map,
+                "t_publish_ns": np.full(m, t_pub, dtype=np.int64),
+                "q_deg": q,
+                "tcp_mm": tcp,
+                "flange_mm": fl[:, :3, 3],
+                "flange_quat": _quaternions(fl[:, :3, :3]),
+                "encoder_minus_grating_deg": diff,
+            }
+        )
+        self.seq += m
+        self.samples_period += m
+        # latency on settled clock maps only (provisional mapped times can be off)
+        self.lat.append((t_pub - t_map[settled]) * 1e-6)
+        self.lat_all.append((t_pub - t_map) * 1e-6)
+        self.upstream.append((recv[settled] - t_map[settled]) * 1e-6)
+        self.own.append((t_pub - recv) * 1e-6)
+        # the link frames of the newest sample, at a bounded rate (for viewers and
+        # recorders: Foxglove's frame transforms), after the state went out
+        if self.frames_every_ns is not None and t_pub >= self.next_frames_ns:
+            self.next_frames_ns = t_pub + self.frames_every_ns
+            pos, quat = self.predictor.frames(np.radians(q[-1:]))
+            self.frames_pub.publish(
+                {
+                    "seq": np.array([self.frames_seq], dtype=np.uint64),
+                    "t_mapped_ns": t_map[-1:],
+                    "frame_mm": pos,
+                    "frame_quat": quat,
+                }
+            )
+            self.frames_seq += 1
+
+    def health(self, now_m: float) -> dict[str, Any] | None:
+        """Once a second (``now_m``: monotonic s): the health document of the period, put
+        on the health key, and a new period begun; None within a period."""
+        elapsed = now_m - self.period_start
+        if elapsed < 1.0:
+            return None
+        settled = any(x.size for x in self.lat)
+        reader = self.reader
+        doc = {
+            "t_host_ns": time.time_ns(),
+            "cell": self.cell,
+            "robot": self.robot,
+            "state": "publishing",
+            "rate_hz": self.samples_period / elapsed,
+            "samples": self.seq,
+            "latency_ms": _percentiles(self.lat if settled else self.lat_all),
+            "latency": "publication time minus the grating sample's mapped time",
+            "upstream_ms": _percentiles(self.upstream),
+            "upstream": "the twin's receipt of the batch minus the mapped time "
+            "(device, daemon, zenoh)",
+            "twin_ms": _percentiles(self.own),
+            "twin": "publication time minus the twin's receipt (the twin's own share)",
+            "clock_settled": settled,
+            "model": self.twin.name,
+            "effects": self.predictor.describe(),
+            "scale_maps": {
+                "linearised_radius_deg": reader.radius_deg,
+                "linearisations": reader.refreshes,
+                "full_map_calls": reader.full_calls,
+            },
+        }
+        self.health_pub.put(json.dumps(doc))
+        self.period_start, self.samples_period = now_m, 0
+        self.lat, self.lat_all, self.upstream, self.own = [], [], [], []
+        return doc
+
+    def close(self) -> None:
+        self.state_pub.close()
+        self.frames_pub.close()
+        self.health_pub.undeclare()
+        self.schemas.close()
+
+
+def _quaternions(r: np.ndarray) -> np.ndarray:
+    """Unit quaternions ``(N, 4)`` (w, x, y, z) of rotation matrices ``(N, 3, 3)``."""
+    w = np.sqrt(np.maximum(0.0, 1.0 + r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2])) / 2
+    x = np.sqrt(np.maximum(0.0, 1.0 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2])) / 2
+    y = np.sqrt(np.maximum(0.0, 1.0 - r[:, 0, 0] + r[:, 1, 1] - r[:, 2, 2])) / 2
+    z = np.sqrt(np.maximum(0.0, 1.0 - r[:, 0, 0] - r[:, 1, 1] + r[:, 2, 2])) / 2
+    x = np.copysign(x, r[:, 2, 1] - r[:, 1, 2])
+    y = np.copysign(y, r[:, 0, 2] - r[:, 2, 0])
+    z = np.copysign(z, r[:, 1, 0] - r[:, 0, 1])
+    q = np.column_stack([w, x, y, z])
+    out: np.ndarray = q / np.linalg.norm(q, axis=1, keepdims=True)
+    return out
