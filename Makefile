@@ -3,14 +3,23 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# Every extra: the daemon's core plus the twin, the view, the emulator and the test tools
+# (pyproject.toml). `make test CONSTRAINTS=constraints.txt`: the versions pinned there.
+EXTRAS := twin,view,emulator,test
+CONSTRAINTS ?=
 
-.PHONY: demo test lint types format bench soak clean
+.PHONY: demo test browser lint types format bench soak clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml $(CONSTRAINTS)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet $(if $(CONSTRAINTS),-c $(CONSTRAINTS)) -e '.[$(EXTRAS)]'
 	touch $(STAMP)
+
+## The view's browser test needs Debian's chromium: installed when missing and we may
+## (root, or sudo without a password); otherwise one line saying how, and make stops.
+browser:
+	@sh scripts/need-chromium
 
 ## The main job on the embedded default: emulated cell, zenoh peer on loopback, local MCAP.
 demo: $(STAMP)
@@ -18,7 +27,7 @@ demo: $(STAMP)
 
 ## The test suite (what CI runs): lint, types, then pytest without the slow soak/accuracy sweeps:
 ## the tests that measure real time alone, the others on two workers (tests/conftest.py).
-test: $(STAMP)
+test: $(STAMP) browser
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy

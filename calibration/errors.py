@@ -2,10 +2,13 @@
 
 Every public exception of the package is defined here. The module that raises one
 imports it from here, so its older path (``from calibration.scales.circle_fit import
-CircleFitError``) still works.
+CircleFitError``) still works. Besides the root, each inherits one kind of failure from
+:mod:`edges.errors` (configuration, input data, device, numerical).
 """
 
 from __future__ import annotations
+
+from edges.errors import ConfigurationError, DeviceError, InputDataError, NumericalError
 
 
 class CalibrationError(Exception):
@@ -15,11 +18,11 @@ class CalibrationError(Exception):
 # --- input files and options
 
 
-class DescriptionError(CalibrationError, ValueError):
+class DescriptionError(CalibrationError, ConfigurationError, ValueError):
     """A robot description file is malformed: the message names file, table and key."""
 
 
-class DataFileError(CalibrationError, ValueError):
+class DataFileError(CalibrationError, InputDataError, ValueError):
     """A measurement file (CSV) is malformed: the message names file, row and column."""
 
 
@@ -27,45 +30,45 @@ class UnitsError(DataFileError):
     """The numbers of a file are implausible in its columns' units (a hint says which)."""
 
 
-class StreamError(CalibrationError, ValueError):
+class StreamError(CalibrationError, InputDataError, ValueError):
     """A recording or live source lacks a stream the twin needs, or cannot be decoded."""
 
 
-class OutputFileError(CalibrationError, ValueError):
+class OutputFileError(CalibrationError, ConfigurationError, ValueError):
     """An output path is refused: it is an input, a directory, or cannot be written."""
 
 
-class OptionError(CalibrationError, ValueError):
+class OptionError(CalibrationError, ConfigurationError, ValueError):
     """A command-line option has a malformed value (the message names the option)."""
 
 
 # --- kinematics and the model
 
 
-class KinematicsError(CalibrationError, ValueError):
+class KinematicsError(CalibrationError, InputDataError, ValueError):
     """Bad arguments to a kinematics function (shapes, joint count)."""
 
 
-class ModelEffectError(CalibrationError, ValueError):
+class ModelEffectError(CalibrationError, ConfigurationError, ValueError):
     """A description names an effect kind the twin cannot apply, or its parameters are bad."""
 
 
-class EffectLibraryError(CalibrationError, ValueError):
+class EffectLibraryError(CalibrationError, InputDataError, ValueError):
     """An effect has bad parameters, or needs data (times) the poses do not have."""
 
 
-class GravityRegressorError(CalibrationError, ValueError):
+class GravityRegressorError(CalibrationError, ConfigurationError, ValueError):
     """A moment name is unknown, or the gravity direction is not a direction."""
 
 
-class StiffnessError(CalibrationError, ValueError):
+class StiffnessError(CalibrationError, InputDataError, ValueError):
     """Stiffnesses missing for a force, or a load test that cannot give them."""
 
 
 # --- grating-scale calibration
 
 
-class CircleFitError(CalibrationError, ValueError):
+class CircleFitError(CalibrationError, NumericalError, ValueError):
     """The points do not determine a circle (too few, non-finite, or collinear)."""
 
 
@@ -77,45 +80,45 @@ class TargetSetFitError(CircleFitError):
     """
 
 
-class ScaleError(CalibrationError, ValueError):
+class ScaleError(CalibrationError, InputDataError, ValueError):
     """The data of a joint cannot give a scale calibration (too few stops, no zero, ...)."""
 
 
 # --- identification and compensation
 
 
-class RegistrationError(CalibrationError, ValueError):
+class RegistrationError(CalibrationError, NumericalError, ValueError):
     """The point sets cannot be registered (too few points, collinear, NaN)."""
 
 
-class IdentifiabilityError(CalibrationError, ValueError):
+class IdentifiabilityError(CalibrationError, NumericalError, ValueError):
     """The data identifies nothing, or the arguments have the wrong shape."""
 
 
-class IdentificationError(CalibrationError, ValueError):
+class IdentificationError(CalibrationError, NumericalError, ValueError):
     """The identification cannot run (too few poses, bad shapes, unknown option) or its fit
     ran away beyond repair."""
 
 
-class RecursiveIdentificationError(CalibrationError, ValueError):
+class RecursiveIdentificationError(CalibrationError, InputDataError, ValueError):
     """Bad settings or data for the recursive identification."""
 
 
-class PoseSelectionError(CalibrationError, ValueError):
+class PoseSelectionError(CalibrationError, InputDataError, ValueError):
     """Bad arguments to the pose selection (unknown index, too few candidates)."""
 
 
-class CompensationError(CalibrationError, ValueError):
+class CompensationError(CalibrationError, InputDataError, ValueError):
     """The targets or their joints are malformed (shapes, non-finite values)."""
 
 
-class ScaleFileError(CalibrationError, ValueError):
+class ScaleFileError(CalibrationError, InputDataError, ValueError):
     """``scale.toml`` is malformed: the message names the file, table and key."""
 
 
-class TwinRunError(CalibrationError, ValueError):
+class TwinRunError(CalibrationError, InputDataError, ValueError):
     """The data do not hold what a calibration needs (named in the message)."""
 
 
-class LiveTwinError(CalibrationError):
+class LiveTwinError(CalibrationError, DeviceError):
     """The live twin cannot start (no grating stream where it was told to look)."""

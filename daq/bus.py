@@ -40,6 +40,7 @@ from daq.columnar import (
     read_header,
 )
 from daq.config import ZenohConfig
+from daq.errors import PublishError as PublishError  # its old path, kept for callers
 from daq.errors import SchemaError, TransportError
 
 log = logging.getLogger(__name__)
@@ -126,16 +127,6 @@ class SchemaServer:
         q, self._queryable = self._queryable, None
         if q is not None:
             q.undeclare()
-
-
-class PublishError(TransportError):
-    """Some puts of :meth:`ChannelPublisher.publish_slices` failed; ``payloads`` holds all
-    of its payloads (for the recorder), ``cause`` the first error."""
-
-    def __init__(self, payloads: list[bytes], cause: Exception) -> None:
-        super().__init__(f"put failed: {cause!r}")
-        self.payloads = payloads
-        self.cause = cause
 
 
 class ChannelPublisher:

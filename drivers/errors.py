@@ -2,20 +2,22 @@
 
 from __future__ import annotations
 
+from edges.errors import ConfigurationError, DeviceError
+
 
 class DriverError(Exception):
     """Root of every error raised by the ``drivers`` package."""
 
 
-class DriverConfigError(DriverError, ValueError):
+class DriverConfigError(DriverError, ConfigurationError, ValueError):
     """Bad driver name, URL or option (the message lists what is allowed)."""
 
 
-class DriverClosedError(DriverError, RuntimeError):
+class DriverClosedError(DriverError, DeviceError, RuntimeError):
     """The driver was used after :meth:`~drivers.base.Driver.close`."""
 
 
-class DeviceIOError(DriverError, OSError):
+class DeviceIOError(DriverError, DeviceError, OSError):
     """The link to the device failed (raised by adapters, handled by the base class).
 
     The base class catches it, counts it, closes the link and reconnects with backoff:
@@ -23,7 +25,7 @@ class DeviceIOError(DriverError, OSError):
     """
 
 
-class ProtocolError(DriverError):
+class ProtocolError(DriverError, DeviceError):
     """A frame from the device could not be parsed (counted, never fatal)."""
 
     def __init__(self, kind: str, message: str = "") -> None:

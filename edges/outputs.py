@@ -4,19 +4,23 @@ A command declares its outputs up front (``OutputSet.file`` for a file, ``.direc
 for a directory of files) and writes them to the staging paths it gets back. The staging
 area is a hidden sibling (``.NAME.partial-XXXX``) in the nearest existing directory above
 the target, so the final moves are renames on one file system. When the run ends
-without an exception, :meth:`OutputSet.commit` checks every destination and then moves
-every file into place (``os.replace``, directories created as needed); when it raises,
-the staging area is removed and the targets are as they were.
+without an exception, :meth:`OutputSet.commit` checks every destination (its kind, and
+that its directory can be written) and then moves every file into place (``os.replace``,
+directories created as needed). When a move still fails (a report directory the system
+refuses to write, a full disk), the moves already made are undone: each replaced file is
+put back from a hard link taken beside it, each new file and directory removed. When the
+run raises, the staging area is removed and the targets are as they were.
 
 Refused before anything runs: an output that is one of the run's inputs (same file, by
 device and inode, through any symlink or relative path), a file output whose path is a
 directory (or the reverse), a place where no directory can be made or written. A
-``kill -9`` mid-run leaves a ``.NAME.partial-XXXX`` directory beside the target, never a
-half-written target.
+``kill -9`` mid-run leaves a ``.NAME.partial-XXXX`` directory beside the target (mid-commit,
+also ``.NAME.partial-old-XXXX`` links to replaced files), never a half-written target.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import tempfile
@@ -43,6 +47,59 @@ def _identity(path: Path) -> tuple[int, int] | None:
     except OSError:
         return None
     return st.st_dev, st.st_ino
+
+
+@dataclass(frozen=True)
+class _Moved:
+    """One move of a commit, as much as undoing it needs."""
+
+    target: Path
+    backup: Path | None  # a hard link to the file the move replaced
+    created: tuple[Path, ...]  # directories the move made, outermost first
+
+
+def _backup(target: Path) -> Path | None:
+    """A hidden link (a copy where links are refused) to the file at ``target``, beside it."""
+    if not (target.exists() or target.is_symlink()):
+        return None
+    backup = target.with_name(f".{target.name}{PARTIAL}old-{os.urandom(4).hex()}")
+    try:
+        os.link(target, backup, follow_symlinks=False)
+    except OSError:
+        shutil.copy2(target, backup, follow_symlinks=False)
+    return backup
+
+
+def _move(src: Path, dst: Path) -> _Moved:
+    """``os.replace(src, dst)``, making ``dst``'s missing directories and keeping a backup
+    of the file it replaces."""
+    created = [d for d in [dst.parent, *dst.parent.parents] if not d.exists()][::-1]
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    done = _Moved(dst, None, tuple(created))
+    try:
+        done = _Moved(dst, _backup(dst), tuple(created))
+        os.replace(src, dst)
+    except OSError:
+        _undo([done], restore=False)
+        raise
+    return done
+
+
+def _undo(moves: list[_Moved], *, restore: bool = True) -> None:
+    """Put back what ``moves`` replaced, remove what they created (best effort: the error
+    that stopped the commit is the one reported)."""
+    for m in reversed(moves):
+        with contextlib.suppress(OSError):
+            if m.backup is not None:
+                if restore:
+                    os.replace(m.backup, m.target)
+                else:
+                    m.backup.unlink()
+            elif restore:
+                m.target.unlink(missing_ok=True)
+        for d in reversed(m.created):
+            with contextlib.suppress(OSError):
+                d.rmdir()
 
 
 def _existing_ancestor(path: Path) -> Path:
@@ -146,8 +203,8 @@ class OutputSet:
         return moves
 
     def commit(self) -> list[Path]:
-        """Move every staged file into place (all destinations checked first); the
-        final paths, in order."""
+        """Move every staged file into place (all destinations checked first; a move that
+        fails undoes the ones before it); the final paths, in order."""
         if self._done:
             return []
         moves = self._moves()
@@ -155,16 +212,27 @@ class OutputSet:
             self._refuse_input(dst, option)
             if dst.is_dir() and not dst.is_symlink():
                 raise self._error(f"{option}: {dst} is a directory, cannot write a file there")
-        written: list[Path] = []
+        for anchor, option in {self._writable_anchor(dst): o for _s, dst, o in moves}.items():
+            if not os.access(anchor, os.W_OK | os.X_OK):
+                raise self._error(f"{option} {anchor}: cannot write: permission denied")
+        done: list[_Moved] = []
         for src, dst, option in moves:
             try:
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(src, dst)
+                done.append(_move(src, dst))
             except OSError as exc:
+                _undo(done)
                 raise self._error(f"{option} {dst}: cannot write: {exc.strerror or exc}") from None
-            written.append(dst)
+        for m in done:
+            if m.backup is not None:
+                m.backup.unlink(missing_ok=True)
         self.discard()
-        return written
+        return [m.target for m in done]
+
+    def _writable_anchor(self, dst: Path) -> Path:
+        """The directory a move to ``dst`` writes in: its parent, or the nearest existing
+        directory above it (where the missing ones are made)."""
+        parent = dst.parent
+        return parent if parent.exists() else _existing_ancestor(parent)
 
     def discard(self) -> None:
         """Remove the staging areas (the targets are untouched)."""

@@ -25,6 +25,7 @@ from typing import Protocol
 
 import numpy as np
 
+from edges.errors import DeviceError
 from sim_devices.config import EffectsSection, TrackerSection
 from sim_devices.plant import DeviceClock, Plant
 from sim_devices.pty_link import PtyLink
@@ -46,7 +47,7 @@ class Port(Protocol):
     def write(self, data: bytes, timeout_s: float = 0.5) -> int: ...
 
 
-class PortClosed(Exception):
+class PortClosed(DeviceError):
     """The peer went away."""
 
 

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from calibration.errors import CalibrationError
+from edges.errors import ConfigurationError
 
 
-class ViewError(CalibrationError, ValueError):
+class ViewError(CalibrationError, ConfigurationError, ValueError):
     """Bad input to ``twin view`` (a file, an option, an endpoint): the message names it."""

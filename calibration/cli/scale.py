@@ -66,6 +66,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         action="store_true",
         help="do not refuse sweep points that do not move like millimetres (metres)",
     )
+    p.add_argument(
+        "--allow-out-of-range",
+        action="store_true",
+        help="calibrate a joint whose sweep lies outside its limits seen from Home (default: "
+        "refused: Home counts that disagree with the sweep)",
+    )
     p.set_defaults(func=run_scale)
 
     a = sub.add_parser(
@@ -150,6 +156,41 @@ def calibrate_files(
     return with_load_notes(result, robot, deflection_taken_out=False)
 
 
+def check_calibrated_ranges(
+    results: ScaleCampaignResult,
+    robot: RobotDescription | None,
+    sweep_path: str,
+    home_path: str | None,
+) -> None:
+    """Refuse a joint whose calibrated range (its sweep stops' angles from Home) leaves the
+    joint's limits (``robot``'s, seen from its Home; without one: a turn either way) by more
+    than :data:`RANGE_MARGIN_DEG`. Home counts that disagree with the sweep by millions of
+    counts (another joint's, a reset counter) otherwise give a map that turns the joint
+    through thousands of degrees, silently."""
+    for r in results:
+        used = r.stop_angle_deg[r.used]
+        if not used.size:
+            continue
+        lo, hi = float(used.min()), float(used.max())
+        if robot is not None:
+            joint, home_deg = robot.joints[r.joint - 1], robot.home[r.joint - 1]
+            allowed = (joint.lower_deg - home_deg, joint.upper_deg - home_deg)
+            what = (
+                f"joint {r.joint}'s limits {joint.lower_deg:g}..{joint.upper_deg:g}° "
+                f"(Home at {home_deg:g}°, {robot.name})"
+            )
+        else:
+            allowed, what = FALLBACK_RANGE_DEG, "a turn from Home (no --robot for its limits)"
+        if allowed[0] - RANGE_MARGIN_DEG <= lo and hi <= allowed[1] + RANGE_MARGIN_DEG:
+            continue
+        source = f"{home_path}: joint {r.joint}" if r.home.source == "home" else sweep_path
+        raise DataFileError(
+            f"{source}, column 'counts': joint {r.joint}'s sweep lies {lo:.1f}..{hi:.1f}° from "
+            f"Home, outside {what} (±{RANGE_MARGIN_DEG:g}°): do these Home counts belong to "
+            f"this sweep (another joint's, a reset counter)? ({OUT_OF_RANGE} calibrates anyway)"
+        )
+
+
 def _file(name: str | None) -> str | None:
     return name if name and Path(name).exists() else None
 
@@ -177,6 +218,8 @@ def _scale(
         args.sweep, args.home, robot, options, unit_check=not args.no_unit_check
     )
     elapsed = time.perf_counter() - t0
+    if not args.allow_out_of_range:
+        check_calibrated_ranges(results, robot, args.sweep, args.home)
     meta = {
         "sweep_file": Path(args.sweep).name,
         "home_file": Path(args.home).name if args.home else "",

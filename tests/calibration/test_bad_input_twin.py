@@ -19,7 +19,8 @@ options            --f-scale-mm -1/0/nan/inf, --tracker-mpe-um x/-1,2, --effects
                    --effect-kinds bogus
 outputs            --out = --data, --out = --robot file, --out a symlink to the data,
                    --out below a file, --out a directory, --report a file, --report = data,
-                   --out in /proc, a failed fit with an earlier output in place
+                   --out in /proc, a failed fit with an earlier output in place, a --report
+                   directory the system refuses to write
 robot .toml        binary, syntax, wrong type, NaN, unknown key, bad [[effect]], fewer joints,
                    /dev/zero; ``twin robot`` refuses what ``twin predict`` refuses
 joints.csv         radians, empty, header only, NaN, duplicated pose, missing q column,
@@ -31,11 +32,9 @@ recordings         CSV as --replay, random bytes, empty, --out a file, --out = -
 
 from __future__ import annotations
 
-import hashlib
 import math
 import os
 import shutil
-import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -45,12 +44,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from calibration.cli import main as twin_main
 from calibration.effects.model_effects import description_effects
 from calibration.errors import CalibrationError
 from calibration.identify.campaign_files import read_campaign, read_joint_readings, write_campaign
 from calibration.model.description import RobotDescription, load_robot
 from calibration.twin.streams import read_recording_streams
 from sim_devices.pose_campaign import CampaignSettings, emulated_campaign
+from tests import bad_input
+from tests.bad_input import assert_refusal, refuse_moves_into, snapshot
 
 #: Set to a file path to list every refused input there (counted for notes).
 COUNT_FILE = "BAD_INPUT_COUNT_FILE"
@@ -82,29 +84,7 @@ def clean(tmp_path_factory) -> Path:
 
 
 def twin(cwd: Path, *args: str, env: dict[str, str] | None = None):
-    return subprocess.run(
-        [*TWIN, *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={**os.environ, **(env or {})},
-    )
-
-
-def snapshot(root: Path) -> dict[str, str]:
-    """Every file and directory under ``root`` (hidden ones too) with its content hash."""
-    out = {}
-    for dirpath, dirs, files in os.walk(root):
-        for d in dirs:
-            out[os.path.relpath(os.path.join(dirpath, d), root)] = "dir"
-        for f in files:
-            p = os.path.join(dirpath, f)
-            if os.path.islink(p):
-                out[os.path.relpath(p, root)] = "link:" + os.readlink(p)
-            else:
-                out[os.path.relpath(p, root)] = hashlib.sha256(Path(p).read_bytes()).hexdigest()
-    return out
+    return bad_input.run([*TWIN, *args], cwd, env, timeout=120)
 
 
 @pytest.fixture
@@ -115,22 +95,13 @@ def work(clean, tmp_path) -> Path:
 
 
 def refused(work: Path, args: list[str], *keywords: str, env=None) -> str:
-    """Run ``twin ARGS`` in ``work``: exit 2, one stderr line with the key words, and no
-    file changed. Returns the line."""
-    before = snapshot(work)
-    proc = twin(work, *args, env=env)
-    err = proc.stderr.strip()
-    assert proc.returncode == 2, (proc.returncode, err, proc.stdout)
-    assert "Traceback" not in err, err
-    assert len(err.splitlines()) == 1, err
-    low = err.lower()
-    for word in keywords:
-        assert word.lower() in low, (word, err)
-    assert snapshot(work) == before, err
+    """Run ``twin ARGS`` in ``work``: exit 2, one stderr line with the key words (any
+    case), and no file changed (tests/bad_input.py). Returns the line."""
+    proc = bad_input.refused(work, [*TWIN, *args], keywords, env=env, timeout=120, ignore_case=True)
     if os.environ.get(COUNT_FILE):  # the closing note's counts: one line per refused input
         with open(os.environ[COUNT_FILE], "a", encoding="utf-8") as fh:
             fh.write(" ".join(args) + "\n")
-    return err
+    return proc.stderr.strip()
 
 
 def campaign_rows(work: Path) -> list[list[str]]:
@@ -312,6 +283,19 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_fit(work):
     refused(work, [*base, "--out", "adir"], "--out", "directory")
     refused(work, [*base, "--out", "o.toml", "--report", "cal.toml"], "--report", "directory")
     refused(work, [*base, "--out", "/proc/o.toml"], "--out", "/proc")
+
+
+def test_a_report_directory_that_cannot_be_written_leaves_no_output(work, monkeypatch, capsys):
+    # in process: the system refusing the report's files is injected (root writes anywhere);
+    # before, calibrated.toml was already in place when the report's move failed
+    (work / "rep").mkdir()
+    before = snapshot(work)
+    refuse_moves_into(monkeypatch, work / "rep")
+    monkeypatch.chdir(work)
+    argv = ["identify", "--robot", "kr500", "--data", "campaign.csv", "--no-effects"]
+    status = twin_main([*argv, "--out", "calibrated.toml", "--report", "rep", "--quiet"])
+    assert_refusal(status, capsys.readouterr().err, ["--report", "rep", "cannot write"],
+                   before, snapshot(work))  # fmt: skip
 
 
 def test_a_successful_run_creates_directories_and_leaves_no_staging(work):

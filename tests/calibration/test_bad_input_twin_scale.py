@@ -37,6 +37,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 
+from calibration.cli import main as twin_main
 from calibration.errors import CalibrationError
 from calibration.scales.scale_files import (
     read_counts_csv,
@@ -44,7 +45,8 @@ from calibration.scales.scale_files import (
     read_scale_toml,
     read_sweep_csv,
 )
-from tests.calibration.test_bad_input_twin import _mutations, refused, snapshot, twin
+from tests.bad_input import assert_refusal, refuse_moves_into, snapshot
+from tests.calibration.test_bad_input_twin import _mutations, refused, twin
 
 SCALE = ["scale", "--sweep", "sweep.csv", "--home", "home.csv", "--out", "out.toml"]
 APPLY = ["scale-apply", "--scale", "scale.toml", "--out", "angles.csv"]
@@ -186,6 +188,50 @@ def test_scale_outputs_never_replace_an_input_or_land_half(work):
     refused(work, [*base, "--out", "sweep.csv/out.toml"], "--out", "not a directory")
     (work / "adir").mkdir()
     refused(work, [*base, "--out", "adir"], "--out", "directory")
+
+
+def test_scale_a_report_directory_that_cannot_be_written_leaves_no_output(
+    work, monkeypatch, capsys
+):
+    # in process: the system refusing the report's files is injected (root writes anywhere)
+    (work / "rep").mkdir()
+    before = snapshot(work)
+    refuse_moves_into(monkeypatch, work / "rep")
+    monkeypatch.chdir(work)
+    status = twin_main(
+        ["scale", "--sweep", "sweep.csv", "--home", "home.csv", "--out", "new.toml",
+         "--report", "rep"]
+    )  # fmt: skip
+    assert_refusal(status, capsys.readouterr().err, ["--report", "rep", "cannot write"],
+                   before, snapshot(work))  # fmt: skip
+
+
+def _home_off_by(work: Path, joint: int, counts: int) -> None:
+    rows = rows_of(work / "home.csv")
+    j, c = rows[0].index("joint"), rows[0].index("counts")
+    for r in rows[1:]:
+        if r[j] == str(joint):
+            r[c] = str((int(r[c]) + counts) % 2**32)
+    write_rows(work / "bad.csv", rows)
+
+
+def test_scale_refuses_a_home_that_puts_the_sweep_outside_the_joint(work):
+    # Home counts 5 million off the sweep's (another joint's, a reset counter): the map
+    # would turn joint 2 through ~640° from Home
+    _home_off_by(work, 2, 5_000_000)
+    base = ["scale", "--sweep", "sweep.csv", "--home", "bad.csv", "--out", "new.toml"]
+    refused(work, base, "bad.csv", "joint 2", "a turn from Home", "--allow-out-of-range")
+    refused(work, [*base, "--robot", "kr500"], "bad.csv", "joint 2", "limits -40..110",
+            "--allow-out-of-range")  # fmt: skip
+    assert twin(work, *base, "--allow-out-of-range").returncode == 0
+
+
+def test_scale_keeps_a_home_off_by_less_than_the_margin(work):
+    # 200 counts (under 0.03°) off: a Home's ordinary scatter, calibrated as before
+    _home_off_by(work, 2, 200)
+    done = twin(work, "scale", "--sweep", "sweep.csv", "--home", "bad.csv", "--out", "new.toml",
+                "--robot", "kr500")  # fmt: skip
+    assert done.returncode == 0, done.stderr
 
 
 def test_scale_accepts_bom_crlf_and_shuffled_columns_with_the_same_numbers(work):

@@ -56,7 +56,6 @@ wrong results, runs that changed files.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import io
 import json
 import math
@@ -83,6 +82,8 @@ from daq import config as cfg
 from daq.columnar import Column, StreamSchema, encode
 from daq.errors import ConfigError, DaqError, RecordingError
 from daq.recording import MAGIC, McapRecorder, read_recording, recover, scan
+from tests import bad_input
+from tests.bad_input import snapshot
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -219,65 +220,13 @@ def work(tmp_path: Path) -> Path:
     return tmp_path
 
 
-def snapshot(root: Path) -> dict[str, str]:
-    """Every entry under ``root``: files by content hash, directories, symlinks by target."""
-    out: dict[str, str] = {}
-    for dirpath, dirs, files in os.walk(root):
-        for d in dirs:
-            p = Path(dirpath) / d
-            out[str(p.relative_to(root))] = "link:" + os.readlink(p) if p.is_symlink() else "dir"
-        for f in files:
-            p = Path(dirpath) / f
-            rel = str(p.relative_to(root))
-            if p.is_symlink():
-                out[rel] = "link:" + os.readlink(p)
-            elif not p.is_file():
-                out[rel] = "special"  # a named pipe: not read
-            else:
-                out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
-    return out
-
-
 def run(argv: list[str], cwd: Path, env: dict[str, str] | None = None):
-    environ = {
-        k: v
-        for k, v in os.environ.items()
-        if not k.startswith("DAQ_") and k != "GRATING_TWIN_MAX_INPUT_MB"
-    }
-    environ.update(env or {})
-    return subprocess.run(
-        argv, cwd=cwd, env=environ, capture_output=True, text=True, timeout=TIMEOUT_S
-    )
+    return bad_input.run(argv, cwd, env, timeout=TIMEOUT_S)
 
 
 def refused(work: Path, argv: list[str], words: list[str], env: dict[str, str] | None = None):
-    """Run ``argv`` in ``work`` and assert the clean refusal (see the module docstring)."""
-    before = snapshot(work)
-    TALLY["tried"] += 1
-    try:
-        proc = run(argv, work, env)
-    except subprocess.TimeoutExpired:
-        TALLY["hang"] += 1
-        raise
-    after = snapshot(work)
-    err = proc.stderr
-    if os.environ.get("SHOW_MESSAGES"):
-        print(f"\n{' '.join(argv[1:])}\n    -> {proc.returncode} {err.strip()}")
-    lines = err.strip().splitlines()
-    TALLY["traceback"] += "Traceback" in err
-    TALLY["changed"] += before != after
-    ok = proc.returncode == 2 and len(lines) == 1 and "Traceback" not in err
-    missing = [w for w in words if w not in err]
-    if ok and not missing and before == after:
-        TALLY["clear"] += 1
-    elif proc.returncode == 0:
-        TALLY["silent"] += 1
-    assert proc.returncode == 2, (proc.returncode, err, proc.stdout[-2000:])
-    assert "Traceback" not in err, err
-    assert len(lines) == 1, err
-    assert not missing, (missing, err)
-    assert before == after, {k for k in set(before) | set(after) if before.get(k) != after.get(k)}
-    return proc
+    """Run ``argv`` in ``work`` and assert the clean refusal (tests/bad_input.py)."""
+    return bad_input.refused(work, argv, words, env=env, timeout=TIMEOUT_S, tally=TALLY)
 
 
 def accepted(proc: subprocess.CompletedProcess, status: int = 0) -> None:

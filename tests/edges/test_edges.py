@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -14,6 +15,7 @@ from edges import inputs
 from edges.command import EXIT_BUG, EXIT_PIPE, EXIT_USER, run_command, take_debug_flag
 from edges.inputs import LIMIT_VARIABLE, read_input_bytes
 from edges.outputs import OutputSet
+from tests.bad_input import refuse_moves_into
 
 
 class UserError(Exception):
@@ -49,6 +51,33 @@ def test_a_failed_run_leaves_everything_as_it_was(tmp_path):
         raise RuntimeError("the fit failed")
     assert listing(tmp_path) == before
     assert (tmp_path / "model.toml").read_text() == "earlier"
+
+
+def test_a_move_that_fails_at_commit_undoes_the_moves_before_it(tmp_path, monkeypatch):
+    (tmp_path / "model.toml").write_text("earlier")
+    (tmp_path / "report").mkdir()
+    before = listing(tmp_path)
+    refuse_moves_into(monkeypatch, tmp_path / "report")
+    failed = pytest.raises(UserError, match=r"--report .*report\.md: cannot write")
+    with failed, OutputSet(error=UserError) as outputs:
+        outputs.file(tmp_path / "model.toml").write_text("new")
+        outputs.file(tmp_path / "fresh" / "b.csv").write_text("new")
+        outputs.directory(tmp_path / "report", "--report").joinpath("report.md").write_text("x")
+    assert listing(tmp_path) == before  # no fresh/, no staging, no backup left
+    assert (tmp_path / "model.toml").read_text() == "earlier"
+
+
+def test_a_directory_that_cannot_be_written_is_refused_before_any_move(tmp_path, monkeypatch):
+    (tmp_path / "report").mkdir()
+    real = os.access
+    monkeypatch.setattr(
+        os, "access", lambda p, mode: Path(p) != tmp_path / "report" and real(p, mode)
+    )
+    refused = pytest.raises(UserError, match=r"--report .*report: cannot write: permission")
+    with refused, OutputSet(error=UserError) as outputs:
+        outputs.file(tmp_path / "model.toml").write_text("new")
+        outputs.directory(tmp_path / "report", "--report").joinpath("r.md").write_text("x")
+    assert listing(tmp_path) == ["report"]
 
 
 @pytest.mark.parametrize("spelling", ["data.csv", "./x/../data.csv", "link.csv", "DIR"])

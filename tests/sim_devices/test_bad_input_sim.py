@@ -42,12 +42,9 @@ in another order.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import math
-import os
 import re
 import socket
-import subprocess
 import sys
 from collections import Counter
 from pathlib import Path
@@ -65,6 +62,8 @@ from sim_devices.config import (
     number_option,
 )
 from sim_devices.errors import SimError
+from tests import bad_input
+from tests.bad_input import snapshot
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -110,61 +109,16 @@ def work(tmp_path: Path) -> Path:
     return tmp_path
 
 
-def snapshot(root: Path) -> dict[str, str]:
-    """Every entry under ``root``: files by content hash, directories, symlinks by target."""
-    out: dict[str, str] = {}
-    for dirpath, dirs, files in os.walk(root):
-        for d in dirs:
-            p = Path(dirpath) / d
-            out[str(p.relative_to(root))] = "link:" + os.readlink(p) if p.is_symlink() else "dir"
-        for f in files:
-            p = Path(dirpath) / f
-            rel = str(p.relative_to(root))
-            if p.is_symlink():
-                out[rel] = "link:" + os.readlink(p)
-            else:
-                out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
-    return out
-
-
 def run(argv: list[str], cwd: Path, env: dict[str, str] | None = None):
-    environ = {k: v for k, v in os.environ.items() if k != "GRATING_TWIN_MAX_INPUT_MB"}
-    environ.update(env or {})
-    return subprocess.run(
-        argv, cwd=cwd, env=environ, capture_output=True, text=True, timeout=TIMEOUT_S
-    )
+    return bad_input.run(argv, cwd, env, timeout=TIMEOUT_S)
 
 
 def refused(work: Path, argv: list[str], words: list[str], env: dict[str, str] | None = None):
-    """Run ``argv`` in ``work`` and assert the clean refusal (see the module docstring)."""
-    before = snapshot(work)
-    TALLY["tried"] += 1
-    try:
-        proc = run(argv, work, env)
-    except subprocess.TimeoutExpired:
-        TALLY["hang"] += 1
-        raise
-    after = snapshot(work)
-    err = proc.stderr
-    lines = err.strip().splitlines()
-    TALLY["traceback"] += "Traceback" in err
-    TALLY["silent"] += proc.returncode == 0
-    TALLY["changed"] += after != before
-    clear = (
-        proc.returncode == 2
-        and len(lines) == 1
-        and "Traceback" not in err
-        and all(w in err for w in words)
-    )
-    TALLY["clear"] += clear and after == before and proc.stdout == ""
-    assert proc.returncode == 2, (proc.returncode, err, proc.stdout)
-    assert "Traceback" not in err, err
-    assert len(lines) == 1, err
-    for w in words:
-        assert w in err, (w, err)
-    assert proc.stdout == "", proc.stdout
-    assert after == before, (set(after) ^ set(before), err)
-    return err
+    """Run ``argv`` in ``work`` and assert the clean refusal, nothing on stdout either
+    (tests/bad_input.py)."""
+    return bad_input.refused(
+        work, argv, words, env=env, timeout=TIMEOUT_S, tally=TALLY, quiet_stdout=True
+    ).stderr
 
 
 # -- sim-cell: the cell config ---------------------------------------------------------

@@ -3,10 +3,10 @@ and the page itself in a real browser.
 
 The browser test starts ``twin view --replay`` as a process on the committed test
 recording (``tests/data/campaign_small.mcap``, docs/twin-run.md "Replay tests"), opens
-the page in headless Chromium (Debian's ``chromium``; ``.ci/run`` installs it), and
-checks that the robot is drawn (the scene's pixels differ from an empty viser scene's,
-and the arm's colour is there) and that the page's status reads the replay's time. No
-Chromium is a failure, not a skip.
+the page in headless Chromium (Debian's ``chromium``; ``make test`` installs it, through
+scripts/need-chromium), and checks that the robot is drawn (the scene's pixels differ from
+an empty viser scene's, and the arm's colour is there) and that the page's status reads
+the replay's time. No Chromium is a failure, not a skip.
 """
 
 from __future__ import annotations
@@ -253,7 +253,7 @@ def _chromium() -> str:
     if found is None:
         pytest.fail(
             "headless Chromium not found: install Debian's package (apt-get install "
-            "chromium; .ci/run does it before `make test`)"
+            "chromium; `make test` installs it, scripts/need-chromium)"
         )
     return found
 
