@@ -13,10 +13,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
+import numpy as np
 from numpy.typing import ArrayLike
 
 from calibration.campaign_files import Campaign
-from calibration.description import RobotDescription
+from calibration.description import RobotDescription, TrackingDescription
 
 if TYPE_CHECKING:  # the solvers load when calibrate runs
     from calibration.closed_loop import ClosedLoopResult, LoopSettings
@@ -90,7 +91,8 @@ def calibrate(
         on_geometric(geometric)
     if not effects:
         calibrated = replace(geometric.model.to_description(description), effects=())
-        return CalibrationResult(geometric, None, calibrated)
+        tracking = tracking_description(geometric, campaign)
+        return CalibrationResult(geometric, None, replace(calibrated, tracking=tracking))
     loop = run_closed_loop(
         description,
         campaign,
@@ -103,4 +105,29 @@ def calibrate(
         say=say,
         sweep_referenced=sweep_referenced,
     )
-    return CalibrationResult(geometric, loop, loop.calibrated_description(description))
+    calibrated = replace(
+        loop.calibrated_description(description),
+        tracking=tracking_description(loop.result, campaign),
+    )
+    return CalibrationResult(geometric, loop, calibrated)
+
+
+def tracking_description(result: IdentificationResult, campaign: Campaign) -> TrackingDescription:
+    """What ``twin track`` needs from this calibration (``[tracking]``): the identified
+    geometric parameters, the fit's σ, the identification poses and the validation poses
+    (the identification poses when the campaign has none) for the alarm."""
+    names = result.identifiability.parameter_names
+    n_geo = result.model.n_parameters
+    identified = tuple(names[i] for i in result.identifiability.free_indices if i < n_geo)
+    idm, val = campaign.mask("identify"), campaign.mask("validate")
+    reference = campaign.q_deg[val] if val.any() else campaign.q_deg[idm]
+
+    def rows(q_deg: ArrayLike) -> tuple[tuple[float, ...], ...]:
+        return tuple(tuple(round(float(v), 9) for v in r) for r in np.asarray(q_deg))
+
+    return TrackingDescription(
+        identified=identified,
+        sigma_mm=float(result.sigma_mm),
+        identify_deg=rows(campaign.q_deg[idm]),
+        reference_deg=rows(reference),
+    )

@@ -119,3 +119,7 @@ class TwinRunError(CalibrationError, ValueError):
 
 class LiveTwinError(CalibrationError):
     """The live twin cannot start (no grating stream where it was told to look)."""
+
+
+class TrackingError(CalibrationError, ValueError):
+    """``twin track``: a model or check that cannot be tracked."""
