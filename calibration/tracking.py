@@ -84,6 +84,9 @@ class TrackingSettings:
     )
     step: StepTest = field(default_factory=StepTest)
     alarm_mm: float | None = None
+    #: the campaign's information about θ kept at the start: the robot moves from the
+    #: moment production starts, and all of it would hold the tracker back at warm-up
+    prior_weight: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -242,7 +245,9 @@ def tracking_setup(
     scale = np.where(scale > 0.0, scale, 1.0)
     _, jac_id = identification_jacobian(model, np.radians(np.asarray(tr.identify_deg, float)))
     h = (jac_id @ basis / scale).reshape(-1, len(chosen))
-    info = h.T @ h / tr.sigma_mm**2 + settings.forgetting.damping * np.eye(len(chosen))
+    info = settings.prior_weight * (h.T @ h) / tr.sigma_mm**2 + settings.forgetting.damping * np.eye(
+        len(chosen)
+    )
     return TrackingSetup(
         template=model,
         names=tuple(chosen),
@@ -278,18 +283,18 @@ def _predict(
 def _learn(
     setup: TrackingSetup,
     state: TrackerState,
-    q_rad: FloatArray,
-    measured_mm: FloatArray,
-    offset_mm: FloatArray,
+    point: PendingPoint,
+    seen: tuple[FloatArray, FloatArray] | None = None,
 ) -> TrackerState:
-    """The recursive LM step with one point (its own a-priori error)."""
-    pred, h = _predict(setup, state, q_rad, offset_mm)
+    """The recursive LM step with one point; ``seen``: its prediction and scaled Jacobian
+    at ``state``'s θ when already computed (one Jacobian per check)."""
+    pred, h = seen if seen is not None else _predict(setup, state, point.q_rad, point.offset_mm)
     lm = forgetting_step(
         state.information,
         state.forgetting,
         state.normalized_error,
         h,
-        measured_mm - pred,
+        point.measured_mm - pred,
         setup.sigma_mm,
         setup.settings.forgetting,
     )
@@ -340,22 +345,25 @@ def track_update(
     err = meas - pred
     cov = setup.sigma_mm**2 * np.eye(3) + h @ np.linalg.solve(state.information, h.T)
     nis = float(err @ np.linalg.solve(cov, err))
-    llr = test.llr(nis)
+    # while the reopened memory refills the test rests: the large errors of a model still
+    # learning the new robot are no second step
+    llr = test.llr(nis) if state.settling == 0 else -math.inf
     cusum = max(0.0, state.cusum + llr)
     onset = state.onset_row if state.cusum > 0.0 else state.rows
     row = state.rows
     state = replace(state, cusum=cusum, onset_row=onset if cusum > 0.0 else None)
     detected = cusum > test.threshold
     pending = state.pending
+    point = PendingPoint(q, meas, off, row)
     if detected:
         state = _reopened(setup, replace(state, pending=None))
         if pending is not None:
-            state = _learn(setup, state, pending.q_rad, pending.measured_mm, pending.offset_mm)
-        state = _learn(setup, state, q, meas, off)
+            state = _learn(setup, state, pending)
+        state = _learn(setup, state, point, None if pending is not None else (pred, h))
     elif llr >= test.suspect_llr and pending is None:
-        state = replace(state, pending=PendingPoint(q, meas, off, row))
+        state = replace(state, pending=point)
     else:  # a held suspect not confirmed was an outlier: dropped
-        state = _learn(setup, replace(state, pending=None), q, meas, off)
+        state = _learn(setup, replace(state, pending=None), point, (pred, h))
     if not detected and state.settling > 0:
         settling = state.settling - 1 if nis < test.settle_nis else test.settle_rows
         state = replace(state, settling=settling)
