@@ -245,9 +245,9 @@ def tracking_setup(
     scale = np.where(scale > 0.0, scale, 1.0)
     _, jac_id = identification_jacobian(model, np.radians(np.asarray(tr.identify_deg, float)))
     h = (jac_id @ basis / scale).reshape(-1, len(chosen))
-    info = settings.prior_weight * (h.T @ h) / tr.sigma_mm**2 + settings.forgetting.damping * np.eye(
-        len(chosen)
-    )
+    info = settings.prior_weight * (
+        h.T @ h
+    ) / tr.sigma_mm**2 + settings.forgetting.damping * np.eye(len(chosen))
     return TrackingSetup(
         template=model,
         names=tuple(chosen),
@@ -393,8 +393,9 @@ class TrackingRun:
     error_mm: FloatArray  # (m,)
     states: tuple[State, ...]
     forgetting: FloatArray  # (m,)
-    theta: FloatArray  # (m, k) after each check
-    theta_se: FloatArray  # (m, k)
+    theta: FloatArray  # (m, k) after each check, relative to the calibrated model
+    absolute: FloatArray  # (m, k) the same as absolute values (TrackingSetup.absolute)
+    theta_se: FloatArray  # (m, k) standard errors
     displacement_mm: FloatArray  # (m,)
     steps: tuple[tuple[int, int], ...]  # (detected row, onset row) per step
 
@@ -431,7 +432,8 @@ def track_checks(
         labels.append(step.state)
         if step.step_detected:
             steps.append((i, i if step.onset_row is None else step.onset_row))
-    return TrackingRun(st, pred, err, tuple(labels), lam, theta, se, disp, tuple(steps))
+    absolute = np.array([setup.absolute(th) for th in theta]).reshape(m, k)
+    return TrackingRun(st, pred, err, tuple(labels), lam, theta, absolute, se, disp, tuple(steps))
 
 
 def static_errors_mm(
