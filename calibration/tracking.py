@@ -133,6 +133,7 @@ class PendingPoint:
     measured_mm: FloatArray
     offset_mm: FloatArray
     row: int
+    cusum_before: float = 0.0  # the CUSUM without it (restored when it proves an outlier)
 
 
 @dataclass(frozen=True)
@@ -348,19 +349,23 @@ def track_update(
     # while the reopened memory refills the test rests: the large errors of a model still
     # learning the new robot are no second step
     llr = test.llr(nis) if state.settling == 0 else -math.inf
-    cusum = max(0.0, state.cusum + llr)
-    onset = state.onset_row if state.cusum > 0.0 else state.rows
+    pending = state.pending
+    suspect = llr >= test.suspect_llr
+    base = state.cusum
+    if pending is not None and not suspect:  # the held suspect was an outlier: its share goes
+        base = pending.cusum_before
+    cusum = max(0.0, base + llr)
+    onset = state.onset_row if base > 0.0 else state.rows
     row = state.rows
     state = replace(state, cusum=cusum, onset_row=onset if cusum > 0.0 else None)
     detected = cusum > test.threshold
-    pending = state.pending
-    point = PendingPoint(q, meas, off, row)
+    point = PendingPoint(q, meas, off, row, base)
     if detected:
         state = _reopened(setup, replace(state, pending=None))
         if pending is not None:
             state = _learn(setup, state, pending)
         state = _learn(setup, state, point, None if pending is not None else (pred, h))
-    elif llr >= test.suspect_llr and pending is None:
+    elif suspect and pending is None:
         state = replace(state, pending=point)
     else:  # a held suspect not confirmed was an outlier: dropped
         state = _learn(setup, replace(state, pending=None), point, (pred, h))
@@ -478,19 +483,24 @@ def window_refit_errors(
 
 
 def false_alarm_rate(test: StepTest, rows: int, runs: int, seed: int = 0) -> float:
-    """Steps per check the CUSUM declares when the model holds (NIS ~ χ²₃ drawn from
-    ``seed``): ``runs`` runs of ``rows`` checks, the CUSUM restarted after each alarm."""
+    """Steps per check the test declares when the model holds (NIS ~ χ²₃ drawn from
+    ``seed``): ``runs`` runs of ``rows`` checks with :func:`track_update`'s rule (a capped
+    suspect's share withdrawn when the next point is no suspect), restarted after a step."""
     rng = np.random.default_rng(seed)
-    nis = rng.chisquare(3, size=(runs, rows))
     rho = test.variance_ratio
+    nis = rng.chisquare(3, size=(rows, runs))
     llr = np.minimum(0.5 * (1.0 - 1.0 / rho) * nis - 1.5 * math.log(rho), test.suspect_llr)
     g = np.zeros(runs)
+    held = np.full(runs, np.nan)  # the CUSUM before a held suspect
     alarms = 0
-    for t in range(rows):
-        g = np.maximum(0.0, g + llr[:, t])
-        hit = g > test.threshold
+    for step in llr:
+        suspect = step >= test.suspect_llr
+        base = np.where(~np.isnan(held) & ~suspect, held, g)
+        new = np.maximum(0.0, base + step)
+        hit = new > test.threshold
         alarms += int(hit.sum())
-        g[hit] = 0.0
+        held = np.where(~hit & suspect & np.isnan(held), base, np.nan)
+        g = np.where(hit, 0.0, new)
     return alarms / (rows * runs)
 
 

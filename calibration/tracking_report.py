@@ -138,6 +138,7 @@ def build_tracking_report(ev: TrackingEvidence, sources: dict[str, str]) -> dict
             "prior_weight": settings.prior_weight,
             "step_test": asdict(test),
             "step_false_alarms_per_check": false_alarm_rate(test, 1000, 200),
+            "step_false_alarm_simulated_checks": 1000 * 200,
             "alarm_mm": settings.alarm_mm,
         },
     }
@@ -198,7 +199,9 @@ def report_markdown(doc: dict[str, Any]) -> str:
     if not doc["steps"] and not doc["alarms"]:
         lines.append("none")
     rate = doc["settings"]["step_false_alarms_per_check"]
-    lines += ["", f"Step test false alarms per check (χ²₃ simulation): {rate:.2g}.", ""]
+    n = doc["settings"]["step_false_alarm_simulated_checks"]
+    said = f"{rate:.2g} per check" if rate > 0 else f"none (< {1.0 / n:.0e} per check)"
+    lines += ["", f"Step test false alarms in {n} simulated checks (χ²₃): {said}.", ""]
     return "\n".join(lines)
 
 
