@@ -10,9 +10,11 @@ growth). The update is the recursive Levenberg-Marquardt of
 in columns scaled to mm at the TCP.
 
 **Steps.** A CUSUM on the a-priori errors: with ``S = σ²I + H·R⁻¹·Hᵀ`` the predicted
-error covariance and ``NIS = eᵀS⁻¹e`` (χ²₃ while the model holds), the log-likelihood
-ratio of an error variance ``ρ_v`` times larger is ``ℓ = ½(1 − 1/ρ_v)·NIS − (3/2)·ln ρ_v``,
-capped at ``cap·h`` so one wild point cannot decide alone;
+error covariance and ``NIS = eᵀS⁻¹e`` (χ²₃ while the model holds), taken relative to the
+recent error level ``L`` (an EWMA of NIS/3, at least 1: a tracker lagging a fast warm-up
+is no step), the log-likelihood ratio of an error variance ``ρ_v`` times larger is
+``ℓ = ½(1 − 1/ρ_v)·NIS/L − (3/2)·ln ρ_v``, capped at ``cap·h`` so one wild point cannot
+decide alone;
 ``g(t) = max(0, g(t−1) + ℓ)`` and a step is declared when ``g > h``. A capped
 (suspect) point is held, not learned from: confirmed by the next point, it is learned
 after the memory reopens; otherwise it is dropped as an outlier. On a step the
@@ -61,6 +63,8 @@ class StepTest:
     reopen: float = 1e-3  # information kept when the memory reopens
     settle_nis: float = 11.34  # χ²₃ 99 %: a point that fits the followed model again
     settle_rows: int = 3  # consecutive fitting points that end the 'step' state
+    level_smoothing: float = 0.95  # of the recent error level L (a memory of ~20 checks)
+    level_max: float = 10.0  # one point raises L by at most this NIS/3
 
     def llr(self, nis: float) -> float:
         """ℓ of one point, capped (``nis``: its normalised innovation squared)."""
@@ -145,6 +149,9 @@ class TrackerState:
     forgetting: float  # λ(t)
     normalized_error: float  # ν̄(t)
     cusum: float = 0.0
+    #: L(t), the recent a-priori error level: an EWMA of NIS/3 (1 while the model holds);
+    #: the test looks for errors sudden against it, so a lag while drifting is no step
+    error_level: float = 1.0
     onset_row: int | None = None  # where the CUSUM last left zero
     pending: PendingPoint | None = None
     settling: int = 0  # > 0: in the 'step' state, this many fitting points still wanted
@@ -318,6 +325,7 @@ def _reopened(setup: TrackingSetup, state: TrackerState) -> TrackerState:
         forgetting=setup.settings.forgetting.lambda_min,
         normalized_error=1.0,
         cusum=0.0,
+        error_level=1.0,
         settling=test.settle_rows,
     )
 
@@ -348,7 +356,7 @@ def track_update(
     nis = float(err @ np.linalg.solve(cov, err))
     # while the reopened memory refills the test rests: the large errors of a model still
     # learning the new robot are no second step
-    llr = test.llr(nis) if state.settling == 0 else -math.inf
+    llr = test.llr(nis / max(state.error_level, 1.0)) if state.settling == 0 else -math.inf
     pending = state.pending
     suspect = llr >= test.suspect_llr
     base = state.cusum
@@ -369,6 +377,10 @@ def track_update(
         state = replace(state, pending=point)
     else:  # a held suspect not confirmed was an outlier: dropped
         state = _learn(setup, replace(state, pending=None), point, (pred, h))
+    if not (detected or suspect):
+        a = test.level_smoothing
+        level = a * state.error_level + (1.0 - a) * min(nis / 3.0, test.level_max)
+        state = replace(state, error_level=level)
     if not detected and state.settling > 0:
         settling = state.settling - 1 if nis < test.settle_nis else test.settle_rows
         state = replace(state, settling=settling)
@@ -485,7 +497,8 @@ def window_refit_errors(
 def false_alarm_rate(test: StepTest, rows: int, runs: int, seed: int = 0) -> float:
     """Steps per check the test declares when the model holds (NIS ~ χ²₃ drawn from
     ``seed``): ``runs`` runs of ``rows`` checks with :func:`track_update`'s rule (a capped
-    suspect's share withdrawn when the next point is no suspect), restarted after a step."""
+    suspect's share withdrawn when the next point is no suspect), restarted after a step.
+    The error level L is held at 1 here (it only ever lowers ℓ): an upper bound."""
     rng = np.random.default_rng(seed)
     rho = test.variance_ratio
     nis = rng.chisquare(3, size=(rows, runs))
