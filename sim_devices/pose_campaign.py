@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,13 @@ from calibration.pose_selection import OBSERVABILITY_INDICES, select_poses_for_m
 from edges.command import run_command, take_debug_flag
 from edges.options import OptionParser
 from edges.outputs import OutputSet
-from sim_devices.config import SEED_OPTION, integer_option, number_option, robot_option
+from sim_devices.config import (
+    SEED_OPTION,
+    CellConfig,
+    integer_option,
+    number_option,
+    robot_option,
+)
 from sim_devices.drift import STEP_KINDS, CellDrift, DriftDraws, draw_drift, drifted_tcp_mm
 from sim_devices.effects import (
     EFFECT_NAMES,
@@ -415,6 +421,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="distinct check poses, visited in turn (default 12)",
     )
     parser.add_argument(
+        "--cell",
+        metavar="CELL.toml",
+        help="take the drift of the production run from this cell.toml's [effects.drift] "
+        "(the --drift flags add to it)",
+    )
+    parser.add_argument(
         "--drift",
         action="append",
         default=[],
@@ -447,22 +459,21 @@ def _run(args: argparse.Namespace) -> int:
         encoders=not args.no_encoders,
         effects=UndeclaredEffects.named(*args.effect),
     )
-    if args.drift and not args.checks:
-        raise SimError("--drift: the cell drifts during a production run; give --checks FILE")
-    if args.checks is not None and not args.checks.strip():
-        raise SimError("--checks: empty path; give a file to write")
     program = CheckProgram(
         hours=args.check_hours,
         every_min=args.check_every_min,
         n_poses=args.check_poses,
-        drift=CellDrift(
-            thermal="thermal" in args.drift,
-            creep="creep" in args.drift,
-            steps=tuple(k for k in STEP_KINDS if k in args.drift),
-        ),
+        drift=_drift(args),
     )
+    if program.drift.any_active and not args.checks:
+        raise SimError(
+            "--drift: the cell drifts (--drift or [effects.drift]) during a production run; "
+            "give --checks FILE"
+        )
+    if args.checks is not None and not args.checks.strip():
+        raise SimError("--checks: empty path; give a file to write")
     robot_file = args.robot if Path(args.robot).exists() else None
-    with OutputSet(inputs=[robot_file], error=SimError) as outputs:
+    with OutputSet(inputs=[robot_file, args.cell], error=SimError) as outputs:
         out = outputs.file(args.out, "--out")
         truth = outputs.file(args.truth, "--truth") if args.truth else None
         checks_out = outputs.file(args.checks, "--checks") if args.checks else None
@@ -481,6 +492,20 @@ def _run(args: argparse.Namespace) -> int:
     if checks is not None:
         print(f"wrote {args.checks}: {len(checks.checks)} checks", file=sys.stderr)
     return 0
+
+
+def _drift(args: argparse.Namespace) -> CellDrift:
+    """The production run's drift: ``--cell``'s ``[effects.drift]`` and the ``--drift``
+    flags on top."""
+    if args.cell is not None and not args.cell.strip():
+        raise SimError("--cell: empty path; give a cell.toml or leave the option out")
+    base = CellConfig.load(args.cell).effects.drift if args.cell else CellDrift()
+    return replace(
+        base,
+        thermal=base.thermal or "thermal" in args.drift,
+        creep=base.creep or "creep" in args.drift,
+        steps=tuple(k for k in STEP_KINDS if k in args.drift or k in base.steps),
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

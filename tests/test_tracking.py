@@ -276,3 +276,37 @@ def _refused(files: Path, tmp_path: Path, extra: list[str], words: list[str]) ->
     for w in words:
         assert w.lower() in err.lower(), (w, err)
     assert not out.exists()
+
+
+# -- the emulator's switches ------------------------------------------------------------------
+def _sim(cwd: Path, module: str, *args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    return subprocess.run(
+        [sys.executable, "-m", module, *args],
+        cwd=cwd, capture_output=True, text=True, timeout=120, env=env,
+    )  # fmt: skip
+
+
+def test_pose_campaign_writes_a_drifting_check_file_from_flags_and_cell_toml(tmp_path):
+    (tmp_path / "cell.toml").write_text(
+        '[effects.drift]\nthermal = true\nsteps = ["tracker_bump"]\n'
+    )
+    proc = _sim(tmp_path, "sim_devices.pose_campaign", "--seed", "2", "--out", "c.csv",
+                "--checks", "k.csv", "--cell", "cell.toml", "--drift", "creep",
+                "--check-hours", "1", "--check-every-min", "5", "--truth", "t.toml")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    rows = list(csv.reader((tmp_path / "k.csv").open()))
+    assert len(rows) == 1 + 12 and rows[0][:3] == ["pose", "set", "t_s"]
+    t = [float(r[2]) for r in rows[1:]]
+    assert t == sorted(t)
+    truth = (tmp_path / "t.toml").read_text()
+    assert "thermal = true" in truth and "creep = true" in truth and "tracker_bump" in truth
+
+
+def test_drift_needs_a_check_file_and_the_live_cell_refuses_it(tmp_path):
+    (tmp_path / "cell.toml").write_text("[effects.drift]\ncreep = true\n")
+    proc = _sim(tmp_path, "sim_devices.pose_campaign", "--out", "c.csv", "--drift", "thermal")
+    assert proc.returncode == 2 and "--checks" in proc.stderr
+    assert not (tmp_path / "c.csv").exists()
+    live = _sim(tmp_path, "sim_devices.cli", "serve", "--config", "cell.toml", "--duration", "1")
+    assert live.returncode == 2 and "[effects.drift]" in live.stderr, live.stderr
