@@ -41,6 +41,7 @@ from numpy.typing import ArrayLike, NDArray
 from calibration.description import RobotDescription
 from calibration.errors import OptionError, TrackingError
 from calibration.kinematics import KinematicModel, identification_jacobian
+from calibration.point_jacobian import point_jacobian
 from calibration.recursive_identification import ForgettingSettings, forgetting_step
 
 FloatArray = NDArray[np.float64]
@@ -283,7 +284,7 @@ def _predict(
     setup: TrackingSetup, state: TrackerState, q_rad: FloatArray, offset_mm: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """The a-priori point ``(3,)`` and the scaled Jacobian ``(3, k)`` of θ there."""
-    p, jac = identification_jacobian(setup.model(state.theta), q_rad)
+    p, jac = point_jacobian(setup.model(state.theta), q_rad)
     h: FloatArray = (jac @ setup.basis) / setup.column_scale
     return p + offset_mm, h
 

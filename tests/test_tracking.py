@@ -20,6 +20,8 @@ import pytest
 from calibration.calibrate import calibrate
 from calibration.campaign_files import write_campaign
 from calibration.description import RobotDescription, load_robot
+from calibration.kinematics import KinematicModel, identification_jacobian
+from calibration.point_jacobian import point_jacobian
 from calibration.tracking import (
     StepTest,
     effect_offsets,
@@ -82,6 +84,18 @@ def test_the_truth_moves_by_the_drift_alone():
     moved = np.linalg.norm(warm - still, axis=1)
     # 40 ppm of a ~3 m arm, gains 0.5..1.5: tens of µm to ~0.2 mm
     assert 0.01 < moved.max() < 0.3
+
+
+def test_one_poses_jacobian_is_the_identification_jacobian():
+    rng = np.random.default_rng(0)
+    for name in ("kr500", "kr210_r3100", "hp20d"):
+        model = KinematicModel.from_description(load_robot(name))
+        model = model.with_parameters(model.parameter_vector() + rng.normal(0, 1e-2, 39))
+        for q in rng.uniform(-3.0, 3.0, (5, model.n_joints)):
+            p, jac = point_jacobian(model, q)
+            p_ref, jac_ref = identification_jacobian(model, q)
+            assert np.allclose(p, p_ref, rtol=0, atol=1e-9)
+            assert np.allclose(jac, jac_ref, rtol=0, atol=1e-9)
 
 
 # -- the tracker --------------------------------------------------------------------------------
