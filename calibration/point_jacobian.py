@@ -71,6 +71,7 @@ def point_jacobian(model: KinematicModel, q_rad: FloatArray) -> tuple[FloatArray
     axes = np.array([[cz * cy, sz * cy, -sy], [-sz, cz, 0.0], [0.0, 0.0, 1.0]])
     off = 5 * n
     jac[:, off : off + 3] = np.eye(3)
-    jac[:, off + 3 : off + 6] = _cross(axes, np.broadcast_to(p - model.base_mm, (3, 3))).T
+    rel = p - model.base_mm
+    jac[:, off + 3 : off + 6] = _cross(axes, np.array([rel, rel, rel])).T
     jac[:, off + 6 :] = rot
     return p, jac

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -108,8 +109,9 @@ class TrackingSetup:
     reference_jacobian: FloatArray  # (r, 3, k) TCP mm per unit θ at the validation poses
     settings: TrackingSettings = field(default_factory=TrackingSettings)
 
-    @property
+    @cached_property
     def x_calibrated(self) -> FloatArray:
+        """The calibrated parameter vector ``(p,)`` (built once: every check uses it)."""
         return self.template.parameter_vector()
 
     def model(self, theta: ArrayLike) -> KinematicModel:
