@@ -91,8 +91,7 @@ def calibrate(
         on_geometric(geometric)
     if not effects:
         calibrated = replace(geometric.model.to_description(description), effects=())
-        tracking = tracking_description(geometric, campaign)
-        return CalibrationResult(geometric, None, replace(calibrated, tracking=tracking))
+        return CalibrationResult(geometric, None, _tracked(calibrated, geometric, campaign))
     loop = run_closed_loop(
         description,
         campaign,
@@ -105,11 +104,14 @@ def calibrate(
         say=say,
         sweep_referenced=sweep_referenced,
     )
-    calibrated = replace(
-        loop.calibrated_description(description),
-        tracking=tracking_description(loop.result, campaign),
-    )
-    return CalibrationResult(geometric, loop, calibrated)
+    calibrated = loop.calibrated_description(description)
+    return CalibrationResult(geometric, loop, _tracked(calibrated, loop.result, campaign))
+
+
+def _tracked(
+    calibrated: RobotDescription, result: IdentificationResult, campaign: Campaign
+) -> RobotDescription:
+    return replace(calibrated, tracking=tracking_description(result, campaign))
 
 
 def tracking_description(result: IdentificationResult, campaign: Campaign) -> TrackingDescription:

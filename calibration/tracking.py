@@ -342,7 +342,10 @@ def track_update(
 ) -> tuple[TrackerState, TrackStep]:
     """One check: joints ``(n,)`` rad, the tracker's point ``(3,)`` mm, and the calibrated
     model's effect terms at this pose ``(3,)`` mm (:func:`effect_offsets`). Predicts
-    first (from ``state`` only), then runs the step test and learns. Pure."""
+    first (from ``state`` only), then runs the step test and learns. Pure.
+
+    One function, not split: predict → test → learn → settle → alarm is the method's
+    order, read top to bottom (the per-check hot path of the live twin too)."""
     q = np.asarray(q_rad, dtype=float)
     meas = np.asarray(measured_mm, dtype=float)
     off = np.asarray(offset_mm, dtype=float)

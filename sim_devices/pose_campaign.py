@@ -368,7 +368,8 @@ MAX_POSES = 10_000
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The generator's options, each checked as it is parsed (counts in range)."""
+    """The generator's options, each checked as it is parsed (counts in range); long as a
+    flat list of ``add_argument`` calls is (the campaign's, then the production run's)."""
     parser = OptionParser(
         prog="python -m sim_devices.pose_campaign",
         description="Write an emulated identification campaign (campaign.csv).",

@@ -214,10 +214,13 @@ def test_twin_track_writes_the_contracted_columns_and_a_readable_model(files, tm
     assert predicted.returncode == 0, predicted.stderr
 
 
-def test_twin_track_params_choose_the_set(files, tmp_path):
+def test_twin_track_params_choose_the_set_and_set_is_optional(files, tmp_path):
     out = tmp_path / "t.csv"
-    proc = twin(files, "track", "--model", "cal.toml", "--data", "checks.csv", "--out", str(out),
-                "--params", "base.x_mm,joint2.a_mm")  # fmt: skip
+    _rewrite(
+        files / "checks.csv", tmp_path / "noset.csv", lambda rows: [r[:1] + r[2:] for r in rows]
+    )
+    proc = twin(files, "track", "--model", "cal.toml", "--data", str(tmp_path / "noset.csv"),
+                "--out", str(out), "--params", "base.x_mm,joint2.a_mm")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert next(csv.reader(out.open()))[11:] == [
         "base.x_mm", "base.x_mm_se", "joint2.a_mm", "joint2.a_mm_se",
