@@ -187,14 +187,15 @@ def scale_groups(model: KinematicModel, identified: tuple[str, ...]) -> dict[str
     """Length-scale name -> its columns in the parameter vector: each joint whose lengths
     are at least :data:`LINK_SHARE` of the arm's and of which an ``a`` or ``d`` was
     identified (a length the campaign could not see cannot be scaled honestly)."""
+    x = model.parameter_vector()
     length = np.abs(model.a_mm) + np.abs(model.d_mm)
     total = float(length.sum())
     groups: dict[str, list[int]] = {}
     for j in range(model.n_joints):
         cols = [
-            c
-            for c, v in ((5 * j, model.a_mm[j]), (5 * j + 2, model.d_mm[j]))
-            if abs(v) > 0.0 and (f"joint{j + 1}.{('a_mm', 'd_mm')[(c - 5 * j) // 2]}" in identified)
+            5 * j + k
+            for k, key in ((0, "a_mm"), (2, "d_mm"))
+            if x[5 * j + k] != 0.0 and f"joint{j + 1}.{key}" in identified
         ]
         if cols and length[j] >= LINK_SHARE * total:
             groups[f"joint{j + 1}{SCALE_SUFFIX}"] = cols
@@ -239,6 +240,11 @@ def tracking_setup(
                 f"--params: {n!r} is not a tracked parameter of this model "
                 f"(valid: {', '.join(valid)})"
             )
+    if not chosen and names is None:
+        raise TrackingError(
+            "[tracking]: key 'identified': no identified base, tool or link length to track "
+            "(name parameters with --params)"
+        )
     if not chosen:
         raise OptionError("--params: no parameter to track")
     groups = scale_groups(model, tr.identified)
