@@ -19,7 +19,7 @@ decide alone;
 (suspect) point is held, not learned from: confirmed by the next point, it is learned
 after the memory reopens; otherwise it is dropped as an outlier. On a step the
 information is multiplied by ``reopen`` and λ set to λ_min: the estimator forgets the
-old robot. The false-alarm rate of the defaults is measured in :func:`false_alarm_rate`
+old robot. The test and its false-alarm rate: :mod:`calibration.step_test`
 (docs/tracking.md).
 
 **Alarm.** The tracked model's TCP at the campaign's validation poses, against the
@@ -44,6 +44,7 @@ from calibration.errors import OptionError, TrackingError
 from calibration.kinematics import KinematicModel, identification_jacobian
 from calibration.point_jacobian import point_jacobian
 from calibration.recursive_identification import ForgettingSettings, forgetting_step
+from calibration.step_test import StepTest
 
 FloatArray = NDArray[np.float64]
 
@@ -53,30 +54,6 @@ State = Literal["following", "step", "alarm"]
 #: A link whose lengths (|a| + |d|) are at least this share of the arm's gets a scale.
 LINK_SHARE = 0.1
 SCALE_SUFFIX = ".length_scale"
-
-
-@dataclass(frozen=True)
-class StepTest:
-    """The CUSUM of the a-priori errors (see the module docstring)."""
-
-    variance_ratio: float = 9.0  # ρ_v: the alternative, errors 3× the predicted σ
-    threshold: float = 12.0  # h
-    cap: float = 0.6  # one point adds at most cap·h
-    reopen: float = 1e-3  # information kept when the memory reopens
-    settle_nis: float = 11.34  # χ²₃ 99 %: a point that fits the followed model again
-    settle_rows: int = 3  # consecutive fitting points that end the 'step' state
-    level_smoothing: float = 0.95  # of the recent error level L (a memory of ~20 checks)
-    level_max: float = 10.0  # one point raises L by at most this NIS/3
-
-    def llr(self, nis: float) -> float:
-        """ℓ of one point, capped (``nis``: its normalised innovation squared)."""
-        rho = self.variance_ratio
-        value = 0.5 * (1.0 - 1.0 / rho) * nis - 1.5 * math.log(rho)
-        return min(value, self.cap * self.threshold)
-
-    @property
-    def suspect_llr(self) -> float:
-        return self.cap * self.threshold
 
 
 @dataclass(frozen=True)
@@ -504,29 +481,6 @@ def window_refit_errors(
         theta = np.linalg.solve(hw.T @ hw + ridge, hw.T @ rw)
         out[i] = float(np.linalg.norm(resid[i] - h[i] @ theta))
     return out
-
-
-def false_alarm_rate(test: StepTest, rows: int, runs: int, seed: int = 0) -> float:
-    """Steps per check the test declares when the model holds (NIS ~ χ²₃ drawn from
-    ``seed``): ``runs`` runs of ``rows`` checks with :func:`track_update`'s rule (a capped
-    suspect's share withdrawn when the next point is no suspect), restarted after a step.
-    The error level L is held at 1 here (it only ever lowers ℓ): an upper bound."""
-    rng = np.random.default_rng(seed)
-    rho = test.variance_ratio
-    nis = rng.chisquare(3, size=(rows, runs))
-    llr = np.minimum(0.5 * (1.0 - 1.0 / rho) * nis - 1.5 * math.log(rho), test.suspect_llr)
-    g = np.zeros(runs)
-    held = np.full(runs, np.nan)  # the CUSUM before a held suspect
-    alarms = 0
-    for step in llr:
-        suspect = step >= test.suspect_llr
-        base = np.where(~np.isnan(held) & ~suspect, held, g)
-        new = np.maximum(0.0, base + step)
-        hit = new > test.threshold
-        alarms += int(hit.sum())
-        held = np.where(~hit & suspect & np.isnan(held), base, np.nan)
-        g = np.where(hit, 0.0, new)
-    return alarms / (rows * runs)
 
 
 def effect_offsets(description: RobotDescription, q_rad: ArrayLike, t_s: ArrayLike) -> FloatArray:

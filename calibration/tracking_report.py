@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.tracking import SCALE_SUFFIX, TrackingRun, TrackingSetup, false_alarm_rate
+from calibration.step_test import false_alarm_rate
+from calibration.tracking import SCALE_SUFFIX, TrackingRun, TrackingSetup
 
 FloatArray = NDArray[np.float64]
 

@@ -22,10 +22,9 @@ from calibration.campaign_files import write_campaign
 from calibration.description import RobotDescription, load_robot
 from calibration.kinematics import KinematicModel, identification_jacobian
 from calibration.point_jacobian import point_jacobian
+from calibration.step_test import StepTest, false_alarm_rate
 from calibration.tracking import (
-    StepTest,
     effect_offsets,
-    false_alarm_rate,
     start_tracking,
     static_errors_mm,
     track_checks,
