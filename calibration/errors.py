@@ -122,3 +122,7 @@ class TwinRunError(CalibrationError, InputDataError, ValueError):
 
 class LiveTwinError(CalibrationError, DeviceError):
     """The live twin cannot start (no grating stream where it was told to look)."""
+
+
+class TrackingError(CalibrationError, ValueError):
+    """``twin track``: a model or check that cannot be tracked."""

@@ -34,6 +34,7 @@ from edges.toml_schema import (
     parse_toml_file,
     parse_toml_text,
 )
+from sim_devices.drift import STEP_KINDS, CellDrift
 from sim_devices.effects import EFFECT_NAMES, UndeclaredEffects
 from sim_devices.errors import SimConfigError, SimError
 
@@ -71,6 +72,9 @@ class EffectsSection:
     # effects the twin is not told about, shared with the campaign generator
     # ([effects.undeclared], sim_devices/effects.py; all off by default)
     undeclared: UndeclaredEffects = field(default_factory=UndeclaredEffects)
+    # the truth moving during a production run ([effects.drift], sim_devices/drift.py; all
+    # off by default): read by the campaign generator's --cell for its --checks file
+    drift: CellDrift = field(default_factory=CellDrift)
 
 
 @dataclass(frozen=True)
@@ -161,6 +165,13 @@ RANGES: dict[str, Range] = {
     "effects.undeclared.lag_joint": Range(1, 64, what="a joint number"),
     "effects.undeclared.lag_time_constant_s": POSITIVE,
     "effects.undeclared.lost_motion_deg": Range(0.0, 10.0, what="deg, half width"),
+    "effects.drift.thermal_ppm": Range(0.0, 1000.0, what="ppm of each link length"),
+    "effects.drift.thermal_time_constant_s": POSITIVE,
+    "effects.drift.creep_mm_per_h": Range(0.0, 10.0, what="mm/h"),
+    "effects.drift.creep_mdeg_per_h": Range(0.0, 100.0, what="millidegrees/h"),
+    "effects.drift.bump_mm": Range(0.0, 10.0, what="mm"),
+    "effects.drift.bump_deg": Range(0.0, 5.0, what="deg"),
+    "effects.drift.remount_mm": Range(0.0, 10.0, what="mm"),
     "grating.unit_id": Range(1, 247, what="a Modbus unit id"),
     "grating.rate_hz": Range(1.0, 20000.0),
     "grating.buffer_samples": Range(1, 1_000_000),
@@ -255,6 +266,9 @@ def _check(cfg: CellConfig, source: str) -> None:
         t.startswith("link") and t[4:].isdigit() and t[4:].isascii() and int(t[4:]) >= 1
     ):
         fail("tracker", "target", f"must be 'program', 'tcp' or 'linkN' (N >= 1), got {t!r}")
+    for kind in cfg.effects.drift.steps:
+        if kind not in STEP_KINDS:
+            fail("effects.drift", "steps", f"{kind!r} is not one of {', '.join(STEP_KINDS)}")
     und = cfg.effects.undeclared
     for key in ("drift_parameter", "lag_parameter"):
         if getattr(und, key) not in ("a", "d"):

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,14 @@ from calibration.model.kinematics import KinematicModel, flange_poses, tcp_posit
 from edges.command import run_command, take_debug_flag
 from edges.options import OptionParser
 from edges.outputs import OutputSet
-from sim_devices.config import SEED_OPTION, integer_option, robot_option
+from sim_devices.config import (
+    SEED_OPTION,
+    CellConfig,
+    integer_option,
+    number_option,
+    robot_option,
+)
+from sim_devices.drift import STEP_KINDS, CellDrift, DriftDraws, draw_drift, drifted_tcp_mm
 from sim_devices.effects import (
     EFFECT_NAMES,
     UndeclaredEffects,
@@ -277,13 +284,92 @@ def emulated_campaign(
     return generate_campaign(cell, np.random.default_rng([seed, 6]), settings)
 
 
+@dataclass(frozen=True)
+class CheckProgram:
+    """A production program after the campaign: ``n_poses`` check poses visited in turn,
+    one every ``every_min`` minutes for ``hours`` (the reflector in view at each), while
+    the cell drifts as ``drift`` says."""
+
+    hours: float = 8.0
+    every_min: float = 2.0
+    n_poses: int = 12
+    gap_s: float = 600.0  # from the campaign's last pose to the first check
+    drift: CellDrift = field(default_factory=CellDrift)
+
+
+@dataclass(frozen=True)
+class ChecksData:
+    """An emulated production run: the check file's rows and the hidden truth."""
+
+    checks: Campaign  # set 'validate' on every row (the column is ignored by twin track)
+    true_mm: FloatArray  # (m, 3) what a noise-free tracker reads at each check
+    draws: DriftDraws
+    program: CheckProgram
+
+    def truth_document(self) -> dict[str, Any]:
+        return {
+            "drift": self.program.drift.document(),
+            "draws": self.draws.document(),
+            "program": {
+                "hours": self.program.hours,
+                "every_min": self.program.every_min,
+                "n_poses": self.program.n_poses,
+            },
+        }
+
+
+def generate_checks(
+    data: CampaignData,
+    program: CheckProgram,
+    rng: np.random.Generator,
+    settings: CampaignSettings = CampaignSettings(),
+) -> ChecksData:
+    """Production checks after ``data``'s campaign on the same cell and clock: the check
+    poses in turn, each measured by the tracker of the drifting cell, read by the gratings
+    (their noise), with the campaign's undeclared effects."""
+    cell, eff = data.cell, data.effects
+    poses = sample_reachable_poses(cell.nominal, program.n_poses, rng)
+    start = float(data.campaign.t_s[-1]) + program.gap_s
+    m = max(int(program.hours * 60.0 / program.every_min), 1)
+    t_s = start + 60.0 * program.every_min * np.arange(m) + rng.uniform(0.0, 10.0, m)
+    q_true = poses[np.arange(m) % program.n_poses]
+    draws = draw_drift(program.drift, cell.nominal.n_joints, start, float(t_s[-1]), rng)
+    shift = drifted_tcp_mm(program.drift, draws, cell.model, q_true, t_s) - cell.tcp_mm(q_true)
+    direction = approach_direction(q_true)
+    physical = true_tcp_mm(eff, cell.arm, q_true, t_s, direction) if eff.any_active else None
+    tcp = (cell.tcp_mm(q_true) if physical is None else physical) + shift
+    true_read = tracker_reading_mm(eff, tcp, t_s) if eff.any_active else tcp
+    measured = _measure(cell, true_read, rng)
+    grating = grating_reading_rad(eff, q_true) + np.radians(
+        rng.normal(0.0, settings.grating_noise_deg, q_true.shape)
+    )
+    checks = Campaign(
+        source="<emulated checks>",
+        pose=tuple(f"c{i + 1}" for i in range(m)),
+        set=("validate",) * m,
+        t_s=t_s,
+        q_deg=np.degrees(grating),
+        xyz_mm=measured,
+    )
+    return ChecksData(checks=checks, true_mm=true_read, draws=draws, program=program)
+
+
+def emulated_checks(
+    data: CampaignData, seed: int, program: CheckProgram, settings: CampaignSettings
+) -> ChecksData:
+    """The reproducible production run of ``seed`` after its campaign ``data`` (a random
+    stream of its own: the campaign is the same with and without it)."""
+    return generate_checks(data, program, np.random.default_rng([seed, 28]), settings)
+
+
 #: The most identification or validation poses (a candidate pool of 5 per pose is drawn
 #: in batches of 4×: more would take minutes and gigabytes).
 MAX_POSES = 10_000
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The generator's options, each checked as it is parsed (counts in range)."""
+    """The generator's options, each checked as it is parsed (counts in range); long as a
+    flat list of ``add_argument`` calls is (the campaign's, then the production run's)."""
     parser = OptionParser(
         prog="python -m sim_devices.pose_campaign",
         description="Write an emulated identification campaign (campaign.csv).",
@@ -312,6 +398,46 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-encoders", action="store_true", help="omit e1_deg..eN_deg")
     parser.add_argument("--truth", help="also write the hidden truth (TOML) here, for tests")
     parser.add_argument(
+        "--checks",
+        metavar="FILE",
+        help="also write a production run after the campaign: periodic check poses in time "
+        "order (campaign.csv's columns, for twin track)",
+    )
+    parser.add_argument(
+        "--check-hours",
+        type=number_option(0.01, 1000.0, what="hours of production"),
+        default=8.0,
+        help="length of the production run, h (default 8)",
+    )
+    parser.add_argument(
+        "--check-every-min",
+        type=number_option(0.2, 600.0, what="minutes between checks"),
+        default=2.0,
+        help="one check every N minutes (default 2)",
+    )
+    parser.add_argument(
+        "--check-poses",
+        type=integer_option(1, 1000, "check poses"),
+        default=12,
+        help="distinct check poses, visited in turn (default 12)",
+    )
+    parser.add_argument(
+        "--cell",
+        metavar="CELL.toml",
+        help="take the drift of the production run from this cell.toml's [effects.drift] "
+        "(the --drift flags add to it)",
+    )
+    parser.add_argument(
+        "--drift",
+        action="append",
+        default=[],
+        choices=["thermal", "creep", *STEP_KINDS],
+        help="let the cell move during the production run (repeatable): thermal (link "
+        "lengths grow, warm-up τ 1 h), creep (the base slides), "
+        + "; ".join(f"{k}: {v}" for k, v in STEP_KINDS.items())
+        + " (at a time drawn from the seed)",
+    )
+    parser.add_argument(
         "--effect",
         action="append",
         default=[],
@@ -334,16 +460,53 @@ def _run(args: argparse.Namespace) -> int:
         encoders=not args.no_encoders,
         effects=UndeclaredEffects.named(*args.effect),
     )
+    program = CheckProgram(
+        hours=args.check_hours,
+        every_min=args.check_every_min,
+        n_poses=args.check_poses,
+        drift=_drift(args),
+    )
+    if program.drift.any_active and not args.checks:
+        raise SimError(
+            "--drift: the cell drifts (--drift or [effects.drift]) during a production run; "
+            "give --checks FILE"
+        )
+    if args.checks is not None and not args.checks.strip():
+        raise SimError("--checks: empty path; give a file to write")
     robot_file = args.robot if Path(args.robot).exists() else None
-    with OutputSet(inputs=[robot_file], error=SimError) as outputs:
+    with OutputSet(inputs=[robot_file, args.cell], error=SimError) as outputs:
         out = outputs.file(args.out, "--out")
         truth = outputs.file(args.truth, "--truth") if args.truth else None
+        checks_out = outputs.file(args.checks, "--checks") if args.checks else None
         data = emulated_campaign(nominal, args.seed, settings)
         write_campaign(out, data.campaign)
+        checks = None
+        if checks_out is not None:
+            checks = emulated_checks(data, args.seed, program, settings)
+            write_campaign(checks_out, checks.checks)
         if truth is not None:
-            data.write_truth(truth)
+            doc = data.truth_document()
+            if checks is not None:
+                doc["production"] = checks.truth_document()
+            truth.write_text(tomli_w.dumps(doc), encoding="utf-8")
     print(f"wrote {args.out}: {len(data.campaign)} poses", file=sys.stderr)
+    if checks is not None:
+        print(f"wrote {args.checks}: {len(checks.checks)} checks", file=sys.stderr)
     return 0
+
+
+def _drift(args: argparse.Namespace) -> CellDrift:
+    """The production run's drift: ``--cell``'s ``[effects.drift]`` and the ``--drift``
+    flags on top."""
+    if args.cell is not None and not args.cell.strip():
+        raise SimError("--cell: empty path; give a cell.toml or leave the option out")
+    base = CellConfig.load(args.cell).effects.drift if args.cell else CellDrift()
+    return replace(
+        base,
+        thermal=base.thermal or "thermal" in args.drift,
+        creep=base.creep or "creep" in args.drift,
+        steps=tuple(k for k in STEP_KINDS if k in args.drift or k in base.steps),
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

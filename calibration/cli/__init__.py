@@ -28,6 +28,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "calibration.cli.compensate",
         "joint commands that put the calibrated robot's TCP on targets",
     ),
+    "track": (
+        "calibration.cli.track",
+        "follow the robot's drift and steps through production tracker checks",
+    ),
     "stiffness": (
         "calibration.cli.stiffness",
         "Cartesian compliance at poses, or joint stiffness from a load test",

@@ -13,10 +13,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
+import numpy as np
 from numpy.typing import ArrayLike
 
 from calibration.identify.campaign_files import Campaign
-from calibration.model.description import RobotDescription
+from calibration.model.description import RobotDescription, TrackingDescription
 
 if TYPE_CHECKING:  # the solvers load when calibrate runs
     from calibration.effects.closed_loop import ClosedLoopResult, LoopSettings
@@ -90,7 +91,7 @@ def calibrate(
         on_geometric(geometric)
     if not effects:
         calibrated = replace(geometric.model.to_description(description), effects=())
-        return CalibrationResult(geometric, None, calibrated)
+        return CalibrationResult(geometric, None, _tracked(calibrated, geometric, campaign))
     loop = run_closed_loop(
         description,
         campaign,
@@ -103,4 +104,32 @@ def calibrate(
         say=say,
         sweep_referenced=sweep_referenced,
     )
-    return CalibrationResult(geometric, loop, loop.calibrated_description(description))
+    calibrated = loop.calibrated_description(description)
+    return CalibrationResult(geometric, loop, _tracked(calibrated, loop.result, campaign))
+
+
+def _tracked(
+    calibrated: RobotDescription, result: IdentificationResult, campaign: Campaign
+) -> RobotDescription:
+    return replace(calibrated, tracking=tracking_description(result, campaign))
+
+
+def tracking_description(result: IdentificationResult, campaign: Campaign) -> TrackingDescription:
+    """What ``twin track`` needs from this calibration (``[tracking]``): the identified
+    geometric parameters, the fit's σ, the identification poses and the validation poses
+    (the identification poses when the campaign has none) for the alarm."""
+    names = result.identifiability.parameter_names
+    n_geo = result.model.n_parameters
+    identified = tuple(names[i] for i in result.identifiability.free_indices if i < n_geo)
+    idm, val = campaign.mask("identify"), campaign.mask("validate")
+    reference = campaign.q_deg[val] if val.any() else campaign.q_deg[idm]
+
+    def rows(q_deg: ArrayLike) -> tuple[tuple[float, ...], ...]:
+        return tuple(tuple(round(float(v), 9) for v in r) for r in np.asarray(q_deg))
+
+    return TrackingDescription(
+        identified=identified,
+        sigma_mm=float(result.sigma_mm),
+        identify_deg=rows(campaign.q_deg[idm]),
+        reference_deg=rows(reference),
+    )

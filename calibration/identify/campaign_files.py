@@ -502,3 +502,51 @@ def write_points(path: str | Path, pose: Sequence[str], xyz_mm: ArrayLike) -> No
         w.writerow(["pose", "x_mm", "y_mm", "z_mm"])
         for p, row in zip(pose, xyz, strict=True):
             w.writerow([p, *(_fmt(v, 6) for v in row)])
+
+
+@dataclass(frozen=True)
+class Checks:
+    """The rows of a checks.csv (``twin track``'s input): production checks in time order,
+    arrays of length m (seconds on the calibration campaign's clock, degrees, mm)."""
+
+    source: str
+    pose: tuple[str, ...]
+    t_s: FloatArray  # (m,) strictly increasing
+    q_deg: FloatArray  # (m, n)
+    xyz_mm: FloatArray  # (m, 3)
+
+    def __len__(self) -> int:
+        return len(self.pose)
+
+
+def read_checks(
+    path: str | Path, n_joints: int, *, limits_deg: JointLimits | None = None
+) -> Checks:
+    """Read a checks.csv: campaign.csv's columns, ``set`` optional and ignored, ``t_s``
+    required and strictly increasing (a row out of time order or at a repeated time is
+    refused, naming both rows)."""
+    source, header, rows = _read_table(path)
+    qcols = joint_columns(n_joints)
+    _check_columns(source, header, ["pose", "t_s", *qcols, "x_mm", "y_mm", "z_mm"], n_joints)
+
+    def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
+        xyz = [_number(f, c) for c in ("x_mm", "y_mm", "z_mm")]
+        return _number(f, "t_s"), _joint_angles(f, qcols, limits_deg), xyz
+
+    poses, values, _ = _parse_rows(source, header, rows, parse, skip_bad=False)
+    t_s = np.array([v[0] for v in values], dtype=float)
+    lines = [line for line, _ in rows]
+    for k in np.flatnonzero(np.diff(t_s) <= 0.0):
+        what = "repeats the time of" if t_s[k + 1] == t_s[k] else "is earlier than"
+        raise DataFileError(
+            f"{source}: line {lines[k + 1]} (pose {poses[k + 1]!r}): column 't_s': "
+            f"{t_s[k + 1]:g} s {what} the row before it (pose {poses[k]!r}, {t_s[k]:g} s); "
+            "checks must be in strictly increasing time order"
+        )
+    return Checks(
+        source=source,
+        pose=tuple(poses),
+        t_s=t_s,
+        q_deg=np.array([v[1] for v in values], dtype=float).reshape(len(poses), n_joints),
+        xyz_mm=np.array([v[2] for v in values], dtype=float).reshape(len(poses), 3),
+    )

@@ -126,27 +126,66 @@ def recursive_update(
     pred, jac = identification_jacobian(state.model, q)
     h = jac[:, state.free_idx] / state.column_scale  # (3, k) scaled
     err = meas - pred
-    s2 = state.sigma_mm**2
-    nu = settings.smoothing * state.normalized_error + (1.0 - settings.smoothing) * float(
-        err @ err
-    ) / (3.0 * s2)
-    span = settings.lambda_max - settings.lambda_min
-    mu = settings.lambda_min + span * math.exp(-max(nu - 1.0, 0.0) / settings.kappa)
-    lam = settings.lambda0 * state.forgetting + mu * (1.0 - settings.lambda0)
-    k = len(state.free_idx)
-    info = lam * state.information + (h.T @ h) / s2 + (1.0 - lam) * settings.damping * np.eye(k)
-    step_scaled = np.linalg.solve(info, h.T @ err / s2)
+    lm = forgetting_step(
+        state.information,
+        state.forgetting,
+        state.normalized_error,
+        h,
+        err,
+        state.sigma_mm,
+        settings,
+    )
     x = state.x.copy()
-    x[state.free_idx] += step_scaled / state.column_scale
+    x[state.free_idx] += lm.step_scaled / state.column_scale
     new = replace(
         state,
         x=x,
-        information=info,
-        forgetting=lam,
-        normalized_error=nu,
+        information=lm.information,
+        forgetting=lm.forgetting,
+        normalized_error=lm.normalized_error,
         t=state.t + 1,
     )
-    return new, RecursiveStep(error_mm=err, mu=mu, forgetting=lam)
+    return new, RecursiveStep(error_mm=err, mu=lm.mu, forgetting=lm.forgetting)
+
+
+@dataclass(frozen=True)
+class ForgettingStep:
+    """One step of the recursive LM in scaled units: R(t), the step, ν̄(t), μ(t), λ(t)."""
+
+    information: FloatArray  # (k, k)
+    step_scaled: FloatArray  # (k,)
+    normalized_error: float
+    mu: float
+    forgetting: float
+
+
+def forgetting_step(
+    information: FloatArray,
+    forgetting: float,
+    normalized_error: float,
+    h_scaled: FloatArray,
+    error_mm: FloatArray,
+    sigma_mm: float,
+    settings: ForgettingSettings = ForgettingSettings(),
+) -> ForgettingStep:
+    """The module's equations for one point: ``h_scaled`` ``(3, k)``, the a-priori error
+    ``(3,)`` mm, R(t−1) ``(k, k)``, λ(t−1) and ν̄(t−1) -> R(t), the step, ν̄, μ, λ.
+
+    Shared by :func:`recursive_update` and the tracker (:mod:`calibration.twin.tracking`)."""
+    err = error_mm
+    s2 = sigma_mm**2
+    nu = settings.smoothing * normalized_error + (1.0 - settings.smoothing) * float(err @ err) / (
+        3.0 * s2
+    )
+    span = settings.lambda_max - settings.lambda_min
+    mu = settings.lambda_min + span * math.exp(-max(nu - 1.0, 0.0) / settings.kappa)
+    lam = settings.lambda0 * forgetting + mu * (1.0 - settings.lambda0)
+    k = information.shape[0]
+    h = h_scaled
+    info = lam * information + (h.T @ h) / s2 + (1.0 - lam) * settings.damping * np.eye(k)
+    # numpy's stubs type solve() of float64 arrays as floating[Any]
+    step_scaled = cast(FloatArray, np.linalg.solve(info, h.T @ err / s2))
+    return ForgettingStep(info, step_scaled, nu, mu, lam)
 
 
 @dataclass(frozen=True)

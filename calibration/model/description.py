@@ -92,6 +92,25 @@ class BaseDescription:
     gravity: tuple[float, float, float] | None = None
 
 
+@dataclass(frozen=True)
+class TrackingDescription:
+    """What ``twin track`` needs from the campaign that calibrated the model (``[tracking]``,
+    written by :func:`calibration.effects.calibrate.calibrate`; absent in files of earlier
+    versions).
+
+    ``identified``: the geometric parameters the campaign identified (model names,
+    :meth:`calibration.model.kinematics.KinematicModel.parameter_names`); ``sigma_mm``: the
+    per-axis error σ of the final fit; ``identify_deg`` ``(m, n)``: the identification
+    poses (the information the campaign gave); ``reference_deg`` ``(r, n)``: the validation
+    poses at which a tracked model's TCP is compared with the calibrated one's (the alarm).
+    """
+
+    identified: tuple[str, ...]
+    sigma_mm: float
+    identify_deg: tuple[tuple[float, ...], ...]
+    reference_deg: tuple[tuple[float, ...], ...]
+
+
 #: An ``[[effect]]`` value: a number, a name, or an array of numbers or of names.
 EffectValue = float | str | tuple[float, ...] | tuple[str, ...]
 
@@ -118,6 +137,7 @@ class RobotDescription:
     base: BaseDescription | None = None
     home_deg: tuple[float, ...] | None = None
     effects: tuple[EffectDescription, ...] = ()
+    tracking: TrackingDescription | None = None
 
     @property
     def n_joints(self) -> int:
@@ -177,7 +197,7 @@ def load_robot(name_or_path: str | Path) -> RobotDescription:
 
 
 # -- parsing ----------------------------------------------------------------------------
-_TOP_KEYS = {"name", "home_deg", "joint", "tool", "base", "effect"}
+_TOP_KEYS = {"name", "home_deg", "joint", "tool", "base", "effect", "tracking"}
 
 
 def _parse_joint(data: Any, source: str, index: int) -> JointDescription:
@@ -211,6 +231,24 @@ def _parse_effect(data: Any, source: str, index: int) -> EffectDescription:
     return EffectDescription(kind=kind, parameters=params)
 
 
+def _pose_rows(t: TomlTable, key: str, n_joints: int) -> tuple[tuple[float, ...], ...]:
+    rows = t.get(key)
+    if not isinstance(rows, list) or not rows:
+        raise t.fail(key, "expected a non-empty array of joint vectors (degrees)")
+    return tuple(tuple(float(v) for v in t.numbers(key, r, length=n_joints)) for r in rows)
+
+
+def _parse_tracking(doc: dict[str, Any], source: str, n_joints: int) -> TrackingDescription:
+    t = TomlTable(doc["tracking"], source, "[tracking]", DescriptionError)
+    t.check_keys({"identified", "sigma_mm", "identify_deg", "reference_deg"})
+    return TrackingDescription(
+        identified=t.strings("identified"),
+        sigma_mm=t.number("sigma_mm", rng=Range(0.0, lo_open=True, what="mm, positive")),
+        identify_deg=_pose_rows(t, "identify_deg", n_joints),
+        reference_deg=_pose_rows(t, "reference_deg", n_joints),
+    )
+
+
 def _parse(doc: dict[str, Any], source: str) -> RobotDescription:
     top = TomlTable(doc, source, "top level", DescriptionError)
     top.check_keys(_TOP_KEYS)
@@ -238,8 +276,15 @@ def _parse(doc: dict[str, Any], source: str) -> RobotDescription:
     if not isinstance(raw_effects, list):
         raise top.fail("effect", "expected [[effect]] tables")
     effects = tuple(_parse_effect(e, source, i) for i, e in enumerate(raw_effects))
+    tracking = _parse_tracking(doc, source, len(joints)) if "tracking" in doc else None
     return RobotDescription(
-        name=name, joints=joints, tool=tool, base=base, home_deg=home, effects=effects
+        name=name,
+        joints=joints,
+        tool=tool,
+        base=base,
+        home_deg=home,
+        effects=effects,
+        tracking=tracking,
     )
 
 
@@ -268,4 +313,12 @@ def _to_document(desc: RobotDescription) -> dict[str, Any]:
     ]
     if desc.effects:
         doc["effect"] = [{"kind": e.kind, **_drop_none(dict(e.parameters))} for e in desc.effects]
+    if desc.tracking is not None:
+        tr = desc.tracking
+        doc["tracking"] = {
+            "identified": list(tr.identified),
+            "sigma_mm": tr.sigma_mm,
+            "identify_deg": [list(r) for r in tr.identify_deg],
+            "reference_deg": [list(r) for r in tr.reference_deg],
+        }
     return doc
