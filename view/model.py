@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from calibration.effects.model_effects import predict_tcp
 from calibration.model.description import BaseDescription, RobotDescription, load_robot
 from calibration.model.kinematics import KinematicModel
-from calibration.scales.grating_scale import GratingScale
+from calibration.scales.scale_relation import GratingScale
 from view.errors import ViewError
 from view.scene import ghost_model
 
