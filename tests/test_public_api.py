@@ -64,7 +64,7 @@ def test_drivers_exports_its_interface_and_registry():
 
 
 def test_the_drivers_example_reads_a_tracker():
-    from tests.test_driver_tracker import Tracker
+    from tests.drivers.test_driver_tracker import Tracker
 
     import drivers
 
