@@ -36,6 +36,7 @@ from daq.config import DaqConfig, DeviceConfig, ZenohConfig, resolve, zenoh_over
 from daq.device_drivers import keep_freed_heap, make_driver
 from daq.device_recording import DeviceRecording, recorder_meta
 from daq.errors import DaqError
+from daq.foxglove_channels import StreamViewer
 from daq.health import HealthLoop
 from daq.pipeline import DeviceStream, build_schemas
 from daq.recording import (
@@ -46,7 +47,6 @@ from daq.recording import (
     McapRecorder,
 )
 from daq.scheduling import set_realtime_of
-from daq.viewer import StreamViewer
 from daq.worker import DeviceWorker, worker_zenoh
 
 if TYPE_CHECKING:  # the emulated cell loads only for a daemon that runs one

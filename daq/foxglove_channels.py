@@ -1,4 +1,4 @@
-"""Viewer channels derived from the columnar streams while recording (docs/daq.md,
+"""Foxglove (viewer) channels derived from the columnar streams while recording (docs/daq.md,
 "Recording"): what Foxglove reads natively, beside the columnar data it cannot decode.
 
 Per stream, by its columns (so the same code serves the daemon, its workers' streams,

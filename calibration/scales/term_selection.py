@@ -32,7 +32,7 @@ def selected_scale(
         try:
             kept, tests = _select_terms(usable, fit_terms, threshold)
             published = fit_terms(kept)
-            scale = _publish(
+            scale = _grating_scale_of(
                 joint, zero, published, kept, tests, relation.basis, fit_terms, home_deg
             )
             break
@@ -70,7 +70,7 @@ def _select_terms(
     return kept, tests
 
 
-def _publish(
+def _grating_scale_of(
     joint: int,
     zero: HomeZero,
     fit: GlsFit,

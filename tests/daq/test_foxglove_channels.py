@@ -1,5 +1,5 @@
-"""Viewer channels (daq.viewer): at a bounded rate, every tracker point kept, joints named,
-the twin's TCP and frames; the messages validate against Foxglove's published JSON
+"""Foxglove channels (daq.foxglove_channels): at a bounded rate, every tracker point kept,
+joints named, the twin's TCP and frames; the messages validate against Foxglove's published JSON
 schemas (tests/data/foxglove_schemas, vendored from the foxglove-sdk repository) and our
 own, read back with the ``mcap`` package's reader."""
 
@@ -14,8 +14,8 @@ import numpy as np
 from mcap.reader import make_reader
 
 from daq.columnar import Column, StreamSchema
+from daq.foxglove_channels import StreamViewer
 from daq.recording import McapRecorder
-from daq.viewer import StreamViewer
 
 PUBLISHED = Path(__file__).parents[1] / "data" / "foxglove_schemas"
 T0 = 1_795_000_000_000_000_000  # host UTC ns
