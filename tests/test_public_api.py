@@ -64,9 +64,8 @@ def test_drivers_exports_its_interface_and_registry():
 
 
 def test_the_drivers_example_reads_a_tracker():
-    from tests.drivers.test_driver_tracker import Tracker
-
     import drivers
+    from tests.drivers.test_driver_tracker import Tracker
 
     tracker = Tracker()
     try:
