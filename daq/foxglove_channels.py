@@ -25,18 +25,18 @@ interpolates nothing: 30 Hz is what a 3-D panel or a plot shows smoothly.
 
 from __future__ import annotations
 
-import re
-from typing import Any
+from collections.abc import Mapping
+from typing import Any, Protocol
 
 import numpy as np
 
 import daq.foxglove as foxglove
 from daq.columnar import StreamSchema
+from edges.channel_names import counts_joint
 
 #: default of ``[recording] viewer_rate_hz``
 VIEWER_RATE_HZ = 30.0
 KIND_FOXGLOVE = "foxglove"  # MCAP channel metadata ``daq.kind`` (daq.recording)
-_COUNTS = re.compile(r"^(grating|encoder)(\d+)_counts$")
 
 
 def _joint_names(schema: StreamSchema, columns: list[str]) -> list[str]:
@@ -47,9 +47,27 @@ def _joint_names(schema: StreamSchema, columns: list[str]) -> list[str]:
         return [f"j{int(j)}" for j in joints]
     out = []
     for c in columns:
-        m = _COUNTS.match(c)
-        out.append(f"j{m.group(2)}" if m else c)
+        j = counts_joint(c)
+        out.append(f"j{j}" if j is not None else c)
     return out
+
+
+class ViewerRecorder(Protocol):
+    """Where the viewer channels go: :class:`~daq.recording.McapRecorder`, or
+    :class:`~daq.recording.BackgroundRecorder` in front of one."""
+
+    def add_json(
+        self,
+        topic: str,
+        schema_name: str,
+        json_schema: Mapping[str, Any] | bytes,
+        metadata: Mapping[str, str] | None = None,
+        /,
+    ) -> int: ...
+
+    def write(
+        self, channel_id: int, data: bytes, log_time_ns: int, publish_time_ns: int, /
+    ) -> None: ...
 
 
 class StreamViewer:
@@ -60,7 +78,7 @@ class StreamViewer:
 
     def __init__(
         self,
-        recorder: Any,
+        recorder: ViewerRecorder,
         schema: StreamSchema,
         *,
         rate_hz: float = VIEWER_RATE_HZ,
@@ -84,7 +102,7 @@ class StreamViewer:
         self._tf: tuple[int, list[str], list[str]] | None = None
         if not self.period_ns:
             return
-        counts = [n for n in names if _COUNTS.match(n)]
+        counts = [n for n in names if counts_joint(n) is not None]
         if {"q_deg", "tcp_mm", "flange_quat"} <= set(names):  # the live twin's state
             self._add_twin_state(names, meta)
         elif {"frame_mm", "frame_quat"} <= set(names):  # the live twin's link frames

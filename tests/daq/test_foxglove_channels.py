@@ -141,3 +141,14 @@ def test_no_viewer_channels_at_rate_zero(tmp_path):
     rec = McapRecorder(tmp_path / "v.mcap")
     assert not StreamViewer(rec, TRACKER, rate_hz=0.0).active
     rec.close()
+
+
+def test_joint_columns_named_by_their_joint_without_meta():
+    """Without ``meta.joints``, ``grating<k>_counts`` is joint ``k`` (edges.channel_names)."""
+    from daq.foxglove_channels import _joint_names
+
+    cols = ["grating10_counts", "grating2_counts", "encoder1_counts", "other"]
+    schema = StreamSchema(
+        "cell/c/robot/r/g/samples", _base(tuple(Column(c, "int64") for c in cols)), {}
+    )
+    assert _joint_names(schema, cols) == ["j10", "j2", "j1", "other"]
