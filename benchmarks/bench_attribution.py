@@ -34,7 +34,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.effects.closed_loop import ClosedLoopResult, run_closed_loop
-from calibration.identify.identification import EffectTerms, identify, predicted_points
+from calibration.identify.identification import identify
+from calibration.identify.position_residuals import EffectTerms, predicted_points
 from calibration.model.description import RobotDescription
 from calibration.model.gravity_regressor import base_moments
 from calibration.model.kinematics import KinematicModel, identification_jacobian

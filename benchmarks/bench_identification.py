@@ -39,12 +39,9 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
-from calibration.identify.identification import (
-    identify,
-    levenberg_marquardt,
-    position_residual_jacobian,
-    position_residuals,
-)
+from calibration.identify.identification import identify
+from calibration.identify.levenberg_marquardt import levenberg_marquardt
+from calibration.identify.position_residuals import position_residual_jacobian, position_residuals
 from calibration.model.description import load_robot
 from calibration.model.kinematics import KinematicModel, tcp_positions
 from sim_devices.pose_campaign import sample_reachable_poses

@@ -25,7 +25,8 @@ import numpy as np
 
 from benchmarks import Row, best_time
 from calibration.model.description import load_robot
-from calibration.model.inverse_kinematics import JointLimits, solve_ik
+from calibration.model.ik_results import JointLimits
+from calibration.model.inverse_kinematics import solve_ik
 from calibration.model.kinematics import (
     KinematicModel,
     flange_poses,

@@ -40,14 +40,11 @@ from benchmarks import best_time
 from calibration.model.description import RobotDescription, load_robot
 from calibration.scales.chain_scale import calibrate_scales
 from calibration.scales.circle_fit import fit_circle_3d
-from calibration.scales.grating_scale import (
-    ARCSEC_PER_DEG,
-    JointScaleResult,
-    JointSweep,
-    RelationBasis,
-    calibrate_joint,
-    crb_covariance,
-)
+from calibration.scales.grating_scale import calibrate_joint
+from calibration.scales.joint_scale_result import JointScaleResult
+from calibration.scales.relation_fit import crb_covariance
+from calibration.scales.scale_relation import ARCSEC_PER_DEG, RelationBasis
+from calibration.scales.sweep_inputs import JointSweep
 from calibration.scales.target_set_fit import fit_target_set
 from sim_devices.scale_campaign import CampaignOptions, ScaleCampaign, run_campaign
 from sim_devices.truth import TrueCell

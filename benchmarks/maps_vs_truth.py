@@ -18,7 +18,7 @@ import sys
 import numpy as np
 
 from calibration.model.description import load_robot
-from calibration.scales.grating_scale import ARCSEC_PER_DEG, COUNTER_MODULUS
+from calibration.scales.scale_relation import ARCSEC_PER_DEG, COUNTER_MODULUS
 from calibration.twin.streams import read_recording_streams
 from calibration.twin.twin_run import calibrate_twin, measure_campaign
 from sim_devices.config import CellConfig

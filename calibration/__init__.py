@@ -26,7 +26,8 @@ from calibration.effects.calibrate import CalibrationResult, calibrate
 from calibration.errors import CalibrationError, DataFileError, DescriptionError
 from calibration.identify.campaign_files import Campaign, read_campaign, read_joint_readings
 from calibration.model.description import RobotDescription, load_robot, preset_names
-from calibration.model.inverse_kinematics import IKResult, JointLimits, select_solution, solve_ik
+from calibration.model.ik_results import IKResult, JointLimits
+from calibration.model.inverse_kinematics import select_solution, solve_ik
 from calibration.model.kinematics import (
     KinematicModel,
     flange_poses,
@@ -38,7 +39,8 @@ from calibration.model.kinematics import (
 if TYPE_CHECKING:
     from calibration.effects.closed_loop import ClosedLoopResult, run_closed_loop
     from calibration.effects.model_effects import predict_tcp
-    from calibration.identify.identification import IdentificationResult, identify
+    from calibration.identify.identification import identify
+    from calibration.identify.identification_result import IdentificationResult
     from calibration.scales.chain_scale import calibrate_scales
     from calibration.scales.scale_files import read_scale_toml
     from calibration.twin.compensation import CompensationResult, compensate
@@ -50,7 +52,7 @@ _LAZY = {
     "run_closed_loop": "calibration.effects.closed_loop",
     "CompensationResult": "calibration.twin.compensation",
     "compensate": "calibration.twin.compensation",
-    "IdentificationResult": "calibration.identify.identification",
+    "IdentificationResult": "calibration.identify.identification_result",
     "identify": "calibration.identify.identification",
     "predict_tcp": "calibration.effects.model_effects",
     "read_scale_toml": "calibration.scales.scale_files",

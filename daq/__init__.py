@@ -30,6 +30,11 @@ if TYPE_CHECKING:
     from daq.daemon import Daemon
     from daq.recording import Recording, read_recording, recover
 
+#: The daemon's configuration from a TOML file / text (the names say what they load);
+#: ``load`` and ``loads`` are the old names, kept for programs that use them.
+load_config = load
+loads_config = loads
+
 #: name -> module, imported on first use (zenoh, mcap)
 _LAZY = {
     "ChannelPublisher": "daq.bus",
@@ -69,7 +74,9 @@ __all__ = [
     "decode",
     "encode",
     "load",
+    "load_config",
     "loads",
+    "loads_config",
     "open_session",
     "read_header",
     "read_recording",

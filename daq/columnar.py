@@ -131,6 +131,11 @@ class Header:
     batch_seq: int
 
 
+#: A payload's layout for ``n`` samples: its bytes, and per column its name, dtype, value
+#: count, byte offset and array shape (None: ``(n,)`` as read).
+PayloadLayout = tuple[int, tuple[tuple[str, np.dtype, int, int, tuple[int, ...] | None], ...]]
+
+
 @dataclass(frozen=True)
 class StreamSchema:
     """Layout and meaning of the payloads on one key.
@@ -167,10 +172,10 @@ class StreamSchema:
         )
 
     @cached_property
-    def _layouts(self) -> dict[int, tuple[int, tuple[tuple[str, np.dtype, int, int, Any], ...]]]:
+    def _layouts(self) -> dict[int, PayloadLayout]:
         return {}
 
-    def layout(self, n: int) -> tuple[int, tuple[tuple[str, np.dtype, int, int, Any], ...]]:
+    def layout(self, n: int) -> PayloadLayout:
         """Payload bytes of ``n`` samples, and per column: name, dtype, value count, byte
         offset and array shape (None: ``(n,)`` as read). Cached per ``n``: a stream's
         messages come in a few sizes, and decoding a 1-sample message is mostly this."""

@@ -17,6 +17,7 @@ On start it prints one JSON line to stdout: ``{"daq": "running", "cell": ..., "k
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import json
 import logging
@@ -33,9 +34,10 @@ from typing import TYPE_CHECKING, Any
 
 from daq.bus import Received, Receiver, SchemaServer, open_session, utc_offset_ns
 from daq.config import DaqConfig, DeviceConfig, ZenohConfig, resolve, zenoh_overrides
-from daq.device_drivers import keep_freed_heap, make_driver
+from daq.device_drivers import DriverFactory, keep_freed_heap, make_driver
 from daq.device_recording import DeviceRecording, recorder_meta
 from daq.errors import DaqError
+from daq.foxglove_channels import StreamViewer
 from daq.health import HealthLoop
 from daq.pipeline import DeviceStream, build_schemas
 from daq.recording import (
@@ -46,7 +48,6 @@ from daq.recording import (
     McapRecorder,
 )
 from daq.scheduling import set_realtime_of
-from daq.viewer import StreamViewer
 from daq.worker import DeviceWorker, worker_zenoh
 
 if TYPE_CHECKING:  # the emulated cell loads only for a daemon that runs one
@@ -69,7 +70,7 @@ class Daemon:
         cfg: DaqConfig,
         *,
         record_path: str | Path | None = None,
-        driver_factory: Any = make_driver,
+        driver_factory: DriverFactory = make_driver,
     ) -> None:
         self.cfg = cfg
         self.stop = threading.Event()
@@ -116,7 +117,9 @@ class Daemon:
             self.close()
             raise
 
-    def _zenoh_with_workers(self, driver_factory: Any) -> tuple[ZenohConfig, ZenohConfig | None]:
+    def _zenoh_with_workers(
+        self, driver_factory: DriverFactory
+    ) -> tuple[ZenohConfig, ZenohConfig | None]:
         """The daemon's zenoh settings and, when devices run in worker processes, the
         workers' (None: threads); a daemon that listens gets a unix socket for them in a
         directory of its own (``_worker_dir``, removed at close). Workers need a driver
@@ -278,7 +281,7 @@ class Daemon:
         self.close()
 
 
-def main_run(args: Any) -> int:
+def main_run(args: argparse.Namespace) -> int:
     """``daq run``: the daemon of ``args`` until ``--duration`` or a signal; exit 0."""
     cfg, emulated, record = _run_config(args)
     stopping = threading.Event()

@@ -4,13 +4,18 @@ processes share (threads and workers build their devices the same way)."""
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from collections.abc import Callable
 
 from daq.config import DeviceConfig
 from daq.errors import ConfigError
+from drivers.base import Driver
+
+#: What makes a configured device's driver (not opened): :func:`make_driver`, or a test's
+#: factory of in-process fakes.
+DriverFactory = Callable[[DeviceConfig], Driver]
 
 
-def make_driver(dev: DeviceConfig) -> Any:
+def make_driver(dev: DeviceConfig) -> Driver:
     """The driver of ``dev`` (not opened): a registry name, or ``module:Class``."""
     if ":" in dev.driver:
         module, _, cls_name = dev.driver.partition(":")
@@ -28,6 +33,8 @@ def make_driver(dev: DeviceConfig) -> Any:
             raise ConfigError(f"[[device]] {dev.name!r}: key 'driver': {exc}") from exc
     from drivers.errors import DriverError
 
+    if not (isinstance(cls, type) and issubclass(cls, Driver)):
+        raise ConfigError(f"[[device]] {dev.name!r}: key 'driver': {dev.driver} is not a Driver")
     # TOML has no tuples: drivers declare sequence options as tuple
     options = {k: tuple(v) if isinstance(v, list) else v for k, v in dev.options.items()}
     try:

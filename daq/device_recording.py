@@ -19,8 +19,8 @@ import daq.foxglove as foxglove
 from daq.bus import health_key
 from daq.columnar import StreamSchema
 from daq.config import DaqConfig, DeviceConfig
+from daq.foxglove_channels import StreamViewer
 from daq.recording import HEALTH_SCHEMA, HEALTH_SCHEMA_NAME, KIND_HEALTH, BackgroundRecorder
-from daq.viewer import StreamViewer
 
 log = logging.getLogger(__name__)
 

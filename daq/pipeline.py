@@ -42,7 +42,7 @@ from daq.config import ChannelGroup, DaqConfig, DeviceConfig
 from daq.device_recording import DeviceRecording
 from daq.errors import ConfigError, TransportError
 from daq.scheduling import describe as describe_scheduling
-from drivers.base import SampleBatch
+from drivers.base import BatchSchema, ChannelSchema, Driver, SampleBatch
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ ChannelGroups = list[tuple[StreamSchema, NDArray[np.intp]]]
 
 
 def build_schemas(
-    cfg: DaqConfig, dev: DeviceConfig, driver_schema: Any, utc_offset_ns: int
+    cfg: DaqConfig, dev: DeviceConfig, driver_schema: BatchSchema, utc_offset_ns: int
 ) -> ChannelGroups:
     """The columnar schema of every channel group of ``dev`` and its driver columns."""
     names = [c.name for c in driver_schema.channels]
@@ -141,8 +141,8 @@ def _group_meta(
     cfg: DaqConfig,
     dev: DeviceConfig,
     group: str,
-    driver_schema: Any,
-    chans: list[Any],
+    driver_schema: BatchSchema,
+    chans: list[ChannelSchema],
     joints: list[int | None] | None,
     utc_offset_ns: int,
 ) -> dict[str, Any]:
@@ -197,7 +197,7 @@ class DeviceStream:
         self,
         cfg: DaqConfig,
         dev: DeviceConfig,
-        driver: Any,
+        driver: Driver,
         session: zenoh.Session,
         schemas: SchemaServer,
         *,

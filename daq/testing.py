@@ -8,12 +8,15 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from daq.config import ZenohConfig
 from drivers.base import BatchSchema, ChannelSchema, Driver, SampleBatch
+from edges.channel_names import GRATING, counts_column
 
 
 def free_port() -> int:
@@ -61,7 +64,7 @@ def _counts_schema(kind: str, n_joints: int) -> BatchSchema:
     return BatchSchema(
         kind=kind,
         channels=tuple(
-            ChannelSchema(f"grating{i + 1}_counts", "count", "int64", f"joint {i + 1}")
+            ChannelSchema(counts_column(GRATING, i + 1), "count", "int64", f"joint {i + 1}")
             for i in range(n_joints)
         ),
         status_bits={1: "valid"},
@@ -201,7 +204,9 @@ class FakeGratingDriver(FakeDriver):
 
     kind = "fake_grating"
 
-    def __init__(self, url: str = "fake://", counts: Any = (0, 0, 0, 0, 0, 0), **kw: Any) -> None:
+    def __init__(
+        self, url: str = "fake://", counts: ArrayLike = (0, 0, 0, 0, 0, 0), **kw: Any
+    ) -> None:
         super().__init__(url, **kw)
         self.counts0 = np.asarray(counts, dtype=np.int64).reshape(6)
 
@@ -226,7 +231,7 @@ class FakeGratingDriver(FakeDriver):
         )
 
 
-def recorded_columns(path: Any, key: str) -> dict[str, np.ndarray]:
+def recorded_columns(path: str | Path, key: str) -> dict[str, np.ndarray]:
     """Every column of ``key``'s columnar messages in an MCAP recording, concatenated in
     file order (a streaming read: a truncated file gives what its complete chunks hold)."""
     from daq.columnar import StreamSchema, decode

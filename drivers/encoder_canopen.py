@@ -42,6 +42,7 @@ from drivers.base import BatchSchema, ChannelSchema, DeviceClock, Driver, Option
 from drivers.cia406 import DEVICE_TYPE_CIA406_MULTITURN, object_dictionary
 from drivers.errors import DeviceIOError, DriverConfigError
 from drivers.socketcand import SocketcandBus, format_send
+from edges.channel_names import ENCODER, counts_column
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +104,7 @@ class EncoderCanopenDriver(Driver):
             kind=self.kind,
             channels=tuple(
                 ChannelSchema(
-                    f"encoder{k + 1}_counts",
+                    counts_column(ENCODER, k + 1),
                     "count",
                     "int64",
                     f"node {nid} position value 0x6004 (motor counts, multi-turn)",

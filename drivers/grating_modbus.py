@@ -51,6 +51,7 @@ from drivers.modbus_rtu import (
     readwrite_request,
 )
 from drivers.transport import check_url, open_stream
+from edges.channel_names import GRATING, counts_column
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +79,7 @@ SCHEMA = BatchSchema(
     kind="grating_modbus",
     channels=tuple(
         ChannelSchema(
-            f"grating{i + 1}_counts",
+            counts_column(GRATING, i + 1),
             "count",
             "int64",
             f"joint {i + 1} strip counter, unwrapped from 32 bits (raw = value mod 2**32)",

@@ -20,11 +20,14 @@ import struct
 import sys
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from drivers.transport import drain, read_available, stream_fileno, write_all
+
+if TYPE_CHECKING:  # pyserial loads with a port
+    import serial
 
 FC_READ_HOLDING = 3
 FC_READ_WRITE = 23
@@ -156,7 +159,7 @@ class RtuMaster:
     ``timeout_s`` bounds a transaction.
     """
 
-    def __init__(self, port: Any, unit: int, timeout_s: float) -> None:
+    def __init__(self, port: serial.SerialBase, unit: int, timeout_s: float) -> None:
         self.port = port
         self.unit = unit
         self.timeout_s = timeout_s

@@ -84,7 +84,7 @@ def open_stream(
 # file descriptor; callers fall back to pyserial's read/write for the others (loop://).
 
 
-def stream_fileno(port: Any) -> int | None:
+def stream_fileno(port: serial.SerialBase) -> int | None:
     """The port's file descriptor, if it has a usable one (serial device, pty, socket://)."""
     try:
         fd = port.fileno()

@@ -21,7 +21,7 @@ import re
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import tomli_w
 
@@ -37,6 +37,9 @@ from edges.toml_schema import (
 from sim_devices.drift import STEP_KINDS, CellDrift
 from sim_devices.effects import EFFECT_NAMES, UndeclaredEffects
 from sim_devices.errors import SimConfigError, SimError
+
+if TYPE_CHECKING:
+    from calibration.model.description import RobotDescription
 
 
 @dataclass(frozen=True)
@@ -417,7 +420,7 @@ def check_joints(joints: tuple[int, ...] | None, n_joints: int, option: str) -> 
             raise SimError(f"{option}: joint {j}: the robot has joints 1..{n_joints}")
 
 
-def robot_option(name: str, prefix: str = "--robot") -> Any:
+def robot_option(name: str, prefix: str = "--robot") -> RobotDescription:
     """The robot description ``name`` (preset or file), its errors a :class:`SimError`
     starting with ``prefix`` (the option, or file and key)."""
     from calibration.errors import CalibrationError

@@ -93,7 +93,7 @@ from sim_devices.sweep_plan import (
 from sim_devices.truth import COUNTER_MODULUS, GratingStrip, TrueCell
 
 if TYPE_CHECKING:  # the twin's fit module (scipy.stats: half a second) only when used
-    from calibration.scales.grating_scale import JointSweep
+    from calibration.scales.sweep_inputs import JointSweep
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -257,7 +257,7 @@ class ScaleCampaign:
 
     def joint_sweeps(self) -> dict[int, JointSweep]:
         """The sweeps as the twin reads them from sweep.csv, in memory (per joint)."""
-        from calibration.scales.grating_scale import JointSweep
+        from calibration.scales.sweep_inputs import JointSweep
 
         out = {}
         for j in sorted(set(self.sweep_joint.tolist())):

@@ -26,7 +26,7 @@ MAY_IMPORT: dict[str, set[str]] = {
 #: ``__init__``, the public API) re-exports from the layers and is imported by none.
 CALIBRATION_MAY_IMPORT: dict[str, set[str]] = {
     "errors": set(),
-    "presets": set(),  # the preset robot descriptions: data files
+    "presets": set(),  # the preset description files (data: its __init__ imports nothing)
     "model": {"errors"},
     "scales": {"errors", "model"},
     "identify": {"errors", "model"},

@@ -17,7 +17,7 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -25,9 +25,12 @@ from numpy.typing import ArrayLike, NDArray
 from calibration.effects.model_effects import predict_tcp
 from calibration.model.description import BaseDescription, RobotDescription, load_robot
 from calibration.model.kinematics import KinematicModel
-from calibration.scales.grating_scale import GratingScale
+from calibration.scales.scale_relation import GratingScale
 from view.errors import ViewError
 from view.scene import ghost_model
+
+if TYPE_CHECKING:
+    from calibration.twin.twin_run import CampaignMeasurements
 
 FloatArray = NDArray[np.float64]
 
@@ -154,7 +157,7 @@ def nominal_twin(robot: str) -> TwinModel:
     return TwinModel(desc, None, 0, False, f"nominal {robot}, no scale maps (arm at Home)")
 
 
-def provisional_twin(robot: str, meas: Any) -> TwinModel:
+def provisional_twin(robot: str, meas: CampaignMeasurements) -> TwinModel:
     """The nominal ``robot`` read through scale maps fitted from a recording's sweeps.
 
     ``meas``: the recording's :class:`~calibration.twin.twin_run.CampaignMeasurements`. The

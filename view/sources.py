@@ -21,15 +21,21 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from calibration.twin.phase_detection import PhaseOptions, find_phases
 from calibration.twin.streams import CellStreams, stream_kind
+from edges.channel_names import GRATING, joint_columns
 from view.model import TwinModel
 from view.phases import PhaseTimeline
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from calibration.twin.twin_run import CampaignMeasurements
 
 FloatArray = NDArray[np.float64]
 TRACKER_VALID = 1  # status bit of a tracker channel: the measurement is valid
@@ -146,7 +152,7 @@ class PosePoints:
         return cls(np.empty(0, dtype=np.int64), np.empty((0, 3)), np.empty((0, 3)))
 
 
-def pose_points(meas: Any, twin: TwinModel) -> PosePoints:
+def pose_points(meas: CampaignMeasurements, twin: TwinModel) -> PosePoints:
     """The poses of :class:`~calibration.twin.twin_run.CampaignMeasurements` with the twin's
     TCP at each (one vectorized evaluation)."""
     if not meas.poses:
@@ -285,7 +291,7 @@ class LiveSource:
 
     def __init__(
         self,
-        session: Any,
+        session: zenoh.Session,
         twin: TwinModel,
         *,
         data_key: str = "cell/**",
@@ -342,10 +348,7 @@ class LiveSource:
                 kind = "twin"
             cols: list[str] = []
             if kind == "grating":
-                cols = sorted(
-                    (c for c in names if c.startswith("grating") and c.endswith("_counts")),
-                    key=lambda c: int(c[len("grating") : -len("_counts")]),
-                )
+                cols = joint_columns(names, GRATING)
             known = self._kinds[got.key] = (kind, cols)
         return known
 

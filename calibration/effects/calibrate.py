@@ -21,7 +21,8 @@ from calibration.model.description import RobotDescription, TrackingDescription
 
 if TYPE_CHECKING:  # the solvers load when calibrate runs
     from calibration.effects.closed_loop import ClosedLoopResult, LoopSettings
-    from calibration.identify.identification import IdentificationResult, ProgressCallback
+    from calibration.identify.identification_result import IdentificationResult
+    from calibration.identify.levenberg_marquardt import ProgressCallback
 
 
 @dataclass(frozen=True, eq=False)

@@ -26,6 +26,12 @@ Residuals are ``model − tracker`` (mm, shape ``(3m,)``), written as pure funct
 parameter vector and the data. A robust loss (Huber, soft-L1, Cauchy) is applied by
 iteratively reweighting whole poses; poses whose 3-D residual is improbably large for the
 estimated noise are reported as outliers whatever the loss.
+
+This module sets the problem up and runs it (:func:`identify`); the pieces live in modules
+of their own: the residuals (:mod:`~calibration.identify.position_residuals`), the solver
+(:mod:`~calibration.identify.levenberg_marquardt`), the watch over its iterates
+(:mod:`~calibration.identify.runaway_watch`) and the result
+(:mod:`~calibration.identify.identification_result`).
 """
 
 from __future__ import annotations
@@ -45,22 +51,53 @@ if TYPE_CHECKING:  # scipy loads when a fit runs: a command that only reads a mo
     from scipy.optimize import OptimizeResult
 from calibration.identify.identifiability import (
     DEFAULT_RTOL,
-    NO_EFFECT,
     IdentifiabilityAnalysis,
     analyze_identifiability,
-    arm_reach_mm,
     column_references,
-    column_rms,
     default_priority,
 )
+from calibration.identify.identification_result import IdentificationResult, effect_unit
+from calibration.identify.levenberg_marquardt import (
+    DEFAULT_LM_SETTINGS,
+    LMSettings,
+    ProgressCallback,
+    levenberg_marquardt,
+)
+from calibration.identify.position_residuals import (
+    EffectTerms,
+    full_vector,
+    position_residual_jacobian,
+    position_residuals,
+    predicted_points,
+    stacked_jacobian,
+)
+from calibration.identify.runaway_watch import RAN_AWAY, RunAway, RunawayWatch, credible_moves
 from calibration.model.kinematics import (
     KinematicModel,
-    identification_jacobian,
     tcp_positions,
 )
 from calibration.model.registration import rigid_registration
 
+#: Re-exported where the closed loop, its report, ``twin identify``, ``twin run`` and the
+#: recursive identification import them from (those modules are being edited on another
+#: branch; new code imports them from the modules that define them).
+__all__ = [
+    "LOSSES",
+    "RAN_AWAY",
+    "START_METHODS",
+    "EffectTerms",
+    "IdentificationResult",
+    "LMSettings",
+    "ProgressCallback",
+    "base_start_from_registration",
+    "effect_unit",
+    "identify",
+    "predicted_points",
+    "tracker_sigma_mm",
+]
+
 FloatArray = NDArray[np.float64]
+
 
 #: Robust losses: name -> per-pose IRLS weight as a function of (3-D residual / f_scale).
 LOSSES: dict[str, Callable[[FloatArray], FloatArray]] = {
@@ -70,303 +107,13 @@ LOSSES: dict[str, Callable[[FloatArray], FloatArray]] = {
     "cauchy": lambda z: 1.0 / (1.0 + z * z),
 }
 
+
 #: Where the start value of the base pose came from.
 START_METHODS = ("description", "registration")
 
-TERMINATION_MESSAGES = {
-    -2: "the residuals were not finite at any damping: the iteration ran away",
-    -1: "the step could not reduce the error: damping limit reached",
-    0: "the maximum number of iterations was reached",
-    1: "change of the error norm <= tol_mm",
-    2: "the error norm is zero",
-}
 
 #: Two-sided probability beyond which a pose's 3-D residual marks it as an outlier.
 OUTLIER_PROBABILITY = 1e-3
-
-
-ProgressCallback = Callable[[int, float, float], None]  # (iteration, error norm mm, damping)
-
-#: An effect regressor: (geometric model, slice of the poses) -> ∂TCP/∂c ``(rows, 3, k)``,
-#: mm per unit of each effect parameter, for the poses the terms were built on.
-EffectRegressor = Callable[[KinematicModel, slice], NDArray[np.float64]]
-
-
-@dataclass(frozen=True, eq=False)
-class EffectTerms:
-    """Non-geometric terms linear in k parameters appended to the geometric vector.
-
-    The twin predicts ``tcp(model, q) + regressor(model, poses) · c``. ``names`` carry the
-    parameters' units (they are reported as they are); ``start`` defaults to zeros.
-    """
-
-    names: tuple[str, ...]
-    regressor: EffectRegressor
-    start: tuple[float, ...] | None = None
-
-    @property
-    def n_parameters(self) -> int:
-        return len(self.names)
-
-    def start_vector(self) -> NDArray[np.float64]:
-        return np.zeros(len(self.names)) if self.start is None else np.asarray(self.start, float)
-
-
-@dataclass(frozen=True)
-class LMSettings:
-    """Levenberg-Marquardt settings (the source's: μ ×10 on failure, ÷10 on success)."""
-
-    mu0: float = 1e-3
-    increase: float = 10.0
-    decrease: float = 0.1
-    mu_max: float = 1e12
-    tol_mm: float = 1e-4  # stop when successive error norms (mm) differ by at most this
-    max_iterations: int = 100
-
-
-# -- pure residual functions --------------------------------------------------------------
-def _full_vector(x_free: FloatArray, x_full: FloatArray, free_idx: NDArray[np.intp]) -> FloatArray:
-    x = np.array(x_full, dtype=float)
-    x[free_idx] = x_free
-    return x
-
-
-#: Poses per block when evaluating residuals and Jacobians: keeps temporaries small so the
-#: cost stays linear in the number of poses.
-CHUNK_POSES = 8192
-
-
-def _split(x: FloatArray, template: KinematicModel) -> tuple[KinematicModel, FloatArray]:
-    """Geometry and effect parameters of a full vector ``(5n + 9 + k,)``."""
-    p = template.n_parameters
-    return template.with_parameters(x[:p]), x[p:]
-
-
-def position_residuals(
-    x_free: ArrayLike,
-    x_full: FloatArray,
-    free_idx: NDArray[np.intp],
-    template: KinematicModel,
-    q_rad: FloatArray,
-    measured_mm: FloatArray,
-    sqrt_weights: FloatArray,
-    effects: EffectTerms | None = None,
-) -> FloatArray:
-    """Weighted residuals ``(3m,)``: (predicted point − tracker point), mm times √weight.
-
-    ``x_free`` replaces the entries ``free_idx`` of the full parameter vector ``x_full``,
-    which is ``(5n + 9,)``, or ``(5n + 9 + k,)`` with ``effects`` appended.
-    """
-    model, c = _split(_full_vector(np.asarray(x_free), x_full, free_idx), template)
-    pred = predicted_points(model, q_rad, effects, c)
-    return ((pred - measured_mm) * sqrt_weights[:, None]).ravel()
-
-
-def position_residual_jacobian(
-    x_free: ArrayLike,
-    x_full: FloatArray,
-    free_idx: NDArray[np.intp],
-    template: KinematicModel,
-    q_rad: FloatArray,
-    measured_mm: FloatArray,
-    sqrt_weights: FloatArray,
-    effects: EffectTerms | None = None,
-) -> FloatArray:
-    """Jacobian ``(3m, k_free)`` of :func:`position_residuals` with respect to ``x_free``.
-
-    The effect regressors' own dependence on the geometry (second order in sub-mm
-    effects) is left out.
-    """
-    model, _ = _split(_full_vector(np.asarray(x_free), x_full, free_idx), template)
-    jac = stacked_jacobian(model, q_rad, effects)
-    return (jac[:, :, free_idx] * sqrt_weights[:, None, None]).reshape(-1, len(free_idx))
-
-
-def stacked_jacobian(
-    model: KinematicModel, q_rad: FloatArray, effects: EffectTerms | None = None
-) -> FloatArray:
-    """∂TCP/∂(geometry, effect parameters) ``(m, 3, 5n + 9 + k)``, in blocks of poses."""
-    k = 0 if effects is None else effects.n_parameters
-    p = model.n_parameters
-    out = np.empty((len(q_rad), 3, p + k))
-    for s in range(0, len(q_rad), CHUNK_POSES):
-        e = slice(s, min(s + CHUNK_POSES, len(q_rad)))
-        out[e, :, :p] = identification_jacobian(model, q_rad[e])[1]
-        if effects is not None:
-            out[e, :, p:] = effects.regressor(model, e)
-    return out
-
-
-def predicted_points(
-    model: KinematicModel,
-    q_rad: FloatArray,
-    effects: EffectTerms | None = None,
-    effect_values: ArrayLike | None = None,
-) -> FloatArray:
-    """Predicted tracker points ``(m, 3)`` mm: geometric TCP plus the effect terms."""
-    tcp = tcp_positions(model, q_rad)
-    if effects is None or effects.n_parameters == 0:
-        return tcp
-    c = np.asarray(effect_values, dtype=float)
-    out = np.empty_like(tcp)
-    for s in range(0, len(q_rad), CHUNK_POSES):
-        e = slice(s, min(s + CHUNK_POSES, len(q_rad)))
-        out[e] = tcp[e] + effects.regressor(model, e) @ c
-    return out
-
-
-# -- the solver ------------------------------------------------------------------------
-#: A check of each accepted iterate: (iteration, x, residuals, Jacobian) -> None. It may
-#: raise to end the iteration (identify() drops parameters that ran away through it).
-IterateWatch = Callable[[int, FloatArray, FloatArray, FloatArray], None]
-
-
-def levenberg_marquardt(
-    fun: Callable[..., FloatArray],
-    jac: Callable[..., FloatArray],
-    x0: ArrayLike,
-    *,
-    args: tuple[object, ...] = (),
-    x_scale: ArrayLike | None = None,
-    settings: LMSettings = LMSettings(),
-    progress: ProgressCallback | None = None,
-    watch: IterateWatch | None = None,
-) -> OptimizeResult:
-    """Minimize ``½‖fun(x, *args)‖²`` by the source's Levenberg-Marquardt iteration.
-
-    ``x_scale`` (k,) gives the characteristic size of each variable; the damping acts on
-    ``x / x_scale``. ``watch`` sees the start point and every accepted iterate; what it
-    raises ends the iteration and propagates. Returns a :class:`scipy.optimize.OptimizeResult`
-    with x, cost, fun, jac, grad, optimality, nfev, njev, nit, status, message, success and
-    ``mu``. ``success``: converged (status 1 or 2), or status −1 (no step of any damping
-    lowers the error) at a finite error norm: the last accepted point has the smallest
-    norm seen and no descent step is left at the solver's resolution. Status 0 (iteration
-    limit) and −2 (non-finite residuals at every damping) are failures.
-    """
-    x = np.array(x0, dtype=float)
-    scale = np.ones_like(x) if x_scale is None else np.asarray(x_scale, dtype=float)
-    f = fun(x, *args)
-    j = jac(x, *args)
-    nfev, njev = 1, 1
-    norm = float(np.linalg.norm(f))
-    mu = settings.mu0
-    status = 0
-    nit = 0
-    if watch is not None:
-        watch(0, x, f, j)
-    if progress is not None:
-        progress(0, norm, mu)
-    for nit in range(1, settings.max_iterations + 1):
-        if norm == 0.0:
-            status = 2
-            break
-        trial = _damped_step(fun, args, x, f, norm, j * scale, scale, mu, settings)
-        nfev += trial.nfev
-        mu = trial.mu
-        if not trial.accepted:
-            status = _rejected_status(norm, trial.norm, settings.tol_mm)
-            break
-        change = norm - trial.norm
-        x, f, norm = trial.x, trial.f, trial.norm
-        j = jac(x, *args)
-        njev += 1
-        if watch is not None:
-            watch(nit, x, f, j)
-        if progress is not None:
-            progress(nit, norm, mu)
-        if change <= settings.tol_mm:
-            status = 1
-            break
-    return _lm_result(x, f, j, norm, mu, status, nit=nit, nfev=nfev, njev=njev)
-
-
-@dataclass(frozen=True)
-class _Trial:
-    """One LM iteration's search over the damping: the trial point it ended on."""
-
-    accepted: bool  # the error norm fell: x, f, norm are the new iterate
-    x: FloatArray  # (k,) the accepted point (the current one when not accepted)
-    f: FloatArray  # (3m,) its residuals
-    norm: float  # error norm of the last trial step (inf: non-finite residuals)
-    mu: float  # damping after the search
-    nfev: int  # residual evaluations spent
-
-
-def _damped_step(
-    fun: Callable[..., FloatArray],
-    args: tuple[object, ...],
-    x: FloatArray,
-    f: FloatArray,
-    norm: float,
-    js: FloatArray,
-    scale: FloatArray,
-    mu: float,
-    settings: LMSettings,
-) -> _Trial:
-    """Raise the damping μ from ``mu`` until a step on the column-scaled Jacobian ``js``
-    ``(3m, k)`` lowers the error norm, the step changes it by <= tol_mm (at the minimum),
-    or μ passes ``mu_max``."""
-    a = js.T @ js
-    g = js.T @ f
-    norm_new = math.inf
-    nfev = 0
-    while mu <= settings.mu_max:
-        try:
-            step = -np.linalg.solve(a + mu * np.eye(len(x)), g) * scale
-        except np.linalg.LinAlgError:
-            mu *= settings.increase
-            continue
-        x_new = x + step
-        f_new = fun(x_new, *args)
-        nfev += 1
-        norm_new = float(np.linalg.norm(f_new)) if np.all(np.isfinite(f_new)) else math.inf
-        if norm_new < norm:
-            return _Trial(True, x_new, f_new, norm_new, max(mu * settings.decrease, 1e-12), nfev)
-        if norm_new - norm <= settings.tol_mm:
-            break  # at the minimum: a step changes the error norm by <= tol_mm
-        mu *= settings.increase
-    return _Trial(False, x, f, norm_new, mu, nfev)
-
-
-def _lm_result(
-    x: FloatArray,
-    f: FloatArray,
-    j: FloatArray,
-    norm: float,
-    mu: float,
-    status: int,
-    *,
-    nit: int,
-    nfev: int,
-    njev: int,
-) -> OptimizeResult:
-    """The solver's end point as scipy reports it (see :func:`levenberg_marquardt`)."""
-    grad = j.T @ f
-    from scipy.optimize import OptimizeResult
-
-    return OptimizeResult(
-        x=x,
-        cost=0.5 * norm**2,
-        fun=f,
-        jac=j,
-        grad=grad,
-        optimality=float(np.max(np.abs(grad))) if grad.size else 0.0,
-        nfev=nfev,
-        njev=njev,
-        nit=nit,
-        mu=mu,
-        status=status,
-        message=TERMINATION_MESSAGES[status],
-        success=status > 0 or (status == -1 and math.isfinite(norm)),
-    )
-
-
-def _rejected_status(norm: float, norm_new: float, tol_mm: float) -> int:
-    """Status when no trial step was accepted: 1 at the minimum (the last trial changed
-    the norm by <= tol_mm), −2 when its residuals were not finite, else −1."""
-    if norm_new - norm <= tol_mm:
-        return 1
-    return -1 if math.isfinite(norm_new) else -2
 
 
 def tracker_sigma_mm(
@@ -381,142 +128,6 @@ def tracker_sigma_mm(
     d_m = np.linalg.norm(np.atleast_2d(points_mm) - np.asarray(tracker_mm), axis=1) / 1000.0
     sigma: FloatArray = 1e-3 * (mpe_um + mpe_um_per_m * d_m) / mpe_sigmas
     return sigma
-
-
-# -- the problem and its result ----------------------------------------------------------
-@dataclass(frozen=True)
-class IdentificationResult:
-    """Identified model, its uncertainty, what was dropped, and the solver's own result."""
-
-    model: KinematicModel  # identified geometry, base and tool
-    start_model: KinematicModel  # nominal geometry with the start base pose
-    start_method: str  # one of START_METHODS
-    identifiability: IdentifiabilityAnalysis
-    covariance: FloatArray  # (k, k) of the identified parameters, model units (mm, rad)
-    sigma_mm: float  # per-axis noise estimated from the residuals (of a reference pose)
-    pose_weights: FloatArray  # (m,) final robust-loss weights (1 with the linear loss)
-    outliers: NDArray[np.bool_]  # (m,) poses whose residual is improbably large
-    loss: str
-    f_scale_mm: float | None
-    optimize_result: OptimizeResult  # of the last LM run (x: free parameters)
-    elapsed_s: float
-    irls_iterations: int = 1
-    history: list[tuple[int, float, float]] = field(default_factory=list)
-    #: with per-point σ: the σ the weights are relative to (their harmonic RMS); sigma_mm
-    #: over it is how the data compare with the stated σ (1: as stated). None: unweighted.
-    reference_sigma_mm: float | None = None
-    #: effect terms identified with the geometry (None: the geometric model alone)
-    effects: EffectTerms | None = None
-    effect_values: FloatArray = field(default_factory=lambda: np.zeros(0))  # (k,)
-
-    @property
-    def parameter_names(self) -> tuple[str, ...]:
-        """Geometric parameter names, then the effect parameters' (with their units)."""
-        return self.identifiability.parameter_names
-
-    @property
-    def free(self) -> NDArray[np.bool_]:
-        return self.identifiability.free
-
-    @property
-    def success(self) -> bool:
-        return bool(self.optimize_result.success)
-
-    @property
-    def n_geometric(self) -> int:
-        return self.model.n_parameters
-
-    def parameter_vector(self) -> FloatArray:
-        """Identified geometry then effect parameters ``(5n + 9 + k,)``."""
-        return np.concatenate([self.model.parameter_vector(), self.effect_values])
-
-    def start_vector(self) -> FloatArray:
-        start = np.zeros(0) if self.effects is None else self.effects.start_vector()
-        return np.concatenate([self.start_model.parameter_vector(), start])
-
-    def deviations(self) -> FloatArray:
-        """Identified minus start parameters, full vector ``(5n + 9 [+ k],)`` (mm, rad)."""
-        return self.parameter_vector() - self.start_vector()
-
-    def standard_errors(self) -> FloatArray:
-        """Standard errors, full vector (mm, rad, effect units); NaN exactly for the dropped
-        parameters (held at their start value), finite for every identified one."""
-        se = np.full(len(self.parameter_names), np.nan)
-        se[self.free] = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
-        return se
-
-    def residuals_mm(self, q_rad: ArrayLike, measured_mm: ArrayLike) -> FloatArray:
-        """Errors ``tracker − twin`` ``(N, 3)`` mm of the identified *geometric* model
-        (effect terms need their own per-pose data: see :mod:`calibration.effects.closed_loop`)."""
-        return np.asarray(measured_mm, dtype=float) - tcp_positions(self.model, q_rad)
-
-    def prediction_covariance(self, q_rad: ArrayLike) -> FloatArray:
-        """Covariance ``(N, 3, 3)`` mm² of the predicted geometric TCP at ``q`` from the
-        geometric parameters."""
-        _, jac = identification_jacobian(self.model, np.atleast_2d(q_rad))
-        p = self.n_geometric
-        geo = self.free[:p]
-        n_geo = int(np.count_nonzero(geo))
-        jf = jac[:, :, geo]
-        cov = self.covariance[:n_geo, :n_geo]
-        return jf @ cov @ jf.transpose(0, 2, 1)
-
-    def parameter_table(self) -> list[dict[str, object]]:
-        """One row per parameter, in human units (mm and degrees; effect parameters in the
-        units their names carry)."""
-        start = self.start_vector()
-        final = self.parameter_vector()
-        se = self.standard_errors()
-        dropped = {d.name: d.reason for d in self.identifiability.dropped}
-        rows = []
-        for i, name in enumerate(self.parameter_names):
-            if i >= self.n_geometric:
-                rows.append(
-                    {
-                        "name": name,
-                        "unit": effect_unit(name),
-                        "start": float(start[i]),
-                        "identified": float(final[i]),
-                        "deviation": float(final[i] - start[i]),
-                        "standard_error": None if np.isnan(se[i]) else float(se[i]),
-                        "identified_from_data": bool(self.free[i]),
-                        "dropped_reason": dropped.get(name),
-                    }
-                )
-                continue
-            to_deg = name.endswith("_rad")
-            k = math.degrees(1.0) if to_deg else 1.0
-            unit = "deg" if to_deg else "mm"
-            rows.append(
-                {
-                    "name": name.removesuffix("_rad").removesuffix("_mm") + f"_{unit}",
-                    "unit": unit,
-                    "start": float(start[i] * k),
-                    "identified": float(final[i] * k),
-                    "deviation": float((final[i] - start[i]) * k),
-                    "standard_error": None if np.isnan(se[i]) else float(se[i] * k),
-                    "identified_from_data": bool(self.free[i]),
-                    "dropped_reason": dropped.get(name),
-                }
-            )
-        return rows
-
-
-#: Unit suffixes of effect parameter names (longest first) -> unit for people.
-EFFECT_UNITS = (
-    ("_urad_per_knm", "µrad/(kN·m)"),
-    ("_mm_per_h2", "mm/h²"),
-    ("_ppm_per_h", "ppm/h"),
-    ("_mm_per_h", "mm/h"),
-    ("_ppm", "ppm"),
-    ("_deg", "deg"),
-    ("_mm", "mm"),
-)
-
-
-def effect_unit(name: str) -> str:
-    """The unit an effect parameter's name ends with (``''`` when none is known)."""
-    return next((u for suffix, u in EFFECT_UNITS if name.endswith(suffix)), "")
 
 
 def base_start_from_registration(
@@ -535,21 +146,6 @@ def base_start_from_registration(
 #: Restarts from the start point after dropping parameters that ran away, before giving up.
 MAX_RESTARTS = 3
 
-#: A free column whose RMS falls below this fraction of its start value has collapsed.
-COLLAPSE_RATIO = 1e-6
-
-#: Why a parameter is dropped during the iterations (details follow in parentheses).
-COLLAPSED = NO_EFFECT + " during the iterations"
-RAN_AWAY = "ran away during the iterations"
-
-
-class _RunAway(Exception):
-    """Raised by :class:`_Watch`: free parameters (full-vector index -> reason) to drop."""
-
-    def __init__(self, reasons: dict[int, str]) -> None:
-        super().__init__("; ".join(reasons.values()))
-        self.reasons = reasons
-
 
 @dataclass(frozen=True, eq=False)
 class _Problem:
@@ -563,7 +159,7 @@ class _Problem:
     x_start: FloatArray  # (p,) full start vector, geometry then effects (mm, rad, ...)
     jac_start: FloatArray  # (m, 3, p) unweighted Jacobian at the start point
     column_sq_start: FloatArray  # (m, p) per pose, Σ over x, y, z of jac_start²
-    max_move: FloatArray  # (p,) largest credible |x − x_start| (see _credible_moves)
+    max_move: FloatArray  # (p,) largest credible |x − x_start| (see credible_moves)
 
     @classmethod
     def at_start(
@@ -591,78 +187,13 @@ class _Problem:
             x_start=x_start,
             jac_start=jac_start,
             column_sq_start=np.einsum("mip,mip->mp", jac_start, jac_start),
-            max_move=_credible_moves(start_model, meas, n_effects),
+            max_move=credible_moves(start_model, meas, n_effects),
         )
 
     def residual_args(self, free_idx: NDArray[np.intp], sw: FloatArray) -> tuple[object, ...]:
         """The data arguments of :func:`position_residuals` and its Jacobian, the poses
         weighted by ``sw`` ``(m,)``."""
         return (self.x_start, free_idx, self.nominal, self.q, self.meas, sw, self.effects)
-
-
-def _credible_moves(start: KinematicModel, meas: FloatArray, n_effects: int) -> FloatArray:
-    """Largest credible |identified − start| ``(5n + 9 + n_effects,)`` (rad, mm).
-
-    π for an angle; the arm's reach for a length of the arm or tool; for the base
-    translation the reach plus the farthest point from the start base (every point lies
-    within reach of the true base); no limit for effect parameters (arbitrary units).
-    """
-    reach = arm_reach_mm(start)
-    far = float(np.max(np.linalg.norm(meas - start.base_mm, axis=1)))
-    moves = [
-        math.pi if n.endswith("_rad") else reach + far if n.startswith("base.") else reach
-        for n in start.parameter_names()
-    ]
-    return np.concatenate([moves, np.full(n_effects, np.inf)])
-
-
-@dataclass(frozen=True)
-class _Watch:
-    """Checks every accepted LM iterate of one run for free parameters that ran away
-    (non-finite, or moved beyond credibility) or whose column collapsed."""
-
-    names: tuple[str, ...]  # (k,) free parameter names
-    index: NDArray[np.intp]  # (k,) their positions in the full vector
-    x_start: FloatArray  # (k,) at the start point
-    max_move: FloatArray  # (k,)
-    start_rms: FloatArray  # (k,) column RMS of this run's weighted Jacobian at the start
-
-    def __call__(self, nit: int, x: FloatArray, f: FloatArray, j: FloatArray) -> None:
-        why = self.reasons(nit, x, j)
-        if not why and not np.all(np.isfinite(f)):
-            raise IdentificationError(f"the residuals are not finite at iteration {nit}")
-        if why:
-            raise _RunAway({int(self.index[i]): r for i, r in why.items()})
-
-    def reasons(self, nit: int, x: FloatArray, j: FloatArray) -> dict[int, str]:
-        """Free position -> why it must go, for the iterate ``x`` ``(k,)`` with the
-        weighted Jacobian ``j`` ``(3m, k)``."""
-        why: dict[int, str] = {}
-        bad = ~np.isfinite(x) | ~np.all(np.isfinite(j), axis=0)
-        for i in np.flatnonzero(bad).tolist():
-            why[i] = f"{RAN_AWAY} (non-finite value or column at iteration {nit})"
-        move = np.abs(x - self.x_start)
-        for i in np.flatnonzero(move > self.max_move).tolist():
-            why.setdefault(i, _moved(self.names[i], move[i], self.max_move[i], nit))
-        ratio = column_rms(j) / self.start_rms
-        for i in np.flatnonzero(ratio < COLLAPSE_RATIO).tolist():
-            why.setdefault(
-                i,
-                f"{COLLAPSED} (its column fell to {ratio[i]:.1e} of its start RMS by "
-                f"iteration {nit})",
-            )
-        return why
-
-
-def _moved(name: str, move: float, limit: float, nit: int) -> str:
-    if name.endswith("_rad"):
-        return (
-            f"{RAN_AWAY} (moved {math.degrees(move):.3g}° from its start by iteration "
-            f"{nit}, beyond ±180°)"
-        )
-    return (
-        f"{RAN_AWAY} (moved {move:.4g} mm from its start by iteration {nit}, beyond {limit:.0f} mm)"
-    )
 
 
 @dataclass(frozen=True)
@@ -687,7 +218,7 @@ def _robust_fit(
     record: ProgressCallback,
 ) -> _Fit:
     """LM on the free parameters of ``analysis`` from the start point, reweighted by the
-    robust loss; raises :class:`_RunAway` through the watch."""
+    robust loss; raises :class:`RunAway` through the watch."""
     m = len(problem.q)
     free_idx = analysis.free_indices
     x_scale = 1.0 / analysis.column_scale[free_idx]
@@ -703,7 +234,7 @@ def _robust_fit(
         irls += 1
         sw = np.sqrt(problem.prior * weights)
         start_rms = np.sqrt(sw**2 @ column_sq / (3 * m))  # same weights as this run
-        watch = _Watch(
+        watch = RunawayWatch(
             names, free_idx, problem.x_start[free_idx], problem.max_move[free_idx], start_rms
         )
         result = levenberg_marquardt(
@@ -760,7 +291,7 @@ def _fit_dropping_runaways(
         analysis = analyze(excluded)
         try:
             return analysis, fit(analysis)
-        except _RunAway as exc:
+        except RunAway as exc:
             excluded.update(exc.reasons)
             last = exc
     names = analysis.parameter_names
@@ -791,7 +322,7 @@ def identify(
     start: str | None = None,
     loss: str = "linear",
     f_scale_mm: float | None = None,
-    settings: LMSettings = LMSettings(),
+    settings: LMSettings = DEFAULT_LM_SETTINGS,
     rtol: float = DEFAULT_RTOL,
     fixed: tuple[str, ...] = (),
     max_irls: int = 10,
@@ -846,7 +377,7 @@ def identify(
         )
 
     analysis, done = _fit_dropping_runaways(analyze, fit)
-    final = _full_vector(done.result.x, problem.x_start, analysis.free_indices)
+    final = full_vector(done.result.x, problem.x_start, analysis.free_indices)
     model = nominal.with_parameters(final[:p_geo])
     effect_values = final[p_geo:]
     spread = _spread(problem, analysis, done, model, effect_values)

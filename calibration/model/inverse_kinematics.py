@@ -45,410 +45,33 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.errors import KinematicsError
-from calibration.model.description import RobotDescription
+from calibration.model.ik_refinement import pose_error, refine
+from calibration.model.ik_results import IKResult, JointLimits, Selection, SingularityMargins
 from calibration.model.kinematics import (
     FloatArray,
     KinematicModel,
-    flange_poses,
-    geometric_jacobian,
-    rot_x,
+)
+from calibration.model.pieper_closed_form import (
+    N_BRANCHES,
+    PieperGeometry,
+    closed_form,
+    is_spherical_wrist,
+    nearest_equivalent,
+    spherical_approximation,
+    wrap_angle,
 )
 
 BoolArray = NDArray[np.bool_]
 
-N_BRANCHES = 8
-BRANCH_SIGNS: NDArray[np.int_] = np.array(
-    [[s, e, w] for s in (1, -1) for e in (1, -1) for w in (1, -1)], dtype=int
-)
-"""Signs (shoulder, elbow, wrist) of each branch, shape ``(8, 3)``."""
-BRANCHES: tuple[str, ...] = tuple(
-    "shoulder{} elbow{} wrist{}".format(*("+" if v > 0 else "-" for v in row))
-    for row in BRANCH_SIGNS
-)
 
 # Travel weights of the shortest-travel rule: the main axes move the arm's mass and swing
 # the TCP by the whole reach, the wrist only by the flange distance, so a radian of a main
 # axis costs more than a radian of the wrist.
 DEFAULT_TRAVEL_WEIGHTS: tuple[float, ...] = (3.0, 3.0, 2.0, 1.0, 1.0, 1.0)
 
-# Slack on the joint limits for values that round to just past a limit (rad).
-LIMIT_SLACK_RAD = 1e-9
-# A 2-vector shorter than this (unitless, the rows of a rotation matrix) has no direction:
-# the wrist is exactly singular and q4 is taken from the reference vector.
-_WRIST_DEGENERATE = 1e-12
-# Wrist centre closer than this to axis 1 (mm) with no lateral offset: q1 from the reference.
-_SHOULDER_DEGENERATE_MM = 1e-9
-# Relative slack on the elbow's law-of-cosines argument before a pose counts unreachable.
-_ELBOW_SLACK = 1e-12
-# Seeding a calibrated model: the nominal law-of-cosines argument may exceed 1 by this much
-# (a few mm beyond the nominal reach), the seed elbow stays 2° off stretched/folded and the
-# seed wrist centre 1 mm off the shoulder-singular surface, so that branches stay apart.
-_SEED_ELBOW_SLACK = 0.02
-_SEED_SHOULDER_MM = 1.0
-_SEED_ELBOW_COS = float(np.cos(np.radians(2.0)))
+
 # With branches="chosen" the seeds are ranked allowing them this far past a joint limit.
 _SEED_LIMIT_SLACK_RAD = float(np.radians(5.0))
-# Smallest Levenberg damping, relative to the trace of the normal matrix: keeps the solve
-# defined at an exact singularity without slowing Newton's convergence elsewhere.
-_MU_MIN = 1e-12
-# Damping after a rejected step: skip the useless decades between _MU_MIN and real damping.
-_MU_REJECTED = 1e-6
-# Length (mm) that makes one radian of orientation error weigh like this many mm.
-_ORIENTATION_SCALE_MM = 1000.0
-_ANGLE_TOL = 1e-9  # tolerance on the structural angles of a Pieper geometry (rad)
-
-
-# -- small value types ------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class JointLimits:
-    """Joint limits in rad, arrays of shape ``(n,)``; ``±inf`` means unlimited."""
-
-    lower_rad: FloatArray
-    upper_rad: FloatArray
-
-    @classmethod
-    def from_description(cls, desc: RobotDescription) -> JointLimits:
-        return cls(
-            lower_rad=np.radians([j.lower_deg for j in desc.joints]),
-            upper_rad=np.radians([j.upper_deg for j in desc.joints]),
-        )
-
-    @classmethod
-    def unlimited(cls, n_joints: int) -> JointLimits:
-        return cls(np.full(n_joints, -np.inf), np.full(n_joints, np.inf))
-
-    def contains(self, q_rad: ArrayLike, slack_rad: float = LIMIT_SLACK_RAD) -> BoolArray:
-        """Whether each joint vector of ``q_rad`` (``(..., n)``) is within limits."""
-        q = np.asarray(q_rad, dtype=float)
-        inside = (q >= self.lower_rad - slack_rad) & (q <= self.upper_rad + slack_rad)
-        ok: BoolArray = np.all(inside, axis=-1)
-        return ok
-
-
-@dataclass(frozen=True)
-class SingularityMargins:
-    """How close to a singularity a solution is flagged (and avoided by the selection).
-
-    ``shoulder_mm``: wrist centre within this distance of the surface where the two
-    shoulder branches meet (on axis 1 when there is no lateral offset);
-    ``elbow_rad``: upper arm and forearm within this angle of stretched or folded;
-    ``wrist_rad``: q5 within this angle of 0 (or ±180°), axes 4 and 6 aligned.
-    """
-
-    shoulder_mm: float = 10.0
-    elbow_rad: float = float(np.radians(1.0))
-    wrist_rad: float = float(np.radians(1.0))
-
-
-@dataclass(frozen=True, eq=False)
-class Selection:
-    """One chosen solution per pose, by :func:`select_solution`.
-
-    ``q_rad`` ``(N, 6)`` (NaN where nothing qualified), ``index`` ``(N,)`` branch index or
-    -1, ``found`` ``(N,)``, ``singular`` ``(N,)`` (the chosen solution is flagged
-    singular), ``travel`` ``(N,)`` weighted travel from the current vector (rad, inf if
-    none).
-    """
-
-    q_rad: FloatArray
-    index: NDArray[np.int_]
-    found: BoolArray
-    singular: BoolArray
-    travel: FloatArray
-
-
-@dataclass(frozen=True, eq=False)
-class IKResult:
-    """All branches of the inverse kinematics of N poses, and the chosen one per pose.
-
-    Arrays (``B`` = 8 branches, in the order of :data:`BRANCHES`):
-
-    * ``solutions_rad`` ``(N, B, 6)``: joint vectors, each joint at its in-limits
-      2π-equivalent nearest the reference; NaN where the branch does not exist;
-    * ``reachable`` ``(N, B)``: the branch exists (and, for a refined model, converged);
-    * ``within_limits`` ``(N, B)``: every joint has an equivalent inside its limits;
-    * ``shoulder_singular``, ``elbow_singular``, ``wrist_singular`` ``(N, B)``: flags per
-      :class:`SingularityMargins` (False where not reachable);
-    * ``residual_mm``, ``residual_rad`` ``(N, B)``: flange position and orientation error
-      of each solution, by forward kinematics of the model (NaN where not reachable);
-    * ``iterations`` ``(N, B)``: Levenberg-Marquardt steps taken (0 for an exact closed
-      form);
-    * ``selection``: the shortest-travel choice (:func:`select_solution`).
-    """
-
-    solutions_rad: FloatArray
-    reachable: BoolArray
-    within_limits: BoolArray
-    shoulder_singular: BoolArray
-    elbow_singular: BoolArray
-    wrist_singular: BoolArray
-    residual_mm: FloatArray
-    residual_rad: FloatArray
-    iterations: NDArray[np.int_]
-    selection: Selection
-
-    @property
-    def valid(self) -> BoolArray:
-        """Reachable and within limits, ``(N, B)``."""
-        return self.reachable & self.within_limits
-
-    @property
-    def singular(self) -> BoolArray:
-        """Any singularity flag, ``(N, B)``."""
-        return self.shoulder_singular | self.elbow_singular | self.wrist_singular
-
-    @property
-    def chosen_rad(self) -> FloatArray:
-        """The selected joint vector per pose, ``(N, 6)`` (NaN where none qualified)."""
-        return self.selection.q_rad
-
-    @property
-    def n_poses(self) -> int:
-        return int(self.solutions_rad.shape[0])
-
-
-# -- geometry ---------------------------------------------------------------------------
-def _turn_z(x: FloatArray, angle: FloatArray) -> FloatArray:
-    """``Rz(angle)ᵀ · x`` for stacked 3×3 ``x`` ``(..., 3, 3)`` and ``angle`` ``(...)``.
-
-    Row arithmetic instead of stacked matmuls: several times faster for 3×3 stacks.
-    """
-    c, s = np.cos(angle)[..., None], np.sin(angle)[..., None]
-    x0, x1, x2 = x[..., 0, :], x[..., 1, :], x[..., 2, :]
-    return np.stack(np.broadcast_arrays(c * x0 + s * x1, c * x1 - s * x0, x2), axis=-2)
-
-
-def _turn_x(x: FloatArray, angle: float) -> FloatArray:
-    """``Rx(angle)ᵀ · x`` for stacked 3×3 ``x`` ``(..., 3, 3)``."""
-    c, s = np.cos(angle), np.sin(angle)
-    x0, x1, x2 = x[..., 0, :], x[..., 1, :], x[..., 2, :]
-    return np.stack([x0, c * x1 + s * x2, c * x2 - s * x1], axis=-2)
-
-
-def _pieper_violations(model: KinematicModel) -> list[str]:
-    """Why ``model`` is not a Pieper arm (empty list when it is)."""
-    if model.n_joints != 6:
-        return [f"needs 6 joints, has {model.n_joints}"]
-    out = []
-    al, a, d = model.alpha_rad, model.a_mm, model.d_mm
-    if np.any(np.abs(model.beta_rad) > _ANGLE_TOL):
-        out.append("every beta must be 0")
-    if abs(np.sin(al[2])) > _ANGLE_TOL or np.cos(al[2]) < 0:
-        out.append("alpha3 must be 0 (joints 2 and 3 parallel)")
-    for i in (1, 3, 4, 5):
-        if abs(np.cos(al[i])) > _ANGLE_TOL:
-            out.append(f"alpha{i + 1} must be ±90°")
-    if abs(a[4]) > 0 or abs(a[5]) > 0 or abs(d[4]) > 0:
-        out.append("a5, a6 and d5 must be 0 (wrist axes must meet in one point)")
-    if a[2] <= 0 or np.hypot(a[3], d[3]) <= 0:
-        out.append("upper arm a3 and forearm (a4, d4) must have length")
-    return out
-
-
-def is_spherical_wrist(model: KinematicModel) -> bool:
-    """Whether the closed form applies exactly to ``model`` (see the module docstring)."""
-    return not _pieper_violations(model)
-
-
-def spherical_approximation(model: KinematicModel) -> KinematicModel:
-    """The nearest Pieper geometry: betas, a5, a6, d5 zeroed, alphas snapped to 0/±90°.
-
-    Used as the nominal geometry of a calibrated model whose own geometry is not exactly
-    spherical; base and tool are kept.
-    """
-    if model.n_joints != 6:
-        raise KinematicsError(f"closed-form IK needs 6 joints, model has {model.n_joints}")
-    x = model.parameter_vector().copy()
-    per_joint = x[:30].reshape(6, 5)
-    per_joint[:, 1] = np.round(per_joint[:, 1] / (np.pi / 2)) * (np.pi / 2)
-    per_joint[:, 4] = 0.0
-    per_joint[4, 0] = per_joint[5, 0] = per_joint[4, 2] = 0.0
-    approx = model.with_parameters(x)
-    problems = _pieper_violations(approx)
-    if problems:
-        raise KinematicsError("no spherical-wrist approximation: " + "; ".join(problems))
-    return approx
-
-
-@dataclass(frozen=True, eq=False)
-class _Pieper:
-    """Constants of the closed form, derived from a Pieper model (mm, rad)."""
-
-    pre_rot: FloatArray  # Rx(alpha1), (3, 3)
-    a0: float
-    d0: float
-    s1: float  # sin(alpha2) = ±1
-    a1: float
-    h: float  # lateral offset of the wrist centre from the arm plane
-    a2: float
-    forearm: float  # L: distance axis 3 -> wrist centre, projected on the arm plane
-    phi: float  # angle of the forearm in frame 3
-    sigma4: float  # sin(alpha5) = ±1
-    kappa: float  # +1 when alpha5 + alpha6 = 0, -1 when it is ±180°
-    post_rot: FloatArray  # Rx(alpha5 + alpha6)
-    d_flange: float
-    offsets: FloatArray  # (6,)
-    alpha: FloatArray  # (6,)
-
-    @classmethod
-    def of(cls, model: KinematicModel) -> _Pieper:
-        problems = _pieper_violations(model)
-        if problems:
-            raise KinematicsError("not a spherical-wrist geometry: " + "; ".join(problems))
-        al, a, d = model.alpha_rad, model.a_mm, model.d_mm
-        w3 = np.array([a[3], -np.sin(al[3]) * d[3], np.cos(al[3]) * d[3]])
-        return cls(
-            pre_rot=rot_x(al[0]),
-            a0=float(a[0]),
-            d0=float(d[0]),
-            s1=float(np.round(np.sin(al[1]))),
-            a1=float(a[1]),
-            h=float(d[1] + d[2] + w3[2]),
-            a2=float(a[2]),
-            forearm=float(np.hypot(w3[0], w3[1])),
-            phi=float(np.arctan2(w3[1], w3[0])),
-            sigma4=float(np.round(np.sin(al[4]))),
-            kappa=1.0 if np.cos(al[4] + al[5]) > 0 else -1.0,
-            post_rot=rot_x(al[4] + al[5]),
-            d_flange=float(d[5]),
-            offsets=model.theta_offset_rad.copy(),
-            alpha=model.alpha_rad.copy(),
-        )
-
-    def elbow_angle(self, q3: FloatArray) -> FloatArray:
-        """psi: angle between upper arm and the forearm's projection (0 = stretched)."""
-        elbow: FloatArray = q3 + self.offsets[2] + self.phi
-        return elbow
-
-    def shoulder_distance(self, q2: FloatArray, psi: FloatArray) -> FloatArray:
-        """Signed distance r of the wrist centre from axis 1 in the arm plane (mm)."""
-        w2x = self.a2 + self.forearm * np.cos(psi)
-        w2y = self.forearm * np.sin(psi)
-        t2 = q2 + self.offsets[1]
-        dist: FloatArray = self.a1 + np.cos(t2) * w2x - np.sin(t2) * w2y
-        return dist
-
-
-def _closed_form(
-    geo: _Pieper, rot: FloatArray, pos: FloatArray, q_ref: FloatArray, *, seed: bool = False
-) -> tuple[FloatArray, BoolArray]:
-    """All 8 branches for flange poses in the base frame.
-
-    ``rot`` ``(N, 3, 3)``, ``pos`` ``(N, 3)`` mm, ``q_ref`` ``(N, 6)`` rad (used only where
-    q1 or q4 is undetermined). Returns joint angles ``(N, 8, 6)`` in [-π, π) and the
-    reachable mask ``(N, 8)``. With ``seed`` the result starts a numeric solve on a
-    slightly different geometry: poses just out of the nominal reach still get a start,
-    and the elbow is kept off stretched/folded so that both elbow branches stay apart.
-    """
-    sh, el, wr = (BRANCH_SIGNS[None, :, k].astype(float) for k in range(3))
-    # Wrist centre, in the frame after Rx(alpha1)·Trans_x(a1) and before Rot_z(theta1).
-    w = pos - geo.d_flange * rot[:, :, 2]
-    v = w @ geo.pre_rot - np.array([geo.a0, 0.0, geo.d0])
-    t1, ux, uy, shoulder_ok = _shoulder(geo, v, sh, q_ref, seed=seed)
-    t2, t3, elbow_ok = _elbow(geo, ux, uy, el, seed=seed)
-    t4, t5, t6 = _wrist(geo, rot, (t1, t2, t3), wr, q_ref)
-    theta = np.stack(np.broadcast_arrays(t1, t2, t3, t4, t5, t6), axis=-1)
-    q = _wrap(theta - geo.offsets)
-    reachable = shoulder_ok & elbow_ok & np.all(np.isfinite(q), axis=-1)
-    return np.where(reachable[..., None], q, np.nan), reachable
-
-
-def _shoulder(
-    geo: _Pieper, v: FloatArray, sh: FloatArray, q_ref: FloatArray, *, seed: bool
-) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray]:
-    """θ1 ``(N, 8)`` from the wrist centre ``v`` ``(N, 3)`` mm (frame of
-    :func:`_closed_form`) for the shoulder signs ``sh`` ``(1, 8)``: Rz(t1)·(r, -s1·h) =
-    (vx, vy), two signs of r. Also the wrist centre in the arm plane ``(ux, uy)`` mm
-    and whether the shoulder reaches it."""
-    vx, vy, vz = (v[:, k, None] for k in range(3))
-    rho2 = vx**2 + vy**2
-    r2 = rho2 - geo.h**2
-    shoulder_ok = r2 >= -1e-9 * max(geo.h**2, 1.0)
-    if seed:  # a lateral offset may differ on the real geometry: keep the branches apart
-        r2 = np.maximum(r2, _SEED_SHOULDER_MM**2)
-        shoulder_ok = np.ones_like(shoulder_ok)
-    r = sh * np.sqrt(np.maximum(r2, 0.0))
-    t1 = np.arctan2(vy, vx) - np.arctan2(-geo.s1 * geo.h, r)
-    t1 = np.where(np.sqrt(rho2) < _SHOULDER_DEGENERATE_MM, q_ref[:, :1] + geo.offsets[0], t1)
-    c1, s1 = np.cos(t1), np.sin(t1)
-    r = c1 * vx + s1 * vy  # consistent with the t1 actually used
-    ux, uy = r - geo.a1, np.broadcast_to(geo.s1 * vz, r.shape)
-    return t1, ux, uy, shoulder_ok
-
-
-def _elbow(
-    geo: _Pieper, ux: FloatArray, uy: FloatArray, el: FloatArray, *, seed: bool
-) -> tuple[FloatArray, FloatArray, BoolArray]:
-    """θ2, θ3 ``(N, 8)`` for the elbow signs ``el`` ``(1, 8)``: the law of cosines in the
-    arm plane, psi = t3 + phi; and whether the elbow reaches."""
-    cpsi = (ux**2 + uy**2 - geo.a2**2 - geo.forearm**2) / (2.0 * geo.a2 * geo.forearm)
-    elbow_ok = np.abs(cpsi) <= 1.0 + (_SEED_ELBOW_SLACK if seed else _ELBOW_SLACK)
-    cpsi = np.clip(cpsi, -1.0, 1.0)
-    if seed:
-        cpsi = np.clip(cpsi, -_SEED_ELBOW_COS, _SEED_ELBOW_COS)
-    spsi = el * np.sqrt(1.0 - cpsi**2)
-    t3 = np.arctan2(spsi, cpsi) - geo.phi
-    w2x, w2y = geo.a2 + geo.forearm * cpsi, geo.forearm * spsi
-    t2 = np.arctan2(uy, ux) - np.arctan2(w2y, w2x)
-    return t2, t3, elbow_ok
-
-
-def _wrist(
-    geo: _Pieper,
-    rot: FloatArray,
-    arm: tuple[FloatArray, FloatArray, FloatArray],
-    wr: FloatArray,
-    q_ref: FloatArray,
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """θ4, θ5, θ6 ``(N, 8)`` for the flange rotations ``rot`` ``(N, 3, 3)``, the arm's θ1–θ3
-    ``arm`` and the wrist signs ``wr`` ``(1, 8)``:
-
-        E = (R03·Rx(alpha4))ᵀ · R · Rx(alpha5 + alpha6)ᵀ
-          = Rz(t4) · Ry(-sigma4·t5) · Rz(kappa·t6)   (ZYZ Euler angles),
-
-    with R03 = Rx(alpha1)·Rz(t1)·Rx(alpha2)·Rz(t2 + t3) since alpha3 = 0.
-    """
-    t1, t2, t3 = arm
-    e = geo.pre_rot.T @ rot @ geo.post_rot.T
-    e = _turn_z(e[:, None], t1)
-    e = _turn_x(e, geo.alpha[1])
-    e = _turn_z(e, t2 + t3)
-    e = _turn_x(e, geo.alpha[3])
-    e02, e12 = e[..., 0, 2], e[..., 1, 2]
-    flip = -geo.sigma4 * wr  # sign of B = -sigma4·t5 that makes sign(sin t5) = wr
-    t4 = np.arctan2(flip * e12, flip * e02)
-    t4 = np.where(np.hypot(e02, e12) < _WRIST_DEGENERATE, q_ref[:, 3:4] + geo.offsets[3], t4)
-    f = _turn_z(e, t4)  # = Ry(B)·Rz(G), exact for any t4
-    b = np.arctan2(f[..., 0, 2], f[..., 2, 2])
-    g = np.arctan2(f[..., 1, 0], f[..., 1, 1])
-    return t4, -geo.sigma4 * b, geo.kappa * g
-
-
-def _wrap(q: FloatArray) -> FloatArray:
-    """Angles to [-π, π)."""
-    return (q + np.pi) % (2.0 * np.pi) - np.pi
-
-
-def nearest_equivalent(
-    q_rad: ArrayLike, q_ref_rad: ArrayLike, limits: JointLimits | None = None
-) -> tuple[FloatArray, BoolArray]:
-    """Per joint, the 2π-equivalent of ``q_rad`` within limits nearest ``q_ref_rad``.
-
-    Shapes broadcast (``(..., n)``). Returns the joint vectors and, per vector, whether
-    every joint has an equivalent within the limits (joints without one keep the
-    equivalent nearest the reference, outside the limits).
-    """
-    q = np.asarray(q_rad, dtype=float)
-    ref = np.asarray(q_ref_rad, dtype=float)
-    two_pi = 2.0 * np.pi
-    k = np.round((ref - q) / two_pi)
-    if limits is None:
-        return q + two_pi * k, np.all(np.isfinite(q), axis=-1)
-    k_min = np.ceil((limits.lower_rad - LIMIT_SLACK_RAD - q) / two_pi)
-    k_max = np.floor((limits.upper_rad + LIMIT_SLACK_RAD - q) / two_pi)
-    inside = k_min <= k_max
-    k = np.where(inside, np.clip(k, k_min, k_max), k)
-    return q + two_pi * k, np.all(inside, axis=-1)
 
 
 # -- selection --------------------------------------------------------------------------
@@ -522,87 +145,6 @@ def _as_poses(poses: ArrayLike) -> FloatArray:
     return t
 
 
-def _rotation_error(r_target: FloatArray, r: FloatArray) -> FloatArray:
-    """Rotation vector of ``r_target · rᵀ`` (rad), shape ``(..., 3)``."""
-    m = r_target @ np.swapaxes(r, -1, -2)
-    v = 0.5 * np.stack(
-        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]],
-        axis=-1,
-    )
-    sin_a = np.linalg.norm(v, axis=-1)
-    angle = np.arctan2(sin_a, 0.5 * (np.trace(m, axis1=-2, axis2=-1) - 1.0))
-    scale = np.where(sin_a > 1e-300, angle / np.maximum(sin_a, 1e-300), 1.0)
-    return v * scale[..., None]
-
-
-def _pose_error(
-    model: KinematicModel, q: FloatArray, rot: FloatArray, pos: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Flange position error (mm) and rotation error vector (rad), each ``(M, 3)``."""
-    t = flange_poses(model, q, world=False)
-    return pos - t[:, :3, 3], _rotation_error(rot, t[:, :3, :3])
-
-
-def _refine(
-    model: KinematicModel,
-    q: FloatArray,
-    rot: FloatArray,
-    pos: FloatArray,
-    *,
-    tol_mm: float,
-    tol_rad: float,
-    max_iterations: int,
-) -> tuple[FloatArray, BoolArray, NDArray[np.int_]]:
-    """Levenberg-Marquardt on the model's geometric Jacobian, flattened solutions ``(M, 6)``.
-
-    The damping starts negligible (plain Newton, quadratic convergence) and grows only
-    where a step fails to reduce the error, which near a singularity keeps the step
-    inside the region where the linearization holds. Returns the polished vectors,
-    whether each met the tolerance, and the Jacobian evaluations taken.
-    """
-    q = q.copy()
-    steps = np.zeros(q.shape[0], dtype=int)
-    converged = np.zeros(q.shape[0], dtype=bool)
-    active = np.all(np.isfinite(q), axis=1)
-    weight = np.array([1.0, 1.0, 1.0] + [_ORIENTATION_SCALE_MM**2] * 3)
-    mu = np.full(q.shape[0], _MU_MIN)
-    err = np.zeros((q.shape[0], 6))
-    idx = np.flatnonzero(active)
-    err[idx] = _stacked_error(model, q[idx], rot[idx], pos[idx])
-    for step in range(max_iterations + 1):
-        idx = np.flatnonzero(active)
-        e = err[idx]
-        done = (np.linalg.norm(e[:, :3], axis=1) <= tol_mm) & (
-            np.linalg.norm(e[:, 3:], axis=1) <= tol_rad
-        )
-        converged[idx[done]] = True
-        active[idx[done]] = False
-        idx, e = idx[~done], e[~done]
-        if idx.size == 0 or step == max_iterations:
-            break
-        jac = geometric_jacobian(model, q[idx], point="flange", frame="base")
-        jtw = np.swapaxes(jac, 1, 2) * weight
-        normal = jtw @ jac
-        normal += (mu[idx] * np.trace(normal, axis1=1, axis2=2))[:, None, None] * np.eye(6)
-        q_try = q[idx] + np.linalg.solve(normal, (jtw @ e[:, :, None]))[:, :, 0]
-        e_try = _stacked_error(model, q_try, rot[idx], pos[idx])
-        better = np.sum(weight * e_try**2, axis=1) < np.sum(weight * e**2, axis=1)
-        good, bad = idx[better], idx[~better]
-        q[good], err[good] = q_try[better], e_try[better]
-        mu[good] = np.maximum(mu[good] * 0.1, _MU_MIN)
-        mu[bad] = np.maximum(mu[bad] * 10.0, _MU_REJECTED)
-        steps[idx] += 1
-    return q, converged, steps
-
-
-def _stacked_error(
-    model: KinematicModel, q: FloatArray, rot: FloatArray, pos: FloatArray
-) -> FloatArray:
-    """Position (mm) and rotation-vector (rad) error stacked, ``(M, 6)``."""
-    dp, dr = _pose_error(model, q, rot, pos)
-    return np.concatenate([dp, dr], axis=1)
-
-
 def _flange_in_base(
     model: KinematicModel, poses: FloatArray, frame: str, target: str
 ) -> tuple[FloatArray, FloatArray]:
@@ -666,10 +208,10 @@ def solve_ik(
     rot, pos = _flange_in_base(model, t, frame, target)
     exact = nominal is None and is_spherical_wrist(model)
     if exact:
-        geo = _Pieper.of(model)
+        geo = PieperGeometry.of(model)
     else:
-        geo = _Pieper.of(nominal if nominal is not None else spherical_approximation(model))
-    q, reachable = _closed_form(geo, rot, pos, ref, seed=not exact)
+        geo = PieperGeometry.of(nominal if nominal is not None else spherical_approximation(model))
+    q, reachable = closed_form(geo, rot, pos, ref, seed=not exact)
 
     iterations = np.zeros((n_pose, N_BRANCHES), dtype=int)
     if not exact:
@@ -757,7 +299,7 @@ def _checked_by_forward(
     residual_rad = np.full((n_pose, N_BRANCHES), np.nan)
     if reachable.any():
         rows = np.nonzero(reachable)[0]
-        dp, dr = _pose_error(model, q[reachable], rot[rows], pos[rows])
+        dp, dr = pose_error(model, q[reachable], rot[rows], pos[rows])
         residual_mm[reachable] = np.linalg.norm(dp, axis=1)
         residual_rad[reachable] = np.linalg.norm(dr, axis=1)
     return residual_mm, residual_rad
@@ -779,7 +321,7 @@ class _Rule:
         wide = JointLimits(self.limits.lower_rad - slack_rad, self.limits.upper_rad + slack_rad)
         return replace(self, limits=wide)
 
-    def candidates(self, geo: _Pieper, seeds: FloatArray, reachable: BoolArray) -> BoolArray:
+    def candidates(self, geo: PieperGeometry, seeds: FloatArray, reachable: BoolArray) -> BoolArray:
         """Branches worth polishing per pose, mask ``(N, B)``: the two best seeds by the
         rule, and the best by travel alone (singularity flags of seeds near a margin may
         change when polished). Seeds are off by up to a few degrees, so near-ties are
@@ -795,7 +337,7 @@ class _Rule:
         return todo
 
     def assess(
-        self, geo: _Pieper, q: FloatArray, reachable: BoolArray
+        self, geo: PieperGeometry, q: FloatArray, reachable: BoolArray
     ) -> tuple[FloatArray, BoolArray, BoolArray, BoolArray, BoolArray, Selection]:
         """2π-equivalents, limit and singularity flags of ``q`` ``(N, B, 6)``, and the pick."""
         q, within = nearest_equivalent(q, self.ref[:, None, :], self.limits)
@@ -835,7 +377,7 @@ def _refine_branches(
     converged = np.zeros(todo.shape, dtype=bool)
     steps = np.zeros(todo.shape, dtype=int)
     if rows.size:
-        q_done, ok, n_steps = _refine(
+        q_done, ok, n_steps = refine(
             model,
             q[todo],
             rot[rows],
@@ -844,13 +386,13 @@ def _refine_branches(
             tol_rad=tol_rad,
             max_iterations=max_iterations,
         )
-        out[todo] = np.where(ok[:, None], _wrap(q_done), np.nan)
+        out[todo] = np.where(ok[:, None], wrap_angle(q_done), np.nan)
         converged[todo], steps[todo] = ok, n_steps
     return out, converged, steps
 
 
 def _singularity_flags(
-    geo: _Pieper, q: FloatArray, margins: SingularityMargins
+    geo: PieperGeometry, q: FloatArray, margins: SingularityMargins
 ) -> tuple[BoolArray, BoolArray, BoolArray]:
     """Shoulder, elbow and wrist flags for joint vectors ``(..., 6)`` on a Pieper geometry."""
     with np.errstate(invalid="ignore"):
@@ -870,5 +412,5 @@ def singularity_flags(
     Evaluated on ``model`` if it is a Pieper geometry, else on its
     :func:`spherical_approximation`.
     """
-    geo = _Pieper.of(model if is_spherical_wrist(model) else spherical_approximation(model))
+    geo = PieperGeometry.of(model if is_spherical_wrist(model) else spherical_approximation(model))
     return _singularity_flags(geo, np.asarray(q_rad, dtype=float), margins or SingularityMargins())

@@ -36,12 +36,9 @@ from numpy.typing import ArrayLike, NDArray
 from calibration.errors import ScaleError
 from calibration.model.description import RobotDescription
 from calibration.model.gravity_regressor import base_moments
-from calibration.scales.grating_scale import (
-    JointScaleResult,
-    JointSweep,
-    ScaleOptions,
-    calibrate_joint,
-)
+from calibration.scales.grating_scale import calibrate_joint
+from calibration.scales.joint_scale_result import JointScaleResult
+from calibration.scales.sweep_inputs import JointSweep, ScaleOptions
 
 FloatArray = NDArray[np.float64]
 

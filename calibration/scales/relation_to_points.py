@@ -43,7 +43,8 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from calibration.scales.circle_fit import CircleFit, _tilted_normal
-from calibration.scales.target_set_fit import TargetSetFit, TargetSetGeometry
+from calibration.scales.target_set_fit import TargetSetFit
+from calibration.scales.target_set_model import TargetSetGeometry
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]

@@ -18,7 +18,7 @@ and every error names the file, the row and the column:
   ``direction`` (``positive``/``negative``/``unknown``, or ``backward``/``forward`` as in
   the sweep); other columns pass through.
 
-``scale.toml`` holds, per joint, everything :class:`~calibration.scales.grating_scale.GratingScale`
+``scale.toml`` holds, per joint, everything :class:`~calibration.scales.scale_relation.GratingScale`
 needs (units in key names); see docs/scale-calibration.md.
 """
 
@@ -38,20 +38,18 @@ import tomli_w
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.errors import CalibrationError, DataFileError, ScaleFileError
-from calibration.scales.grating_scale import (
+from calibration.scales.joint_scale_result import JointScaleResult
+from calibration.scales.scale_relation import (
     COUNTER_MODULUS,
     DIRECTIONS,
-    MIN_STOPS_PER_PASS,
-    PASSES,
     SCALE_NAME,
     TERMS,
     GratingScale,
-    JointScaleResult,
-    JointSweep,
     RelationBasis,
     UnmodelledTerm,
     check_terms,
 )
+from calibration.scales.sweep_inputs import MIN_STOPS_PER_PASS, PASSES, JointSweep
 from edges.inputs import read_input_bytes
 from edges.toml_schema import TomlTable, parse_toml_file
 
@@ -441,7 +439,7 @@ def read_counts_csv(path: str | Path) -> CountsTable:
     )
 
 
-def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> None:
+def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
     with Path(path).open("w", encoding="utf-8", newline="") as fh:
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(header)

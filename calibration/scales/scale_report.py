@@ -18,7 +18,8 @@ import numpy as np
 
 from calibration.scales.chain_scale import ChainCorrection
 from calibration.scales.circle_fit import CircleFit
-from calibration.scales.grating_scale import ARCSEC_PER_DEG, JointScaleResult, TermTest
+from calibration.scales.joint_scale_result import JointScaleResult, TermTest
+from calibration.scales.scale_relation import ARCSEC_PER_DEG
 
 
 def _radius_std_mm(fit: Any) -> float:

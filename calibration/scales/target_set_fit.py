@@ -60,7 +60,7 @@ O(K) (:meth:`TargetSetFit.angle_covariance_factors`).
 **Cramér-Rao bound** (:func:`crb_covariance_targets`): the direct 3-D model with
 ``θ_k = design_k·β``; the Fisher information over the structure and β, with
 ``∂p_tk/∂β_j = r_t·t_tk·design_kj`` (``t_tk`` the tangent). For T = 1 it equals
-:func:`calibration.scales.grating_scale.crb_covariance`.
+:func:`calibration.scales.relation_fit.crb_covariance`.
 
 **Wild points** are rejected *per point*, not per stop: the tracker measures the targets
 one after another, so a wild reading belongs to one target, and the stop keeps its angle
@@ -104,392 +104,31 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration.errors import TargetSetFitError
 from calibration.scales.circle_fit import (
-    MIN_POINTS,
     CircleFit,
     FactoredAngleCovariance,
     fit_circle_3d,
 )
+from calibration.scales.target_set_model import (
+    TargetSetGeometry,
+    canonical,
+    local_coordinates,
+    parameter_names,
+    point_jacobians,
+    profile_theta,
+)
+from calibration.scales.target_set_solver import (
+    MIN_SPREAD_NOISE,
+    MIN_STOPS,
+    _normal_blocks,
+    fit_geometry,
+    reject_wild,
+    start_geometry,
+)
 
 FloatArray = NDArray[np.float64]
+
+
 BoolArray = NDArray[np.bool_]
-
-MIN_STOPS = MIN_POINTS  # as the circle fit: 3 stops fix a circle, one more for the noise
-MAX_ITERATIONS = 100
-# in-plane spread of the target set (RMS about its centroid) below this many times the
-# noise: the set is collinear with the axis and turns like a single target
-MIN_SPREAD_NOISE = 10.0
-
-
-def parameter_names(n_targets: int) -> tuple[str, ...]:
-    """Names of the ``P = 3T + 3`` structure parameters, in covariance order."""
-    t = range(n_targets)
-    return (
-        "centre_u_mm",
-        "centre_v_mm",
-        "tilt_u_rad",
-        "tilt_v_rad",
-        *(f"height_{i}_mm" for i in t),
-        *(f"radius_{i}_mm" for i in t),
-        *(f"phase_{i}_rad" for i in t if i > 0),
-    )
-
-
-@dataclass(frozen=True, eq=False)
-class TargetSetGeometry:
-    """Where the targets sit about the axis: the structure of the model, without angles.
-
-    ``centre_mm`` ``(3,)`` a point of the axis; ``normal`` ``(3,)`` and ``axis_u`` ``(3,)``
-    unit (``axis_u ⟂ normal``: angle 0); ``height_mm``, ``radii_mm``, ``phase_rad``
-    ``(T,)`` (``phase_rad[0] = 0``).
-    """
-
-    centre_mm: FloatArray
-    normal: FloatArray
-    axis_u: FloatArray
-    height_mm: FloatArray
-    radii_mm: FloatArray
-    phase_rad: FloatArray
-
-    @property
-    def axis_v(self) -> FloatArray:
-        return np.cross(self.normal, self.axis_u)
-
-    @property
-    def n_targets(self) -> int:
-        return int(self.radii_mm.shape[0])
-
-    def positions_mm(self, angle_rad: ArrayLike) -> FloatArray:
-        """Noise-free target positions ``(K, T, 3)`` at the stop angles ``(K,)``."""
-        th = np.atleast_1d(np.asarray(angle_rad, dtype=float))
-        radial, _ = _directions(self, th)
-        return (
-            self.centre_mm
-            + self.height_mm[None, :, None] * self.normal
-            + self.radii_mm[None, :, None] * radial
-        )
-
-
-def _directions(geo: TargetSetGeometry, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Radial and tangential unit vectors ``(K, T, 3)`` of every target at every stop."""
-    alpha = theta[:, None] + geo.phase_rad[None, :]
-    c, s = np.cos(alpha)[..., None], np.sin(alpha)[..., None]
-    u, v = geo.axis_u, geo.axis_v
-    return c * u + s * v, -s * u + c * v
-
-
-def _jacobians(geo: TargetSetGeometry, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """∂p/∂structure ``(K, T, 3, P)`` and ∂p/∂θ_k ``(K, T, 3)`` (unweighted).
-
-    Structure perturbations (:func:`parameter_names`): the axis point moves along ``u``,
-    ``v``; the normal tilts as ``n + a·u + b·v`` about the axis point, with ``u`` following
-    by projection (so ``∂u/∂a = −n``, ``∂v/∂b = −n``: no twist about ``n``).
-    """
-    k, t = theta.shape[0], geo.n_targets
-    u, v, n = geo.axis_u, geo.axis_v, geo.normal
-    alpha = theta[:, None] + geo.phase_rad[None, :]
-    cos_a, sin_a = np.cos(alpha), np.sin(alpha)
-    radial = cos_a[..., None] * u + sin_a[..., None] * v
-    tangent = -sin_a[..., None] * u + cos_a[..., None] * v
-    h, r = geo.height_mm[None, :, None], geo.radii_mm[None, :, None]
-    n_par = 3 * t + 3
-    js = np.zeros((k, t, 3, n_par))
-    js[..., 0] = u
-    js[..., 1] = v
-    js[..., 2] = h * u - (r * cos_a[..., None]) * n
-    js[..., 3] = h * v - (r * sin_a[..., None]) * n
-    idx = np.arange(t)
-    js[:, idx, :, 4 + idx] = np.broadcast_to(n, (t, k, 3))  # heights: one-hot per target
-    js[:, idx, :, 4 + t + idx] = radial.transpose(1, 0, 2)  # radii
-    j_theta = r * tangent
-    if t > 1:  # phases of targets 1.. (φ_0 = 0)
-        js[:, idx[1:], :, 4 + 2 * t + idx[1:] - 1] = j_theta[:, 1:].transpose(1, 0, 2)
-    return js, j_theta
-
-
-def _local(geo: TargetSetGeometry, points: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """In-plane complex position about the axis ``(K, T)`` and axial residual ``(K, T)``."""
-    w = points - geo.centre_mm
-    z = (w @ geo.axis_u) + 1j * (w @ geo.axis_v)
-    return z, w @ geo.normal - geo.height_mm
-
-
-def _profile_theta(geo: TargetSetGeometry, z: FloatArray, weight: FloatArray) -> FloatArray:
-    """Best θ_k for fixed structure ``(K,)``: argument of ``Σ_t ω r_t e^{−iφ_t} z_tk``.
-
-    NaN where the stop has no weighted point.
-    """
-    terms = weight * geo.radii_mm * np.exp(-1j * geo.phase_rad) * z
-    theta = np.angle(terms.sum(axis=1))
-    return np.where(weight.sum(axis=1) > 0, theta, np.nan)
-
-
-def _cost(
-    geo: TargetSetGeometry, points: FloatArray, weight: FloatArray, theta: FloatArray
-) -> tuple[float, FloatArray]:
-    e = points - geo.positions_mm(np.nan_to_num(theta))
-    return float(np.sum(weight * np.einsum("kta,kta->kt", e, e))), e
-
-
-def _normal_blocks(
-    geo: TargetSetGeometry, theta: FloatArray, weight: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Blocks of the weighted normal matrix: ``N_ss`` ``(P, P)``, ``N_θs`` ``(K, P)``, ``N_θθ``."""
-    js, j_theta = _jacobians(geo, np.nan_to_num(theta))
-    sw = np.sqrt(weight)[..., None, None]
-    a = (sw * js).reshape(-1, js.shape[-1])
-    n_ss = a.T @ a
-    n_ts = np.einsum("kta,kt,ktap->kp", j_theta, weight, js)
-    n_tt = np.sum(weight * geo.radii_mm**2, axis=1)
-    return n_ss, n_ts, n_tt, js
-
-
-def _update(geo: TargetSetGeometry, step: FloatArray) -> TargetSetGeometry:
-    """The structure moved by ``step`` ``(P,)`` (tilts applied as a finite rotation)."""
-    t = geo.n_targets
-    u, v, n = geo.axis_u, geo.axis_v, geo.normal
-    centre = geo.centre_mm + step[0] * u + step[1] * v
-    n_new = n + step[2] * u + step[3] * v
-    n_new /= np.linalg.norm(n_new)
-    u_new = u - (u @ n_new) * n_new
-    u_new /= np.linalg.norm(u_new)
-    phase = geo.phase_rad.copy()
-    phase[1:] += step[4 + 2 * t :]
-    return TargetSetGeometry(
-        centre,
-        n_new,
-        u_new,
-        geo.height_mm + step[4 : 4 + t],
-        geo.radii_mm + step[4 + t : 4 + 2 * t],
-        phase,
-    )
-
-
-def _solve(
-    geo: TargetSetGeometry, points: FloatArray, weight: FloatArray
-) -> tuple[TargetSetGeometry, FloatArray, float, int]:
-    """Levenberg-Marquardt on the structure with the angles profiled out (Schur complement).
-
-    ``points`` with zeros where unused, ``weight`` ``(K, T)`` = 1/σ² or 0. Returns the
-    structure, the profiled angles, the weighted RSS and the number of iterations.
-    """
-    theta = _profile_theta(geo, _local(geo, points)[0], weight)
-    cost, e = _cost(geo, points, weight, theta)
-    mu = 1e-3
-    iterations = 0
-    for iterations in range(1, MAX_ITERATIONS + 1):  # noqa: B007 (reported)
-        n_ss, n_ts, n_tt, js = _normal_blocks(geo, theta, weight)
-        inv_tt = np.where(n_tt > 0, 1.0 / np.where(n_tt > 0, n_tt, 1.0), 0.0)
-        reduced = n_ss - n_ts.T @ (n_ts * inv_tt[:, None])
-        # θ is profiled exactly, so the θ-gradient is zero and the reduced gradient is g_s
-        grad = np.einsum("ktap,kt,kta->p", js, weight, e)
-        scale = np.sqrt(np.maximum(np.diag(reduced), 1e-300))
-        a = reduced / np.outer(scale, scale)
-        g = grad / scale
-        improved = False
-        while mu < 1e12:
-            try:
-                step = np.linalg.solve(a + mu * np.eye(a.shape[0]), g) / scale
-            except np.linalg.LinAlgError:
-                mu *= 10.0
-                continue
-            trial = _update(geo, step)
-            trial_theta = _profile_theta(trial, _local(trial, points)[0], weight)
-            trial_cost, trial_e = _cost(trial, points, weight, trial_theta)
-            if trial_cost <= cost:
-                decrease = cost - trial_cost
-                geo, theta, cost, e = trial, trial_theta, trial_cost, trial_e
-                mu = max(mu / 10.0, 1e-12)
-                improved = True
-                break
-            mu *= 10.0
-        # stop once a step no longer changes the cost by a measurable fraction of it
-        if not improved or decrease <= 1e-13 * cost + 1e-300:
-            break
-    return geo, theta, cost, iterations
-
-
-def _canonical(geo: TargetSetGeometry, theta: FloatArray) -> tuple[TargetSetGeometry, FloatArray]:
-    """Positive radii, ``φ_0 = 0``, phases in (−π, π], axis point at the mean height."""
-    radius = np.abs(geo.radii_mm)
-    phase = geo.phase_rad + np.where(geo.radii_mm < 0, np.pi, 0.0)
-    theta = theta + phase[0]
-    phase = np.angle(np.exp(1j * (phase - phase[0])))
-    mean_h = float(np.mean(geo.height_mm))
-    geo = TargetSetGeometry(
-        geo.centre_mm + mean_h * geo.normal,
-        geo.normal,
-        geo.axis_u,
-        geo.height_mm - mean_h,
-        radius,
-        phase,
-    )
-    return geo, np.angle(np.exp(1j * theta))
-
-
-def _basis(normal: FloatArray) -> FloatArray:
-    """A unit vector ⟂ ``normal``: the world axis least aligned with it, projected."""
-    ref = np.eye(3)[int(np.argmin(np.abs(normal)))]
-    u = ref - (ref @ normal) * normal
-    unit: FloatArray = u / np.linalg.norm(u)
-    return unit
-
-
-def _start(points: FloatArray, measured: BoolArray, weight: FloatArray) -> TargetSetGeometry:
-    """Plane by SVD, rotations by 2-D Procrustes against a template stop, then linear LS."""
-    t_n = measured.shape[1]
-    rows = []
-    for t in range(t_n):
-        p = points[measured[:, t], t]
-        rows.append(p - p.mean(axis=0))
-    vt = np.linalg.svd(np.concatenate(rows), full_matrices=False)[2]
-    normal = vt[2]
-    u = _basis(normal)
-    v = np.cross(normal, u)
-    centroid = points[measured].mean(axis=0)
-    w = points - centroid
-    z = np.where(measured, (w @ u) + 1j * (w @ v), 0.0)
-    axial = np.where(measured, w @ normal, 0.0)
-    # robust noise level from the scatter of each target about its plane
-    median = np.array([np.median(axial[measured[:, t], t]) for t in range(t_n)])
-    noise = 1.4826 * float(np.median(np.abs(axial - median)[measured]))
-
-    count = measured.sum(axis=1)
-    template = int(np.argmax(count))
-    common = measured & measured[template]
-    n_common = common.sum(axis=1)
-    zc = np.where(common, z, 0.0)
-    mean_k = zc.sum(axis=1) / np.maximum(n_common, 1)
-    mean_ref = np.where(common, z[template], 0.0).sum(axis=1) / np.maximum(n_common, 1)
-    a = np.where(common, z - mean_k[:, None], 0.0)
-    b = np.where(common, z[template][None, :] - mean_ref[:, None], 0.0)
-    ref_set = z[template, measured[template]]
-    spread = float(np.sqrt(np.mean(np.abs(ref_set - ref_set.mean()) ** 2)))
-    if measured[template].sum() < 2 or spread <= MIN_SPREAD_NOISE * noise:
-        raise TargetSetFitError(
-            f"the targets lie on one line parallel to the joint axis (their in-plane spread "
-            f"{spread:.4g} mm is within {MIN_SPREAD_NOISE:g}× the noise {noise:.2g} mm): the "
-            "set turns like a single target; fit one target alone (T = 1, the circle fit)"
-        )
-    usable = n_common >= 2
-    if usable.sum() < 3:
-        raise TargetSetFitError(
-            "fewer than 3 stops share two measured targets with the best-measured stop: "
-            "their rotation cannot be started"
-        )
-    theta = np.angle(np.sum(a * np.conj(b), axis=1))
-    # z_tk = c + w_t e^{iθ_k}: linear in the complex unknowns (c, w_0 .. w_{T-1})
-    sel = measured & usable[:, None]
-    kk, tt = np.nonzero(sel)
-    design = np.zeros((kk.size, 1 + t_n), dtype=complex)
-    design[:, 0] = 1.0
-    design[np.arange(kk.size), 1 + tt] = np.exp(1j * theta[kk])
-    sw = np.sqrt(weight[kk, tt])
-    sol = np.linalg.lstsq(design * sw[:, None], z[kk, tt] * sw, rcond=None)[0]
-    c2, wt = sol[0], sol[1:]
-    centre = centroid + c2.real * u + c2.imag * v
-    height = np.sum(weight * axial, axis=0) / np.sum(weight, axis=0)  # centre is in-plane
-    return TargetSetGeometry(centre, normal, u, height, np.abs(wt), np.angle(wt) - np.angle(wt[0]))
-
-
-@dataclass(frozen=True, eq=False)
-class _Fit:
-    geo: TargetSetGeometry
-    theta: FloatArray  # (K,) profiled over the used points, NaN for stops without one
-    rss: float
-    dof: int
-    iterations: int
-
-    @property
-    def s2(self) -> float:
-        return self.rss / self.dof
-
-
-def _fit(points: FloatArray, weight: FloatArray, used: BoolArray, geo: TargetSetGeometry) -> _Fit:
-    w = np.where(used, weight, 0.0)
-    geo, theta, rss, iterations = _solve(geo, points, w)
-    dof = 3 * int(used.sum()) - (3 * geo.n_targets + 3) - int(used.any(axis=1).sum())
-    if dof <= 0:
-        raise TargetSetFitError(
-            f"{int(used.sum())} points at {int(used.any(axis=1).sum())} stops leave no residual "
-            f"degrees of freedom for {3 * geo.n_targets + 3} structure parameters"
-        )
-    return _Fit(geo, theta, rss, dof, iterations)
-
-
-def _deleted_chi2(
-    geo: TargetSetGeometry, points: FloatArray, weight: FloatArray, used: BoolArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Each used point against θ_k from the *other* used points of its stop (structure fixed).
-
-    Returns ``(K, T)`` arrays: the normalized squared deleted residual (relative units,
-    divide by s²), its degrees of freedom (3, or 2 for a stop's only point), and the
-    radial-plus-axial part alone (χ²₂). Zero where unused.
-    """
-    z, axial = _local(geo, points)
-    w = np.where(used, weight, 0.0)
-    r, phi = geo.radii_mm, geo.phase_rad
-    terms = w * r * np.exp(-1j * phi) * z
-    others = terms.sum(axis=1)[:, None] - terms
-    n_other = used.sum(axis=1)[:, None] - used
-    info_other = np.sum(w * r**2, axis=1)[:, None] - w * r**2
-    theta = np.angle(np.where(n_other > 0, others, terms))
-    direction = np.exp(1j * (theta + phi))
-    e = np.conj(direction) * z - r
-    sigma2 = 1.0 / np.where(used, weight, 1.0)
-    radax = (axial**2 + e.real**2) / sigma2
-    tangential_var = sigma2 + r**2 / np.where(info_other > 0, info_other, np.inf)
-    chi2 = radax + np.where(n_other > 0, e.imag**2 / tangential_var, 0.0)
-    df = np.where(n_other > 0, 3.0, 2.0)
-    return np.where(used, chi2, 0.0), df, np.where(used, radax, 0.0)
-
-
-def _reject_wild(
-    points: FloatArray,
-    weight: FloatArray,
-    used: BoolArray,
-    fit: _Fit,
-    outlier_alpha: float,
-    max_outliers: int,
-) -> tuple[BoolArray, _Fit]:
-    """Drop wild points one at a time (screen, refit without, test the deleted residual)."""
-    from scipy import stats  # loads when a fit runs: a refused input is said at once
-
-    n_par = 3 * fit.geo.n_targets + 3
-    dropped = 0
-    while dropped < max_outliers and used.any(axis=1).sum() > MIN_STOPS + 1:
-        chi2, df, _ = _deleted_chi2(fit.geo, points, weight, used)
-        n_used = int(used.sum())
-        limit = stats.chi2.isf(outlier_alpha / n_used, df)
-        med = stats.chi2.median(df)
-        robust_s2 = max(float(np.median((chi2 / med)[used])), 1e-300)
-        screen = np.where(used, chi2 / robust_s2 / limit, 0.0)
-        k, t = np.unravel_index(int(np.argmax(screen)), screen.shape)
-        if screen[k, t] <= 1.0:
-            break
-        trial = used.copy()
-        trial[k, t] = False
-        try:
-            candidate = _fit(points, weight, trial, fit.geo)
-        except TargetSetFitError:
-            break
-        # the point against the refit (θ_k from the stop's remaining points)
-        probe = trial.copy()
-        probe[k, t] = True
-        chi2_c, df_c, radax_c = _deleted_chi2(candidate.geo, points, weight, probe)
-        inflation = 1.0 + n_par / trial.sum()
-        s2 = candidate.s2 * inflation
-        if chi2_c[k, t] / s2 <= stats.chi2.isf(outlier_alpha / n_used, df_c[k, t]):
-            break
-        if trial[k].sum() == 1 and radax_c[k, t] / s2 <= stats.chi2.isf(outlier_alpha / n_used, 2):
-            # two points disagreeing only tangentially: either may be wrong; drop the stop
-            trial[k] = False
-            try:
-                candidate = _fit(points, weight, trial, candidate.geo)
-            except TargetSetFitError:
-                break
-        dropped += int(used.sum() - trial.sum())
-        used, fit = trial, candidate
-    return used, fit
 
 
 @dataclass(frozen=True, eq=False)
@@ -790,16 +429,16 @@ def fit_target_set(
         max_outliers = max(1, int(measured.sum()) // 25)
     filled = np.where(measured[..., None], pts, 0.0)
     weight = np.where(measured, 1.0 / sigma**2, 0.0)
-    start = _start(filled, measured, weight)
-    fit = _fit(filled, weight, measured, start)
-    used, fit = _reject_wild(filled, weight, measured.copy(), fit, outlier_alpha, max_outliers)
+    start = start_geometry(filled, measured, weight)
+    fit = fit_geometry(filled, weight, measured, start)
+    used, fit = reject_wild(filled, weight, measured.copy(), fit, outlier_alpha, max_outliers)
 
-    geo, theta = _canonical(fit.geo, fit.theta)
+    geo, theta = canonical(fit.geo, fit.theta)
     # stops that lost every point still get an angle from their own points
     lost = measured.any(axis=1) & ~used.any(axis=1)
     if lost.any():
-        z = _local(geo, filled)[0]
-        theta = np.where(lost, _profile_theta(geo, z, weight), theta)
+        z = local_coordinates(geo, filled)[0]
+        theta = np.where(lost, profile_theta(geo, z, weight), theta)
     result = TargetSetFit(
         geometry=geo,
         angle_rad_all=theta,
@@ -901,7 +540,7 @@ def crb_covariance_targets(
     the relation's columns (the first should be the intercept θ₀), ``measured``
     ``(K, T)`` which points exist (default all). Returns the ``(p, p)`` block of the
     inverse Fisher information. For T = 1 it equals
-    :func:`calibration.scales.grating_scale.crb_covariance`.
+    :func:`calibration.scales.relation_fit.crb_covariance`.
     """
     geo = geometry.geometry if isinstance(geometry, TargetSetFit) else geometry
     th = np.asarray(angle_rad, dtype=float)
@@ -913,7 +552,7 @@ def crb_covariance_targets(
     sig = np.broadcast_to(sig, (k, t))
     mask = np.ones((k, t), bool) if measured is None else np.asarray(measured, dtype=bool)
     weight = np.where(mask, 1.0 / np.where(mask, sig, 1.0) ** 2, 0.0)
-    js, j_theta = _jacobians(geo, th)
+    js, j_theta = point_jacobians(geo, th)
     jac = np.concatenate([js, j_theta[..., None] * x[:, None, None, :]], axis=-1)
     a = (np.sqrt(weight)[..., None, None] * jac).reshape(-1, jac.shape[-1])
     info = a.T @ a

@@ -36,7 +36,8 @@ from numpy.typing import ArrayLike, NDArray
 from calibration.effects.model_effects import predict_tcp
 from calibration.errors import CompensationError, StiffnessError
 from calibration.model.description import RobotDescription
-from calibration.model.inverse_kinematics import JointLimits, solve_ik
+from calibration.model.ik_results import JointLimits
+from calibration.model.inverse_kinematics import solve_ik
 from calibration.model.kinematics import KinematicModel, flange_poses, geometric_jacobian
 from calibration.model.stiffness import force_deflection_mm, states_stiffness
 

@@ -199,7 +199,12 @@ class TwinPredictor:
     """
 
     def __init__(
-        self, desc: Any, *, radius_deg: float = 0.25, max_age_s: float = 1.0, h_rad: float = 4e-6
+        self,
+        desc: RobotDescription,
+        *,
+        radius_deg: float = 0.25,
+        max_age_s: float = 1.0,
+        h_rad: float = 4e-6,
     ) -> None:
         from calibration.effects.model_effects import description_effects
         from calibration.model.kinematics import KinematicModel

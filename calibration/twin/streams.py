@@ -15,7 +15,6 @@ over ``gap_factor`` median periods).
 from __future__ import annotations
 
 import json
-import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -25,27 +24,21 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.errors import StreamError
+from edges.channel_names import ENCODER, GRATING, counts_joint, joint_columns
 
 KINDS = ("grating", "tracker", "encoders")
-_GRATING = re.compile(r"^grating(\d+)_counts$")
-_ENCODER = re.compile(r"^encoder(\d+)_counts$")
 
 
 def stream_kind(column_names: Iterable[str]) -> str:
     """``grating``, ``tracker``, ``encoders`` or ``other`` from a schema's column names."""
     names = set(column_names)
-    if any(_GRATING.match(n) for n in names):
+    if any(counts_joint(n, GRATING) is not None for n in names):
         return "grating"
     if {"x_mm", "y_mm", "z_mm"} <= names:
         return "tracker"
-    if any(_ENCODER.match(n) for n in names):
+    if any(counts_joint(n, ENCODER) is not None for n in names):
         return "encoders"
     return "other"
-
-
-def _joint_columns(names: Iterable[str], pattern: re.Pattern[str]) -> list[str]:
-    found = sorted((int(m.group(1)), n) for n in names if (m := pattern.match(n)))
-    return [n for _, n in found]
 
 
 @dataclass
@@ -111,9 +104,9 @@ class StreamBuilder:
         self.meta = dict(schema_doc.get("meta") or {})
         self.device = str(self.meta.get("device") or key.rsplit("/", 2)[-2])
         if self.kind == "grating":
-            self.channels = _joint_columns(names, _GRATING)
+            self.channels = joint_columns(names, GRATING)
         elif self.kind == "encoders":
-            self.channels = _joint_columns(names, _ENCODER)
+            self.channels = joint_columns(names, ENCODER)
         elif self.kind == "tracker":
             self.channels = ["x_mm", "y_mm", "z_mm"]
         else:

@@ -47,7 +47,7 @@ from calibration.twin.phase_detection import PhaseOptions, Phases, Pose, find_ph
 from calibration.twin.streams import CellStreams
 
 if TYPE_CHECKING:
-    from calibration.effects.closed_loop import ClosedLoopResult
+    from calibration.effects.closed_loop import ClosedLoopResult, LoopSettings
     from calibration.effects.effect_library import EffectSpec, GravityDeflection
     from calibration.effects.identification_report import SetErrors
     from calibration.identify.identification import IdentificationResult
@@ -383,7 +383,7 @@ def calibrate_twin(
     *,
     effects: bool = True,
     scale_options: ScaleOptions | None = None,
-    loop_settings: Any = None,
+    loop_settings: LoopSettings | None = None,
     say: Say = quiet,
 ) -> TwinCalibration:
     """Scale maps, identification and closed loop, fitted jointly (module docstring).
@@ -428,7 +428,7 @@ def _twin_round(
     *,
     effects: bool,
     scale_options: ScaleOptions | None,
-    loop_settings: Any,
+    loop_settings: LoopSettings | None,
     say: Say,
 ) -> TwinRound:
     """One round: maps from the sweeps (``deflection`` taken out, rad ``(S, n)`` per joint;

@@ -20,8 +20,9 @@ from calibration.scales.chain_scale import (
     undo_upstream,
     with_load_notes,
 )
-from calibration.scales.grating_scale import JointSweep, calibrate_joint
+from calibration.scales.grating_scale import calibrate_joint
 from calibration.scales.scale_files import read_sweep_csv
+from calibration.scales.sweep_inputs import JointSweep
 from sim_devices.effects import UndeclaredEffects, link_rotation_rad, with_derived_stiffness
 from sim_devices.scale_campaign import CampaignOptions, ScaleCampaign, run_campaign
 from sim_devices.truth import TrueCell

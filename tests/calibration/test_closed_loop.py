@@ -39,7 +39,7 @@ from calibration.effects.effect_library import (
 )
 from calibration.effects.identification_report import closed_loop_document
 from calibration.effects.model_effects import predict_tcp
-from calibration.identify.identification import stacked_jacobian
+from calibration.identify.position_residuals import stacked_jacobian
 from calibration.model.description import RobotDescription
 from sim_devices.effects import UndeclaredEffects
 from sim_devices.pose_campaign import CampaignSettings, emulated_campaign

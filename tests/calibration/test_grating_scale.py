@@ -16,18 +16,17 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from calibration.errors import ScaleError
 from calibration.model.description import RobotDescription, load_robot
-from calibration.scales.grating_scale import (
+from calibration.scales.grating_scale import calibrate_joint
+from calibration.scales.joint_scale_result import JointScaleResult
+from calibration.scales.scale_relation import (
     COUNTER_MODULUS,
     GratingScale,
-    JointScaleResult,
-    JointSweep,
-    ScaleError,
-    ScaleOptions,
-    calibrate_joint,
     check_terms,
     signed_offset_counts,
 )
+from calibration.scales.sweep_inputs import JointSweep, ScaleOptions
 from sim_devices.scale_campaign import CampaignOptions, ScaleCampaign, run_campaign
 from sim_devices.truth import TrueCell
 

@@ -10,6 +10,7 @@ from scipy.optimize import OptimizeResult, least_squares
 from scipy.stats import chi2
 
 from calibration.effects.identification_report import before_model
+from calibration.errors import IdentificationError
 from calibration.identify import identifiability, identification
 from calibration.identify.identifiability import (
     NO_EFFECT,
@@ -17,17 +18,10 @@ from calibration.identify.identifiability import (
     analyze_model,
     column_references,
 )
-from calibration.identify.identification import (
-    COLLAPSED,
-    RAN_AWAY,
-    IdentificationError,
-    LMSettings,
-    identify,
-    levenberg_marquardt,
-    position_residual_jacobian,
-    position_residuals,
-    tracker_sigma_mm,
-)
+from calibration.identify.identification import identify, tracker_sigma_mm
+from calibration.identify.levenberg_marquardt import LMSettings, levenberg_marquardt
+from calibration.identify.position_residuals import position_residual_jacobian, position_residuals
+from calibration.identify.runaway_watch import COLLAPSED, RAN_AWAY
 from calibration.model.description import RobotDescription, load_robot
 from calibration.model.kinematics import KinematicModel, rotation_from_fixed_xyz, tcp_positions
 from calibration.model.registration import RegistrationError, rigid_registration

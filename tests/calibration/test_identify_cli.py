@@ -15,7 +15,7 @@ from calibration.effects.identification_report import COMPONENTS, REPORT_FILES, 
 from calibration.effects.model_effects import ModelEffectError, predict_tcp
 from calibration.identify import identifiability, identification
 from calibration.identify.campaign_files import read_campaign, read_points, write_campaign
-from calibration.identify.identification import LMSettings
+from calibration.identify.levenberg_marquardt import LMSettings
 from calibration.model.description import EffectDescription, load_robot
 from sim_devices import pose_campaign
 from sim_devices.pose_campaign import CampaignSettings, emulated_campaign

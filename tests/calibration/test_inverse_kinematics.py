@@ -9,19 +9,16 @@ from hypothesis import strategies as st
 
 from calibration.errors import KinematicsError
 from calibration.model.description import load_robot
-from calibration.model.inverse_kinematics import (
+from calibration.model.ik_results import JointLimits, SingularityMargins
+from calibration.model.inverse_kinematics import select_solution, singularity_flags, solve_ik
+from calibration.model.kinematics import KinematicModel, flange_poses, tcp_positions
+from calibration.model.pieper_closed_form import (
     BRANCHES,
     N_BRANCHES,
-    JointLimits,
-    SingularityMargins,
     is_spherical_wrist,
     nearest_equivalent,
-    select_solution,
-    singularity_flags,
-    solve_ik,
     spherical_approximation,
 )
-from calibration.model.kinematics import KinematicModel, flange_poses, tcp_positions
 
 PRESETS = ("kr500", "kr210_r3100", "hp20d")
 POS_TOL_MM = 1e-9

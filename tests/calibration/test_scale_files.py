@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from calibration.errors import CalibrationError, DataFileError
 from calibration.model.description import load_robot
-from calibration.scales.grating_scale import JointSweep, calibrate_joint
+from calibration.scales.grating_scale import calibrate_joint
 from calibration.scales.scale_files import (
     ScaleFileError,
     read_counts_csv,
@@ -24,6 +24,7 @@ from calibration.scales.scale_files import (
     scale_document,
     write_scale_toml,
 )
+from calibration.scales.sweep_inputs import JointSweep
 from sim_devices.scale_campaign import CampaignOptions, run_campaign
 from sim_devices.truth import TrueCell
 

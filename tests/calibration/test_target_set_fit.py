@@ -10,15 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.errors import CalibrationError
+from calibration.errors import CalibrationError, TargetSetFitError
 from calibration.scales.circle_fit import fit_circle_3d
-from calibration.scales.grating_scale import crb_covariance
-from calibration.scales.target_set_fit import (
-    TargetSetFitError,
-    TargetSetGeometry,
-    crb_covariance_targets,
-    fit_target_set,
-)
+from calibration.scales.relation_fit import crb_covariance
+from calibration.scales.target_set_fit import crb_covariance_targets, fit_target_set
+from calibration.scales.target_set_model import TargetSetGeometry
 
 SIDE_MM = 360.0
 

@@ -1,5 +1,5 @@
-"""Viewer channels (daq.viewer): at a bounded rate, every tracker point kept, joints named,
-the twin's TCP and frames; the messages validate against Foxglove's published JSON
+"""Foxglove channels (daq.foxglove_channels): at a bounded rate, every tracker point kept,
+joints named, the twin's TCP and frames; the messages validate against Foxglove's published JSON
 schemas (tests/data/foxglove_schemas, vendored from the foxglove-sdk repository) and our
 own, read back with the ``mcap`` package's reader."""
 
@@ -14,8 +14,8 @@ import numpy as np
 from mcap.reader import make_reader
 
 from daq.columnar import Column, StreamSchema
+from daq.foxglove_channels import StreamViewer
 from daq.recording import McapRecorder
-from daq.viewer import StreamViewer
 
 PUBLISHED = Path(__file__).parents[1] / "data" / "foxglove_schemas"
 T0 = 1_795_000_000_000_000_000  # host UTC ns
@@ -141,3 +141,14 @@ def test_no_viewer_channels_at_rate_zero(tmp_path):
     rec = McapRecorder(tmp_path / "v.mcap")
     assert not StreamViewer(rec, TRACKER, rate_hz=0.0).active
     rec.close()
+
+
+def test_joint_columns_named_by_their_joint_without_meta():
+    """Without ``meta.joints``, ``grating<k>_counts`` is joint ``k`` (edges.channel_names)."""
+    from daq.foxglove_channels import _joint_names
+
+    cols = ["grating10_counts", "grating2_counts", "encoder1_counts", "other"]
+    schema = StreamSchema(
+        "cell/c/robot/r/g/samples", _base(tuple(Column(c, "int64") for c in cols)), {}
+    )
+    assert _joint_names(schema, cols) == ["j10", "j2", "j1", "other"]
