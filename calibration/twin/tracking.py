@@ -41,7 +41,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration.errors import OptionError, TrackingError
 from calibration.identify.recursive_identification import ForgettingSettings, forgetting_step
-from calibration.model.description import RobotDescription
+from calibration.model.description import RobotDescription, TrackingDescription
 from calibration.model.kinematics import KinematicModel, identification_jacobian
 from calibration.model.point_jacobian import point_jacobian
 from calibration.twin.step_test import StepTest
@@ -224,6 +224,17 @@ def tracking_setup(
         )
     if not chosen:
         raise OptionError("--params: no parameter to track")
+    return _setup_of(model, tr, chosen, settings)
+
+
+def _setup_of(
+    model: KinematicModel,
+    tr: TrackingDescription,
+    chosen: list[str],
+    settings: TrackingSettings,
+) -> TrackingSetup:
+    """The basis, column scales and start information of the chosen tracked parameters."""
+    all_names = model.parameter_names()
     groups = scale_groups(model, tr.identified)
     x = model.parameter_vector()
     basis = np.zeros((len(x), len(chosen)))
@@ -327,8 +338,8 @@ def track_update(
     model's effect terms at this pose ``(3,)`` mm (:func:`effect_offsets`). Predicts
     first (from ``state`` only), then runs the step test and learns. Pure.
 
-    One function, not split: predict → test → learn → settle → alarm is the method's
-    order, read top to bottom (the per-check hot path of the live twin too)."""
+    Long because it is one function, not split: predict → test → learn → settle → alarm is
+    the method's order, read top to bottom (the per-check hot path of the live twin too)."""
     q = np.asarray(q_rad, dtype=float)
     meas = np.asarray(measured_mm, dtype=float)
     off = np.asarray(offset_mm, dtype=float)
