@@ -184,6 +184,12 @@ def _replay_options(p: argparse.ArgumentParser) -> None:
         metavar="S",
         help="wait up to S seconds for a matching subscriber before starting",
     )
+    p.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="replay the readable part of a damaged recording (said on stderr and in the "
+        "result line); keys whose schema is lost are never republished",
+    )
     p.add_argument("--config", type=path_text, help="take zenoh settings from this cell TOML")
     _zenoh_args(p)
 

@@ -554,16 +554,69 @@ def test_replay_refuses_a_pass_that_sends_nothing(work):
     )
 
 
-def test_replay_reads_past_a_damaged_chunk(work):
+def test_replay_reads_past_a_damaged_chunk_only_when_allowed(work):
+    """(session) a damaged recording is refused before anything is published, saying what
+    was readable; --allow-partial replays the rest, said on stderr and in the result."""
     whole = (work / "whole.mcap").read_bytes()
     _, offset, lost = damage_chunk(whole, 2)
     listen = ["--listen", f"tcp/127.0.0.1:{free_port()}"]
-    proc = run(daq("replay", "damaged.mcap", "--fast", *listen), work)
+    proc = refused(
+        work,
+        daq("replay", "damaged.mcap", "--fast", *listen),
+        ["damaged.mcap", f"read {60 - lost} messages", f"byte {offset}", "--allow-partial"],
+    )
+    assert proc.stdout == ""  # nothing announced, nothing published
+    proc = run(daq("replay", "damaged.mcap", "--fast", "--allow-partial", *listen), work)
     accepted(proc)
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert result["truncated"] is True and result["damaged"][0]["offset"] == offset
+    assert result["allow_partial"] is True
     assert result["topics"]["cell/c/robot/r/dev/ch"]["messages"] == 60 - lost
     assert "warning" in proc.stderr and f"byte {offset}" in proc.stderr
+
+
+def _cut_schema_recording(path: Path, *, cut: bool) -> None:
+    """A recording (no chunks: no CRC guards its records) of two keys; with ``cut`` the
+    first key's schema is cut in half (its messages are intact)."""
+    from mcap.writer import CompressionType, Writer
+
+    other = StreamSchema("cell/c/robot/r/dev/other", SCHEMA.columns, meta={"device": "dev"})
+    with open(path, "wb") as fh:
+        w = Writer(fh, use_chunking=False, compression=CompressionType.NONE)
+        w.start()
+        channels = []
+        for schema in (SCHEMA, other):
+            text = schema.dumps()
+            data = text[: len(text) // 2] if cut and schema is SCHEMA else text
+            sid = w.register_schema(schema.key, "jsonschema", data)
+            channels.append(w.register_channel(schema.key, "daq.columnar.v1", sid, {}))
+        for i in range(10):
+            for ch, schema in zip(channels, (SCHEMA, other), strict=True):
+                payload = encode(schema, {"seq": np.arange(3) + 3 * i, "x_mm": np.ones(3)}, i)
+                w.add_message(ch, log_time=i * 1000, data=payload, publish_time=i, sequence=i)
+        w.finish()
+
+
+def test_replay_never_republishes_a_key_whose_schema_is_cut(work):
+    """(session) every subscriber fails to decode such a key (twin export refuses the
+    file): refused, and with --allow-partial the other keys only."""
+    _cut_schema_recording(work / "cut.mcap", cut=True)
+    listen = ["--listen", f"tcp/127.0.0.1:{free_port()}"]
+    refused(
+        work,
+        daq("replay", "cut.mcap", "--fast", *listen),
+        ["cut.mcap", "key cell/c/robot/r/dev/ch", "schema does not parse", "--allow-partial"],
+    )
+    proc = run(daq("replay", "cut.mcap", "--fast", "--allow-partial", *listen), work)
+    accepted(proc)
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert list(result["topics"]) == ["cell/c/robot/r/dev/other"], result
+    assert "cell/c/robot/r/dev/ch" in result["not_republished"]
+    assert "schema does not parse" in proc.stderr
+    _cut_schema_recording(work / "whole2.mcap", cut=False)  # the same file, whole: replayed
+    proc = run(daq("replay", "whole2.mcap", "--fast", *listen), work)
+    accepted(proc)
+    assert len(json.loads(proc.stdout.strip().splitlines()[-1])["topics"]) == 2
 
 
 # -- configuration ------------------------------------------------------------------------
