@@ -726,6 +726,39 @@ def test_run_options(work):
     refused(work, daq("run", "--record", "{nope}.mcap"), ["--record", "{nope}"])
 
 
+def test_a_device_rate_has_one_bound_wherever_it_comes_from(work):
+    """cell.toml's rate_hz = 1e9 was accepted (--rate refused over 100 kHz) and every
+    sample was then counted as a gap: the same range for both."""
+    for rate in ("1e9", "100001", "0"):
+        (work / "fast.toml").write_text(GOOD_TOML.replace("rate_hz = 1000", f"rate_hz = {rate}"))
+        refused(work, daq("run", "--config", "fast.toml", "--duration", "1"),
+                ["fast.toml", "'rate_hz'", "100000", "Hz"])  # fmt: skip
+        refused(work, daq("run", "--rate", rate), ["--rate"])
+    doc = cfg.load(work / "cell.toml", environ={})
+    assert doc.devices[0].rate_hz == 1000.0  # the bound itself and below: accepted
+    (work / "edge.toml").write_text(GOOD_TOML.replace("rate_hz = 1000", "rate_hz = 100000"))
+    assert cfg.load(work / "edge.toml", environ={}).devices[0].rate_hz == 100000.0
+
+
+@pytest.mark.parametrize(
+    ("extra", "words"),
+    [
+        (["--rate", "500"], ["--rate", "emulated cell only", "rate_hz"]),
+        (["--sim-config", "cell.toml"], ["--sim-config", "emulated cell only"]),
+        (["--no-record"], ["--no-record", "[recording] enabled = false"]),
+    ],
+)
+def test_options_that_do_not_apply_beside_a_configuration_are_refused(work, extra, words):
+    """They were silently ignored; refused before any device is opened (no network)."""
+    refused(work, daq("run", "--config", "cell.toml", "--duration", "1", *extra), words)
+    refused(work, daq("run", "--duration", "1", *extra), ["$DAQ_CONFIG", *words[1:]],
+            env={"DAQ_CONFIG": "cell.toml"})  # fmt: skip
+
+
+def test_record_and_no_record_together_are_refused(work):
+    refused(work, daq("run", "--record", "x.mcap", "--no-record"), ["--no-record", "--record"])
+
+
 def _processes_with(marker: str) -> list[int]:
     """The processes whose environment holds ``marker`` (Linux /proc)."""
     pids = []
