@@ -35,8 +35,8 @@ from calibration.errors import CalibrationError
 from edges.command import one_line, os_error_text, run_command, take_debug_flag
 from edges.options import OptionParser
 from edges.outputs import OutputSet
-from sim_devices.config import CellConfig, load_cell, number_option, robot_option
-from sim_devices.errors import SimConfigError, SimError
+from sim_devices.config import CellConfig, load_cell, number_option
+from sim_devices.errors import SimError
 from sim_devices.plant import Plant, SimClock
 
 log = logging.getLogger("sim_devices")
@@ -168,9 +168,7 @@ def _load(path: str | None) -> CellConfig:
     its robot."""
     if path is not None and not path.strip():
         raise SimError("--config: empty path; give a cell.toml or leave the option out")
-    config = load_cell(path)
-    _check_servable(config, path or "default cell config")
-    return config
+    return load_cell(path)
 
 
 def _inputs(args: argparse.Namespace, config: CellConfig) -> list[str | None]:
@@ -271,21 +269,6 @@ def _stage_truth(outputs: OutputSet, plant_config: CellConfig, path: str, option
     staged.write_text(
         tomli_w.dumps(Plant.from_config(plant_config).truth_document()), encoding="utf-8"
     )
-
-
-def _check_servable(config: CellConfig, source: str) -> None:
-    """Refuse a cell the emulator cannot make: a robot with more joints than the grating
-    box has channels (its plant and devices are built for them; the configuration check,
-    not a crash of a device)."""
-    from sim_devices.grating_reader import N_CHANNELS
-
-    n = robot_option(config.cell.robot, f"{source}: [cell]: key 'robot':").n_joints
-    if n > N_CHANNELS:
-        raise SimConfigError(
-            f"{source}: [cell]: key 'robot': {config.cell.robot} has {n} joints, the emulated "
-            f"grating box reads {N_CHANNELS} channels: the emulated cell needs a robot of at "
-            f"most {N_CHANNELS} joints"
-        )
 
 
 def cmd_serve(args: argparse.Namespace) -> int:

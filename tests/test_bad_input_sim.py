@@ -345,6 +345,20 @@ def test_serve_refuses_a_robot_the_grating_box_cannot_serve(work):
     refused(work, [SIM_CELL, "truth", "--config", "c7.toml", "--out", "truth.toml"], words)
 
 
+def test_maps_vs_truth_refuses_like_every_command(work):
+    """``python -m benchmarks.maps_vs_truth`` (a README command) had no error boundary:
+    a missing file or a bad cell was a traceback."""
+    (work / "r7.toml").write_text(_seven_joints(_preset("kr500")))
+    (work / "c7.toml").write_text('[cell]\nrobot = "r7.toml"\n')
+    (work / "noise.mcap").write_bytes(bytes(range(256)) * 4)
+    maps = [PY, "-m", "benchmarks.maps_vs_truth"]
+    refused(work, maps, ["recording", "required"])
+    refused(work, [*maps, "nope.mcap", "cell.toml"], ["nope.mcap"])
+    refused(work, [*maps, "noise.mcap", "nope.toml"], ["nope.toml"])
+    refused(work, [*maps, "noise.mcap", "c7.toml"], ["c7.toml", "7 joints"])
+    refused(work, [*maps, "noise.mcap", "cell.toml"], ["noise.mcap"])
+
+
 @pytest.mark.parametrize("grating", [False, True], ids=["tracker-alone", "grating-started-first"])
 def test_serve_port_in_use_leaves_nothing(work, grating):
     """A failure after the run started: the tracker's port is taken. No device is
