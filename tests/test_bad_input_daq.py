@@ -38,15 +38,22 @@ except the replay cases marked (session), which listen on a free loopback port.
 | schema: --timeout 0/inf, bad key expression | 3 |
 | zenoh endpoints: --listen garbage (replay), --connect without a protocol (echo) | 2 |
 | demo: --speed 0, --port 0/70000, --rate nan, --seed -1, --robot unknown, --out a file | 7 |
+| (round 2) replay: a damaged chunk, a key whose schema is cut, without --allow-partial | 2 |
+| (round 2) run: rate_hz 1e9/100001/0 in cell.toml and as --rate; --rate, --sim-config, | 13 |
+|   --no-record beside --config and $DAQ_CONFIG; --record with --no-record | |
 
 Accepted on purpose, each checked for its result: a complete recording (recover: exit 0,
 says complete, writes nothing), a recording with one corrupt chunk in the middle and a
 truncated one (recover keeps every intact chunk, after the damage too, beside the
 original; --in-place keeps a backup; info reports offset, record and reason with exit 1;
-replay sends every readable message and warns), ``daq info F`` into a closed pipe (quiet,
+replay with --allow-partial sends every readable message of the keys it can decode and
+warns), ``daq info F`` into a closed pipe (quiet,
 exit 141), a config with a byte-order mark or CRLF line ends (same as the plain file).
 
-Total: 105 refused inputs as processes, 12 accepted ones checked for their result, and
+The timed cases (a device absent at start, echo/record to nobody) are in
+tests/test_bad_input_daq_live.py (``realtime``).
+
+Total: 120 refused inputs as processes, 12 accepted ones checked for their result, and
 the fuzz tests (reader, recover, config loader: random bytes, every truncation of a small
 recording, byte mutations, records without a CRC; 150 examples each, ``FUZZ_EXAMPLES``
 sets more). ``pytest -s`` prints the tally: tried, clear errors, tracebacks, hangs, silent

@@ -25,7 +25,8 @@ robot .toml        binary, syntax, wrong type, NaN, unknown key, bad [[effect]],
 joints.csv         radians, empty, header only, NaN, duplicated pose, missing q column,
                    --out = --data, --out = --model, missing model
 recordings         CSV as --replay, random bytes, empty, --out a file, --out = --replay,
-                   --from without run.json, --from with a broken run.json
+                   --from without run.json, --from with a broken run.json, a damaged chunk
+                   without --allow-partial (export, run), --allow-partial without --replay
 =================  ==========================================================================
 """
 
