@@ -106,7 +106,8 @@ def check_campaign_units(
                 f"degrees (or pass {OVERRIDE})"
             )
     if nominal < 1.0 or measured == 0.0:
-        if spread_mm(xyz_mm) == 0.0 and len(xyz_mm) > 1:
+        # the robot moved and the points did not (at one pose, one point is right)
+        if nominal >= 1.0 and spread_mm(xyz_mm) == 0.0 and len(xyz_mm) > 1:
             raise UnitsError(f"{source}: columns x_mm,y_mm,z_mm: every tracker point is the same")
         return  # one pose or no motion: nothing to compare
     if _similar(measured, nominal):

@@ -83,8 +83,9 @@ LOAD_TEST = ["stiffness", "--model", "cal.toml", "--load-test", "bad.csv", "--ou
         ("loads.csv", XYZ + XYZ0, 1e-3, LOAD_TEST, ["bad.csv", "metres", "--no-unit-check"]),
     ],
 )  # fmt: skip
-def test_joints_and_points_in_other_units_are_refused(files, source, columns, factor, command,
-                                                      words):  # fmt: skip
+def test_joints_and_points_in_other_units_are_refused(
+    files, source, columns, factor, command, words
+):
     write(files / "bad.csv", scaled(read(files / source), columns, factor))
     refused(files, command, *words)
 
@@ -133,22 +134,30 @@ def test_a_partial_encoder_group_in_a_campaign_is_refused(work):
 
 
 # -- a load test that cannot determine the stiffnesses, or that the physics forbids -----------
-def _loads_subset(files: Path, keep: list[int]) -> None:
-    rows = read(files / "loads.csv")
-    write(files / "bad.csv", [rows[i] for i in keep])
+def _loads_subset(files: Path, keep: list[int], *, one_unloaded: bool = False) -> None:
+    """The rows ``keep`` of loads.csv; ``one_unloaded``: every row of a pose with the first
+    row's unloaded point (the TCP measured once unloaded per pose)."""
+    rows = [read(files / "loads.csv")[i] for i in keep]
+    if one_unloaded:
+        rows = [{**r, **{c: rows[0][c] for c in XYZ0}} for r in rows]
+    write(files / "bad.csv", rows)
 
 
 @pytest.mark.parametrize(
-    ("keep", "words"),
+    ("keep", "one_unloaded", "words"),
     [
-        ([2, 5], ["bad.csv", "rank", "1 distinct pose", "1 distinct axis", "joint"]),
-        ([0, 2, 3, 5], ["bad.csv", "rank", "2 distinct axis", "other"]),
+        ([2, 5], False, ["bad.csv", "rank", "1 distinct pose", "1 distinct axis", "joint"]),
+        ([2, 5], True, ["bad.csv", "rank", "1 distinct pose", "1 distinct axis", "joint"]),
+        ([0, 2, 3, 5], False, ["bad.csv", "rank", "2 distinct axis", "other"]),
     ],
 )
-def test_a_load_test_that_cannot_determine_the_stiffnesses_is_refused(files, keep, words):
+def test_a_load_test_that_cannot_determine_the_stiffnesses_is_refused(
+    files, keep, one_unloaded, words
+):
     """±z at one pose: 3 equations for the loaded joints' compliances (the fit used to say
-    ± 0.0 % and write them); ±x and ±z at one pose: still not all of them."""
-    _loads_subset(files, keep)
+    ± 0.0 % and write them); ±x and ±z at one pose: still not all of them. One unloaded
+    reading for the pose is what a user measures: not taken for a unit slip."""
+    _loads_subset(files, keep, one_unloaded=one_unloaded)
     refused(files, LOAD_TEST, *words)
 
 
