@@ -314,20 +314,23 @@ def check_for_robot(cfg: CellConfig, n_joints: int, source: str) -> None:
             fail(where, key, f"{len(values)} values for a robot of {n_joints} joints")
 
 
+#: Channels of the emulated grating box (sim_devices.grating_reader): the most joints an
+#: emulated cell can have.
+GRATING_CHANNELS = 6
+
+
 def load_cell(path: str | None) -> CellConfig:
     """The configuration in ``path`` (None: the default cell), checked against its robot
     (:func:`check_for_robot`; a robot that cannot be loaded is named with its key, one
     with more joints than the grating box has channels is refused)."""
-    from sim_devices.grating_reader import N_CHANNELS  # it imports this module
-
     cfg = CellConfig.load(path) if path else CellConfig()
     source = path or "default cell config"
     n = robot_option(cfg.cell.robot, f"{source}: [cell]: key 'robot':").n_joints
-    if n > N_CHANNELS:  # the plant and the devices are built for the box's channels
+    if n > GRATING_CHANNELS:  # the plant and the devices are built for the box's channels
         raise SimConfigError(
             f"{source}: [cell]: key 'robot': {cfg.cell.robot} has {n} joints, the emulated "
-            f"grating box reads {N_CHANNELS} channels: the emulated cell needs a robot of at "
-            f"most {N_CHANNELS} joints"
+            f"grating box reads {GRATING_CHANNELS} channels: the emulated cell needs a robot "
+            f"of at most {GRATING_CHANNELS} joints"
         )
     check_for_robot(cfg, n, source)
     return cfg
