@@ -40,6 +40,9 @@ DETERMINED_REL_ERROR = 0.5
 #: A singular value of the load test's column-scaled design matrix below this share of
 #: the largest is a direction of compliances the test does not see.
 RANK_TOLERANCE = 1e-6
+#: Deflections whose mean component along their forces is below minus this many standard
+#: errors point against the forces (physically impossible).
+SIGN_SIGMAS = 3.0
 
 
 def joint_compliance(description: RobotDescription) -> FloatArray:
@@ -150,16 +153,20 @@ def fit_joint_compliance(
 def _check_deflection_signs(force_n: FloatArray, deflection_mm: FloatArray) -> None:
     """Refuse deflections ``(m, 3)`` mm that point against their forces ``(m, 3)`` N on the
     whole: ``F·C·F ≥ 0`` for every compliance ``C = J K⁻¹ Jᵀ``, so their mean component
-    along the force cannot be negative (loaded and unloaded points swapped, a force's
-    sign flipped)."""
+    along the force cannot be negative beyond its noise (more than
+    :data:`SIGN_SIGMAS` standard errors: loaded and unloaded points swapped, a force's
+    sign flipped; a stiff robot's deflections lost in the tracker's noise are not)."""
     magnitude = np.linalg.norm(force_n, axis=1)
     loaded = magnitude > 0
     along = np.einsum("mi,mi->m", deflection_mm[loaded], force_n[loaded]) / magnitude[loaded]
-    if along.size and float(along.sum()) < 0:
+    if along.size < 2:
+        return
+    mean = float(along.mean())
+    if mean < -SIGN_SIGMAS * float(along.std(ddof=1)) / np.sqrt(along.size):
         against = int(np.sum(along < 0))
         raise StiffnessError(
             f"the deflections (loaded - unloaded) point against their forces in {against} of "
-            f"{along.size} loads (mean {1e3 * float(along.mean()):.1f} µm along the force); "
+            f"{along.size} loads (mean {1e3 * mean:.1f} µm along the force); "
             "a joint compliance cannot do that: are the loaded and unloaded points swapped, "
             "or the force's sign?"
         )

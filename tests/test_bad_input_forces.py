@@ -173,3 +173,19 @@ def test_deflections_against_their_forces_are_questioned(files, spoil):
         words = ["bad.csv", "against their forces", "sign"]
     write(files / "bad.csv", rows)
     refused(files, LOAD_TEST, *words)
+
+
+def test_deflections_lost_in_the_trackers_noise_are_not_taken_for_a_swap():
+    """A robot too stiff for the test: deflections that are tracker noise (10 µm) point
+    against their forces about half the time; only a mean beyond its noise is refused."""
+    import numpy as np
+
+    from calibration.errors import StiffnessError
+    from calibration.stiffness import _check_deflection_signs
+
+    f = np.tile(np.vstack([np.eye(3), -np.eye(3)]) * 1000.0, (8, 1))
+    for seed in range(20):
+        noise = np.random.default_rng(seed).normal(0.0, 0.01, (48, 3))
+        _check_deflection_signs(f, noise)  # not refused
+        with pytest.raises(StiffnessError, match="against their forces"):
+            _check_deflection_signs(f, noise - 0.02 * f / 1000.0)  # 20 µm against each force
