@@ -377,8 +377,10 @@ def main_replay(args: Any, zc: ZenohConfig) -> int:
     if problems:
         print(
             f"daq replay: warning: {args.file}: damaged recording: {problems}; replayed "
-            "every readable message of the other keys (--allow-partial; daq info shows "
-            "where, daq recover writes them to a whole file)",
+            "every readable message"
+            + (" of the keys a subscriber can decode" if found.bad_schemas else "")
+            + " (--allow-partial; daq info shows where, daq recover writes them to a whole "
+            "file)",
             file=sys.stderr,
         )
     elif found.recording.truncated:
