@@ -53,7 +53,7 @@ exit 141), a config with a byte-order mark or CRLF line ends (same as the plain 
 The timed cases (a device absent at start, echo/record to nobody) are in
 tests/test_bad_input_daq_live.py (``realtime``).
 
-Total: 120 refused inputs as processes, 12 accepted ones checked for their result, and
+Total: 122 refused inputs as processes, 14 accepted ones checked for their result, and
 the fuzz tests (reader, recover, config loader: random bytes, every truncation of a small
 recording, byte mutations, records without a CRC; 150 examples each, ``FUZZ_EXAMPLES``
 sets more). ``pytest -s`` prints the tally: tried, clear errors, tracebacks, hangs, silent
