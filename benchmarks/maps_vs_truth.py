@@ -17,11 +17,16 @@ import sys
 
 import numpy as np
 
+from calibration.errors import CalibrationError
 from calibration.model.description import load_robot
 from calibration.scales.scale_relation import ARCSEC_PER_DEG, COUNTER_MODULUS
 from calibration.twin.streams import read_recording_streams
 from calibration.twin.twin_run import calibrate_twin, measure_campaign
-from sim_devices.config import CellConfig
+from daq.errors import DaqError
+from edges.command import run_command, take_debug_flag
+from edges.options import OptionParser
+from sim_devices.config import load_cell
+from sim_devices.errors import SimError
 from sim_devices.plant import Plant
 from sim_devices.truth import GratingStrip
 
@@ -43,14 +48,31 @@ def ring_angle_rad(strip: GratingStrip, counts: np.ndarray) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.maps_vs_truth", description=__doc__)
+    argv, debug = take_debug_flag(sys.argv[1:] if argv is None else argv)
+    parser = OptionParser(prog="python -m benchmarks.maps_vs_truth", description=__doc__)
     parser.add_argument("recording", help="the MCAP of daq run on the emulated cell")
     parser.add_argument("sim_config", help="the cell's sim-cell.toml (the truth's source)")
+    parser.add_argument(
+        "--allow-partial", action="store_true", help="use a damaged recording's readable part"
+    )
     args = parser.parse_args(argv)
-    config = CellConfig.load(args.sim_config)
+    return run_command(
+        "python -m benchmarks.maps_vs_truth",
+        lambda: _compare(args),
+        user_errors=(CalibrationError, SimError, DaqError),
+        debug=debug,
+    )
+
+
+def _compare(args: argparse.Namespace) -> int:
+    """Every joint-fit round's scale maps of ``args.recording`` against the cell's strips."""
+    config = load_cell(args.sim_config)
     strips = Plant.from_config(config).cell.strips
     robot = load_robot(config.cell.robot)
-    meas = measure_campaign(read_recording_streams(args.recording), robot)
+    streams = read_recording_streams(args.recording, allow_partial=args.allow_partial)
+    if streams.note:
+        print(f"warning: {args.recording}: {streams.note}", file=sys.stderr)
+    meas = measure_campaign(streams, robot)
     twin = calibrate_twin(meas)
     for k, rnd in enumerate(twin.rounds, start=1):
         print(f"round {k}: deflection taken out of the sweeps: {rnd.deflection_rad is not None}")

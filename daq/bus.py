@@ -98,6 +98,31 @@ def open_session(zc: ZenohConfig) -> zenoh.Session:
         raise TransportError(f"cannot open zenoh session ({zc.mode}, {zc.listen}): {exc}") from exc
 
 
+#: how long a sink that listens nowhere waits for its ``connect`` endpoints to answer (s)
+PEER_WAIT_S = 3.0
+
+
+def require_peer(session: zenoh.Session, zc: ZenohConfig, wait_s: float = PEER_WAIT_S) -> None:
+    """Refuse (:class:`TransportError`, exit 2) a sink session that listens nowhere and has
+    reached no zenoh peer or router within ``wait_s`` seconds: it would print or record
+    nothing for its whole run. A sink that listens (``--listen``) waits for sources to
+    connect to it, and a client's session opens only once it reached a router."""
+    if zc.listen or zc.mode == "client":
+        return
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        if any(True for _ in session.info.peers_zid()) or any(
+            True for _ in session.info.routers_zid()
+        ):
+            return
+        time.sleep(0.05)
+    where = " ".join(zc.connect) or "(no endpoint)"
+    raise TransportError(
+        f"--connect {where}: nobody answers there (no zenoh peer or router within "
+        f"{wait_s:g} s): is the daemon (or a zenoh router) running and listening on it?"
+    )
+
+
 class SchemaServer:
     """One queryable on ``cell/<cell>/**/@schema`` answering for every registered key."""
 

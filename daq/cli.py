@@ -32,7 +32,7 @@ import os
 import re
 import sys
 
-from daq.config import ENDPOINT_RE, resolve, sink_zenoh
+from daq.config import ENDPOINT_RE, RATE_HZ, resolve, sink_zenoh
 from daq.errors import DaqError
 from edges.command import run_command, take_debug_flag
 from edges.options import OptionParser, integer, number, path_text
@@ -145,9 +145,10 @@ def _run_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--rate",
-        type=number(0.0, above=True, hi=100_000.0),
-        default=1000.0,
-        help="emulated tracker/encoder rate, Hz (1000)",
+        type=number(RATE_HZ.lo, above=RATE_HZ.lo_open, hi=RATE_HZ.hi),
+        default=None,
+        help="emulated tracker/encoder rate, Hz (1000; no --config only: a configured "
+        "cell states rate_hz per [[device]])",
     )
     p.add_argument("--cell", help="cell name (key chunk)")
     _zenoh_args(p)
@@ -183,6 +184,12 @@ def _replay_options(p: argparse.ArgumentParser) -> None:
         default=0.0,
         metavar="S",
         help="wait up to S seconds for a matching subscriber before starting",
+    )
+    p.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="replay the readable part of a damaged recording (said on stderr and in the "
+        "result line); keys whose schema is lost are never republished",
     )
     p.add_argument("--config", type=path_text, help="take zenoh settings from this cell TOML")
     _zenoh_args(p)
@@ -270,7 +277,9 @@ def _schema(args: argparse.Namespace) -> int:
 
 def _run_command(args: argparse.Namespace) -> int:
     if args.command == "run":
-        from daq.daemon import main_run
+        from daq.daemon import check_run_options, main_run
+
+        check_run_options(args)
 
         if args.record and "{" not in args.record:
             # a recording is written as it runs, not staged: its place is checked first

@@ -53,6 +53,13 @@ ENV_CONFIG = "DAQ_CONFIG"
 #: the largest ``[recording] chunk_size_bytes`` (the reader loads one chunk at a time and
 #: refuses records over ``daq.recording.MAX_RECORD_BYTES``, 256 MiB)
 MAX_CHUNK_BYTES = 64 << 20
+#: the fastest device rate the daemon takes (Hz), from cell.toml (``rate_hz``) or from
+#: ``daq run --rate``: one bound wherever the value comes from
+MAX_RATE_HZ = 100_000.0
+#: a device's sample rate: > 0 and at most MAX_RATE_HZ
+RATE_HZ = Range(0.0, MAX_RATE_HZ, lo_open=True, what="Hz")
+#: the longest a daemon waits at start for an absent device (s; an hour)
+MAX_WAIT_FOR_DEVICE_S = 3600.0
 #: characters allowed in a name that becomes one chunk of a zenoh key expression
 NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 #: a zenoh endpoint: ``<protocol>/<address>[?<metadata>][#<config>]``
@@ -201,7 +208,7 @@ class DeviceConfig:
     driver: str = field(metadata=NON_EMPTY)
     url: str = field(metadata=NON_EMPTY)
     robot: str = field(metadata=KEY_CHUNK)
-    rate_hz: float | None = field(default=None, metadata=key_spec(range=POSITIVE))
+    rate_hz: float | None = field(default=None, metadata=key_spec(range=RATE_HZ))
     joints: tuple[int, ...] | None = field(
         default=None, metadata=key_spec(range=Range(1, what="joint numbers, 1-based"))
     )
@@ -209,6 +216,10 @@ class DeviceConfig:
     options: Mapping[str, Any] = field(default_factory=dict)
     enabled: bool = True
     open_timeout_s: float = field(default=5.0, metadata=key_spec(range=POSITIVE))
+    #: absent at start: wait this long for the device (0: refuse at once; daq.device_presence)
+    wait_for_device_s: float = field(
+        default=0.0, metadata=key_spec(range=Range(0.0, MAX_WAIT_FOR_DEVICE_S, what="s"))
+    )
     clock_latency_us: float = field(default=0.0, metadata=key_spec(range=NON_NEGATIVE))
     clock_window_s: float = field(default=60.0, metadata=key_spec(range=POSITIVE))
     foxglove: str = field(default="auto", metadata=key_spec(choices=tuple(FOXGLOVE_KINDS)))

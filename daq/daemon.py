@@ -36,7 +36,7 @@ from daq.bus import Received, Receiver, SchemaServer, open_session, utc_offset_n
 from daq.config import DaqConfig, DeviceConfig, ZenohConfig, resolve, zenoh_overrides
 from daq.device_drivers import DriverFactory, keep_freed_heap, make_driver
 from daq.device_recording import DeviceRecording, recorder_meta
-from daq.errors import DaqError
+from daq.errors import ConfigError, DaqError
 from daq.foxglove_channels import StreamViewer
 from daq.health import HealthLoop
 from daq.pipeline import DeviceStream, build_schemas
@@ -285,6 +285,10 @@ def main_run(args: argparse.Namespace) -> int:
     """``daq run``: the daemon of ``args`` until ``--duration`` or a signal; exit 0."""
     cfg, emulated, record = _run_config(args)
     stopping = threading.Event()
+    if emulated is None:  # a configured cell: its devices there before anything opens
+        from daq.device_presence import check_devices_present
+
+        check_devices_present(cfg, make_driver)
     try:
         path = recording_path(cfg, args.record or None) if record else None
         # before any session or worker exists: their threads and processes inherit it
@@ -323,6 +327,33 @@ def main_run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: the emulated cell's tracker/encoder rate without ``--rate`` (Hz)
+DEFAULT_EMULATED_RATE_HZ = 1000.0
+#: ``daq run`` options that only apply to the emulated cell (no ``--config``), and where
+#: a configured cell states the same thing instead
+EMULATED_ONLY = {
+    "rate": ("--rate", "rate_hz in each [[device]] table"),
+    "sim_config": ("--sim-config", "the devices in its [[device]] tables"),
+    "no_record": ("--no-record", "[recording] enabled = false"),
+}
+
+
+def check_run_options(args: Any) -> None:
+    """Refuse an option that does not apply beside ``--config`` (or ``$DAQ_CONFIG``)
+    instead of ignoring it, and ``--record`` with ``--no-record``."""
+    if args.record is not None and args.no_record:
+        raise ConfigError("--no-record: contradicts --record")
+    if args.config is None and not _env_config():
+        return
+    given = "--config" if args.config is not None else "$DAQ_CONFIG"
+    for attr, (option, instead) in EMULATED_ONLY.items():
+        if getattr(args, attr, None) not in (None, False):
+            raise ConfigError(
+                f"{option}: applies to the emulated cell only (no {given}); a configured "
+                f"cell states {instead}"
+            )
+
+
 def _run_config(args: Any) -> tuple[DaqConfig, EmulatedCell | None, bool]:
     """The daemon's configuration, the emulated cell it reads (started; None: a
     configured cell, ``--config`` or ``$DAQ_CONFIG``) and whether it records."""
@@ -333,7 +364,8 @@ def _run_config(args: Any) -> tuple[DaqConfig, EmulatedCell | None, bool]:
         from daq.config import load
         from daq.emulated import EmulatedCell
 
-        emulated = EmulatedCell(sim_config=args.sim_config, rate_hz=args.rate)
+        rate = DEFAULT_EMULATED_RATE_HZ if args.rate is None else args.rate
+        emulated = EmulatedCell(sim_config=args.sim_config, rate_hz=rate)
         base = emulated.start()
         try:
             cfg = load(None, overrides=_with_zenoh(args, extra), base=base)

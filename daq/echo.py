@@ -20,7 +20,7 @@ from typing import IO, Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from daq.bus import Receiver, open_session
+from daq.bus import Receiver, open_session, require_peer
 from daq.config import ZenohConfig
 
 LATENCY_KEEP = 2_000_000  # latency values kept per key for the percentiles (bounded memory)
@@ -320,6 +320,7 @@ def run_echo(
     t0 = time.monotonic()
     recv: Receiver | None = None
     try:
+        require_peer(session, zc)  # nobody there: said within seconds, no file opened
         if callable(jsonl):
             echo.lines = jsonl()
         recv = Receiver(

@@ -90,7 +90,7 @@ class EmulatedCell:
                     if self.records:
                         break
                     raise DaqError(
-                        f"sim-cell serve exited ({self.proc.poll()}) before starting"
+                        f"sim-cell serve exited ({self._exit_status()}) before starting"
                         + self._last_error()
                     )
                 line = line.strip()
@@ -100,6 +100,14 @@ class EmulatedCell:
             self.close()
             raise
         return self.document()
+
+    def _exit_status(self) -> int | None:
+        """The cell's exit status: its stdout closed, so it is ending (a second at most)."""
+        assert self.proc is not None
+        try:
+            return self.proc.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
+            return None
 
     def _last_error(self) -> str:
         """``: <the cell's last stderr line>`` (empty when it said nothing)."""

@@ -1176,7 +1176,7 @@ def main_record(args: Any, zc: Any) -> int:
 
     import zenoh
 
-    from daq.bus import fetch_schemas, open_session
+    from daq.bus import fetch_schemas, open_session, require_peer
 
     # the file is written as samples come (a crash keeps what was closed): checked up
     # front, not staged
@@ -1187,6 +1187,7 @@ def main_record(args: Any, zc: Any) -> int:
         signal.signal(sig, lambda *_: stop.set())
     session = open_session(zc)
     try:
+        require_peer(session, zc)  # nobody there: said within seconds, no file written
         rec = BackgroundRecorder(McapRecorder(args.output))
     except BaseException:
         session.close()

@@ -8,8 +8,11 @@ queryable as the daemon's, and a liveliness token is held per recorded device. O
 loop, start offset (seconds after the first message), key-expression filter. Derived
 viewer channels (Foxglove) are not republished. The file is streamed, so a truncated
 recording replays up to its last complete chunk, and a damaged chunk in the middle costs
-only that chunk (``daq.recording``; the result's ``damaged`` lists the regions skipped,
-and a warning on stderr says so).
+only that chunk (``daq.recording``; the result's ``damaged`` lists the regions skipped).
+``daq replay`` refuses such a file unless ``--allow-partial`` (:func:`survey` reads it
+once before anything is published), and says on stderr what was readable and what not.
+A data key whose schema is missing or unreadable is never republished: every subscriber
+would fail to decode it (``not_republished`` in the result says why).
 """
 
 from __future__ import annotations
@@ -26,9 +29,9 @@ from typing import Any, NamedTuple
 import zenoh
 
 from daq.bus import DATA_ENCODING, JSON_ENCODING, SchemaServer, device_key, open_session
-from daq.columnar import ENCODING_NAME
+from daq.columnar import ENCODING_NAME, StreamSchema
 from daq.config import ZenohConfig
-from daq.errors import RecordingError
+from daq.errors import DaqError, RecordingError
 from daq.recording import KIND_FOXGLOVE, RecordedMessage, Recording, read_recording
 
 log = logging.getLogger(__name__)
@@ -39,6 +42,62 @@ class _Topic:
         self.publisher = publisher
         self.messages = 0
         self.bytes = 0
+
+
+def schema_problem(m: RecordedMessage) -> str:
+    """Why ``m``'s data cannot be decoded by a subscriber ("" when it can): a columnar
+    key whose schema record was lost, or whose schema does not parse (cut, damaged)."""
+    if m.channel.message_encoding != ENCODING_NAME:
+        return ""
+    if m.schema is None:
+        return "its schema record is missing (lost in a damaged region)"
+    try:
+        StreamSchema.loads(m.schema.data)
+    except (DaqError, ValueError, KeyError, TypeError) as exc:
+        return f"its schema does not parse ({exc})"
+    return ""
+
+
+class Survey(NamedTuple):
+    """One pass over a recording without publishing: the pass (its damage and counts)
+    and the keys whose schema is missing or unreadable, with why."""
+
+    recording: Recording
+    bad_schemas: dict[str, str]
+
+    def problems(self) -> str:
+        """What was readable and what was not, in words ("" for a whole file; a missing
+        footer alone, a recording that was not closed, is not a problem)."""
+        rec = self.recording
+        lost = [d for d in rec.damaged if d.record != "footer"]
+        parts = []
+        if lost:
+            skipped = sum(max(d.end - d.offset, 0) for d in lost)
+            parts.append(
+                f"{len(lost)} damaged region(s), {skipped} of {rec.size} bytes unreadable "
+                f"(first: {lost[0]})"
+            )
+        for topic, why in sorted(self.bad_schemas.items()):
+            parts.append(f"key {topic}: {why}")
+        if not parts:
+            return ""
+        return f"read {rec.messages} messages in {rec.chunks} whole chunks; " + "; ".join(parts)
+
+
+def survey(path: str) -> Survey:
+    """Read ``path`` once, publishing nothing (the cost of a replay at full speed without
+    the network)."""
+    rec = read_recording(path)
+    bad: dict[str, str] = {}
+    seen: set[str] = set()
+    for m in rec.messages_iter():
+        if m.topic in seen:
+            continue
+        seen.add(m.topic)
+        why = schema_problem(m)
+        if why:
+            bad[m.topic] = why
+    return Survey(rec, bad)
 
 
 class _Pace(NamedTuple):
@@ -88,6 +147,7 @@ class _Publishers:
         self.filters = filters
         self.out: dict[str, _Topic] = {}
         self.skipped: set[str] = set()
+        self.undecodable: dict[str, str] = {}  # key: why its schema cannot decode it
         self.tokens: dict[tuple[str, str, str], Any] = {}
         self.cc = (
             zenoh.CongestionControl.BLOCK if congestion == "block" else zenoh.CongestionControl.DROP
@@ -107,6 +167,11 @@ class _Publishers:
         )
         if not wanted:
             self.skipped.add(topic)
+            return None
+        why = schema_problem(m)
+        if why:  # never republish what no subscriber can decode
+            self.skipped.add(topic)
+            self.undecodable[topic] = why
             return None
         if m.channel.message_encoding == ENCODING_NAME:
             enc = DATA_ENCODING
@@ -200,6 +265,7 @@ def replay(
         "passes": passes,
         "truncated": truncated,
         "damaged": damaged,
+        "not_republished": dict(sorted(pubs.undecodable.items())),
         "elapsed_s": time.monotonic() - t_wall0,
         "topics": {
             k: {"messages": v.messages, "bytes": v.bytes} for k, v in sorted(pubs.out.items())
@@ -283,7 +349,16 @@ def main_replay(args: Any, zc: ZenohConfig) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    read_recording(args.file)  # not a recording: refused before anything is said
+    found = survey(args.file)  # not a recording, or damaged: refused before anything is said
+    problems = found.problems()
+    if found.recording.messages == 0:
+        why = found.recording.error or "it holds no message"
+        raise RecordingError(f"{args.file}: no readable message to replay ({why})")
+    if problems and not args.allow_partial:
+        raise RecordingError(
+            f"{args.file}: damaged recording: {problems}: refused; pass --allow-partial to "
+            "replay the readable part (daq info shows where, daq recover writes a whole file)"
+        )
     print(json.dumps({"replay": args.file, "listen": list(zc.listen)}), flush=True)
     result = replay(
         args.file,
@@ -297,14 +372,20 @@ def main_replay(args: Any, zc: ZenohConfig) -> int:
         wait_subscribers_s=args.wait_subscribers,
         stop=stop,
     )
+    result["allow_partial"] = bool(args.allow_partial)
     print(json.dumps(result), flush=True)
-    if result["damaged"]:
-        first = result["damaged"][0]
+    if problems:
         print(
-            f"daq replay: warning: {args.file}: damaged at byte {first['offset']} "
-            f"({first['record']}: {first['reason']}; {len(result['damaged'])} region(s) "
-            "skipped); replayed every readable message (daq info shows where, daq recover "
-            "writes them to a whole file)",
+            f"daq replay: warning: {args.file}: damaged recording: {problems}; replayed "
+            "every readable message"
+            + (" of the keys a subscriber can decode" if found.bad_schemas else "")
+            + " (--allow-partial; daq info shows where, daq recover writes them to a whole "
+            "file)",
+            file=sys.stderr,
+        )
+    elif found.recording.truncated:
+        print(
+            f"daq replay: warning: {args.file}: not closed (no footer); every record read",
             file=sys.stderr,
         )
     return 0

@@ -332,6 +332,7 @@ class Driver(abc.ABC):
         self._closed = False
         self._connected = False
         self._backoff_s = self.options["reconnect_min_s"]
+        self._last_connect_error = ""  # the last connect failure, for open()'s error
         self._next_attempt_ns = 0
         self._last_sample_ns: int | None = None
         self._lock = threading.RLock()
@@ -379,13 +380,18 @@ class Driver(abc.ABC):
                 return self
             if time.monotonic() >= deadline:
                 self._opened = False
-                raise DeviceIOError(f"{self.kind}: cannot connect to {self.url} in {timeout_s}s")
+                why = self._last_connect_error
+                raise DeviceIOError(
+                    f"{self.kind}: cannot connect to {self.url} in {timeout_s:.3g} s"
+                    + (f" ({why})" if why else "")
+                )
             time.sleep(min(self._backoff_s, max(0.0, deadline - time.monotonic())))
 
     def _try_connect(self) -> bool:
         try:
             self._connect()
         except DeviceIOError as exc:
+            self._last_connect_error = str(exc)
             self.count("connect_failures", detail=str(exc))
             self._safe_disconnect()
             self._schedule_reconnect()

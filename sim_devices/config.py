@@ -331,14 +331,25 @@ def check_for_robot(cfg: CellConfig, n_joints: int, source: str) -> None:
             fail(where, key, f"{len(values)} values for a robot of {n_joints} joints")
 
 
+#: Channels of the emulated grating box (sim_devices.grating_reader): the most joints an
+#: emulated cell can have.
+GRATING_CHANNELS = 6
+
+
 def load_cell(path: str | None) -> CellConfig:
     """The configuration in ``path`` (None: the default cell), checked against its robot
-    (:func:`check_for_robot`; a robot that cannot be loaded is named with its key)."""
+    (:func:`check_for_robot`; a robot that cannot be loaded is named with its key, one
+    with more joints than the grating box has channels is refused)."""
     cfg = CellConfig.load(path) if path else CellConfig()
     source = path or "default cell config"
-    check_for_robot(
-        cfg, robot_option(cfg.cell.robot, f"{source}: [cell]: key 'robot':").n_joints, source
-    )
+    n = robot_option(cfg.cell.robot, f"{source}: [cell]: key 'robot':").n_joints
+    if n > GRATING_CHANNELS:  # the plant and the devices are built for the box's channels
+        raise SimConfigError(
+            f"{source}: [cell]: key 'robot': {cfg.cell.robot} has {n} joints, the emulated "
+            f"grating box reads {GRATING_CHANNELS} channels: the emulated cell needs a robot "
+            f"of at most {GRATING_CHANNELS} joints"
+        )
+    check_for_robot(cfg, n, source)
     return cfg
 
 

@@ -34,7 +34,7 @@ from pymodbus.pdu.register_message import (
 )
 
 from drivers.modbus_rtu import crc16
-from sim_devices.config import GratingSection
+from sim_devices.config import GRATING_CHANNELS, GratingSection
 from sim_devices.plant import DeviceClock, Plant
 from sim_devices.pty_link import PtyLink
 
@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 # -- the register map (mirrored in docs/protocols.md and drivers/grating_modbus.py) --------
 MAGIC = 0x4752  # "GR"
 PROTOCOL_VERSION = 1
-N_CHANNELS = 6
+N_CHANNELS = GRATING_CHANNELS
 REG_INFO = 0x0000  # 16 registers, read-only
 INFO_COUNT = 16
 REG_LIVE = 0x0010  # 20 registers: a latch taken when read

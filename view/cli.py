@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import signal
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -88,6 +89,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="error vectors and the ghost's deviation drawn this many times larger at "
         f"first (a switch on the page; {MAGNIFICATIONS[0]})",
     )
+    p.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="with --replay: show the readable part of a damaged recording (said on stderr)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=run_view)
 
@@ -106,7 +112,9 @@ def _replay_source(args: argparse.Namespace, say: Any) -> tuple[Any, Any, str]:
         raise ViewError(f"--replay {path}: " + ("not a file" if path.exists() else "no such file"))
     model = load_calibration(args.model, args.robot) if args.model else None
     say(f"reading {path}")
-    streams = read_recording_streams(path)
+    streams = read_recording_streams(path, allow_partial=args.allow_partial)
+    if streams.note:  # said whatever --quiet says
+        print(f"twin view: warning: {path}: {streams.note}", file=sys.stderr)
     duration_s = float(streams.grating.t_ns.max() - streams.grating.t_ns.min()) * 1e-9
     if args.start > duration_s:
         raise ViewError(f"--start {args.start:g}: the recording lasts {duration_s:.2f} s")
@@ -175,6 +183,8 @@ def run_view(args: argparse.Namespace) -> int:
     from view.sources import LiveSource
 
     say = progress("twin view", args.quiet)
+    if args.allow_partial and not args.replay:
+        raise ViewError("--allow-partial goes with --replay (a recording)")
     if args.model is not None and not Path(args.model).is_file():
         raise ViewError(f"--model {args.model}: no such file")
     source, model, title = (_replay_source if args.replay else _live_source)(args, say)

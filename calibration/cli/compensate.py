@@ -18,6 +18,8 @@ import numpy as np
 from calibration.effects.model_effects import load_checked_robot
 from calibration.errors import DataFileError, OutputFileError
 from calibration.identify.campaign_files import joint_columns, read_targets
+from calibration.model.kinematics import KinematicModel
+from calibration.model.unit_plausibility import OVERRIDE, check_measurement_units
 from edges.outputs import OutputSet
 
 if TYPE_CHECKING:  # the solver loads when the command runs, not for --help
@@ -45,6 +47,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         action="store_true",
         help="leave out unreachable targets (listed on stderr) instead of refusing the file",
     )
+    p.add_argument(
+        OVERRIDE,
+        dest="no_unit_check",
+        action="store_true",
+        help="skip the units check (targets in metres, programmed joints in radians)",
+    )
     p.set_defaults(func=run_compensate)
 
 
@@ -57,6 +65,11 @@ def run_compensate(args: argparse.Namespace) -> int:
         desc = load_checked_robot(args.model)
         limits = [(j.lower_deg, j.upper_deg) for j in desc.joints]
         targets = read_targets(args.targets, desc.n_joints, limits_deg=limits)
+        if targets.q_deg is not None and not args.no_unit_check:
+            model = KinematicModel.from_description(desc)
+            check_measurement_units(
+                targets.source, targets.q_deg, limits, xyz_mm=targets.xyz_mm, model=model
+            )
         force = targets.force_n
         if force is not None and np.any(force) and not states_stiffness(desc):
             raise DataFileError(

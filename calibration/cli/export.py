@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from edges.command import progress
@@ -36,6 +37,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default=None,
         help="motor encoder counts/turn (131072: 17-bit)",
     )
+    p.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="use the readable part of a damaged recording (said on stderr and in phases.json)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=run_export)
 
@@ -54,7 +60,9 @@ def run_export(args: argparse.Namespace) -> int:
         staged = outputs.directory(args.out, "--out")
         robot = load_robot(args.robot)
         say(f"reading {args.replay}")
-        streams = read_recording_streams(args.replay)
+        streams = read_recording_streams(args.replay, allow_partial=args.allow_partial)
+        if streams.note:  # said whatever --quiet says: the data is not the whole recording
+            print(f"twin export: warning: {args.replay}: {streams.note}", file=sys.stderr)
         export = export_campaign(streams, robot, encoder_counts_per_rev=cpr, say=say)
         files = write_campaign_files(staged, export)
         csvs = ", ".join(files[k].name for k in ("home", "sweep", "scale", "campaign"))

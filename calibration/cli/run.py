@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="live: skip the campaign, publish the twin calibrated by an earlier run in DIR",
     )
     p.add_argument("--no-effects", action="store_true", help="the geometry alone")
+    p.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="with --replay: use the readable part of a damaged recording (said on stderr, "
+        "recorded in phases.json and report.json)",
+    )
     p.add_argument("--no-report", action="store_true", help="no figures (report.json only)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     live = p.add_argument_group("live (without --replay)")
@@ -169,7 +176,9 @@ def run_run(args: argparse.Namespace) -> int:
             from calibration.twin.streams import read_recording_streams
 
             say(f"reading {args.replay}")
-            streams = read_recording_streams(args.replay)
+            streams = read_recording_streams(args.replay, allow_partial=args.allow_partial)
+            if streams.note:  # said whatever --quiet says
+                print(f"twin run: warning: {args.replay}: {streams.note}", file=sys.stderr)
         else:
             from calibration.twin.live_twin import LiveSettings, LiveTwin
 
@@ -197,6 +206,8 @@ def _check_live_options(args: argparse.Namespace) -> None:
     """The zenoh options checked together (one line naming the option, exit 2; the numbers
     are checked by their argparse types); ``--mode`` resolved: ``peer`` when listening,
     else ``client``."""
+    if args.allow_partial and not args.replay:
+        raise OptionError("--allow-partial goes with --replay (a recording)")
     if args.mode is None:
         args.mode = "peer" if args.listen and args.listen != ["none"] else "client"
     elif args.mode == "client" and args.listen and args.listen != ["none"]:

@@ -20,6 +20,8 @@ from calibration.effects.model_effects import load_checked_robot
 from calibration.errors import DataFileError, OptionError, OutputFileError, StiffnessError
 from calibration.identify.campaign_files import joint_columns, read_load_test, read_poses
 from calibration.model.description import RobotDescription
+from calibration.model.kinematics import KinematicModel
+from calibration.model.unit_plausibility import OVERRIDE, check_measurement_units
 from edges.options import path_text
 from edges.outputs import OutputSet
 
@@ -56,6 +58,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--out-model",
         type=path_text,
         help="with --load-test: the model with the identified stiffnesses (.toml)",
+    )
+    p.add_argument(
+        OVERRIDE,
+        dest="no_unit_check",
+        action="store_true",
+        help="skip the units check (joints in radians, tracker points in metres)",
     )
     p.set_defaults(func=run_stiffness)
 
@@ -98,6 +106,8 @@ def _compliance_at_poses(args: argparse.Namespace) -> int:
             )
         limits = [(j.lower_deg, j.upper_deg) for j in desc.joints]
         poses = read_poses(args.data, desc.n_joints, limits_deg=limits)
+        if not args.no_unit_check:
+            check_measurement_units(poses.source, poses.q_deg, limits)
         c = cartesian_compliance(desc, np.radians(poses.q_deg))[:, :3, :3] * UM_PER_MM
         eigval, eigvec = np.linalg.eigh(c)  # ascending; C is symmetric positive semi-definite
         feed = None if args.feed is None else np.einsum("i,mij,j->m", args.feed, c, args.feed)
@@ -162,6 +172,11 @@ def _load_test(args: argparse.Namespace) -> int:
         desc = load_checked_robot(args.model)
         limits = [(j.lower_deg, j.upper_deg) for j in desc.joints]
         test = read_load_test(args.load_test, desc.n_joints, limits_deg=limits)
+        if not args.no_unit_check:
+            model = KinematicModel.from_description(desc)
+            check_measurement_units(
+                test.source, test.q_deg, limits, xyz_mm=test.unloaded_mm, model=model
+            )
         try:
             fit = fit_joint_compliance(
                 desc, np.radians(test.q_deg), test.force_n, test.loaded_mm - test.unloaded_mm

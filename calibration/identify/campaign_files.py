@@ -248,13 +248,7 @@ def read_campaign(
     qcols = joint_columns(n_joints)
     _check_columns(source, header, campaign_columns(n_joints), n_joints)
     ecols = joint_columns(n_joints, "e")
-    present = [c for c in ecols if c in header]
-    if present and len(present) != len(ecols):
-        missing = [c for c in ecols if c not in header]
-        raise DataFileError(
-            f"{source}: header: encoder columns are incomplete, missing {', '.join(missing)}"
-        )
-    encoders = bool(present)
+    encoders = column_group(source, header, ecols, "encoder columns")
 
     def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
         set_name = f["set"].strip()
@@ -328,15 +322,27 @@ class Targets:
 FORCE_COLUMNS = ["fx_n", "fy_n", "fz_n"]
 
 
-def _force_columns(source: str, header: list[str]) -> bool:
-    """Whether the header has the force columns (all three or none)."""
-    present = [c for c in FORCE_COLUMNS if c in header]
-    if 0 < len(present) < len(FORCE_COLUMNS):
-        missing = [c for c in FORCE_COLUMNS if c not in header]
+#: A tool orientation, fixed-axis X-Y-Z degrees (targets.csv).
+ORIENTATION_COLUMNS = ["rx_deg", "ry_deg", "rz_deg"]
+
+
+def column_group(source: str, header: Sequence[str], columns: Sequence[str], what: str) -> bool:
+    """Whether the header has the optional column group ``columns`` (all or none: one
+    rule for every group). Some but not all is refused, naming the missing columns: a
+    group read in part would be ignored or misread without a word."""
+    present = [c for c in columns if c in header]
+    if 0 < len(present) < len(columns):
+        missing = [c for c in columns if c not in header]
         raise DataFileError(
-            f"{source}: header: a force needs fx_n,fy_n,fz_n (missing {', '.join(missing)})"
+            f"{source}: header: {what} incomplete: all of {','.join(columns)} or none; "
+            f"{','.join(present)} given, missing {', '.join(missing)}"
         )
     return bool(present)
+
+
+def _force_columns(source: str, header: list[str]) -> bool:
+    """Whether the header has the force columns (all three or none)."""
+    return column_group(source, header, FORCE_COLUMNS, "force columns")
 
 
 def read_targets(
@@ -347,9 +353,10 @@ def read_targets(
     ignored)."""
     source, header, rows = _read_table(path)
     xyz = ["x_mm", "y_mm", "z_mm"]
-    qcols, rcols = joint_columns(n_joints), ["rx_deg", "ry_deg", "rz_deg"]
-    has_q, has_r = all(c in header for c in qcols), all(c in header for c in rcols)
+    qcols, rcols = joint_columns(n_joints), ORIENTATION_COLUMNS
     missing = [c for c in ["target", *xyz] if c not in header]
+    has_q = column_group(source, header, qcols, "joint columns")
+    has_r = column_group(source, header, rcols, "orientation columns")
     if missing or has_q == has_r:
         what = "both" if has_q and has_r else "neither"
         raise DataFileError(

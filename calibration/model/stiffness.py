@@ -37,6 +37,12 @@ EXCITATION_FLOOR = 1e-9
 #: A fitted compliance is taken as determined by the test when its standard error is
 #: below this share of its value (a joint the forces hardly load stays as stated).
 DETERMINED_REL_ERROR = 0.5
+#: A singular value of the load test's column-scaled design matrix below this share of
+#: the largest is a direction of compliances the test does not see.
+RANK_TOLERANCE = 1e-6
+#: Deflections whose mean component along their forces is below minus this many standard
+#: errors point against the forces (physically impossible).
+SIGN_SIGMAS = 3.0
 
 
 def joint_compliance(description: RobotDescription) -> FloatArray:
@@ -128,7 +134,9 @@ def fit_joint_compliance(
     excited = norms > EXCITATION_FLOOR * max(float(norms.max()), 1e-300)
     if m < 2 or not excited.any():
         raise StiffnessError("the load test excites no joint (forces zero or too few loads)")
+    _check_deflection_signs(f, d)
     scale = norms[excited]
+    _check_rank(a[:, excited] / scale, np.flatnonzero(excited), q, f)
     sol = lsq_linear(a[:, excited] / scale, d.ravel(), bounds=(0.0, np.inf), method="bvls")
     c = np.zeros(n)
     c[excited] = sol.x / scale
@@ -140,3 +148,58 @@ def fit_joint_compliance(
     cov = np.linalg.pinv(an.T @ an) * sigma2
     se[excited] = np.sqrt(np.clip(np.diag(cov), 0.0, None)) / scale
     return ComplianceFit(c, se, excited, float(np.sqrt(np.mean(residual**2))), m)
+
+
+def _check_deflection_signs(force_n: FloatArray, deflection_mm: FloatArray) -> None:
+    """Refuse deflections ``(m, 3)`` mm that point against their forces ``(m, 3)`` N on the
+    whole: ``F·C·F ≥ 0`` for every compliance ``C = J K⁻¹ Jᵀ``, so their mean component
+    along the force cannot be negative beyond its noise (more than
+    :data:`SIGN_SIGMAS` standard errors: loaded and unloaded points swapped, a force's
+    sign flipped; a stiff robot's deflections lost in the tracker's noise are not)."""
+    magnitude = np.linalg.norm(force_n, axis=1)
+    loaded = magnitude > 0
+    along = np.einsum("mi,mi->m", deflection_mm[loaded], force_n[loaded]) / magnitude[loaded]
+    if along.size < 2:
+        return
+    mean = float(along.mean())
+    if mean < -SIGN_SIGMAS * float(along.std(ddof=1)) / np.sqrt(along.size):
+        against = int(np.sum(along < 0))
+        raise StiffnessError(
+            f"the deflections (loaded - unloaded) point against their forces in {against} of "
+            f"{along.size} loads (mean {1e3 * mean:.1f} µm along the force); "
+            "a joint compliance cannot do that: are the loaded and unloaded points swapped, "
+            "or the force's sign?"
+        )
+
+
+def _check_rank(
+    design: FloatArray, joints: NDArray[np.intp], q_rad: FloatArray, force_n: FloatArray
+) -> None:
+    """Refuse a load test whose design ``(3m, k)`` (columns scaled to unit length, the
+    ``k`` loaded ``joints``) does not determine every loaded joint's compliance, or leaves
+    no redundant equation to judge them (the fit would report ± 0 %)."""
+    k = design.shape[1]
+    sv = np.linalg.svd(design, compute_uv=False)
+    rank = int(np.sum(sv > RANK_TOLERANCE * sv[0]))
+    poses = len(np.unique(np.round(q_rad, 9), axis=0))
+    unit = force_n / np.maximum(np.linalg.norm(force_n, axis=1, keepdims=True), 1e-300)
+    directions = len(np.unique(np.round(np.abs(unit), 6), axis=0))
+    given = (
+        f"{len(q_rad)} loads at {poses} distinct pose(s) along {directions} distinct "
+        f"axis/axes give {design.shape[0]} equations"
+    )
+    if rank < k:
+        _, _, vt = np.linalg.svd(design)
+        null = vt[rank:]
+        unseen = [int(joints[i]) + 1 for i in np.flatnonzero(np.linalg.norm(null, axis=0) > 0.1)]
+        raise StiffnessError(
+            f"the load test cannot determine the stiffnesses: rank {rank} for the {k} "
+            f"compliances of the loaded joints ({given}); joint(s) "
+            f"{', '.join(map(str, unseen))} cannot be told apart: add loads along other "
+            "axes and at other poses"
+        )
+    if design.shape[0] <= k:
+        raise StiffnessError(
+            f"the load test leaves no redundant equation: {given} for {k} compliances, so "
+            "their uncertainty is unknown: add loads along other axes or at other poses"
+        )

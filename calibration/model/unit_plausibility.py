@@ -5,11 +5,11 @@ A campaign with tracker coordinates in metres fits a robot shrunk 1000× and rep
 away. Neither is an error the parser can see: every value is a finite number. Two checks
 catch them before anything is fitted, and say what the numbers look like:
 
-* **Tracker points** (``x_mm, y_mm, z_mm``): their spread (RMS distance from their
-  centroid) against the spread of the nominal robot's TCP over the same joint angles. A
-  rigid base transform does not change a spread and the geometry errors change it by
-  parts per thousand, so a ratio outside [1/5, 5] is a unit (metres 1e-3, inches 1/25.4,
-  µm 1e3…), not a robot.
+* **Tracker points** (``x_mm, y_mm, z_mm``): their spread (median distance from their
+  median point, so one stray row does not decide it) against the spread of the nominal
+  robot's TCP over the same joint angles. A rigid base transform does not change a
+  spread and the geometry errors change it by parts per thousand, so a ratio outside
+  [1/5, 5] is a unit (metres 1e-3, inches 1/25.4, µm 1e3…), not a robot.
 * **Joint angles** (``qK_deg``): every joint's angles within its limits converted to
   radians (±3.2 for a ±185° joint), while the joints can move much further, look like
   radians. Where the file also has tracker points the check is
@@ -43,6 +43,13 @@ def spread_mm(points: FloatArray) -> float:
     """RMS distance of ``(m, 3)`` points from their centroid (mm)."""
     p = np.asarray(points, dtype=float).reshape(-1, 3)
     return float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))
+
+
+def median_spread_mm(points: FloatArray) -> float:
+    """Median distance of ``(m, 3)`` points from their per-axis median (mm): a spread one
+    stray point (a typo, an unreachable target) does not move."""
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    return float(np.median(np.linalg.norm(p - np.median(p, axis=0), axis=1)))
 
 
 def _slip_name(ratio: float) -> str:
@@ -87,10 +94,10 @@ def check_campaign_units(
 ) -> None:
     """Refuse a campaign whose tracker points ``(m, 3)`` mm or joint angles ``(m, n)`` deg
     are in other units (the nominal ``model`` gives the expected spread)."""
-    measured = spread_mm(xyz_mm)
-    nominal = spread_mm(tcp_positions(model, np.radians(q_deg)))
+    measured = median_spread_mm(xyz_mm)
+    nominal = median_spread_mm(tcp_positions(model, np.radians(q_deg)))
     if _looks_like_radians(q_deg, limits_deg):
-        as_radians = spread_mm(tcp_positions(model, np.asarray(q_deg, dtype=float)))
+        as_radians = median_spread_mm(tcp_positions(model, np.asarray(q_deg, dtype=float)))
         if _similar(measured, as_radians) and not _similar(measured, nominal):
             raise UnitsError(
                 f"{source}: columns q1_deg..q{np.shape(q_deg)[1]}_deg are in radians: the "
@@ -99,7 +106,8 @@ def check_campaign_units(
                 f"degrees (or pass {OVERRIDE})"
             )
     if nominal < 1.0 or measured == 0.0:
-        if measured == 0.0 and len(xyz_mm) > 1:
+        # the robot moved and the points did not (at one pose, one point is right)
+        if nominal >= 1.0 and spread_mm(xyz_mm) == 0.0 and len(xyz_mm) > 1:
             raise UnitsError(f"{source}: columns x_mm,y_mm,z_mm: every tracker point is the same")
         return  # one pose or no motion: nothing to compare
     if _similar(measured, nominal):
@@ -130,3 +138,24 @@ def check_sweep_units(source: str, points_by_joint: Mapping[int, FloatArray]) ->
                 f"{spread:.4g} RMS, a robot's joint sweep moves it by hundreds of mm; are the "
                 f"coordinates in metres? Give millimetres (or pass {OVERRIDE})"
             )
+
+
+def check_measurement_units(
+    source: str,
+    q_deg: FloatArray,
+    limits_deg: Sequence[tuple[float, float]],
+    *,
+    xyz_mm: FloatArray | None = None,
+    model: KinematicModel | None = None,
+) -> None:
+    """The one check of every command that reads joint angles ``(m, n)`` deg, with their
+    tracker points ``(m, 3)`` mm when the file has them (then ``model``, the nominal
+    robot, gives the expected spread): radians refused, points in other units refused.
+    With points the check of the angles is decisive (the points fit them as radians and
+    not as degrees); without (or at poses too close to compare spreads), angles that all
+    lie within the limits in radians are."""
+    if xyz_mm is not None and model is not None:
+        check_campaign_units(source, q_deg, xyz_mm, model, limits_deg)
+        if median_spread_mm(tcp_positions(model, np.radians(q_deg))) >= 1.0:
+            return
+    check_joint_angle_units(source, q_deg, limits_deg)

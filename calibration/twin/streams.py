@@ -205,8 +205,31 @@ def pick_streams(
     )
 
 
-def read_recording_streams(path: str | Path) -> CellStreams:
-    """Stream an MCAP recording (``daq run --record``) into whole column arrays."""
+#: The option that lets the twin use the readable part of a damaged recording.
+ALLOW_PARTIAL = "--allow-partial"
+
+
+def recording_damage(rec: Any) -> str:
+    """What a streaming pass over a damaged recording ``rec`` (``daq.recording.Recording``)
+    read and what it did not, in words ("" when nothing but the footer is missing: a
+    recording that was not closed, every record in it read)."""
+    lost = [d for d in rec.damaged if d.record != "footer"]
+    if not lost:
+        return ""
+    skipped = sum(max(d.end - d.offset, 0) for d in lost)
+    regions = "; ".join(str(d) for d in lost[:3]) + ("; ..." if len(lost) > 3 else "")
+    return (
+        f"damaged recording: read {rec.messages} messages in {rec.chunks} whole chunks; "
+        f"{len(lost)} damaged region(s), {skipped} of {rec.size} bytes unreadable ({regions})"
+    )
+
+
+def read_recording_streams(path: str | Path, *, allow_partial: bool = False) -> CellStreams:
+    """Stream an MCAP recording (``daq run --record``) into whole column arrays.
+
+    A recording with a damaged region (not only a missing footer) is refused with a
+    :class:`StreamError` saying what was readable and what not, unless ``allow_partial``:
+    then its readable part is used and ``note`` says so (phases.json, report.json)."""
     from daq.columnar import StreamSchema, decode
     from daq.errors import DaqError
     from daq.recording import read_recording
@@ -239,11 +262,18 @@ def read_recording_streams(path: str | Path) -> CellStreams:
         raise StreamError(f"{path}: {where}: not a daq.columnar.v1 batch: {exc}") from None
     if rec.messages == 0 and rec.truncated:
         raise StreamError(f"{path}: not a readable MCAP recording ({rec.error or 'no records'})")
-    note = (
-        f"damaged recording ({rec.error}); damaged regions skipped, every whole chunk read"
-        if (rec.truncated)
-        else ""
-    )
+    damage = recording_damage(rec)
+    if damage and not allow_partial:
+        raise StreamError(
+            f"{path}: {damage}: refused; pass {ALLOW_PARTIAL} to use the readable part "
+            "(`daq recover` writes it to a whole file)"
+        )
+    if damage:
+        note = f"{damage}; the readable part used ({ALLOW_PARTIAL})"
+    elif rec.truncated:
+        note = f"not closed ({rec.error}); every record read"
+    else:
+        note = ""
     return pick_streams(builders, str(path), complete=rec.complete, note=note)
 
 

@@ -862,6 +862,7 @@ def report_document(
         "stops_lost": len(phases["stops_lost"]),
         "lost_intervals": phases["lost_intervals"],
         "recording_complete": phases["recording_complete"],
+        "recording_note": phases["note"],
         "joint_fit": twin.summary(),
     }
     return doc, errors

@@ -26,12 +26,14 @@ robot .toml        binary, syntax, wrong type, NaN, unknown key, bad [[effect]],
 joints.csv         radians, empty, header only, NaN, duplicated pose, missing q column,
                    --out = --data, --out = --model, missing model
 recordings         CSV as --replay, random bytes, empty, --out a file, --out = --replay,
-                   --from without run.json, --from with a broken run.json
+                   --from without run.json, --from with a broken run.json, a damaged chunk
+                   without --allow-partial (export, run), --allow-partial without --replay
 =================  ==========================================================================
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import shutil
@@ -395,6 +397,42 @@ def test_export_and_run_refuse_what_is_not_a_recording(work):
         refused(work, [cmd, "--replay", "nowhere.mcap", "--out", "o", "--quiet"], "nowhere")
         refused(work, [cmd, "--replay", "campaign.csv", "--out", "cal.toml", "--quiet"],
                 "--out", "not a directory")  # fmt: skip
+
+
+def test_a_damaged_recording_is_used_only_when_allowed(tmp_path):
+    """A recording with a damaged chunk in the middle: export and run refuse it, saying
+    what was readable and what not; --allow-partial uses the rest, says so on stderr
+    (also with --quiet) and phases.json records it."""
+    from tests.daq.test_bad_input_daq import damage_chunk
+
+    work = tmp_path
+    data, offset, lost = damage_chunk(RECORDING.read_bytes(), 20)
+    (work / "damaged.mcap").write_bytes(data)
+    read = f"read {8582 - lost} messages"
+    for cmd in ("export", "run"):
+        refused(work, [cmd, "--replay", "damaged.mcap", "--out", "o", "--quiet"],
+                "damaged.mcap", read, f"byte {offset}", "--allow-partial")  # fmt: skip
+    refused(work, ["run", "--allow-partial", "--out", "o"], "--allow-partial", "--replay")
+    streams = read_recording_streams(work / "damaged.mcap", allow_partial=True)
+    assert read in streams.note and f"byte {offset}" in streams.note
+    assert "--allow-partial" in streams.note  # phases.json and report.json carry the note
+
+
+@pytest.mark.slow
+def test_a_damaged_recording_allowed_is_said_and_recorded(tmp_path):
+    """``twin export --allow-partial`` on it: a warning also with --quiet, phases.json's
+    note (~15 s: `pytest -m slow -k allowed_is_said`)."""
+    from tests.daq.test_bad_input_daq import damage_chunk
+
+    data, offset, lost = damage_chunk(RECORDING.read_bytes(), 20)
+    (tmp_path / "damaged.mcap").write_bytes(data)
+    read = f"read {8582 - lost} messages"
+    proc = twin(tmp_path, "export", "--replay", "damaged.mcap", "--out", "o", "--quiet",
+                "--allow-partial")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "warning" in proc.stderr and read in proc.stderr and f"byte {offset}" in proc.stderr
+    note = json.loads((tmp_path / "o" / "phases.json").read_text())["note"]
+    assert read in note and "--allow-partial" in note
 
 
 def test_run_from_an_earlier_run_needs_its_run_json(work):

@@ -136,7 +136,7 @@ def test_unreachable_and_out_of_limits_targets_are_named(cell_files, tmp_path):
 @pytest.mark.parametrize(
     ("edit", "keywords"),
     [
-        (lambda t: t.replace("q6_deg", "q7_deg", 1), ["bad.csv", "q1_deg", "rx_deg"]),
+        (lambda t: t.replace("q6_deg", "q7_deg", 1), ["bad.csv", "q1_deg", "missing q6_deg"]),
         (lambda t: t.replace("x_mm", "xx", 1), ["bad.csv", "x_mm"]),
         (lambda t: t.replace("T3,", "T2,", 1), ["bad.csv", "line 5", "duplicated target"]),
         (lambda t: t.split("\n", 1)[0] + "\n", ["bad.csv", "no valid data rows"]),

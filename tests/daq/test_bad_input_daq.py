@@ -38,15 +38,22 @@ except the replay cases marked (session), which listen on a free loopback port.
 | schema: --timeout 0/inf, bad key expression | 3 |
 | zenoh endpoints: --listen garbage (replay), --connect without a protocol (echo) | 2 |
 | demo: --speed 0, --port 0/70000, --rate nan, --seed -1, --robot unknown, --out a file | 7 |
+| (round 2) replay: a damaged chunk, a key whose schema is cut, without --allow-partial | 2 |
+| (round 2) run: rate_hz 1e9/100001/0 in cell.toml and as --rate; --rate, --sim-config, | 13 |
+|   --no-record beside --config and $DAQ_CONFIG; --record with --no-record | |
 
 Accepted on purpose, each checked for its result: a complete recording (recover: exit 0,
 says complete, writes nothing), a recording with one corrupt chunk in the middle and a
 truncated one (recover keeps every intact chunk, after the damage too, beside the
 original; --in-place keeps a backup; info reports offset, record and reason with exit 1;
-replay sends every readable message and warns), ``daq info F`` into a closed pipe (quiet,
+replay with --allow-partial sends every readable message of the keys it can decode and
+warns), ``daq info F`` into a closed pipe (quiet,
 exit 141), a config with a byte-order mark or CRLF line ends (same as the plain file).
 
-Total: 105 refused inputs as processes, 12 accepted ones checked for their result, and
+The timed cases (a device absent at start, echo/record to nobody) are in
+tests/test_bad_input_daq_live.py (``realtime``).
+
+Total: 122 refused inputs as processes, 14 accepted ones checked for their result, and
 the fuzz tests (reader, recover, config loader: random bytes, every truncation of a small
 recording, byte mutations, records without a CRC; 150 examples each, ``FUZZ_EXAMPLES``
 sets more). ``pytest -s`` prints the tally: tried, clear errors, tracebacks, hangs, silent
@@ -503,16 +510,69 @@ def test_replay_refuses_a_pass_that_sends_nothing(work):
     )
 
 
-def test_replay_reads_past_a_damaged_chunk(work):
+def test_replay_reads_past_a_damaged_chunk_only_when_allowed(work):
+    """(session) a damaged recording is refused before anything is published, saying what
+    was readable; --allow-partial replays the rest, said on stderr and in the result."""
     whole = (work / "whole.mcap").read_bytes()
     _, offset, lost = damage_chunk(whole, 2)
     listen = ["--listen", f"tcp/127.0.0.1:{free_port()}"]
-    proc = run(daq("replay", "damaged.mcap", "--fast", *listen), work)
+    proc = refused(
+        work,
+        daq("replay", "damaged.mcap", "--fast", *listen),
+        ["damaged.mcap", f"read {60 - lost} messages", f"byte {offset}", "--allow-partial"],
+    )
+    assert proc.stdout == ""  # nothing announced, nothing published
+    proc = run(daq("replay", "damaged.mcap", "--fast", "--allow-partial", *listen), work)
     accepted(proc)
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert result["truncated"] is True and result["damaged"][0]["offset"] == offset
+    assert result["allow_partial"] is True
     assert result["topics"]["cell/c/robot/r/dev/ch"]["messages"] == 60 - lost
     assert "warning" in proc.stderr and f"byte {offset}" in proc.stderr
+
+
+def _cut_schema_recording(path: Path, *, cut: bool) -> None:
+    """A recording (no chunks: no CRC guards its records) of two keys; with ``cut`` the
+    first key's schema is cut in half (its messages are intact)."""
+    from mcap.writer import CompressionType, Writer
+
+    other = StreamSchema("cell/c/robot/r/dev/other", SCHEMA.columns, meta={"device": "dev"})
+    with open(path, "wb") as fh:
+        w = Writer(fh, use_chunking=False, compression=CompressionType.NONE)
+        w.start()
+        channels = []
+        for schema in (SCHEMA, other):
+            text = schema.dumps()
+            data = text[: len(text) // 2] if cut and schema is SCHEMA else text
+            sid = w.register_schema(schema.key, "jsonschema", data)
+            channels.append(w.register_channel(schema.key, "daq.columnar.v1", sid, {}))
+        for i in range(10):
+            for ch, schema in zip(channels, (SCHEMA, other), strict=True):
+                payload = encode(schema, {"seq": np.arange(3) + 3 * i, "x_mm": np.ones(3)}, i)
+                w.add_message(ch, log_time=i * 1000, data=payload, publish_time=i, sequence=i)
+        w.finish()
+
+
+def test_replay_never_republishes_a_key_whose_schema_is_cut(work):
+    """(session) every subscriber fails to decode such a key (twin export refuses the
+    file): refused, and with --allow-partial the other keys only."""
+    _cut_schema_recording(work / "cut.mcap", cut=True)
+    listen = ["--listen", f"tcp/127.0.0.1:{free_port()}"]
+    refused(
+        work,
+        daq("replay", "cut.mcap", "--fast", *listen),
+        ["cut.mcap", "key cell/c/robot/r/dev/ch", "schema does not parse", "--allow-partial"],
+    )
+    proc = run(daq("replay", "cut.mcap", "--fast", "--allow-partial", *listen), work)
+    accepted(proc)
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert list(result["topics"]) == ["cell/c/robot/r/dev/other"], result
+    assert "cell/c/robot/r/dev/ch" in result["not_republished"]
+    assert "schema does not parse" in proc.stderr
+    _cut_schema_recording(work / "whole2.mcap", cut=False)  # the same file, whole: replayed
+    proc = run(daq("replay", "whole2.mcap", "--fast", *listen), work)
+    accepted(proc)
+    assert len(json.loads(proc.stdout.strip().splitlines()[-1])["topics"]) == 2
 
 
 # -- configuration ------------------------------------------------------------------------
@@ -620,6 +680,39 @@ def test_run_options(work):
         ["--record", "is an input"],
     )
     refused(work, daq("run", "--record", "{nope}.mcap"), ["--record", "{nope}"])
+
+
+def test_a_device_rate_has_one_bound_wherever_it_comes_from(work):
+    """cell.toml's rate_hz = 1e9 was accepted (--rate refused over 100 kHz) and every
+    sample was then counted as a gap: the same range for both."""
+    for rate in ("1e9", "100001", "0"):
+        (work / "fast.toml").write_text(GOOD_TOML.replace("rate_hz = 1000", f"rate_hz = {rate}"))
+        refused(work, daq("run", "--config", "fast.toml", "--duration", "1"),
+                ["fast.toml", "'rate_hz'", "100000", "Hz"])  # fmt: skip
+        refused(work, daq("run", "--rate", rate), ["--rate"])
+    doc = cfg.load(work / "cell.toml", environ={})
+    assert doc.devices[0].rate_hz == 1000.0  # the bound itself and below: accepted
+    (work / "edge.toml").write_text(GOOD_TOML.replace("rate_hz = 1000", "rate_hz = 100000"))
+    assert cfg.load(work / "edge.toml", environ={}).devices[0].rate_hz == 100000.0
+
+
+@pytest.mark.parametrize(
+    ("extra", "words"),
+    [
+        (["--rate", "500"], ["--rate", "emulated cell only", "rate_hz"]),
+        (["--sim-config", "cell.toml"], ["--sim-config", "emulated cell only"]),
+        (["--no-record"], ["--no-record", "[recording] enabled = false"]),
+    ],
+)
+def test_options_that_do_not_apply_beside_a_configuration_are_refused(work, extra, words):
+    """They were silently ignored; refused before any device is opened (no network)."""
+    refused(work, daq("run", "--config", "cell.toml", "--duration", "1", *extra), words)
+    refused(work, daq("run", "--duration", "1", *extra), ["$DAQ_CONFIG", *words[1:]],
+            env={"DAQ_CONFIG": "cell.toml"})  # fmt: skip
+
+
+def test_record_and_no_record_together_are_refused(work):
+    refused(work, daq("run", "--record", "x.mcap", "--no-record"), ["--no-record", "--record"])
 
 
 def _processes_with(marker: str) -> list[int]:

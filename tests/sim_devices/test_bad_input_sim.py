@@ -277,6 +277,42 @@ def test_sim_cell_outputs_refused(work):
     refused(work, [*serve, "rundir.toml"], ["rundir.toml", "'run_dir'", "not a directory"])
 
 
+def _seven_joints(kr500: str) -> str:
+    """The KR500 with a seventh joint after its sixth (home 0°)."""
+    text = kr500.replace("home_deg = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]", "home_deg = [0.0] * 7")
+    text = text.replace("home_deg = [0.0] * 7", "home_deg = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]")
+    assert text != kr500
+    return text + (
+        "\n[[joint]]\na_mm = 0.0\nalpha_deg = 90.0\nd_mm = 100.0\ntheta_offset_deg = 0.0\n"
+        "lower_deg = -170.0\nupper_deg = 170.0\ngear_ratio = 100.0\n"
+    )
+
+
+def test_serve_refuses_a_robot_the_grating_box_cannot_serve(work):
+    """A 7-joint robot ended as an internal error (exit 70) of the grating device: the box
+    has 6 channels, and the configuration check now knows it (``sim-cell truth``, whose
+    plant is built for the same box, crashed the same way)."""
+    (work / "r7.toml").write_text(_seven_joints(_preset("kr500")))
+    (work / "c7.toml").write_text('[cell]\nrobot = "r7.toml"\n')
+    words = ["c7.toml", "'robot'", "7 joints", "6 channels"]
+    refused(work, [SIM_CELL, "serve", "--config", "c7.toml", "--duration", "2"], words)
+    refused(work, [SIM_CELL, "truth", "--config", "c7.toml", "--out", "truth.toml"], words)
+
+
+def test_maps_vs_truth_refuses_like_every_command(work):
+    """``python -m benchmarks.maps_vs_truth`` (a README command) had no error boundary:
+    a missing file or a bad cell was a traceback."""
+    (work / "r7.toml").write_text(_seven_joints(_preset("kr500")))
+    (work / "c7.toml").write_text('[cell]\nrobot = "r7.toml"\n')
+    (work / "noise.mcap").write_bytes(bytes(range(256)) * 4)
+    maps = [PY, "-m", "benchmarks.maps_vs_truth"]
+    refused(work, maps, ["recording", "required"])
+    refused(work, [*maps, "nope.mcap", "cell.toml"], ["nope.mcap"])
+    refused(work, [*maps, "noise.mcap", "nope.toml"], ["nope.toml"])
+    refused(work, [*maps, "noise.mcap", "c7.toml"], ["c7.toml", "7 joints"])
+    refused(work, [*maps, "noise.mcap", "cell.toml"], ["noise.mcap"])
+
+
 @pytest.mark.parametrize("grating", [False, True], ids=["tracker-alone", "grating-started-first"])
 def test_serve_port_in_use_leaves_nothing(work, grating):
     """A failure after the run started: the tracker's port is taken. No device is
