@@ -54,6 +54,13 @@ if TYPE_CHECKING:  # the emulated cell loads only for a daemon that runs one
 
 log = logging.getLogger(__name__)
 
+#: zenoh settings that make a peer's first connect behave as a client's: try the
+#: endpoints once at open and fail if none answers (a peer would retry in the background)
+FAIL_IF_NO_ROUTER: dict[str, Any] = {
+    "connect/timeout_ms": 0,
+    "connect/exit_on_failure": True,
+}
+
 
 def recording_path(cfg: DaqConfig, path: str | None = None) -> Path:
     start = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
@@ -129,11 +136,16 @@ class Daemon:
             per_device = sum(1 for d in cfg.devices if d.enabled) > 1
         if not (per_device and driver_factory is make_driver):
             return zc, None
-        unix = None
-        if zc.mode != "client":  # workers connect to this session over a unix socket
-            self._worker_dir = tempfile.mkdtemp(prefix="daq-")
-            unix = f"unixsock-stream/{self._worker_dir}/workers.sock"
-            zc = replace(zc, listen=(*zc.listen, unix))
+        # workers connect to this session over a unix socket, also when the daemon is a
+        # client of routers: it records from its own subscription, which must not pass
+        # through a router that may be restarting or out of reach. A client cannot
+        # listen, so the daemon's session is then a peer connected to those routers
+        # (they route for it as for a client; it reconnects as a client does)
+        self._worker_dir = tempfile.mkdtemp(prefix="daq-")
+        unix = f"unixsock-stream/{self._worker_dir}/workers.sock"
+        if zc.mode == "client":
+            zc = replace(zc, mode="peer", extra={**FAIL_IF_NO_ROUTER, **zc.extra})
+        zc = replace(zc, listen=(*zc.listen, unix))
         return zc, worker_zenoh(cfg.zenoh, unix)
 
     def _open_recorder(self, record_path: str | Path) -> BackgroundRecorder:
@@ -310,7 +322,10 @@ def main_run(args: Any) -> int:
         "signal": stopping.is_set(),
         "recording": str(path) if path is not None else None,
         "devices": {
-            d["device"]: {k: d[k] for k in ("samples", "gaps", "samples_missing", "reconnects")}
+            d["device"]: {
+                k: d.get(k, 0)
+                for k in ("samples", "gaps", "samples_missing", "reconnects", "messages_unmatched")
+            }
             for d in docs
         },
     }
