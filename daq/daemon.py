@@ -45,6 +45,7 @@ from daq.recording import (
     BackgroundRecorder,
     McapRecorder,
 )
+from daq.router_link import RouterLink
 from daq.scheduling import set_realtime_of
 from daq.viewer import StreamViewer
 from daq.worker import DeviceWorker, worker_zenoh
@@ -53,6 +54,9 @@ if TYPE_CHECKING:  # the emulated cell loads only for a daemon that runs one
     from daq.emulated import EmulatedCell
 
 log = logging.getLogger(__name__)
+
+#: a device's counters in the stop summary (from its last health document)
+SUMMARY_KEYS = ("samples", "gaps", "samples_missing", "reconnects", "messages_unmatched")
 
 #: zenoh settings that make a peer's first connect behave as a client's: try the
 #: endpoints once at open and fail if none answers (a peer would retry in the background)
@@ -94,6 +98,10 @@ class Daemon:
             self.session = open_session(zc)
             undo.callback(self.session.close)
             self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")
+            # a client of routers: what it records while none is reachable is counted
+            self.router_link = RouterLink(self.session) if cfg.zenoh.mode == "client" else None
+            if self.router_link is not None:
+                undo.callback(self.router_link.close)
             undo.pop_all()
         self.recorder: BackgroundRecorder | None = None
         # every enabled device, in a thread or a worker process (the same calls either way)
@@ -187,6 +195,7 @@ class Daemon:
                 worker_zc,
                 self.utc_offset_ns,
                 recording=recording,
+                router_link=self.router_link,
             )
             self.devices.append(worker)
             self.workers.append(worker)
@@ -275,6 +284,8 @@ class Daemon:
         if self.recorder is not None:
             self.recorder.close()
         self.schemas.close()
+        if self.router_link is not None:
+            self.router_link.close()
         self.session.close()
         self._remove_worker_dir()
 
@@ -313,6 +324,7 @@ def main_run(args: Any) -> int:
     try:
         print(json.dumps(_running_line(cfg, daemon, path, emulated)), flush=True)
         docs = daemon.run(args.duration)
+        unrouted = {w.dev.name: w.unrouted for w in daemon.workers}
     finally:
         daemon.close()
         if emulated is not None:
@@ -323,8 +335,8 @@ def main_run(args: Any) -> int:
         "recording": str(path) if path is not None else None,
         "devices": {
             d["device"]: {
-                k: d.get(k, 0)
-                for k in ("samples", "gaps", "samples_missing", "reconnects", "messages_unmatched")
+                **{k: d.get(k, 0) for k in SUMMARY_KEYS},
+                "messages_unrouted": unrouted.get(d["device"], 0),
             }
             for d in docs
         },

@@ -170,8 +170,12 @@ class DeviceWorker:
         utc_offset_ns: int,
         *,
         recording: DeviceRecording | None = None,
+        router_link: Any = None,
     ) -> None:
         self.dev = dev
+        #: data messages recorded while the daemon had no router (``RouterLink``)
+        self.unrouted = 0
+        self._router_link = router_link
         self.schemas = schemas
         self.recording = recording
         self.recorded = 0  # data messages written to the recorder
@@ -206,8 +210,11 @@ class DeviceWorker:
                 recording.write(group, (payload,), t, seq, lambda: decode(s, payload)[1])
             except DaqError as exc:
                 log.warning("%s: not recorded: %s", s.key, exc)
+            link = self._router_link
             with self._lock:
                 self.recorded += 1
+                if link is not None and not link.up:
+                    self.unrouted += 1
 
         return on_data
 

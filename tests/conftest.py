@@ -17,6 +17,7 @@ import pytest
 REALTIME_MODULES = frozenset(
     {
         "test_benchmarks_smoke",
+        "test_cell_hosts",
         "test_clock_sync",
         "test_daq_bus",
         "test_daq_daemon",
