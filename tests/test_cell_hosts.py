@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import selectors
+import shlex
 import shutil
 import signal
 import subprocess
@@ -33,6 +35,33 @@ PY = sys.executable
 CELL = "cell1"
 ROUTER_DEV, ROUTER_APP = "10.231.1.2", "10.231.2.2"
 PORT = 7447
+
+
+DOC = ROOT / "docs/deployment.md"
+
+
+def doc_command(prefix: str) -> tuple[dict[str, str], list[str]]:
+    """The command line of docs/deployment.md that starts with ``prefix``: its leading
+    ``VAR=value`` words and the rest, ``daq`` run as ``python -m daq.cli``."""
+    lines = [x for x in DOC.read_text(encoding="utf-8").splitlines() if x.startswith(prefix)]
+    assert len(lines) == 1, (prefix, lines)
+    words = shlex.split(lines[0].split("  #")[0])
+    env = {}
+    while "=" in words[0] and not words[0].startswith("-"):
+        k, _, v = words.pop(0).partition("=")
+        env[k] = v
+    if words[0] == "daq":
+        words = [PY, "-m", "daq.cli", *words[1:]]
+    elif words[0].startswith("scripts/"):
+        words[0] = str(ROOT / words[0])
+    return env, words
+
+
+def doc_file(name: str) -> str:
+    """The text of the ```toml block of docs/deployment.md that begins ``# file: name``."""
+    m = re.search(rf"```toml\n# file: {re.escape(name)}\n(.*?)```", DOC.read_text("utf-8"), re.S)
+    assert m is not None, name
+    return m.group(1)
 
 
 def _sh(*cmd: str) -> None:
@@ -164,31 +193,15 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
     c = Cell(token=f"{os.getpid() % 100000:05d}", dir=tmp_path_factory.mktemp("cell"))
     try:
         _make_namespaces(c)
-        san = f"DNS:localhost,IP:127.0.0.1,IP:{ROUTER_DEV},IP:{ROUTER_APP}"
-        subprocess.run(
-            [str(ROOT / "scripts/make-test-pki.sh"), str(c.dir / "pki"), san],
-            check=True,
-            capture_output=True,
-            timeout=60,
-        )
+        _, pki = doc_command("scripts/make-test-pki.sh ")
+        subprocess.run(pki, cwd=c.dir, check=True, capture_output=True, timeout=60)
         shutil.copy(ROOT / "deploy/router.json5", c.dir / "router.json5")
+        (c.dir / "viewer.toml").write_text(doc_file("viewer.toml"), encoding="utf-8")
         yield c
     finally:
         for p in c.procs:
             _stop(p, signal.SIGKILL if p.poll() is None else signal.SIGTERM, 5.0)
         _remove_namespaces(c)
-
-
-def _client_env(who: str, router: str) -> dict[str, str]:
-    """The ``DAQ_ZENOH_*`` settings of docs/deployment.md for a client with ``who``'s
-    certificate connecting to the router at ``router``."""
-    return {
-        "DAQ_ZENOH_MODE": "client",
-        "DAQ_ZENOH_CONNECT": f"tls/{router}:{PORT}",
-        "DAQ_ZENOH_TLS_CA": "pki/ca.pem",
-        "DAQ_ZENOH_TLS_CERTIFICATE": f"pki/{who}.pem",
-        "DAQ_ZENOH_TLS_PRIVATE_KEY": f"pki/{who}.key",
-    }
 
 
 def _probe(cell: Cell, role: str, cert: str | None, ca: str = "pki/ca.pem", **kw: object) -> dict:
@@ -220,20 +233,17 @@ def test_cell_over_three_hosts_in_order_refusals_and_router_restart(cell: Cell) 
     subscriber in another namespace: every sample in order; a twin's certificate cannot
     inject into the cell's keys (its own twin keys pass); the router restarts mid-run and
     the daemon's recording still holds every acquired sample, the unsent ones counted."""
-    router = cell.daq("rtr", "router", "--config", "router.json5")
+    _, router_cmd = doc_command("daq router ")
+    router = cell.start("rtr", *router_cmd)
     up = _line(router, '{"daq": "router"', 15.0)
     assert up is not None, _stderr(router)
     rec = cell.dir / "dev.mcap"
-    daemon = cell.daq(
-        "dev", "run", "--cell", CELL, "--rate", "200", "--record", str(rec),
-        env=_client_env("daemon", ROUTER_DEV),
-    )  # fmt: skip
+    env, daemon_cmd = doc_command("DAQ_ZENOH_MODE=client DAQ_ZENOH_CONNECT=tls/10.231.1.2")
+    daemon = cell.start("dev", *daemon_cmd, env=env)
     running = _line(daemon, '{"daq": "running"', 40.0)
     assert running is not None, _stop(daemon) or _stderr(daemon)[-3000:]
-    echo = cell.daq(
-        "app", "echo", f"cell/{CELL}/**", "--stats", "--duration", "25", "--ready",
-        env=_client_env("viewer", ROUTER_APP),
-    )  # fmt: skip
+    _, echo_cmd = doc_command("daq echo 'cell/cell1/**' --config viewer.toml")
+    echo = cell.start("app", *echo_cmd)
     try:
         time.sleep(3.0)  # the echo subscribed and receiving
         twin = _probe(cell, "twin", "twin", seconds=2.0)
@@ -243,7 +253,7 @@ def test_cell_over_three_hosts_in_order_refusals_and_router_restart(cell: Cell) 
         assert _stop(router) == 0
         first_life = _stderr(router)
         time.sleep(1.0)
-        router = cell.daq("rtr", "router", "--config", "router.json5")
+        router = cell.start("rtr", *router_cmd)
         assert _line(router, '{"daq": "router"', 15.0) is not None
         time.sleep(5.0)  # clients reconnect by themselves; data flows again
     finally:
@@ -293,7 +303,7 @@ def test_cell_over_three_hosts_in_order_refusals_and_router_restart(cell: Cell) 
 def test_clients_without_a_valid_certificate_neither_read_nor_publish(cell: Cell) -> None:
     """Another CA's certificate, an expired one, none: the router's TLS refuses the link
     (zenoh's own session, no local check in the way) and logs why."""
-    router = cell.daq("rtr", "router", "--config", "router.json5")
+    router = cell.start("rtr", *doc_command("daq router ")[1])
     try:
         assert _line(router, '{"daq": "router"', 15.0) is not None
         wrong = _probe(cell, "connect", "wrong-ca")
