@@ -19,12 +19,26 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from daq.errors import ConfigError
 
-if TYPE_CHECKING:
-    from daq.config import ZenohConfig
+
+class TlsSettings(Protocol):
+    """What the checks read of ``daq.config.ZenohConfig`` (not imported: config imports
+    this module)."""
+
+    @property
+    def listen(self) -> tuple[str, ...]: ...
+    @property
+    def connect(self) -> tuple[str, ...]: ...
+    @property
+    def tls_ca(self) -> str: ...
+    @property
+    def tls_certificate(self) -> str: ...
+    @property
+    def tls_private_key(self) -> str: ...
+
 
 #: ``[zenoh]`` keys that name a file, and the zenoh ``transport/link/tls`` key each sets
 TLS_KEYS: dict[str, str] = {
@@ -113,7 +127,7 @@ def key_refusal(path: str) -> str | None:
 
 
 def check_tls_files(
-    zc: ZenohConfig, source: str = "<config>", origins: Mapping[str, str] | None = None
+    zc: TlsSettings, source: str = "<config>", origins: Mapping[str, str] | None = None
 ) -> None:
     """Refuse (``ConfigError``, one line naming the key and file) TLS settings that no
     ``tls/`` link could use: a file missing or unreadable, a certificate expired or from
@@ -143,7 +157,7 @@ def check_tls_files(
             raise fail("tls_private_key", refusal)
 
 
-def zenoh_tls_entries(zc: ZenohConfig) -> dict[str, Any]:
+def zenoh_tls_entries(zc: TlsSettings) -> dict[str, Any]:
     """zenoh config entries (path -> value) of the ``[zenoh] tls_*`` keys: the CA for
     verifying the router, and with a certificate, mutual authentication."""
     out: dict[str, Any] = {}
