@@ -61,7 +61,8 @@ DRAIN_S = 2.0
 
 def worker_zenoh(cfg: ZenohConfig, unix_endpoint: str | None) -> ZenohConfig:
     """The zenoh settings of a worker: a client of the daemon's session (over
-    ``unix_endpoint``), or of the daemon's routers when the daemon is a client itself."""
+    ``unix_endpoint``; the daemon always gives one, a client of routers too, so that it
+    records from its own session: docs/deployment.md), else of the daemon's ``connect``."""
     connect = (unix_endpoint,) if unix_endpoint is not None else cfg.connect
     return dataclasses.replace(cfg, mode="client", listen=(), connect=tuple(connect))
 
