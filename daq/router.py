@@ -18,6 +18,8 @@ SIGINT stop it, exit 0.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import re
@@ -45,6 +47,9 @@ TLS_FILE_KEYS: tuple[tuple[str, bool], ...] = (
 #: zenoh's log filter: warnings (TLS refusals among them), and access control's decisions
 LOG_FILTER = "warn"
 ACL_LOG_FILTER = "warn,zenoh::net::routing::interceptor::access_control=trace"
+#: Linux fcntl F_SETPIPE_SZ (Python names it only from 3.10 on some builds), and the size
+F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)
+PIPE_BYTES = 1 << 20
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 _TLS_REFUSAL = re.compile(
     r"invalid peer certificate: (.*?)(\. Hint:.*)?$|peer sent no certificates"
@@ -113,6 +118,10 @@ class LogFilter:
         sys.stdout.flush()
         self._saved = os.dup(1)
         read_fd, write_fd = os.pipe()
+        # zenoh's log thread waits when the pipe is full: ≈ 0.7 s of a 3 x 1 kHz cell's
+        # lines (one per message allowed) held for a reader short of CPU
+        with contextlib.suppress(OSError):
+            fcntl.fcntl(write_fd, F_SETPIPE_SZ, PIPE_BYTES)
         os.dup2(write_fd, 1)
         os.close(write_fd)
         self._old_stdout = sys.stdout

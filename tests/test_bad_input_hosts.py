@@ -165,3 +165,30 @@ def test_daq_router_refuses_bad_configuration(work: Path) -> None:
     (work / "r4.json5").write_text(text.replace('"router"', '"client"'), encoding="utf-8")
     _refused(work, ["router", "--config", "r4.json5"], "r4.json5", "'mode'", "client")
     _refused(work, ["router", "--config", "absent.json5"], "absent.json5")
+
+
+def test_router_log_keeps_refusals_and_drops_allowances() -> None:
+    """zenoh's log lines as ``daq router`` sees them (ANSI colours included)."""
+    from daq.router import refusal_line
+
+    tls = (
+        "\x1b[2m2026-11-27T02:29:12Z\x1b[0m \x1b[33m WARN\x1b[0m acc-0 zenoh_link_tls::unicast: "
+        "invalid peer certificate: UnknownIssuer. Hint: increase the system open file limit."
+    )
+    assert refusal_line(tls) == "daq router: refused a TLS client: UnknownIssuer"
+    none = "2026 WARN acc-0 zenoh_link_tls::unicast: peer sent no certificates. Hint: x"
+    assert refusal_line(none) == "daq router: refused a TLS client: no client certificate"
+    acl = (
+        "2026 TRACE rx-0 zenoh::net::routing::interceptor::access_control: ab on "
+        "Interface(lo)+CertCommonName(twin)+Transport(Tls)+ab is unauthorized to Put (ingress) on "
+        "cell/cell1/x"
+    )
+    assert refusal_line(acl) == (
+        "daq router: refused: ab on Interface(lo)+CertCommonName(twin)+Transport(Tls)+ab "
+        "is unauthorized to Put (ingress) on cell/cell1/x"
+    )
+    allowed = acl.replace("is unauthorized", "is authorized")
+    assert refusal_line(allowed) is None
+    assert refusal_line("2026 DEBUG x: Access control is enabled") is None
+    other = "2026  WARN zenoh::net::runtime::orchestrator: Unable to connect to tls/1.2.3.4:7447!"
+    assert refusal_line(other) == other
