@@ -2,12 +2,14 @@
 # make-test-pki.sh: a TEST certificate authority and certificates for a zenoh cell over
 # several hosts (docs/deployment.md). Not for production keys: no passphrases, short-lived.
 #
-#   scripts/make-test-pki.sh DIR [ROUTER_SAN]
+#   scripts/make-test-pki.sh DIR [ROUTER_SAN [CN ...]]
 #
 # DIR         is created (must not exist yet: nothing is overwritten)
 # ROUTER_SAN  the router certificate's subjectAltName, i.e. every name or address the
 #             daemons and twins connect to (default "DNS:localhost,IP:127.0.0.1"),
 #             e.g. "DNS:router.cell1.lan,IP:10.231.0.2"
+# CN ...      more client identities, each CN.pem and CN.key (several cells on one
+#             router: daemon-cell2 twin-cell2 ..., deploy/router-cells.json5)
 #
 # Writes (each key beside its certificate, mode 600; PEM; EC P-256):
 #   ca.pem                          the cell's CA (root_ca_certificate everywhere)
@@ -52,7 +54,9 @@ printf 'basicConstraints=critical,CA:FALSE\nkeyUsage=critical,digitalSignature\n
 
 ca ca "grating-twin test CA"
 leaf router router ca server.ext
-for who in daemon twin viewer; do
+shift $(($# < 2 ? $# : 2))
+for who in daemon twin viewer "$@"; do
+    case $who in *[!A-Za-z0-9_.-]*|'') echo "make-test-pki.sh: bad CN '$who'" >&2; exit 2;; esac
     leaf "$who" "$who" ca client.ext
 done
 ca wrong-ca-root "another CA"
