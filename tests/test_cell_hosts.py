@@ -193,7 +193,7 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
     c = Cell(token=f"{os.getpid() % 100000:05d}", dir=tmp_path_factory.mktemp("cell"))
     try:
         _make_namespaces(c)
-        _, pki = doc_command("scripts/make-test-pki.sh ")
+        _, pki = doc_command('scripts/make-test-pki.sh pki "DNS:localhost,')
         subprocess.run(pki, cwd=c.dir, check=True, capture_output=True, timeout=60)
         shutil.copy(ROOT / "deploy/router.json5", c.dir / "router.json5")
         (c.dir / "viewer.toml").write_text(doc_file("viewer.toml"), encoding="utf-8")
