@@ -19,6 +19,7 @@ import collections
 import json
 import logging
 import queue
+import re
 import threading
 import time
 import weakref
@@ -42,6 +43,7 @@ from daq.columnar import (
 from daq.config import ZenohConfig
 from daq.errors import PublishError as PublishError  # its old path, kept for callers
 from daq.errors import SchemaError, TransportError
+from daq.tls import check_tls_files, zenoh_tls_entries
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +82,7 @@ def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
         "transport/shared_memory/enabled": zc.shared_memory,
         "transport/link/tx/queue/size/data": zc.tx_queue_batches,
     }
+    entries.update(zenoh_tls_entries(zc))
     entries.update(zc.extra)
     for path, value in entries.items():
         try:
@@ -89,13 +92,29 @@ def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
     return conf
 
 
+def zenoh_reason(exc: BaseException) -> str:
+    """A zenoh error's text without its Rust source locations (`` at /…/x.rs:12.``)."""
+    return re.sub(r"\s*at \S+\.rs:\d+\.?", "", str(exc)).strip()
+
+
 def open_session(zc: ZenohConfig) -> zenoh.Session:
+    check_tls_files(zc, "zenoh settings")  # after any override (a sink's --connect)
     try:
         return zenoh.open(zenoh_config(zc))
     except TransportError:
         raise
     except Exception as exc:
-        raise TransportError(f"cannot open zenoh session ({zc.mode}, {zc.listen}): {exc}") from exc
+        why = zenoh_reason(exc)
+        if zc.connect and "connect" in why.lower():
+            # a client (or the daemon's session towards its routers) that reached none
+            ends = ", ".join(zc.connect)
+            hint = ""
+            if "tls/" in ends:
+                hint = " (is it up, and does it accept this host's certificate?)"
+            raise TransportError(
+                f"[zenoh] connect: cannot reach {ends} ({zc.mode}){hint}: {why}"
+            ) from exc
+        raise TransportError(f"cannot open zenoh session ({zc.mode}, {zc.listen}): {why}") from exc
 
 
 #: how long a sink that listens nowhere waits for its ``connect`` endpoints to answer (s)
@@ -171,11 +190,22 @@ class ChannelPublisher:
         self.messages = 0
         self.bytes = 0
         self.put_errors = 0  # puts that raised (their batch_seq is skipped on the wire)
+        #: messages put while no subscriber matched the key anywhere zenoh could see
+        #: (none listening, or the router out of reach): sent to nobody
+        self.unmatched = 0
         self._pub: zenoh.Publisher | None = session.declare_publisher(
             self.key, encoding=DATA_ENCODING, congestion_control=CONGESTION[congestion]
         )
+        # kept up to date by zenoh's thread: a flag read per put instead of a call
+        # (zenoh 1.10's stub says bool; it returns a MatchingStatus)
+        status: Any = self._pub.matching_status
+        self._matching = bool(getattr(status, "matching", status))
+        self._matching_listener: Any = self._pub.declare_matching_listener(self._on_matching)
         if schemas is not None:
             schemas.register(self.key, schema.dumps())
+
+    def _on_matching(self, status: Any) -> None:
+        self._matching = bool(status.matching)
 
     def publish(self, columns: dict[str, Any]) -> bytes:
         """Encode and put one batch; returns the payload (for the recorder)."""
@@ -206,6 +236,8 @@ class ChannelPublisher:
                 failed_bytes += len(p)
                 error = error or exc
         self.put_errors += failed
+        if not self._matching:
+            self.unmatched += len(payloads) - failed
         self.batch_seq += len(payloads)
         self.messages += len(payloads) - failed
         self.bytes += sum(map(len, payloads)) - failed_bytes
@@ -217,11 +249,16 @@ class ChannelPublisher:
         if self._pub is None:
             raise TransportError(f"publisher {self.key} is closed")
         self._pub.put(payload)
+        if not self._matching:
+            self.unmatched += 1
         self.messages += 1
         self.bytes += len(payload)
 
     def close(self) -> None:
         pub, self._pub = self._pub, None
+        listener, self._matching_listener = self._matching_listener, None
+        if listener is not None:
+            listener.undeclare()
         if pub is not None:
             pub.undeclare()
 

@@ -9,6 +9,7 @@ Commands (docs/daq.md)::
     daq info FILE.mcap                                               channels, counts, damage
     daq echo KEYEXPR [--stats [--stats-window S]] [--jsonl FILE] [--duration S]   look at a key
     daq schema KEY                                                   the JSON schema of a key
+    daq router --config router.json5                                 a zenoh router (zenohd's file)
 
 ``echo`` and ``record`` take ``--realtime-priority N`` (SCHED_FIFO, as ``[publish]
 realtime_priority`` for ``run``).
@@ -45,6 +46,7 @@ COMMANDS: dict[str, str] = {
     "info": "channels, message counts and damage of an MCAP file (streaming)",
     "echo": "subscribe to a key expression and print or summarise batches",
     "schema": "print the JSON schema of a key (zenoh query <key>/@schema)",
+    "router": "a zenoh router from zenoh's own JSON5 configuration (as zenohd -c FILE)",
 }
 
 
@@ -122,6 +124,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file", type=path_text)
     _echo_options(sub.add_parser("echo", help=COMMANDS["echo"]))
     _schema_options(sub.add_parser("schema", help=COMMANDS["schema"]))
+    p = sub.add_parser("router", help=COMMANDS["router"])
+    p.add_argument(
+        "--config", type=path_text, required=True, help="zenoh JSON5 configuration (zenohd's)"
+    )
     return parser
 
 
@@ -308,6 +314,10 @@ def _run_command(args: argparse.Namespace) -> int:
         from daq.recording import main_info
 
         return main_info(args)
+    if args.command == "router":
+        from daq.router import main_router
+
+        return main_router(args)
     if args.command == "echo":
         from daq.echo import main_echo
 

@@ -32,6 +32,7 @@ from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from daq.errors import ConfigError
+from daq.tls import check_tls_files
 from edges.inputs import MAX_TOML_BYTES, read_input_bytes
 from edges.toml_schema import (
     NON_NEGATIVE,
@@ -150,6 +151,12 @@ class ZenohConfig:
     #: default 2). The daemon puts in bursts, one read's messages back to back; a queue
     #: that outlasts encoding the next read keeps the link busy meanwhile (docs/daq.md)
     tx_queue_batches: int = field(default=16, metadata=key_spec(range=Range(1), check=_at_most(16)))
+    #: TLS on ``tls/`` endpoints (docs/deployment.md): the CA that signed the router's
+    #: certificate (and ours), and this host's client certificate and key (PEM files;
+    #: empty: unset). A certificate makes the link mutually authenticated
+    tls_ca: str = ""
+    tls_certificate: str = ""
+    tls_private_key: str = ""
     #: extra zenoh config entries, path -> JSON value (``insert_json5``), applied last
     extra: Mapping[str, Any] = field(default_factory=dict)
 
@@ -287,6 +294,7 @@ def parse(
         if not zenoh.connect:
             z = TomlTable(given, source, "[zenoh]", ConfigError, origins_at(origins, ("zenoh",)))
             raise z.fail("connect", "mode 'client' needs a router endpoint")
+    check_tls_files(zenoh, source, origins)
     return DaqConfig(
         cell=cell,
         zenoh=zenoh,

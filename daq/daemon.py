@@ -47,6 +47,7 @@ from daq.recording import (
     BackgroundRecorder,
     McapRecorder,
 )
+from daq.router_link import RouterLink
 from daq.scheduling import set_realtime_of
 from daq.worker import DeviceWorker, worker_zenoh
 
@@ -54,6 +55,16 @@ if TYPE_CHECKING:  # the emulated cell loads only for a daemon that runs one
     from daq.emulated import EmulatedCell
 
 log = logging.getLogger(__name__)
+
+#: a device's counters in the stop summary (from its last health document)
+SUMMARY_KEYS = ("samples", "gaps", "samples_missing", "reconnects", "messages_unmatched")
+
+#: zenoh settings that make a peer's first connect behave as a client's: try the
+#: endpoints once at open and fail if none answers (a peer would retry in the background)
+FAIL_IF_NO_ROUTER: dict[str, Any] = {
+    "connect/timeout_ms": 0,
+    "connect/exit_on_failure": True,
+}
 
 
 def recording_path(cfg: DaqConfig, path: str | None = None) -> Path:
@@ -88,6 +99,10 @@ class Daemon:
             self.session = open_session(zc)
             undo.callback(self.session.close)
             self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")
+            # a client of routers: what it records while none is reachable is counted
+            self.router_link = RouterLink(self.session) if cfg.zenoh.mode == "client" else None
+            if self.router_link is not None:
+                undo.callback(self.router_link.close)
             undo.pop_all()
         self.recorder: BackgroundRecorder | None = None
         # every enabled device, in a thread or a worker process (the same calls either way)
@@ -132,11 +147,16 @@ class Daemon:
             per_device = sum(1 for d in cfg.devices if d.enabled) > 1
         if not (per_device and driver_factory is make_driver):
             return zc, None
-        unix = None
-        if zc.mode != "client":  # workers connect to this session over a unix socket
-            self._worker_dir = tempfile.mkdtemp(prefix="daq-")
-            unix = f"unixsock-stream/{self._worker_dir}/workers.sock"
-            zc = replace(zc, listen=(*zc.listen, unix))
+        # workers connect to this session over a unix socket, also when the daemon is a
+        # client of routers: it records from its own subscription, which must not pass
+        # through a router that may be restarting or out of reach. A client cannot
+        # listen, so the daemon's session is then a peer connected to those routers
+        # (they route for it as for a client; it reconnects as a client does)
+        self._worker_dir = tempfile.mkdtemp(prefix="daq-")
+        unix = f"unixsock-stream/{self._worker_dir}/workers.sock"
+        if zc.mode == "client":
+            zc = replace(zc, mode="peer", extra={**FAIL_IF_NO_ROUTER, **zc.extra})
+        zc = replace(zc, listen=(*zc.listen, unix))
         return zc, worker_zenoh(cfg.zenoh, unix)
 
     def _open_recorder(self, record_path: str | Path) -> BackgroundRecorder:
@@ -178,6 +198,7 @@ class Daemon:
                 worker_zc,
                 self.utc_offset_ns,
                 recording=recording,
+                router_link=self.router_link,
             )
             self.devices.append(worker)
             self.workers.append(worker)
@@ -266,6 +287,8 @@ class Daemon:
         if self.recorder is not None:
             self.recorder.close()
         self.schemas.close()
+        if self.router_link is not None:
+            self.router_link.close()
         self.session.close()
         self._remove_worker_dir()
 
@@ -308,6 +331,7 @@ def main_run(args: argparse.Namespace) -> int:
     try:
         print(json.dumps(_running_line(cfg, daemon, path, emulated)), flush=True)
         docs = daemon.run(args.duration)
+        unrouted = {w.dev.name: w.unrouted for w in daemon.workers}
     finally:
         daemon.close()
         if emulated is not None:
@@ -317,7 +341,10 @@ def main_run(args: argparse.Namespace) -> int:
         "signal": stopping.is_set(),
         "recording": str(path) if path is not None else None,
         "devices": {
-            d["device"]: {k: d[k] for k in ("samples", "gaps", "samples_missing", "reconnects")}
+            d["device"]: {
+                **{k: d.get(k, 0) for k in SUMMARY_KEYS},
+                "messages_unrouted": unrouted.get(d["device"], 0),
+            }
             for d in docs
         },
     }

@@ -180,6 +180,7 @@ class Counters:
     time_missing_s: float = 0.0  # device time those steps skipped beyond one period
     publish_errors: int = 0
     messages_unsent: int = 0  # encoded and recorded, but their put failed (lost on the wire)
+    messages_unmatched: int = 0  # put while no subscriber matched (none, or router out of reach)
     away_s: float = 0.0  # time not connected (after the first connection)
     window_samples: int = 0
     window_rx_delay_ns: list[NDArray[np.int64]] = field(default_factory=list)
@@ -426,6 +427,7 @@ class DeviceStream:
             seq0 = publisher.batch_seq
             sent0, bytes0 = publisher.messages, publisher.bytes
             errors0 = publisher.put_errors
+            unmatched0 = publisher.unmatched
             try:
                 payloads = publisher.publish_slices(cols, step)
             except PublishError as exc:
@@ -442,6 +444,7 @@ class DeviceStream:
                     log.exception("%s: publish failed", schema.key)
                 continue
             t_pub = time.time_ns()
+            c.messages_unmatched += publisher.unmatched - unmatched0
             c.batches += publisher.messages - sent0  # published: unsent ones are counted
             c.bytes += publisher.bytes - bytes0  # in messages_unsent
             if self.recording is not None:
@@ -595,6 +598,7 @@ class DeviceStream:
             "away_s": away,
             "publish_errors": c.publish_errors,
             "messages_unsent": c.messages_unsent,
+            "messages_unmatched": c.messages_unmatched,
             "rx_delay_ms": lat,
             "clock": {
                 "offset_ns": q.offset_ns + self.utc_offset_ns,

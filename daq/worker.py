@@ -61,7 +61,8 @@ DRAIN_S = 2.0
 
 def worker_zenoh(cfg: ZenohConfig, unix_endpoint: str | None) -> ZenohConfig:
     """The zenoh settings of a worker: a client of the daemon's session (over
-    ``unix_endpoint``), or of the daemon's routers when the daemon is a client itself."""
+    ``unix_endpoint``; the daemon always gives one, a client of routers too, so that it
+    records from its own session: docs/deployment.md), else of the daemon's ``connect``."""
     connect = (unix_endpoint,) if unix_endpoint is not None else cfg.connect
     return dataclasses.replace(cfg, mode="client", listen=(), connect=tuple(connect))
 
@@ -170,8 +171,12 @@ class DeviceWorker:
         utc_offset_ns: int,
         *,
         recording: DeviceRecording | None = None,
+        router_link: Any = None,
     ) -> None:
         self.dev = dev
+        #: data messages recorded while the daemon had no router (``RouterLink``)
+        self.unrouted = 0
+        self._router_link = router_link
         self.schemas = schemas
         self.recording = recording
         self.recorded = 0  # data messages written to the recorder
@@ -206,8 +211,11 @@ class DeviceWorker:
                 recording.write(group, (payload,), t, seq, lambda: decode(s, payload)[1])
             except DaqError as exc:
                 log.warning("%s: not recorded: %s", s.key, exc)
+            link = self._router_link
             with self._lock:
                 self.recorded += 1
+                if link is not None and not link.up:
+                    self.unrouted += 1
 
         return on_data
 

@@ -18,6 +18,7 @@ REALTIME_MODULES = frozenset(
     {
         "test_benchmarks_smoke",
         "test_bad_input_daq_live",
+        "test_cell_hosts",
         "test_clock_sync",
         "test_daq_bus",
         "test_daq_daemon",

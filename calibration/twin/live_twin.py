@@ -366,12 +366,21 @@ class LiveSettings:
         )
 
     def zenoh_config(self) -> Any:
-        from daq.config import ZenohConfig
+        from daq.config import ZenohConfig, env_overrides
 
         # two peers connected to the daemon are not routed to each other: docs/topics.md,
         # "One endpoint reaches everything"
         listen = () if self.mode == "client" else self.listen
-        return ZenohConfig(mode=self.mode, listen=listen, connect=self.connect)
+        # TLS to a router (docs/deployment.md): DAQ_ZENOH_TLS_CA, _CERTIFICATE, _PRIVATE_KEY
+        env = env_overrides().get("zenoh", {})
+        return ZenohConfig(
+            mode=self.mode,
+            listen=listen,
+            connect=self.connect,
+            tls_ca=str(env.get("tls_ca", "")),
+            tls_certificate=str(env.get("tls_certificate", "")),
+            tls_private_key=str(env.get("tls_private_key", "")),
+        )
 
 
 @dataclass(frozen=True, eq=False)
