@@ -28,6 +28,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "calibration.cli_compensate",
         "joint commands that put the calibrated robot's TCP on targets",
     ),
+    "plan": (
+        "calibration.cli_plan",
+        "plan a campaign the tracker sees: joint list, KRL and RAPID programs, report",
+    ),
     "stiffness": (
         "calibration.cli_stiffness",
         "Cartesian compliance at poses, or joint stiffness from a load test",
