@@ -217,11 +217,11 @@ def candidate_poses(
         reach = ik.reachable
         dropped["out of the arm's reach"] += int(np.count_nonzero(~reach.any(axis=1)))
         out_limits = reach & ~ik.within_limits
-        dropped[f"outside the joint limits (less {settings.limit_margin_deg:g}°)"] += int(
+        dropped[f"IK branch outside the joint limits (less {settings.limit_margin_deg:g}°)"] += int(
             np.count_nonzero(out_limits)
         )
         sing = ik.valid & ik.singular
-        dropped["near a singularity"] += int(np.count_nonzero(sing))
+        dropped["IK branch near a singularity"] += int(np.count_nonzero(sing))
         q = ik.solutions_rad[ik.valid & ~ik.singular]
         q = q[_first_of_each(q)]
         q = _keep(model, geometry, q, home, dropped)
@@ -232,8 +232,8 @@ def candidate_poses(
     q_all = np.concatenate(found)[: settings.n_candidates]
     if len(q_all) == 0:
         reachable = tried - dropped["out of the arm's reach"]
-        if reachable == 0 or dropped["near a singularity"] + sum(
-            v for k, v in dropped.items() if k.startswith("outside")
+        if reachable == 0 or dropped["IK branch near a singularity"] + sum(
+            v for k, v in dropped.items() if k.startswith("IK branch outside")
         ) == sum(v for k, v in dropped.items() if k != "out of the arm's reach"):
             raise PlanError(
                 f"region {_box(geometry)}: no pose the arm reaches within its joint limits "

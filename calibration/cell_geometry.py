@@ -143,12 +143,10 @@ def read_cell_geometry(
     """The geometry tables of a parsed ``cell.toml``. A top-level table that is neither a
     geometry table nor one of ``others`` (the tables a caller reads or allows) is
     ``error``, as is any unknown key, wrong type or value out of range."""
-    allowed = (*GEOMETRY_TABLES, *others)
+    allowed = (*others, *GEOMETRY_TABLES)
     unknown = sorted(set(doc) - set(allowed))
     if unknown:
-        raise error(
-            f"{source}: unknown table {unknown[0]!r} (allowed: {', '.join(sorted(allowed))})"
-        )
+        raise error(f"{source}: unknown table {unknown[0]!r} (allowed: {', '.join(allowed)})")
     tables: dict[str, Any] = {}
     for key, cls in (
         ("station", StationSection),

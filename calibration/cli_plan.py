@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from edges.command import progress
 from edges.options import integer
 from edges.outputs import OutputSet
 
@@ -80,7 +79,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default="I",
         help="I: mean prediction variance over the region (default); D: the O1 index",
     )
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=run_plan)
 
 
@@ -101,7 +99,6 @@ def run_plan(args: argparse.Namespace) -> int:
     from calibration.robot_programs import ProgramSettings, krl_program, rapid_module
     from edges.toml_schema import parse_toml_file
 
-    say = progress("twin plan", args.quiet)
     robot_file = args.robot if Path(args.robot).exists() else None
     with OutputSet([robot_file, args.cell], error=OutputFileError) as outputs:
         staged = outputs.directory(args.out, "--out")
@@ -117,12 +114,9 @@ def run_plan(args: argparse.Namespace) -> int:
         settings = PlanSettings(
             n_identify=args.poses,
             n_validate=args.validate,
-            n_candidates=max(args.candidates, args.poses + args.validate),
+            n_candidates=args.candidates,
             seed=args.seed,
             criterion=args.criterion,
-        )
-        say(
-            f"planning {args.poses} + {args.validate} poses from {settings.n_candidates} candidates"
         )
         plan = plan_campaign(robot, geometry, settings)
         prog = ProgramSettings()
