@@ -77,10 +77,11 @@ def held_out_error_mm(
     q_val: FloatArray,
     q_held: FloatArray,
     seed: int,
+    effects: UndeclaredEffects = EFFECTS,
 ) -> float:
     """Calibrate ``twin`` on the campaign ``q_id`` + ``q_val`` measured on ``cell`` and
     return its mean error (mm) on the held-out poses ``q_held``."""
-    settings = CampaignSettings(effects=EFFECTS)
+    settings = CampaignSettings(effects=effects)
     data = measure_campaign(cell, q_id, q_val, np.random.default_rng([seed, 7]), settings)
     result = calibrate(twin, data.campaign, effects=True)
     held = measure_campaign(cell, q_held[:0], q_held, np.random.default_rng([seed, 8]), settings)
@@ -88,7 +89,12 @@ def held_out_error_mm(
     return float(np.mean(np.linalg.norm(predicted - held.true_prediction_mm, axis=1)))
 
 
-def run_seed(seed: int, n_candidates: int = 5000, n_plan: int = 50) -> SeedOutcome:
+def run_seed(
+    seed: int,
+    n_candidates: int = 5000,
+    n_plan: int = 50,
+    effects: UndeclaredEffects = EFFECTS,
+) -> SeedOutcome:
     """One seed of the proof (module text)."""
     nominal = load_robot("kr500")
     cell = TrueCell.create(nominal, seed)
@@ -111,7 +117,7 @@ def run_seed(seed: int, n_candidates: int = 5000, n_plan: int = 50) -> SeedOutco
         )
     )
     err = [
-        held_out_error_mm(nominal, cell, q, q_val, held, seed)
+        held_out_error_mm(nominal, cell, q, q_val, held, seed, effects)
         for q in (q_id, random150[:n_plan], random150)
     ]
     return SeedOutcome(
@@ -188,8 +194,12 @@ def run(quick: bool) -> list[Row]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_plan", description=__doc__)
     parser.add_argument("--seeds", type=int, default=10, help="seeds (10)")
+    parser.add_argument(
+        "--clean", action="store_true", help="the emulator's effects off (geometry alone)"
+    )
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
+    effects = UndeclaredEffects() if args.clean else EFFECTS
     from benchmarks import format_table
 
     if args.quick:
@@ -197,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         outcomes = []
         for s in range(1, args.seeds + 1):
-            o = run_seed(s)
+            o = run_seed(s, effects=effects)
             print(
                 f"seed {s}: planned {o.planned_mm:.4f} mm, random 50 {o.random50_mm:.4f}, "
                 f"random 150 {o.random150_mm:.4f}, travel {o.travel_ratio:.2f}x, "

@@ -31,7 +31,7 @@ Everything here is arrays in, a frozen result out; files are :mod:`calibration.c
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -48,7 +48,15 @@ from calibration.cell_geometry import (
 )
 from calibration.description import DEFAULT_JOINT_SPEED_DEG_S, RobotDescription
 from calibration.errors import CalibrationError
-from calibration.gravity_regressor import base_moments, gravity_of, raw_regressor
+from calibration.effect_library import (
+    HARMONIC_ORDERS,
+    EffectContext,
+    EffectData,
+    EffectSpec,
+    Kinematics,
+    gravity_candidate,
+    regressor_matrix,
+)
 from calibration.identifiability import analyze_model
 from calibration.inverse_kinematics import (
     JointLimits,
@@ -57,7 +65,6 @@ from calibration.inverse_kinematics import (
 )
 from calibration.kinematics import (
     KinematicModel,
-    geometric_jacobian,
     identification_jacobian,
 )
 from calibration.pose_selection import select_poses
@@ -82,6 +89,10 @@ class PlanSettings:
     exchange_passes: int = 6
     limit_margin_deg: float = 2.0  # kept inside every joint limit
     cone_margin_deg: float = 5.0  # the reflector's axis at most cone − this off the beam
+    range_margin_mm: float = 150.0  # inside the tracker's range by this (the station is taped)
+    clearance_margin_mm: float = 20.0  # links kept this much farther from floor and obstacles
+    #: the loop's effects the criterion covers besides the geometry (:func:`loop_effects`)
+    effects: tuple[str, ...] = ("gravity", "harmonic", "scale")
     wrist_margin_deg: float = 10.0  # q5 at least this far from 0 (axes 4 and 6 apart)
     elbow_margin_deg: float = 10.0  # forearm this far from stretched or folded
     tracker_mpe_um: float = 15.0  # the tracker's MPE: ±(a + b·distance), taken as 2 σ
@@ -184,6 +195,17 @@ def _target_poses(
     return t
 
 
+def with_margins(geometry: CellGeometry, settings: PlanSettings) -> CellGeometry:
+    """The cell as the planner checks it: the range narrowed and the links thickened by
+    the settings' margins (the planned poses must hold on the real cell too)."""
+    return replace(
+        geometry,
+        min_range_mm=geometry.min_range_mm + settings.range_margin_mm,
+        max_range_mm=geometry.max_range_mm - settings.range_margin_mm,
+        link_radius_mm=geometry.link_radius_mm + settings.clearance_margin_mm,
+    )
+
+
 def candidate_poses(
     description: RobotDescription,
     geometry: CellGeometry,
@@ -224,7 +246,7 @@ def candidate_poses(
         dropped["IK branch near a singularity"] += int(np.count_nonzero(sing))
         q = ik.solutions_rad[ik.valid & ~ik.singular]
         q = q[_first_of_each(q)]
-        q = _keep(model, geometry, q, home, dropped)
+        q = _keep(model, with_margins(geometry, settings), q, home, dropped)
         found.append(q)
         have += len(q)
         if have >= settings.n_candidates:
@@ -310,21 +332,15 @@ def observability(
     """The candidates' blocks for the identifiable geometry and the gravity term."""
     model = KinematicModel.from_description(description)
     analysis = analyze_model(model, q_rad)
-    _, jac = identification_jacobian(model, q_rad)
+    tcp, jac = identification_jacobian(model, q_rad)
     geo = jac[:, :, analysis.free]
     names = [n for n, f in zip(analysis.parameter_names, analysis.free, strict=True) if f]
-    jp = geometric_jacobian(model, q_rad, frame="world")[:, :3, :]  # (N, 3, n)
-    moments = base_moments(description)
-    y = raw_regressor(model, q_rad, gravity_of(description))[:, :, moments.raw_index]
-    grav = [
-        jp[:, :, j] * y[:, j, b][:, None] for j, cols in enumerate(moments.per_joint) for b in cols
-    ]
-    names += [
-        f"gravity: joint {j + 1} × {moments.names[b]}"
-        for j, cols in enumerate(moments.per_joint)
-        for b in cols
-    ]
-    full = np.concatenate([geo, *[g[:, :, None] for g in grav]], axis=2) if grav else geo
+    ctx = EffectContext(description, EffectData(q_rad))
+    specs = loop_effects(ctx, settings.effects)
+    kin = Kinematics(model, q_rad, tcp, jac)
+    effects = regressor_matrix(specs, ctx, slice(0, len(q_rad)), kin)
+    names += [f"{sp.label}: {p}" for sp in specs for p in sp.parameter_names()]
+    full = np.concatenate([geo, effects], axis=2)
     scale = np.sqrt(np.mean(full**2, axis=(0, 1)))
     scale[scale == 0] = 1.0
     scaled = full / scale
@@ -338,6 +354,24 @@ def observability(
     )
     weighted = plain / tracker_sigma_mm(settings, dist)[:, None, None]
     return Observability(weighted, plain, basis, scale, tuple(names))
+
+
+def loop_effects(ctx: EffectContext, which: tuple[str, ...]) -> list[EffectSpec]:
+    """The closed loop's usual effects a campaign must pin down with the geometry: the
+    gravity deflection (linear form, counterbalance terms included), each joint's
+    cyclic error (orders :data:`~calibration.effect_library.HARMONIC_ORDERS`) and the
+    tracker's scale. Time terms and lost motion depend on the order and the clock, not
+    on the poses chosen, and are left out. ``which``: of "gravity", "harmonic", "scale"."""
+    specs: list[EffectSpec] = []
+    gravity = gravity_candidate(ctx)
+    if gravity is not None and "gravity" in which:
+        specs.append(gravity)
+    for j in range(1, ctx.description.n_joints + 1):
+        if "harmonic" in which:
+            specs += [EffectSpec("joint_harmonic", joint=j, order=k) for k in HARMONIC_ORDERS]
+    if "scale" in which:
+        specs.append(EffectSpec("instrument_scale"))
+    return specs
 
 
 def _i_value(info: FloatArray, w: FloatArray) -> float:
@@ -535,7 +569,7 @@ def plan_campaign(
     travel = travel_order(cands.q_rad[rows], home, joint_speeds_rad_s(description), rng)
     q = cands.q_rad[rows][travel.order]
     ends = np.vstack([home, q, home])
-    legs = move_collision_codes(model, geometry, ends[:-1], ends[1:])
+    legs = move_collision_codes(model, with_margins(geometry, settings), ends[:-1], ends[1:])
     travel = TravelOrder(travel.order, travel.time_s, travel.random_time_s, np.flatnonzero(legs))
     is_id = np.zeros(len(rows), dtype=bool)
     is_id[: len(sel.indices)] = True
