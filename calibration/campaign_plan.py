@@ -8,10 +8,11 @@
    at the pose and along the straight joint move from Home (:mod:`calibration.cell_geometry`).
 2. **Identification set** (:func:`select_identification`): what the campaign must pin
    down is the identifiable geometry (:func:`calibration.identifiability.analyze_model`)
-   plus the closed loop's gravity term (a compliance of each loaded joint times the
-   gravity regressor: ``J_j(q)·Ŷ_j,b(q)``, :mod:`calibration.gravity_regressor`). Each
-   candidate's 3-row block of that Jacobian is column-scaled, reduced to the directions
-   the candidates can observe at all, and weighted by the tracker's σ at its distance.
+   plus the closed loop's usual effects, with the loop's own regressors
+   (:mod:`calibration.effect_library`: the gravity deflection in its linear form, each
+   joint's cyclic error, the tracker's scale; :func:`loop_effects`). Each candidate's
+   3-row block of that Jacobian is column-scaled, reduced to the directions the
+   candidates can observe at all, and weighted by the tracker's σ at its distance.
    Start: D-optimal greedy selection with exchange (the O1 index,
    :func:`calibration.pose_selection.select_poses`); then **I-optimal** exchange passes:
    swap a chosen pose for the candidate that most lowers the mean prediction variance
@@ -47,7 +48,6 @@ from calibration.cell_geometry import (
     view_codes,
 )
 from calibration.description import DEFAULT_JOINT_SPEED_DEG_S, RobotDescription
-from calibration.errors import CalibrationError
 from calibration.effect_library import (
     HARMONIC_ORDERS,
     EffectContext,
@@ -57,6 +57,7 @@ from calibration.effect_library import (
     gravity_candidate,
     regressor_matrix,
 )
+from calibration.errors import CalibrationError
 from calibration.identifiability import analyze_model
 from calibration.inverse_kinematics import (
     JointLimits,
@@ -381,13 +382,13 @@ def _i_value(info: FloatArray, w: FloatArray) -> float:
 def select_identification(obs: Observability, k: int, settings: PlanSettings) -> Selection:
     """``k`` identification poses by the settings' criterion (see the module text)."""
     h = obs.weighted
-    n, _, r = h.shape
+    n = h.shape[0]
     if k > n:
         raise PlanError(f"--poses {k}: only {n} candidate poses are in view and clear")
     start = select_poses(h, k, index="O1", exchange_passes=1)
     chosen = [int(i) for i in start.indices]
     w = np.einsum("nip,niq->pq", obs.plain, obs.plain) / n
-    ridge = 1e-12 * np.einsum("nip,nip->", h, h) / r * np.eye(r)
+    ridge = ridge_of(h)
     taken = h[np.array(chosen)]
     info = np.einsum("nip,niq->pq", taken, taken) + ridge
     exchanges = 0
@@ -404,6 +405,18 @@ def select_identification(obs: Observability, k: int, settings: PlanSettings) ->
     s = np.sqrt(np.clip(np.linalg.eigvalsh(info), 0, None))
     d_index = float(np.exp(np.mean(np.log(s))) / np.sqrt(k))
     return Selection(idx, settings.criterion, d_index, _i_value(info, w), exchanges)
+
+
+#: The prior information, relative to a mean candidate's: it keeps ``M`` invertible when
+#: a few poses cannot yet see every direction, and is the same for every set compared.
+RIDGE = 1e-6
+
+
+def ridge_of(h: FloatArray) -> FloatArray:
+    """The prior information ``(r, r)`` for candidate blocks ``h`` ``(N, 3, r)``."""
+    n, _, r = h.shape
+    ridge: FloatArray = RIDGE * float(np.einsum("nip,nip->", h, h)) / (n * r) * np.eye(r)
+    return ridge
 
 
 def _i_exchange(
@@ -586,5 +599,5 @@ def plan_campaign(
         parameter_names=obs.names,
         parameter_sigma=parameter_sigmas(obs, sel.indices),
         random_parameter_sigma=parameter_sigmas(obs, random_rows),
-        random_i_value_mm2=float(np.trace(np.linalg.pinv(info) @ w)),
+        random_i_value_mm2=_i_value(info + ridge_of(obs.weighted), w),
     )
