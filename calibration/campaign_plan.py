@@ -252,7 +252,9 @@ def candidate_poses(
         have += len(q)
         if have >= settings.n_candidates:
             break
-    q_all = np.concatenate(found)[: settings.n_candidates]
+    q_all = np.concatenate(found)
+    # the branches of one drawn pose come together: shuffled, any first k are random poses
+    q_all = q_all[rng.permutation(len(q_all))][: settings.n_candidates]
     if len(q_all) == 0:
         reachable = tried - dropped["out of the arm's reach"]
         if reachable == 0 or dropped["IK branch near a singularity"] + sum(
