@@ -215,7 +215,8 @@ def candidate_poses(
 ) -> Candidates:
     """Up to ``settings.n_candidates`` candidates in view and clear (see the module text),
     drawn in batches until there are enough or 40 batches are spent. Raises
-    :class:`PlanError` when the region has no reachable pose or the tracker sees none."""
+    :class:`PlanError` when the region has no reachable pose or the tracker sees none.
+    Long for counting every reason a pose is dropped, which the report lists."""
     model = KinematicModel.from_description(description)
     limits = JointLimits.from_description(description)
     margin = np.radians(settings.limit_margin_deg)

@@ -83,6 +83,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run_plan(args: argparse.Namespace) -> int:
+    """Read the robot and the cell, plan, write the five files together (long for the
+    files: each is one line of staging)."""
     from dataclasses import replace
 
     from calibration.campaign_plan import PlanError, PlanSettings, plan_campaign

@@ -30,7 +30,7 @@ def plan_report(
     plan: CampaignPlan,
     programs: ProgramSettings,
 ) -> str:
-    """The report's Markdown text."""
+    """The report's Markdown text (long: one Markdown line per item, nothing else)."""
     sel, travel, cands = plan.selection, plan.travel, plan.candidates
     n_id = int(plan.is_identify.sum())
     lines = [
