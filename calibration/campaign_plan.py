@@ -16,7 +16,8 @@
    Start: D-optimal greedy selection with exchange (the O1 index,
    :func:`calibration.pose_selection.select_poses`); then **I-optimal** exchange passes:
    swap a chosen pose for the candidate that most lowers the mean prediction variance
-   over the region, ``trace(W·M⁻¹)`` (``M`` the chosen poses' information, ``W`` the
+   over the region, ``trace(W·M⁻¹)`` (``M`` the chosen poses' information plus the
+   prior information of :func:`prior_sd` (Bayesian I-optimality), ``W`` the
    mean of the unweighted blocks' ``BᵀB`` over every candidate in view: the region where
    the robot works, as a user measures it), by rank-3 Woodbury updates for every
    candidate at once.
@@ -118,13 +119,15 @@ class Observability:
     ``weighted`` ``(N, 3, r)``: reduced, σ-weighted blocks (information ``Σ HᵢᵀHᵢ``);
     ``plain`` ``(N, 3, r)``: the same unweighted (mm per unit reduced parameter);
     ``to_scaled`` ``(p, r)``: reduced -> scaled parameters; ``scale`` ``(p,)``: the
-    scaled parameters' units; ``names`` ``(p,)``."""
+    scaled parameters' units; ``names`` ``(p,)``; ``prior`` ``(r, r)``: what is known
+    before measuring (:func:`prior_sd`), in the information's units."""
 
     weighted: FloatArray
     plain: FloatArray
     to_scaled: FloatArray
     scale: FloatArray
     names: tuple[str, ...]
+    prior: FloatArray  # (r, r) prior information of the reduced parameters
 
 
 @dataclass(frozen=True, eq=False)
@@ -357,7 +360,37 @@ def observability(
         reflector_in_base(model, geometry, q_rad)[0] - geometry.station_mm, axis=1
     )
     weighted = plain / tracker_sigma_mm(settings, dist)[:, None, None]
-    return Observability(weighted, plain, basis, scale, tuple(names))
+    sd = prior_sd(names, len(geo[0, 0]), specs) * scale  # in scaled units
+    prior = basis.T @ (basis / sd[:, None] ** 2)
+    return Observability(weighted, plain, basis, scale, tuple(names), prior)
+
+
+#: What a user knows of the parameters before measuring (1 σ): a nominal description
+#: is this far from a real arm (lengths, angles), the base guess and the tool this far
+#: from the truth; an effect this large at the TCP (mm: a gravity deflection of a
+#: tenth of a mm, a cyclic error of 30 µm, a tracker scale error of 20 ppm at 3 m).
+PRIOR_LENGTH_MM = 0.5
+PRIOR_ANGLE_DEG = 0.05
+PRIOR_BASE_MM = 50.0
+PRIOR_BASE_DEG = 1.0
+PRIOR_TOOL_MM = 1.0
+PRIOR_EFFECT_MM = {"gravity_deflection": 0.1, "joint_harmonic": 0.03, "instrument_scale": 0.06}
+
+
+def prior_sd(names: list[str], n_geometry: int, specs: list[EffectSpec]) -> FloatArray:
+    """The prior 1 σ ``(p,)`` of the parameters ``names`` (geometry first, in mm or rad;
+    then the effects' parameters, as the TCP effect of a scaled column, mm)."""
+    sd = []
+    for name in names[:n_geometry]:
+        if name.startswith("base."):
+            sd.append(np.radians(PRIOR_BASE_DEG) if name.endswith("_rad") else PRIOR_BASE_MM)
+        elif name.startswith("tool."):
+            sd.append(PRIOR_TOOL_MM)
+        else:
+            sd.append(np.radians(PRIOR_ANGLE_DEG) if name.endswith("_rad") else PRIOR_LENGTH_MM)
+    out = np.array(sd, dtype=float)
+    effect = [PRIOR_EFFECT_MM[sp.kind] for sp in specs for _ in sp.parameter_names()]
+    return np.concatenate([out, np.array(effect, dtype=float)])
 
 
 def loop_effects(ctx: EffectContext, which: tuple[str, ...]) -> list[EffectSpec]:
@@ -391,7 +424,7 @@ def select_identification(obs: Observability, k: int, settings: PlanSettings) ->
     start = select_poses(h, k, index="O1", exchange_passes=1)
     chosen = [int(i) for i in start.indices]
     w = np.einsum("nip,niq->pq", obs.plain, obs.plain) / n
-    ridge = ridge_of(h)
+    ridge = obs.prior
     taken = h[np.array(chosen)]
     info = np.einsum("nip,niq->pq", taken, taken) + ridge
     exchanges = 0
@@ -408,18 +441,6 @@ def select_identification(obs: Observability, k: int, settings: PlanSettings) ->
     s = np.sqrt(np.clip(np.linalg.eigvalsh(info), 0, None))
     d_index = float(np.exp(np.mean(np.log(s))) / np.sqrt(k))
     return Selection(idx, settings.criterion, d_index, _i_value(info, w), exchanges)
-
-
-#: The prior information, relative to a mean candidate's: it keeps ``M`` invertible when
-#: a few poses cannot yet see every direction, and is the same for every set compared.
-RIDGE = 1e-6
-
-
-def ridge_of(h: FloatArray) -> FloatArray:
-    """The prior information ``(r, r)`` for candidate blocks ``h`` ``(N, 3, r)``."""
-    n, _, r = h.shape
-    ridge: FloatArray = RIDGE * float(np.einsum("nip,nip->", h, h)) / (n * r) * np.eye(r)
-    return ridge
 
 
 def _i_exchange(
@@ -454,10 +475,10 @@ def gain_of(hc: FloatArray, a: FloatArray, w: FloatArray) -> float:
 
 def parameter_sigmas(obs: Observability, indices: IntArray) -> FloatArray:
     """Predicted 1 σ ``(p,)`` of each parameter (its own units: mm, rad, or a gravity
-    term's) from the chosen poses' information (pseudo-inverse in the reduced space)."""
+    term's) from the chosen poses' information and the prior (the posterior's)."""
     h = obs.weighted[indices]
     info = np.einsum("nip,niq->pq", h, h)
-    cov_reduced = np.linalg.pinv(info)
+    cov_reduced = np.linalg.inv(info + obs.prior)
     cov_scaled = obs.to_scaled @ cov_reduced @ obs.to_scaled.T
     sig: FloatArray = np.sqrt(np.clip(np.diag(cov_scaled), 0, None)) / obs.scale
     return sig
@@ -602,5 +623,5 @@ def plan_campaign(
         parameter_names=obs.names,
         parameter_sigma=parameter_sigmas(obs, sel.indices),
         random_parameter_sigma=parameter_sigmas(obs, random_rows),
-        random_i_value_mm2=_i_value(info + ridge_of(obs.weighted), w),
+        random_i_value_mm2=_i_value(info + obs.prior, w),
     )
