@@ -421,18 +421,21 @@ def select_identification(obs: Observability, k: int, settings: PlanSettings) ->
     n = h.shape[0]
     if k > n:
         raise PlanError(f"--poses {k}: only {n} candidate poses are in view and clear")
-    start = select_poses(h, k, index="O1", exchange_passes=1)
+    start = select_poses(h, k, index="O1", exchange_passes=0)
     chosen = [int(i) for i in start.indices]
     w = np.einsum("nip,niq->pq", obs.plain, obs.plain) / n
-    ridge = obs.prior
     taken = h[np.array(chosen)]
-    info = np.einsum("nip,niq->pq", taken, taken) + ridge
+    info = np.einsum("nip,niq->pq", taken, taken) + obs.prior
     exchanges = 0
     if settings.criterion == "I":
         for _ in range(settings.exchange_passes):
+            # each pass looks at the candidates that would help the current set most
+            gains = _i_gains(h, np.linalg.inv(info), w)
+            gains[np.array(chosen)] = -np.inf
+            pool = np.argsort(gains)[::-1][: min(SHORTLIST, n - k)]
             swaps = 0
             for pos in range(k):
-                info, swapped = _i_exchange(h, w, chosen, pos, info)
+                info, swapped = _i_exchange(h, w, chosen, pos, info, pool)
                 swaps += swapped
             exchanges += swaps
             if not swaps:
@@ -443,25 +446,40 @@ def select_identification(obs: Observability, k: int, settings: PlanSettings) ->
     return Selection(idx, settings.criterion, d_index, _i_value(info, w), exchanges)
 
 
-def _i_exchange(
-    h: FloatArray, w: FloatArray, chosen: list[int], pos: int, info: FloatArray
-) -> tuple[FloatArray, int]:
-    """Swap ``chosen[pos]`` for the candidate that lowers ``trace(W M⁻¹)`` most, if any.
+#: Candidates each I-optimal exchange pass considers (those that would lower the
+#: criterion most if added to the current set): 10x fewer evaluations on 5000.
+SHORTLIST = 400
 
-    With ``A = (M − HₒᵀHₒ)⁻¹`` and ``Uc = Hc A``, adding candidate c gives
-    ``trace(W A) − trace((I + Uc Hcᵀ)⁻¹ Uc W Ucᵀ)`` (Woodbury), for all c at once."""
+
+def _i_gains(h: FloatArray, a: FloatArray, w: FloatArray) -> FloatArray:
+    """The drop of ``trace(W·A')`` from adding each block of ``h`` ``(N, 3, r)`` to the
+    information ``A⁻¹``: with ``U = H A``, ``trace((I + U Hᵀ)⁻¹ U W Uᵀ)`` (Woodbury)."""
+    u = h @ a
+    s = np.eye(3) + u @ h.transpose(0, 2, 1)
+    t = u @ w @ u.transpose(0, 2, 1)
+    gains: FloatArray = np.trace(np.linalg.solve(s, t), axis1=1, axis2=2)
+    return gains
+
+
+def _i_exchange(
+    h: FloatArray,
+    w: FloatArray,
+    chosen: list[int],
+    pos: int,
+    info: FloatArray,
+    pool: IntArray,
+) -> tuple[FloatArray, int]:
+    """Swap ``chosen[pos]`` for the candidate of ``pool`` that lowers ``trace(W M⁻¹)``
+    most, if that beats keeping it (``chosen`` in place). The new information, 1 if
+    swapped."""
     out = chosen[pos]
     minus = info - h[out].T @ h[out]
     a = np.linalg.inv(minus)
-    u = h @ a  # (N, 3, r)
-    s = np.eye(3) + u @ h.transpose(0, 2, 1)
-    t = u @ w @ u.transpose(0, 2, 1)
-    gain = np.trace(np.linalg.solve(s, t), axis1=1, axis2=2)
-    taken = np.array(chosen)
-    gain[taken] = -np.inf
-    gain_out = gain_of(h[out], a, w)
-    best = int(np.argmax(gain))
-    if gain[best] > gain_out * (1.0 + 1e-9):
+    gain = _i_gains(h[pool], a, w)
+    gain[np.isin(pool, chosen)] = -np.inf
+    best_at = int(np.argmax(gain))
+    if gain[best_at] > gain_of(h[out], a, w) * (1.0 + 1e-9):
+        best = int(pool[best_at])
         chosen[pos] = best
         return minus + h[best].T @ h[best], 1
     return info, 0
