@@ -19,12 +19,18 @@ from __future__ import annotations
 import argparse
 import re
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import tomli_w
 
+from calibration.model.cell_geometry import (
+    EMULATOR_TABLES,
+    CellGeometrySpec,
+    geometry_document,
+    read_cell_geometry,
+)
 from edges.command import one_line
 from edges.toml_schema import (
     NON_NEGATIVE,
@@ -137,6 +143,11 @@ class TrackerSection:
     temperature_c: float = 20.0
     pressure_hpa: float = 1013.25
     humidity_pct: float = 45.0
+    # true: a TCP reflector out of the cell's acceptance cone or range, or behind an
+    # obstacle ([station], [reflector], [[obstacle]]: calibration/model/cell_geometry.py) gives
+    # a broken beam (BROKEN_OBSTRUCTED), as a real tracker does. Off by default while the
+    # built-in programs drive random poses whose tool points anywhere.
+    line_of_sight: bool = False
 
 
 # -- value ranges -----------------------------------------------------------------------
@@ -220,6 +231,9 @@ class CellConfig:
     grating: GratingSection = field(default_factory=GratingSection)
     encoders: EncoderSection = field(default_factory=EncoderSection)
     tracker: TrackerSection = field(default_factory=TrackerSection)
+    #: the cell's geometry tables (top-level [station], [reflector], [floor], [arm],
+    #: [region], [[obstacle]]), read by calibration.model.cell_geometry for both sides
+    geometry: CellGeometrySpec = field(default_factory=CellGeometrySpec)
 
     @classmethod
     def load(cls, path: str | Path) -> CellConfig:
@@ -234,12 +248,22 @@ class CellConfig:
 
     @classmethod
     def from_document(cls, doc: dict[str, Any], source: str) -> CellConfig:
-        cfg = build(cls, doc, source=source, error=SimConfigError, ranges=RANGES)
+        emulator = {k: v for k, v in doc.items() if k in EMULATOR_TABLES}
+        geometry = read_cell_geometry(
+            {k: v for k, v in doc.items() if k not in EMULATOR_TABLES},
+            source,
+            SimConfigError,
+            others=EMULATOR_TABLES,
+        )
+        cfg = build(cls, emulator, source=source, error=SimConfigError, ranges=RANGES)
+        cfg = replace(cfg, geometry=geometry)
         _check(cfg, source)
         return cfg
 
     def to_document(self) -> dict[str, Any]:
-        return asdict(self)
+        doc = asdict(self)
+        del doc["geometry"]
+        return doc | geometry_document(self.geometry)
 
     def dumps(self) -> str:
         return tomli_w.dumps(self.to_document())

@@ -231,6 +231,11 @@ class Plant:
         n = 1 if wall_s is None else int(np.size(wall_s))
         return ["tcp" if j < 0 else f"link:{j + 1}" for j in self._links(wall_s, n).tolist()]
 
+    def tcp_target(self, wall_s: ArrayLike | None, n: int) -> NDArray[np.bool_]:
+        """Per sample ``(n,)``: the tracker's target is the TCP reflector (not a link's)."""
+        tcp: NDArray[np.bool_] = self._links(wall_s, n) < 0
+        return tcp
+
     def _links(self, wall_s: ArrayLike | None, n: int) -> NDArray[np.intp]:
         """Per sample: -1 for the TCP target, else the 0-based joint carrying the target."""
         if self.link_joint is not None:

@@ -218,7 +218,22 @@ def generate_campaign(
     nominal = cell.nominal
     q_id = plan_identification_poses(nominal, settings.n_identify, rng, index=settings.selection)
     q_val = sample_reachable_poses(nominal, settings.n_validate, rng)
-    q_true = np.vstack([q_id, q_val])
+    return measure_campaign(cell, q_id, q_val, rng, settings)
+
+
+def measure_campaign(
+    cell: TrueCell,
+    q_identify_rad: FloatArray,
+    q_validate_rad: FloatArray,
+    rng: np.random.Generator,
+    settings: CampaignSettings = CampaignSettings(),
+) -> CampaignData:
+    """Run the campaign of the given joint vectors (``(m_id, n)`` then ``(m_val, n)`` rad,
+    the true ring angles, in this order) on ``cell``: the tracker's points, the gratings'
+    and encoders' readings, with ``settings``' effects and noise (``settings.n_identify``,
+    ``n_validate`` and ``selection`` are not used: the poses are given)."""
+    q_true = np.vstack([q_identify_rad, q_validate_rad])
+    n_identify, n_validate = len(q_identify_rad), len(q_validate_rad)
     m = len(q_true)
     tcp = cell.tcp_mm(q_true)
     measured = _measure(cell, tcp, rng)
@@ -240,7 +255,7 @@ def generate_campaign(
             0.5 * settings.encoder_backlash_deg * direction
             + rng.normal(0.0, settings.encoder_noise_deg, q_true.shape)
         )
-    sets = ("identify",) * settings.n_identify + ("validate",) * settings.n_validate
+    sets = ("identify",) * n_identify + ("validate",) * n_validate
     campaign = Campaign(
         source="<emulated>",
         pose=tuple(str(i + 1) for i in range(m)),

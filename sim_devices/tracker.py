@@ -29,6 +29,7 @@ from edges.errors import DeviceError
 from sim_devices.config import EffectsSection, TrackerSection
 from sim_devices.plant import DeviceClock, Plant
 from sim_devices.pty_link import PtyLink
+from sim_devices.tracker_view import cell_geometry, true_view_codes
 
 log = logging.getLogger(__name__)
 
@@ -109,6 +110,7 @@ class TrackerInstrument:
         self.lock = threading.Lock()
         self.stats: Counter[str] = Counter()
         self._breaks = self._beam_breaks(3600.0 * 24)
+        self.geometry = cell_geometry(plant.cell, plant.config.geometry)
 
     def _beam_breaks(self, horizon_s: float) -> np.ndarray:
         """(K, 2) wall-time intervals of obstructed beam (Poisson arrivals)."""
@@ -145,6 +147,12 @@ class TrackerInstrument:
         with self.lock:
             pts, ok = self.model.measure(truth, self.rng)
         status = np.where(ok, 0, 2).astype(np.int8)  # 2: dropout (per measurement)
+        if self.config.line_of_sight:  # the reflector out of view: obstructed
+            tcp = self.plant.tcp_target(np.asarray(wall_s), len(pts))
+            hidden = np.zeros(len(pts), dtype=bool)
+            hidden[tcp] = true_view_codes(self.plant.cell, self.geometry, state.q_out_rad[tcp]) != 0
+            status[hidden] = 1
+            pts[hidden] = np.nan
         broken = self.beam_broken(np.asarray(wall_s))
         status[broken] = 1  # 1: obstructed
         pts[broken] = np.nan

@@ -32,7 +32,8 @@ CALIBRATION_MAY_IMPORT: dict[str, set[str]] = {
     "identify": {"errors", "model"},
     "effects": {"errors", "model", "identify"},
     "twin": {"errors", "model", "scales", "identify", "effects"},
-    "cli": {"errors", "model", "scales", "identify", "effects", "twin"},
+    "plan": {"errors", "model", "identify", "effects"},
+    "cli": {"errors", "model", "scales", "identify", "effects", "twin", "plan"},
 }
 
 #: Modules above their package's layer, each with the reason it may reach higher.

@@ -32,6 +32,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "calibration.cli.track",
         "follow the robot's drift and steps through production tracker checks",
     ),
+    "plan": (
+        "calibration.cli.plan",
+        "plan a campaign the tracker sees: joint list, KRL and RAPID programs, report",
+    ),
     "stiffness": (
         "calibration.cli.stiffness",
         "Cartesian compliance at poses, or joint stiffness from a load test",

@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 import tomli_w
 
@@ -37,6 +37,9 @@ if TYPE_CHECKING:
 PRESET_PACKAGE = "calibration.presets"
 _T = TypeVar("_T", bound="DataclassInstance")
 
+
+#: A joint's top speed (deg/s) assumed where a description states none.
+DEFAULT_JOINT_SPEED_DEG_S = 90.0
 
 #: Motor turns per joint turn assumed for a joint whose description states none.
 DEFAULT_GEAR_RATIO = 100.0
@@ -66,6 +69,15 @@ class JointDescription:
     stiffness_nmm_per_rad: float | None = field(
         default=None, metadata=key_spec(range=Range(0.0, lo_open=True, what="N·mm/rad, positive"))
     )
+    #: the joint's top speed (deg/s, the data sheet's); None: not stated (a planner then
+    #: assumes :data:`DEFAULT_JOINT_SPEED_DEG_S`)
+    max_speed_deg_s: float | None = field(
+        default=None, metadata=key_spec(range=Range(0.0, 3600.0, lo_open=True, what="deg/s"))
+    )
+    #: the controller's angle of this joint is ``controller_sign · q + controller_offset_deg``
+    #: (q: this description's angle, deg); what robot programs (KRL, RAPID) are written in
+    controller_offset_deg: float = 0.0
+    controller_sign: Literal[1, -1] = 1
 
 
 @dataclass(frozen=True)
@@ -307,7 +319,9 @@ def _to_document(desc: RobotDescription) -> dict[str, Any]:
             for k, v in _drop_none(
                 {f.name: getattr(j, f.name) for f in fields(JointDescription)}
             ).items()
-            if k != "counterbalance" or v  # written only where there is one
+            if (k != "counterbalance" or v)  # written only where there is one
+            and not (k == "controller_offset_deg" and v == 0.0)
+            and not (k == "controller_sign" and v == 1)
         }
         for j in desc.joints
     ]

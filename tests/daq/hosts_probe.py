@@ -1,6 +1,6 @@
 """A zenoh client for tests/test_cell_hosts.py, run inside a test's network namespace.
 
-    python tests/hosts_probe.py '{"role": "...", "endpoint": "tls/10.231.2.2:7447", ...}'
+    python tests/daq/hosts_probe.py '{"role": "...", "endpoint": "tls/10.231.2.2:7447", ...}'
 
 Roles (one JSON line on stdout says what happened):
 

@@ -1,0 +1,224 @@
+"""What a planned campaign is worth, on the emulated cell with its pose-dependent effects on.
+
+Per seed, on a true KR500 cell drawn by the emulator (:class:`sim_devices.truth.TrueCell`)
+with gravity deflection after the grating rings (the emulator's own masses and
+counterbalance), a cyclic grating error and a tracker scale error, in the default cell
+(:mod:`calibration.model.cell_geometry`: tracker where the emulator puts it, the reflector's
+±30° cone, the fixture table, the floor):
+
+* **planned**: ``twin plan``'s 50 identification poses (:func:`plan_campaign`, I-optimal
+  from 5000 candidates in view) and its 20 validation poses;
+* **random 50** / **random 150**: that many random poses in view and clear (the same
+  candidate generator, another seed: uniform in the region, random tilt in the cone),
+  with the same 20 validation poses.
+
+Each campaign is measured on the truth (:func:`sim_devices.pose_campaign.measure_campaign`:
+tracker noise, grating noise, the effects) and calibrated as a user would
+(:func:`calibration.effects.calibrate.calibrate` with effects: the closed loop; the twin gets the
+preset, never the truth). The **held-out error** is the mean distance between the
+calibrated twin's prediction (:func:`calibration.effects.model_effects.predict_tcp` at the
+gratings' readings) and the noise-free tracker reading of the truth, over 300 other random
+poses in view. Also: the planned order's travel time against random orders, and the
+selection time of 50 from 5000 against a plain greedy D-optimal selection in the same run.
+
+    python -m benchmarks.bench_plan [--seeds 10]     # the whole proof (minutes)
+    python -m benchmarks --only plan --quick         # smoke run, numbers mean nothing
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration.effects.calibrate import calibrate
+from calibration.effects.model_effects import predict_tcp
+from calibration.identify.pose_selection import select_poses
+from calibration.model.cell_geometry import CellGeometrySpec, resolve
+from calibration.model.description import RobotDescription, load_robot
+from calibration.plan.campaign_plan import (
+    PlanSettings,
+    candidate_poses,
+    observability,
+    plan_campaign,
+    select_identification,
+)
+from sim_devices.effects import UndeclaredEffects
+from sim_devices.pose_campaign import CampaignSettings, measure_campaign
+from sim_devices.tracker_view import cell_geometry, true_collision_codes, true_view_codes
+from sim_devices.truth import TrueCell
+
+FloatArray = NDArray[np.float64]
+Row = dict[str, Any]
+
+EFFECTS = UndeclaredEffects.named("gravity_deflection", "grating_cyclic", "tracker_scale")
+N_HELD_OUT = 300
+
+
+@dataclass(frozen=True)
+class SeedOutcome:
+    seed: int
+    planned_mm: float
+    random50_mm: float
+    random150_mm: float
+    travel_ratio: float
+    hidden: int  # planned poses the emulator's truth finds out of view or in collision
+
+
+def held_out_error_mm(
+    twin: RobotDescription,
+    cell: TrueCell,
+    q_id: FloatArray,
+    q_val: FloatArray,
+    q_held: FloatArray,
+    seed: int,
+    effects: UndeclaredEffects = EFFECTS,
+) -> float:
+    """Calibrate ``twin`` on the campaign ``q_id`` + ``q_val`` measured on ``cell`` and
+    return its mean error (mm) on the held-out poses ``q_held``."""
+    settings = CampaignSettings(effects=effects)
+    data = measure_campaign(cell, q_id, q_val, np.random.default_rng([seed, 7]), settings)
+    result = calibrate(twin, data.campaign, effects=True)
+    held = measure_campaign(cell, q_held[:0], q_held, np.random.default_rng([seed, 8]), settings)
+    predicted = predict_tcp(result.description, held.campaign.q_rad, held.campaign.t_s)
+    return float(np.mean(np.linalg.norm(predicted - held.true_prediction_mm, axis=1)))
+
+
+def run_seed(
+    seed: int,
+    n_candidates: int = 5000,
+    n_plan: int = 50,
+    effects: UndeclaredEffects = EFFECTS,
+) -> SeedOutcome:
+    """One seed of the proof (module text)."""
+    nominal = load_robot("kr500")
+    cell = TrueCell.create(nominal, seed)
+    geometry = resolve(CellGeometrySpec(), nominal)
+    settings = PlanSettings(n_identify=n_plan, n_validate=20, n_candidates=n_candidates, seed=seed)
+    plan = plan_campaign(nominal, geometry, settings)
+    q_id, q_val = plan.q_rad[plan.is_identify], plan.q_rad[~plan.is_identify]
+    pool = candidate_poses(
+        nominal,
+        geometry,
+        replace(settings, n_candidates=3 * n_plan + N_HELD_OUT),
+        np.random.default_rng([seed, 99]),
+    ).q_rad
+    random150, held = pool[: 3 * n_plan], pool[3 * n_plan :]
+    truth_geometry = cell_geometry(cell, CellGeometrySpec())
+    hidden = int(
+        np.count_nonzero(
+            (true_view_codes(cell, truth_geometry, plan.q_rad) != 0)
+            | (true_collision_codes(cell, truth_geometry, plan.q_rad) != 0)
+        )
+    )
+    err = [
+        held_out_error_mm(nominal, cell, q, q_val, held, seed, effects)
+        for q in (q_id, random150[:n_plan], random150)
+    ]
+    return SeedOutcome(
+        seed, err[0], err[1], err[2], plan.travel.time_s / plan.travel.random_time_s, hidden
+    )
+
+
+def selection_timing(seed: int = 1, n_candidates: int = 5000, k: int = 50) -> Row:
+    """Seconds to choose ``k`` of ``n_candidates``: the planner's I-optimal selection
+    against a plain greedy D-optimal one (no exchange) on the same blocks, same run."""
+    nominal = load_robot("kr500")
+    geometry = resolve(CellGeometrySpec(), nominal)
+    settings = PlanSettings(n_identify=k, n_candidates=n_candidates, seed=seed)
+    cands = candidate_poses(nominal, geometry, settings, np.random.default_rng(seed))
+    t0 = time.perf_counter()
+    obs = observability(nominal, geometry, cands.q_rad, settings)
+    t1 = time.perf_counter()
+    select_identification(obs, k, settings)
+    t2 = time.perf_counter()
+    select_poses(obs.weighted, k, index="O1", exchange_passes=0)
+    t3 = time.perf_counter()
+    return {
+        "benchmark": f"choose {k} of {len(cands.q_rad)} candidates",
+        "ours_s": t2 - t1,
+        "ours_with_jacobians_s": t2 - t0,
+        "greedy_s": t3 - t2,
+        "ours_over_greedy": (t2 - t1) / (t3 - t2),
+        "note": "I-optimal exchange vs greedy D-optimal; the Jacobians (shared) apart",
+    }
+
+
+def summarize(outcomes: Sequence[SeedOutcome]) -> list[Row]:
+    """One row per seed and the summary (means over seeds, worst case)."""
+    rows: list[Row] = []
+    for o in outcomes:
+        rows.append(
+            {
+                "seed": o.seed,
+                "planned_mm": o.planned_mm,
+                "random50_mm": o.random50_mm,
+                "random150_mm": o.random150_mm,
+                "vs_random50": o.planned_mm / o.random50_mm,
+                "vs_random150": o.planned_mm / o.random150_mm,
+                "travel_vs_random": o.travel_ratio,
+                "hidden": o.hidden,
+            }
+        )
+    r50 = [o.planned_mm / o.random50_mm for o in outcomes]
+    rows.append(
+        {
+            "seed": "all",
+            "planned_mm": float(np.mean([o.planned_mm for o in outcomes])),
+            "random50_mm": float(np.mean([o.random50_mm for o in outcomes])),
+            "random150_mm": float(np.mean([o.random150_mm for o in outcomes])),
+            "vs_random50": float(np.mean(r50)),
+            "vs_random50_worst": float(np.max(r50)),
+            "vs_random150": float(np.mean([o.planned_mm / o.random150_mm for o in outcomes])),
+            "travel_vs_random": float(np.max([o.travel_ratio for o in outcomes])),
+            "hidden": sum(o.hidden for o in outcomes),
+        }
+    )
+    return rows
+
+
+def run(quick: bool) -> list[Row]:
+    if quick:
+        return [
+            *summarize([run_seed(1, n_candidates=400, n_plan=20)]),
+            selection_timing(1, 400, 20),
+        ]
+    return [*summarize([run_seed(s) for s in range(1, 11)]), selection_timing()]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_plan", description=__doc__)
+    parser.add_argument("--seeds", type=int, default=10, help="seeds (10)")
+    parser.add_argument(
+        "--clean", action="store_true", help="the emulator's effects off (geometry alone)"
+    )
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args(argv)
+    effects = UndeclaredEffects() if args.clean else EFFECTS
+    from benchmarks import format_table
+
+    if args.quick:
+        rows = run(True)
+    else:
+        outcomes = []
+        for s in range(1, args.seeds + 1):
+            o = run_seed(s, effects=effects)
+            print(
+                f"seed {s}: planned {o.planned_mm:.4f} mm, random 50 {o.random50_mm:.4f}, "
+                f"random 150 {o.random150_mm:.4f}, travel {o.travel_ratio:.2f}x, "
+                f"hidden {o.hidden}",
+                flush=True,
+            )
+            outcomes.append(o)
+        rows = [*summarize(outcomes), selection_timing()]
+    print(format_table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,642 @@
+"""Planning a measurement campaign: candidates in view, the best set, the shortest order.
+
+1. **Candidates** (:func:`candidate_poses`): reflector positions drawn uniformly in the
+   working region, the reflector's axis tilted from the line to the tracker by up to the
+   acceptance cone less a margin, a random roll about it; every inverse-kinematics branch
+   inside the joint limits (less a margin) and away from singularities is a candidate,
+   kept when the reflector is in view and the arm clear of the floor and the obstacles
+   at the pose and along the straight joint move from Home (:mod:`calibration.model.cell_geometry`).
+2. **Identification set** (:func:`select_identification`): what the campaign must pin
+   down is the identifiable geometry (:func:`calibration.identify.identifiability.analyze_model`)
+   plus the closed loop's usual effects, with the loop's own regressors
+   (:mod:`calibration.effects.effect_library`: the gravity deflection in its linear form, each
+   joint's cyclic error, the tracker's scale; :func:`loop_effects`). Each candidate's
+   3-row block of that Jacobian is column-scaled, reduced to the directions the
+   candidates can observe at all, and weighted by the tracker's σ at its distance.
+   Start: D-optimal greedy selection with exchange (the O1 index,
+   :func:`calibration.identify.pose_selection.select_poses`); then **I-optimal** exchange passes:
+   swap a chosen pose for the candidate that most lowers the mean prediction variance
+   over the region, ``trace(W·M⁻¹)`` (``M`` the chosen poses' information plus the
+   prior information of :func:`prior_sd` (Bayesian I-optimality), ``W`` the
+   mean of the unweighted blocks' ``BᵀB`` over every candidate in view: the region where
+   the robot works, as a user measures it), by rank-3 Woodbury updates for every
+   candidate at once.
+3. **Validation set** (:func:`spread_validation`): farthest-point sampling of the
+   reflector positions among the other candidates, from a seeded start; not optimised.
+4. **Order** (:func:`travel_order`): a closed tour from Home; a leg takes
+   ``max_j |Δq_j| / v_j`` (synchronous PTP at the joints' top speeds); nearest neighbour,
+   then 2-opt until no move shortens it.
+
+Everything here is arrays in, a frozen result out; files are :mod:`calibration.cli.plan`'s.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration.effects.effect_library import (
+    HARMONIC_ORDERS,
+    EffectContext,
+    EffectData,
+    EffectSpec,
+    Kinematics,
+    gravity_candidate,
+    regressor_matrix,
+)
+from calibration.errors import CalibrationError
+from calibration.identify.identifiability import analyze_model
+from calibration.identify.pose_selection import select_poses
+from calibration.model.cell_geometry import (
+    VIEW_REASONS,
+    CellGeometry,
+    collision_codes,
+    collision_reason,
+    move_collision_codes,
+    reflector_in_base,
+    view_codes,
+)
+from calibration.model.description import DEFAULT_JOINT_SPEED_DEG_S, RobotDescription
+from calibration.model.ik_results import JointLimits, SingularityMargins
+from calibration.model.inverse_kinematics import solve_ik
+from calibration.model.kinematics import (
+    KinematicModel,
+    identification_jacobian,
+)
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+
+class PlanError(CalibrationError, ValueError):
+    """A campaign that cannot be planned (region, view, counts)."""
+
+
+@dataclass(frozen=True)
+class PlanSettings:
+    """How a campaign is planned (angles in degrees)."""
+
+    n_identify: int = 50
+    n_validate: int = 30
+    n_candidates: int = 5000  # candidate poses in view to choose from
+    seed: int = 1
+    criterion: Literal["I", "D"] = "I"
+    exchange_passes: int = 6
+    limit_margin_deg: float = 2.0  # kept inside every joint limit
+    cone_margin_deg: float = 5.0  # the reflector's axis at most cone − this off the beam
+    range_margin_mm: float = 150.0  # inside the tracker's range by this (the station is taped)
+    clearance_margin_mm: float = 20.0  # links kept this much farther from floor and obstacles
+    #: the loop's effects the criterion covers besides the geometry (:func:`loop_effects`)
+    effects: tuple[str, ...] = ("gravity", "harmonic", "scale")
+    wrist_margin_deg: float = 10.0  # q5 at least this far from 0 (axes 4 and 6 apart)
+    elbow_margin_deg: float = 10.0  # forearm this far from stretched or folded
+    tracker_mpe_um: float = 15.0  # the tracker's MPE: ±(a + b·distance), taken as 2 σ
+    tracker_mpe_um_per_m: float = 6.0
+
+
+@dataclass(frozen=True, eq=False)
+class Candidates:
+    """Candidate poses in view and clear: joint vectors ``q_rad`` ``(N, n)``, reflector
+    ``tcp_mm`` ``(N, 3)`` (base frame); ``dropped``: why the others went, with counts."""
+
+    q_rad: FloatArray
+    tcp_mm: FloatArray
+    tried: int  # reflector poses drawn
+    dropped: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class Observability:
+    """The candidates' observability blocks and what they stand for.
+
+    ``weighted`` ``(N, 3, r)``: reduced, σ-weighted blocks (information ``Σ HᵢᵀHᵢ``);
+    ``plain`` ``(N, 3, r)``: the same unweighted (mm per unit reduced parameter);
+    ``to_scaled`` ``(p, r)``: reduced -> scaled parameters; ``scale`` ``(p,)``: the
+    scaled parameters' units; ``names`` ``(p,)``; ``prior`` ``(r, r)``: what is known
+    before measuring (:func:`prior_sd`), in the information's units."""
+
+    weighted: FloatArray
+    plain: FloatArray
+    to_scaled: FloatArray
+    scale: FloatArray
+    names: tuple[str, ...]
+    prior: FloatArray  # (r, r) prior information of the reduced parameters
+
+
+@dataclass(frozen=True, eq=False)
+class Selection:
+    """The identification poses chosen (rows of the candidates) and the criteria."""
+
+    indices: IntArray
+    criterion: str
+    d_index: float  # O1 of the chosen set
+    i_value_mm2: float  # mean prediction variance over the region (mm², σ-weighted units)
+    exchanges: int
+
+
+@dataclass(frozen=True, eq=False)
+class TravelOrder:
+    """A closed tour from Home: ``order`` (rows of the poses), leg times and total (s)."""
+
+    order: IntArray
+    time_s: float
+    random_time_s: float  # mean over random orders of the same poses
+    via_home: IntArray  # positions in ``order`` reached through Home (a direct leg collides)
+
+
+def joint_speeds_rad_s(description: RobotDescription) -> FloatArray:
+    """Each joint's top speed ``(n,)`` rad/s (:data:`DEFAULT_JOINT_SPEED_DEG_S` where the
+    description states none)."""
+    return np.radians([j.max_speed_deg_s or DEFAULT_JOINT_SPEED_DEG_S for j in description.joints])
+
+
+def _aligning(a: FloatArray) -> FloatArray:
+    """A rotation ``(3, 3)`` taking the unit vector ``a`` to +z."""
+    z = np.array([0.0, 0.0, 1.0])
+    v, c = np.cross(a, z), float(a @ z)
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    rot: FloatArray = np.eye(3) + k + k @ k / (1.0 + c)
+    return rot
+
+
+def _target_poses(
+    geometry: CellGeometry, n: int, rng: np.random.Generator, tilt_max_rad: float
+) -> FloatArray:
+    """``n`` reflector poses ``(n, 4, 4)`` (flange orientation, reflector origin) in the
+    region, the reflector's axis within ``tilt_max_rad`` of the line to the station."""
+    p = rng.uniform(geometry.region_lo, geometry.region_hi, size=(n, 3))
+    d = geometry.station_mm - p
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    helper = np.where(np.abs(d[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    u = np.cross(d, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    w = np.cross(d, u)
+    tilt = tilt_max_rad * np.sqrt(rng.uniform(0.0, 1.0, n))  # uniform over the cap
+    az = rng.uniform(-np.pi, np.pi, n)
+    z = np.cos(tilt)[:, None] * d + np.sin(tilt)[:, None] * (
+        np.cos(az)[:, None] * u + np.sin(az)[:, None] * w
+    )
+    roll = rng.uniform(-np.pi, np.pi, n)
+    x0 = np.cross(z, helper)
+    x0 /= np.linalg.norm(x0, axis=1, keepdims=True)
+    y0 = np.cross(z, x0)
+    x = np.cos(roll)[:, None] * x0 + np.sin(roll)[:, None] * y0
+    y = np.cross(z, x)
+    frame = np.stack([x, y, z], axis=2)  # columns: the reflector frame, axis = z
+    t = np.zeros((n, 4, 4))
+    t[:, :3, :3] = frame @ _aligning(geometry.axis_flange)
+    t[:, :3, 3] = p
+    t[:, 3, 3] = 1.0
+    return t
+
+
+def with_margins(geometry: CellGeometry, settings: PlanSettings) -> CellGeometry:
+    """The cell as the planner checks it: the range narrowed and the links thickened by
+    the settings' margins (the planned poses must hold on the real cell too)."""
+    return replace(
+        geometry,
+        min_range_mm=geometry.min_range_mm + settings.range_margin_mm,
+        max_range_mm=geometry.max_range_mm - settings.range_margin_mm,
+        link_radius_mm=geometry.link_radius_mm + settings.clearance_margin_mm,
+    )
+
+
+def candidate_poses(
+    description: RobotDescription,
+    geometry: CellGeometry,
+    settings: PlanSettings,
+    rng: np.random.Generator,
+) -> Candidates:
+    """Up to ``settings.n_candidates`` candidates in view and clear (see the module text),
+    drawn in batches until there are enough or 40 batches are spent. Raises
+    :class:`PlanError` when the region has no reachable pose or the tracker sees none.
+    Long for counting every reason a pose is dropped, which the report lists."""
+    model = KinematicModel.from_description(description)
+    limits = JointLimits.from_description(description)
+    margin = np.radians(settings.limit_margin_deg)
+    inner = JointLimits(limits.lower_rad + margin, limits.upper_rad - margin)
+    home = np.radians(description.home)
+    tilt = np.radians(max(geometry.cone_half_angle_deg - settings.cone_margin_deg, 0.0))
+    margins = SingularityMargins(
+        elbow_rad=float(np.radians(settings.elbow_margin_deg)),
+        wrist_rad=float(np.radians(settings.wrist_margin_deg)),
+    )
+    dropped: Counter[str] = Counter()
+    found: list[FloatArray] = []
+    have = tried = 0
+    batch = max(512, settings.n_candidates // 4)
+    for _ in range(40):
+        poses = _target_poses(geometry, batch, rng, tilt)
+        tried += batch
+        ik = solve_ik(
+            model, poses, frame="base", target="tcp", limits=inner, q_current_rad=home,
+            margins=margins,
+        )  # fmt: skip
+        reach = ik.reachable
+        dropped["out of the arm's reach"] += int(np.count_nonzero(~reach.any(axis=1)))
+        out_limits = reach & ~ik.within_limits
+        dropped[f"IK branch outside the joint limits (less {settings.limit_margin_deg:g}°)"] += int(
+            np.count_nonzero(out_limits)
+        )
+        sing = ik.valid & ik.singular
+        dropped["IK branch near a singularity"] += int(np.count_nonzero(sing))
+        q = ik.solutions_rad[ik.valid & ~ik.singular]
+        q = q[_first_of_each(q)]
+        q = _keep(model, with_margins(geometry, settings), q, home, dropped)
+        found.append(q)
+        have += len(q)
+        if have >= settings.n_candidates:
+            break
+    q_all = np.concatenate(found)
+    # the branches of one drawn pose come together: shuffled, any first k are random poses
+    q_all = q_all[rng.permutation(len(q_all))][: settings.n_candidates]
+    if len(q_all) == 0:
+        reachable = tried - dropped["out of the arm's reach"]
+        if reachable == 0 or dropped["IK branch near a singularity"] + sum(
+            v for k, v in dropped.items() if k.startswith("IK branch outside")
+        ) == sum(v for k, v in dropped.items() if k != "out of the arm's reach"):
+            raise PlanError(
+                f"region {_box(geometry)}: no pose the arm reaches within its joint limits "
+                f"(of {tried} drawn); move the region into the arm's reach"
+            )
+        raise PlanError(
+            f"tracker at {_vec(geometry.station_mm)} mm sees no pose in region {_box(geometry)} "
+            f"(of {tried} drawn: {_reasons(dropped)})"
+        )
+    pos, _ = reflector_in_base(model, geometry, q_all)
+    return Candidates(q_rad=q_all, tcp_mm=pos, tried=tried, dropped=dict(dropped))
+
+
+def _first_of_each(q: FloatArray) -> NDArray[np.bool_]:
+    """Drop exact duplicates (a branch that coincides with another)."""
+    _, idx = np.unique(np.round(q, 9), axis=0, return_index=True)
+    keep = np.zeros(len(q), dtype=bool)
+    keep[idx] = True
+    return keep
+
+
+def _keep(
+    model: KinematicModel,
+    geometry: CellGeometry,
+    q: FloatArray,
+    home: FloatArray,
+    dropped: Counter[str],
+) -> FloatArray:
+    """The joint vectors in view and clear, at the pose and along the move from Home."""
+    pos, axis = reflector_in_base(model, geometry, q)
+    view = view_codes(geometry, pos, axis)
+    for code, why in VIEW_REASONS.items():
+        dropped[why] += int(np.count_nonzero(view == code))
+    q = q[view == 0]
+    coll = collision_codes(model, geometry, q)
+    for code in np.unique(coll[coll != 0]).tolist():
+        dropped[collision_reason(geometry, code)] += int(np.count_nonzero(coll == code))
+    q = q[coll == 0]
+    move = move_collision_codes(model, geometry, home, q)
+    for code in np.unique(move[move != 0]).tolist():
+        why = f"move from Home: {collision_reason(geometry, code)}"
+        dropped[why] += int(np.count_nonzero(move == code))
+    kept: FloatArray = q[move == 0]
+    return kept
+
+
+def _vec(v: FloatArray) -> str:
+    return "(" + ", ".join(f"{x:.0f}" for x in v) + ")"
+
+
+def _box(geometry: CellGeometry) -> str:
+    return f"{_vec(geometry.region_lo)}..{_vec(geometry.region_hi)} mm"
+
+
+def _reasons(dropped: Counter[str] | dict[str, int]) -> str:
+    items = sorted(((v, k) for k, v in dropped.items() if v), reverse=True)
+    return "; ".join(f"{k}: {v}" for v, k in items)
+
+
+def tracker_sigma_mm(settings: PlanSettings, distance_mm: FloatArray) -> FloatArray:
+    """The tracker's 1 σ per axis (mm) at ``distance_mm`` ``(N,)`` (MPE taken as 2 σ)."""
+    sigma: FloatArray = (
+        1e-3 * (settings.tracker_mpe_um + settings.tracker_mpe_um_per_m * distance_mm / 1000.0) / 2
+    )
+    return sigma
+
+
+def observability(
+    description: RobotDescription,
+    geometry: CellGeometry,
+    q_rad: FloatArray,
+    settings: PlanSettings,
+) -> Observability:
+    """The candidates' blocks for the identifiable geometry and the gravity term."""
+    model = KinematicModel.from_description(description)
+    analysis = analyze_model(model, q_rad)
+    tcp, jac = identification_jacobian(model, q_rad)
+    geo = jac[:, :, analysis.free]
+    names = [n for n, f in zip(analysis.parameter_names, analysis.free, strict=True) if f]
+    ctx = EffectContext(description, EffectData(q_rad))
+    specs = loop_effects(ctx, settings.effects)
+    kin = Kinematics(model, q_rad, tcp, jac)
+    effects = regressor_matrix(specs, ctx, slice(0, len(q_rad)), kin)
+    names += [f"{sp.label}: {p}" for sp in specs for p in sp.parameter_names()]
+    full = np.concatenate([geo, effects], axis=2)
+    scale = np.sqrt(np.mean(full**2, axis=(0, 1)))
+    scale[scale == 0] = 1.0
+    scaled = full / scale
+    gram = np.einsum("nip,niq->pq", scaled, scaled)
+    ev, vec = np.linalg.eigh(gram)
+    keep = ev > 1e-8 * ev[-1]
+    basis = vec[:, keep]  # (p, r): directions the candidates observe
+    plain = scaled @ basis
+    dist = np.linalg.norm(
+        reflector_in_base(model, geometry, q_rad)[0] - geometry.station_mm, axis=1
+    )
+    weighted = plain / tracker_sigma_mm(settings, dist)[:, None, None]
+    sd = prior_sd(names, len(geo[0, 0]), specs) * scale  # in scaled units
+    prior = basis.T @ (basis / sd[:, None] ** 2)
+    return Observability(weighted, plain, basis, scale, tuple(names), prior)
+
+
+#: What a user knows of the parameters before measuring (1 σ): a nominal description
+#: is this far from a real arm (lengths, angles), the base guess and the tool this far
+#: from the truth; an effect this large at the TCP (mm: a gravity deflection of a
+#: tenth of a mm, a cyclic error of 30 µm, a tracker scale error of 20 ppm at 3 m).
+PRIOR_LENGTH_MM = 0.5
+PRIOR_ANGLE_DEG = 0.05
+PRIOR_BASE_MM = 50.0
+PRIOR_BASE_DEG = 1.0
+PRIOR_TOOL_MM = 1.0
+PRIOR_EFFECT_MM = {"gravity_deflection": 0.1, "joint_harmonic": 0.03, "instrument_scale": 0.06}
+
+
+def prior_sd(names: list[str], n_geometry: int, specs: list[EffectSpec]) -> FloatArray:
+    """The prior 1 σ ``(p,)`` of the parameters ``names`` (geometry first, in mm or rad;
+    then the effects' parameters, as the TCP effect of a scaled column, mm)."""
+    sd = []
+    for name in names[:n_geometry]:
+        if name.startswith("base."):
+            sd.append(np.radians(PRIOR_BASE_DEG) if name.endswith("_rad") else PRIOR_BASE_MM)
+        elif name.startswith("tool."):
+            sd.append(PRIOR_TOOL_MM)
+        else:
+            sd.append(np.radians(PRIOR_ANGLE_DEG) if name.endswith("_rad") else PRIOR_LENGTH_MM)
+    out = np.array(sd, dtype=float)
+    effect = [PRIOR_EFFECT_MM[sp.kind] for sp in specs for _ in sp.parameter_names()]
+    return np.concatenate([out, np.array(effect, dtype=float)])
+
+
+def loop_effects(ctx: EffectContext, which: tuple[str, ...]) -> list[EffectSpec]:
+    """The closed loop's usual effects a campaign must pin down with the geometry: the
+    gravity deflection (linear form, counterbalance terms included), each joint's
+    cyclic error (orders :data:`~calibration.effects.effect_library.HARMONIC_ORDERS`) and the
+    tracker's scale. Time terms and lost motion depend on the order and the clock, not
+    on the poses chosen, and are left out. ``which``: of "gravity", "harmonic", "scale"."""
+    specs: list[EffectSpec] = []
+    gravity = gravity_candidate(ctx)
+    if gravity is not None and "gravity" in which:
+        specs.append(gravity)
+    for j in range(1, ctx.description.n_joints + 1):
+        if "harmonic" in which:
+            specs += [EffectSpec("joint_harmonic", joint=j, order=k) for k in HARMONIC_ORDERS]
+    if "scale" in which:
+        specs.append(EffectSpec("instrument_scale"))
+    return specs
+
+
+def _i_value(info: FloatArray, w: FloatArray) -> float:
+    return float(np.trace(np.linalg.solve(info, w)))
+
+
+def select_identification(obs: Observability, k: int, settings: PlanSettings) -> Selection:
+    """``k`` identification poses by the settings' criterion (see the module text)."""
+    h = obs.weighted
+    n = h.shape[0]
+    if k > n:
+        raise PlanError(f"--poses {k}: only {n} candidate poses are in view and clear")
+    start = select_poses(h, k, index="O1", exchange_passes=0)
+    chosen = [int(i) for i in start.indices]
+    w = np.einsum("nip,niq->pq", obs.plain, obs.plain) / n
+    taken = h[np.array(chosen)]
+    info = np.einsum("nip,niq->pq", taken, taken) + obs.prior
+    exchanges = 0
+    if settings.criterion == "I":
+        for _ in range(settings.exchange_passes):
+            # each pass looks at the candidates that would help the current set most
+            gains = _i_gains(h, np.linalg.inv(info), w)
+            gains[np.array(chosen)] = -np.inf
+            pool = np.argsort(gains)[::-1][: min(SHORTLIST, n - k)]
+            swaps = 0
+            for pos in range(k):
+                info, swapped = _i_exchange(h, w, chosen, pos, info, pool)
+                swaps += swapped
+            exchanges += swaps
+            if not swaps:
+                break
+    idx = np.array(chosen, dtype=np.intp)
+    s = np.sqrt(np.clip(np.linalg.eigvalsh(info), 0, None))
+    d_index = float(np.exp(np.mean(np.log(s))) / np.sqrt(k))
+    return Selection(idx, settings.criterion, d_index, _i_value(info, w), exchanges)
+
+
+#: Candidates each I-optimal exchange pass considers (those that would lower the
+#: criterion most if added to the current set): 10x fewer evaluations on 5000.
+SHORTLIST = 400
+
+
+def _i_gains(h: FloatArray, a: FloatArray, w: FloatArray) -> FloatArray:
+    """The drop of ``trace(W·A')`` from adding each block of ``h`` ``(N, 3, r)`` to the
+    information ``A⁻¹``: with ``U = H A``, ``trace((I + U Hᵀ)⁻¹ U W Uᵀ)`` (Woodbury)."""
+    u = h @ a
+    s = np.eye(3) + u @ h.transpose(0, 2, 1)
+    t = u @ w @ u.transpose(0, 2, 1)
+    gains: FloatArray = np.trace(np.linalg.solve(s, t), axis1=1, axis2=2)
+    return gains
+
+
+def _i_exchange(
+    h: FloatArray,
+    w: FloatArray,
+    chosen: list[int],
+    pos: int,
+    info: FloatArray,
+    pool: IntArray,
+) -> tuple[FloatArray, int]:
+    """Swap ``chosen[pos]`` for the candidate of ``pool`` that lowers ``trace(W M⁻¹)``
+    most, if that beats keeping it (``chosen`` in place). The new information, 1 if
+    swapped."""
+    out = chosen[pos]
+    minus = info - h[out].T @ h[out]
+    a = np.linalg.inv(minus)
+    gain = _i_gains(h[pool], a, w)
+    gain[np.isin(pool, chosen)] = -np.inf
+    best_at = int(np.argmax(gain))
+    if gain[best_at] > gain_of(h[out], a, w) * (1.0 + 1e-9):
+        best = int(pool[best_at])
+        chosen[pos] = best
+        return minus + h[best].T @ h[best], 1
+    return info, 0
+
+
+def gain_of(hc: FloatArray, a: FloatArray, w: FloatArray) -> float:
+    """The drop of ``trace(W·M⁻¹)`` from adding one block ``hc`` ``(3, r)`` to ``A⁻¹``."""
+    u = hc @ a
+    return float(np.trace(np.linalg.solve(np.eye(3) + u @ hc.T, u @ w @ u.T)))
+
+
+def parameter_sigmas(obs: Observability, indices: IntArray) -> FloatArray:
+    """Predicted 1 σ ``(p,)`` of each parameter (its own units: mm, rad, or a gravity
+    term's) from the chosen poses' information and the prior (the posterior's)."""
+    h = obs.weighted[indices]
+    info = np.einsum("nip,niq->pq", h, h)
+    cov_reduced = np.linalg.inv(info + obs.prior)
+    cov_scaled = obs.to_scaled @ cov_reduced @ obs.to_scaled.T
+    sig: FloatArray = np.sqrt(np.clip(np.diag(cov_scaled), 0, None)) / obs.scale
+    return sig
+
+
+def spread_validation(
+    tcp_mm: FloatArray, k: int, exclude: IntArray, rng: np.random.Generator
+) -> IntArray:
+    """``k`` rows of ``tcp_mm`` ``(N, 3)`` spread over the region (farthest-point
+    sampling from a random start), none of ``exclude``."""
+    pool = np.setdiff1d(np.arange(len(tcp_mm)), exclude)
+    if k > len(pool):
+        raise PlanError(
+            f"--validate {k}: only {len(pool)} candidate poses in view are left for validation"
+        )
+    if k == 0:
+        return np.empty(0, dtype=np.intp)
+    pts = tcp_mm[pool]
+    chosen = [int(rng.integers(len(pool)))]
+    dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)
+    for _ in range(k - 1):
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(pts - pts[nxt], axis=1))
+    out: IntArray = pool[np.array(chosen)]
+    return out
+
+
+def leg_times_s(q_rad: FloatArray, speeds_rad_s: FloatArray) -> FloatArray:
+    """Synchronous PTP times ``(N, N)`` s between joint vectors ``(N, n)``."""
+    d = np.abs(q_rad[:, None, :] - q_rad[None, :, :]) / speeds_rad_s
+    times: FloatArray = d.max(axis=2)
+    return times
+
+
+def tour_time_s(times: FloatArray, tour: IntArray) -> float:
+    """The time of the closed tour ``tour`` (node 0 = Home first, returning to it)."""
+    path = np.append(tour, tour[0])
+    return float(times[path[:-1], path[1:]].sum())
+
+
+def _two_opt(times: FloatArray, tour: IntArray) -> IntArray:
+    """2-opt on a closed tour (node at position 0 fixed) until no reversal shortens it."""
+    t = tour.copy()
+    n = len(t)
+    improved = True
+    while improved:
+        improved = False
+        for i in range(1, n - 1):
+            a, b = t[i - 1], t[i]
+            c = t[i + 1 :]
+            d = np.append(t[i + 2 :], t[0])
+            delta = times[a, c] + times[b, d] - times[a, b] - times[c, d]
+            j = int(np.argmin(delta))
+            if delta[j] < -1e-9:
+                t[i : i + j + 2] = t[i : i + j + 2][::-1]
+                improved = True
+    return t
+
+
+def travel_order(
+    q_rad: FloatArray,
+    home_rad: FloatArray,
+    speeds_rad_s: FloatArray,
+    rng: np.random.Generator,
+) -> TravelOrder:
+    """A short closed tour from Home through every joint vector ``q_rad`` ``(N, n)``:
+    nearest neighbour then 2-opt; the random baseline is the mean of 20 random orders."""
+    nodes = np.vstack([home_rad, q_rad])
+    times = leg_times_s(nodes, speeds_rad_s)
+    n = len(nodes)
+    tour = [0]
+    left = set(range(1, n))
+    while left:
+        rest = np.array(sorted(left))
+        nxt = int(rest[np.argmin(times[tour[-1], rest])])
+        tour.append(nxt)
+        left.remove(nxt)
+    best = _two_opt(times, np.array(tour, dtype=np.intp))
+    randoms = [
+        tour_time_s(times, np.concatenate([[0], 1 + rng.permutation(n - 1)])) for _ in range(20)
+    ]
+    return TravelOrder(
+        order=best[1:] - 1,
+        time_s=tour_time_s(times, best),
+        random_time_s=float(np.mean(randoms)),
+        via_home=np.empty(0, dtype=np.intp),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class CampaignPlan:
+    """A planned campaign: ``q_rad`` ``(N + M, n)`` in travel order, ``is_identify``
+    ``(N + M,)``, and how it was chosen."""
+
+    q_rad: FloatArray
+    is_identify: NDArray[np.bool_]
+    candidates: Candidates
+    selection: Selection
+    travel: TravelOrder
+    parameter_names: tuple[str, ...]
+    parameter_sigma: FloatArray  # (p,) predicted 1 σ, the planned identification set
+    random_parameter_sigma: FloatArray  # (p,) the same for N random candidates
+    random_i_value_mm2: float  # the I criterion of N random candidates
+
+
+def plan_campaign(
+    description: RobotDescription, geometry: CellGeometry, settings: PlanSettings
+) -> CampaignPlan:
+    """The whole plan (module text); the same settings and seed give the same plan."""
+    rng = np.random.default_rng([settings.seed, 30])
+    cands = candidate_poses(description, geometry, settings, rng)
+    if settings.n_identify + settings.n_validate > len(cands.q_rad):
+        raise PlanError(
+            f"--poses {settings.n_identify} + --validate {settings.n_validate}: only "
+            f"{len(cands.q_rad)} candidate poses are in view and clear "
+            f"(of {cands.tried} drawn: {_reasons(cands.dropped)})"
+        )
+    obs = observability(description, geometry, cands.q_rad, settings)
+    sel = select_identification(obs, settings.n_identify, settings)
+    val = spread_validation(cands.tcp_mm, settings.n_validate, sel.indices, rng)
+    rows = np.concatenate([sel.indices, val])
+    model = KinematicModel.from_description(description)
+    home = np.radians(description.home)
+    travel = travel_order(cands.q_rad[rows], home, joint_speeds_rad_s(description), rng)
+    q = cands.q_rad[rows][travel.order]
+    ends = np.vstack([home, q, home])
+    legs = move_collision_codes(model, with_margins(geometry, settings), ends[:-1], ends[1:])
+    travel = TravelOrder(travel.order, travel.time_s, travel.random_time_s, np.flatnonzero(legs))
+    is_id = np.zeros(len(rows), dtype=bool)
+    is_id[: len(sel.indices)] = True
+    random_rows = rng.choice(len(cands.q_rad), settings.n_identify, replace=False)
+    h = obs.weighted[random_rows]
+    info = np.einsum("nip,niq->pq", h, h)
+    w = np.einsum("nip,niq->pq", obs.plain, obs.plain) / len(obs.plain)
+    return CampaignPlan(
+        q_rad=q,
+        is_identify=is_id[travel.order],
+        candidates=cands,
+        selection=sel,
+        travel=travel,
+        parameter_names=obs.names,
+        parameter_sigma=parameter_sigmas(obs, sel.indices),
+        random_parameter_sigma=parameter_sigmas(obs, random_rows),
+        random_i_value_mm2=_i_value(info + obs.prior, w),
+    )
