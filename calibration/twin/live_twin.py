@@ -41,6 +41,7 @@ from calibration.twin.streams import CellStreams, StreamBuilder, pick_streams
 
 if TYPE_CHECKING:
     from calibration.model.description import RobotDescription
+    from calibration.model.kinematics import KinematicModel
     from calibration.scales.scale_files import ScaleCalibration
     from calibration.twin.twin_run import TwinRun
     from daq.bus import Received
@@ -222,17 +223,15 @@ class TwinPredictor:
         self.full_calls = 0
         n = desc.n_joints
         self.frame_names: tuple[str, ...] = ("base", *(f"link{i + 1}" for i in range(n)), "tcp")
-        # the chain as 4x4 matrices, constants once: joint i is Trans_x(a)·Rx(α)Ry(β) ·
-        # Rz(θ + offset)·Trans_z(d), as calibration.model.kinematics walks it
-        md = self.model
-        self._base = np.eye(4)
-        self._base[:3, :3] = md.base_rotation()
-        self._base[:3, 3] = md.base_mm
-        self._link = np.zeros((n, 4, 4))
-        self._link[:, :3, :3] = md.link_constants()
-        self._link[:, 0, 3] = md.a_mm
-        self._link[:, 3, 3] = 1.0
-        self._tool = np.append(md.tool_mm, 1.0)
+        self._calibrated = _ChainConstants.of(self.model)
+        self._chain_of = self._calibrated  # the published geometry (tracked: set_geometry)
+
+    def set_geometry(self, model: KinematicModel) -> None:
+        """Publish ``model``'s geometry from now on (the tracked model: a dwell updated it);
+        the effects' share stays the calibrated description's (linearised against its
+        geometry), as :func:`calibration.twin.tracking.effect_offsets` holds it."""
+        self.model = model
+        self._chain_of = _ChainConstants.of(model)
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -242,12 +241,16 @@ class TwinPredictor:
             "full_predictor_calls": self.full_calls,
         }
 
-    def _chain(self, q_rad: np.ndarray, keep: bool) -> list[np.ndarray]:
+    def _chain(
+        self, q_rad: np.ndarray, keep: bool, consts: _ChainConstants | None = None
+    ) -> list[np.ndarray]:
         """Poses ``(m, 4, 4)`` of the base and of the frame after each joint (``keep``),
-        else of the flange alone; one small matmul per joint and factor."""
+        else of the flange alone; one small matmul per joint and factor (``consts``: the
+        geometry, default the published one)."""
+        k = self._chain_of if consts is None else consts
         q = np.atleast_2d(q_rad)
         m, n = q.shape
-        theta = q + self.model.theta_offset_rad
+        theta = q + k.theta_offset_rad
         c, s_ = np.cos(theta), np.sin(theta)
         z = np.zeros((m, n, 4, 4))  # Rz(θ)·Trans_z(d)
         z[:, :, 0, 0] = c
@@ -255,19 +258,22 @@ class TwinPredictor:
         z[:, :, 1, 0] = s_
         z[:, :, 1, 1] = c
         z[:, :, 2, 2] = 1.0
-        z[:, :, 2, 3] = self.model.d_mm
+        z[:, :, 2, 3] = k.d_mm
         z[:, :, 3, 3] = 1.0
-        t = np.broadcast_to(self._base, (m, 4, 4))
+        t = np.broadcast_to(k.base, (m, 4, 4))
         out = [t] if keep else []
         for i in range(n):
-            t = t @ self._link[i] @ z[:, i]
+            t = t @ k.link[i] @ z[:, i]
             if keep:
                 out.append(t)
         return out if keep else [t]
 
-    def _geometric(self, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        fl = self._chain(q_rad, keep=False)[0]
-        return (fl @ self._tool)[:, :3], fl
+    def _geometric(
+        self, q_rad: np.ndarray, consts: _ChainConstants | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        k = self._chain_of if consts is None else consts
+        fl = self._chain(q_rad, keep=False, consts=k)[0]
+        return (fl @ k.tool)[:, :3], fl
 
     def _full(self, q_rad: np.ndarray, t_s: np.ndarray) -> np.ndarray:
         from calibration.effects.model_effects import predict_tcp
@@ -279,7 +285,7 @@ class TwinPredictor:
         n = len(q0)
         step = self.h * np.eye(n)
         qs = np.vstack([q0, q0 + step, q0 - step])
-        c = self._full(qs, np.full(len(qs), t0)) - self._geometric(qs)[0]
+        c = self._full(qs, np.full(len(qs), t0)) - self._geometric(qs, self._calibrated)[0]
         self._c0 = c[0]
         self._g = (c[1 : n + 1] - c[n + 1 :]) / (2 * self.h)  # (n, 3): dc/dq_j
         self._q0 = q0.copy()
@@ -315,10 +321,34 @@ class TwinPredictor:
         m, k = t.shape[0], t.shape[1] + 1
         pos = np.empty((m, k, 3))
         pos[:, :-1] = t[:, :, :3, 3]
-        pos[:, -1] = (poses[-1] @ self._tool)[:, :3]
+        pos[:, -1] = (poses[-1] @ self._chain_of.tool)[:, :3]
         rot = np.concatenate([t[:, :, :3, :3], t[:, -1:, :3, :3]], axis=1)
         quat = _quaternions(rot.reshape(-1, 3, 3)).reshape(m, k, 4)
         return pos, quat
+
+
+@dataclass(frozen=True)
+class _ChainConstants:
+    """A geometry's chain as 4x4 matrices, built once: joint i is Trans_x(a)·Rx(α)Ry(β) ·
+    Rz(θ + offset)·Trans_z(d), as calibration.model.kinematics walks it."""
+
+    base: np.ndarray  # (4, 4)
+    link: np.ndarray  # (n, 4, 4)
+    tool: np.ndarray  # (4,) homogeneous
+    theta_offset_rad: np.ndarray  # (n,)
+    d_mm: np.ndarray  # (n,)
+
+    @classmethod
+    def of(cls, md: KinematicModel) -> _ChainConstants:
+        base = np.eye(4)
+        base[:3, :3] = md.base_rotation()
+        base[:3, 3] = md.base_mm
+        link = np.zeros((md.n_joints, 4, 4))
+        link[:, :3, :3] = md.link_constants()
+        link[:, 0, 3] = md.a_mm
+        link[:, 3, 3] = 1.0
+        tool = np.append(md.tool_mm, 1.0)
+        return cls(base, link, tool, np.asarray(md.theta_offset_rad), np.asarray(md.d_mm))
 
 
 @dataclass(frozen=True)
