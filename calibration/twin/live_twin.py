@@ -43,6 +43,8 @@ if TYPE_CHECKING:
     from calibration.model.description import RobotDescription
     from calibration.model.kinematics import KinematicModel
     from calibration.scales.scale_files import ScaleCalibration
+    from calibration.twin.live_tracking import LiveTracker, LiveTrackUpdate
+    from calibration.twin.tracking import TrackingSetup
     from calibration.twin.twin_run import TwinRun
     from daq.bus import Received
 
@@ -53,7 +55,12 @@ TWIN_PREFIX = "twin"
 
 def twin_keys(cell: str, robot: str) -> dict[str, str]:
     base = f"{TWIN_PREFIX}/{cell}/robot/{robot}"
-    return {"state": f"{base}/state", "health": f"{base}/health", "frames": f"{base}/frames"}
+    return {
+        "state": f"{base}/state",
+        "health": f"{base}/health",
+        "frames": f"{base}/frames",
+        "tracking": f"{base}/tracking",
+    }
 
 
 def state_schema(key: str, n: int, cell: str, robot: str, model: str) -> Any:
@@ -80,6 +87,45 @@ def state_schema(key: str, n: int, cell: str, robot: str, model: str) -> Any:
             ),
         ),
         {"cell": cell, "robot": robot, "model": model, "source": "twin run"},
+    )
+
+
+#: ``state`` column codes of ``twin/.../tracking`` (the schema's ``meta.states``).
+TRACKING_STATES = ("following", "step", "alarm")
+
+
+def tracking_schema(key: str, names: tuple[str, ...], cell: str, robot: str, model: str) -> Any:
+    """The columns of ``twin/<cell>/robot/<robot>/tracking``: one row per production dwell
+    that updated the tracked model (docs/topics.md, "Twin keys"; ``meta.parameters``: the
+    tracked parameters' model names, ``meta.states``: the ``state`` codes)."""
+    from daq.columnar import Column, StreamSchema
+
+    k = len(names)
+    return StreamSchema(
+        key,
+        (
+            Column("seq", "uint64", (), "", None, "tracking update number"),
+            Column("t_mapped_ns", "int64", (), "ns", "host_utc", "the dwell's tracker samples"),
+            Column("t_publish_ns", "int64", (), "ns", "host_utc", "when published"),
+            Column("point_mm", "float64", (3,), "mm", None, "the dwell's mean tracker point"),
+            Column("predicted_mm", "float64", (3,), "mm", None, "a-priori prediction"),
+            Column("error_mm", "float64", (), "mm", None, "one-step-ahead error"),
+            Column("parameters", "float64", (k,), "", None, "tracked values, model units"),
+            Column("standard_errors", "float64", (k,), "", None, "their standard errors"),
+            Column("lambda", "float64", (), "", None, "forgetting factor"),
+            Column("state", "uint8", (), "", None, "0 following, 1 step, 2 alarm"),
+            Column("displacement_mm", "float64", (), "mm", None, "TCP move, validation poses"),
+            Column("steps", "uint32", (), "", None, "steps detected so far"),
+            Column("alarms", "uint32", (), "", None, "alarms raised so far"),
+        ),
+        {
+            "cell": cell,
+            "robot": robot,
+            "model": model,
+            "source": "twin run",
+            "parameters": list(names),
+            "states": list(TRACKING_STATES),
+        },
     )
 
 
@@ -361,7 +407,9 @@ class LiveSettings:
     that ends the collection; ``collect_s``/``publish_s``: time limits (0: none);
     ``wait_s``: the longest wait for the first grating batch; ``effects_radius_deg``: the
     effects are linearised within this radius (0: the full predictor per batch);
-    ``frames_hz``: the rate of the link frames (0: none)."""
+    ``frames_hz``: the rate of the link frames (0: none); ``tracking``: follow the robot
+    through its production dwells when the model has ``[tracking]`` (docs/tracking.md,
+    "Live")."""
 
     key: str = "cell/**"
     connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
@@ -373,6 +421,7 @@ class LiveSettings:
     wait_s: float = 60.0
     effects_radius_deg: float = 0.25
     frames_hz: float = 30.0
+    tracking: bool = True
 
     @classmethod
     def from_options(cls, args: argparse.Namespace) -> LiveSettings:
@@ -388,6 +437,7 @@ class LiveSettings:
             wait_s=float(getattr(args, "wait_s", 60.0)),
             effects_radius_deg=float(getattr(args, "effects_radius_deg", 0.25)),
             frames_hz=float(getattr(args, "frames_hz", 30.0)),
+            tracking=not getattr(args, "no_tracking", False),
         )
 
     def zenoh_config(self) -> Any:
@@ -538,18 +588,20 @@ class LiveTwin:
                 grating = next((b for b in self.builders.values() if b.kind == "grating"), None)
         return grating
 
-    def _narrow_to(self, grating: StreamBuilder) -> None:
-        """Subscribe to the grating key and the encoders' keys only (not the tracker and
-        whatever else ``--key`` matches): the twin's thread is woken for what it uses."""
+    def _narrow_to(self, grating: StreamBuilder, tracking: bool) -> None:
+        """Subscribe to the grating key and the encoders' keys only (and the tracker's when
+        ``tracking``; not whatever else ``--key`` matches): the twin's thread is woken for
+        what it uses."""
         from calibration.twin.streams import stream_kind
         from daq.bus import Receiver, fetch_schemas
 
+        kinds = ("encoders", "tracker") if tracking else ("encoders",)
         keys = [grating.key]
         for key, schema in sorted(fetch_schemas(self.session, self.args.key).items()):
-            if key != grating.key and stream_kind(c.name for c in schema.columns) == "encoders":
+            if key != grating.key and stream_kind(c.name for c in schema.columns) in kinds:
                 keys.append(key)
         for key, b in sorted(self.builders.items()):
-            if b.kind == "encoders" and key not in keys:
+            if b.kind in kinds and key not in keys:
                 keys.append(key)
         narrow = Receiver(self.session, keys)
         old, self.receiver = self.receiver, narrow
@@ -561,11 +613,17 @@ class LiveTwin:
 
         args, say = self.args, self.say
         grating = self._wait_for_grating()
-        self._narrow_to(grating)
+        setup = self._tracking_setup(twin)
+        self._narrow_to(grating, setup is not None)
         cell = str(grating.meta.get("cell", "cell"))
         robot = str(grating.meta.get("robot", "robot"))
-        out = TwinPublication(self.session, twin, args, cell, robot)
+        out = TwinPublication(self.session, twin, args, cell, robot, setup)
         say(f"publishing the live twin on {out.keys['state']} (health: {out.keys['health']})")
+        if setup is not None:
+            say(
+                f"tracking {', '.join(setup.names)} from the production dwells "
+                f"(on {out.keys['tracking']})"
+            )
         print(json.dumps({"twin": "live", "keys": out.keys}), flush=True)
         # the receiving thread waits for the interpreter at most this long while this
         # one computes (Python's default is 5 ms; the daemon uses the same)
@@ -589,6 +647,27 @@ class LiveTwin:
         out.close()
         say(f"published {out.seq} twin samples")
         return 0
+
+    def _tracking_setup(self, twin: CalibratedTwin) -> TrackingSetup | None:
+        """The tracking setup of the twin's model, or None (one line says why): off by
+        ``--no-tracking``, or the model without ``[tracking]`` or anything to track."""
+        from calibration.errors import TrackingError
+        from calibration.twin.tracking import tracking_setup
+
+        if not self.args.tracking:
+            self.say("tracking off (--no-tracking): the calibrated model is published")
+            return None
+        if twin.description.tracking is None:
+            self.say(
+                "tracking off: the model has no [tracking] table (calibrate it again with "
+                "this version's twin run or twin identify)"
+            )
+            return None
+        try:
+            return tracking_setup(twin.description)
+        except TrackingError as exc:
+            self.say(f"tracking off: the model {exc}")
+            return None
 
     def _drain(self) -> list[Received]:
         """The batches that have arrived (at most ~500; the first waited for at most
@@ -620,6 +699,9 @@ class LiveTwin:
                 recv.append(np.full(len(t_map[-1]), got.t_recv_ns, dtype=np.int64))
             elif b.kind == "encoders":
                 out.encoders(cols["t_mapped_ns"], np.column_stack([cols[c] for c in b.channels]))
+            elif b.kind == "tracker" and out.tracker is not None:
+                xyz = np.column_stack([cols[c] for c in b.channels]).astype(float)
+                out.tracker.add_tracker(cols["t_mapped_ns"], xyz, b.status_of(cols))
         if not counts:
             return None
         return _joined(counts), _joined(t_map), _joined(ok) == 1, _joined(recv)
@@ -643,7 +725,13 @@ class TwinPublication:
     latencies). :meth:`LiveTwin.publish` feeds it."""
 
     def __init__(
-        self, session: Any, twin: CalibratedTwin, settings: LiveSettings, cell: str, robot: str
+        self,
+        session: Any,
+        twin: CalibratedTwin,
+        settings: LiveSettings,
+        cell: str,
+        robot: str,
+        tracking: TrackingSetup | None = None,
     ) -> None:
         from daq.bus import JSON_ENCODING, ChannelPublisher, SchemaServer
 
@@ -663,6 +751,16 @@ class TwinPublication:
         frames = frames_schema(self.keys["frames"], names, cell, robot, twin.name)
         self.frames_pub = ChannelPublisher(session, frames, schemas=self.schemas)
         self.health_pub = session.declare_publisher(self.keys["health"], encoding=JSON_ENCODING)
+        self.tracker: LiveTracker | None = None
+        self.tracking_pub: Any = None
+        self.tracking_seq = 0
+        self.last_tracking: dict[str, Any] = {}
+        if tracking is not None:
+            from calibration.twin.live_tracking import LiveTracker
+
+            self.tracker = LiveTracker(tracking, desc, self.reader.exact, twin.t0_ns)
+            sch = tracking_schema(self.keys["tracking"], tracking.names, cell, robot, twin.name)
+            self.tracking_pub = ChannelPublisher(session, sch, schemas=self.schemas)
         hz = settings.frames_hz
         self.frames_every_ns = int(1e9 / hz) if hz > 0 else None
         self.next_frames_ns = 0
@@ -732,6 +830,45 @@ class TwinPublication:
                 }
             )
             self.frames_seq += 1
+        if self.tracker is not None:  # after the state went out: off the latency path
+            self.tracker.add_gratings(t_map, counts)
+            ups = self.tracker.updates()
+            if ups:
+                self._tracked(ups)
+
+    def _tracked(self, ups: list[LiveTrackUpdate]) -> None:
+        """Dwells updated the tracked model: publish from its geometry from now on (one
+        rebuild of the chain per update, none per batch) and put the updates out."""
+        assert self.tracker is not None and self.tracking_pub is not None
+        self.predictor.set_geometry(self.tracker.geometry)
+        m = len(ups)
+        codes = {s: i for i, s in enumerate(TRACKING_STATES)}
+        self.tracking_pub.publish(
+            {
+                "seq": np.arange(self.tracking_seq, self.tracking_seq + m, dtype=np.uint64),
+                "t_mapped_ns": np.array([u.check.t_ns for u in ups], dtype=np.int64),
+                "t_publish_ns": np.full(m, time.time_ns(), dtype=np.int64),
+                "point_mm": np.array([u.check.point_mm for u in ups]),
+                "predicted_mm": np.array([u.step.predicted_mm for u in ups]),
+                "error_mm": np.array([u.step.error_mm for u in ups]),
+                "parameters": np.array([u.parameters for u in ups]),
+                "standard_errors": np.array([u.standard_errors for u in ups]),
+                "lambda": np.array([u.step.forgetting for u in ups]),
+                "state": np.array([codes[u.step.state] for u in ups], dtype=np.uint8),
+                "displacement_mm": np.array([u.step.displacement_mm for u in ups]),
+                "steps": np.array([u.steps for u in ups], dtype=np.uint32),
+                "alarms": np.array([u.alarms for u in ups], dtype=np.uint32),
+            }
+        )
+        self.tracking_seq += m
+        last = ups[-1]
+        self.last_tracking = {
+            "updates": self.tracking_seq,
+            "state": last.step.state,
+            "error_mm": last.step.error_mm,
+            "steps": last.steps,
+            "alarms": last.alarms,
+        }
 
     def health(self, now_m: float) -> dict[str, Any] | None:
         """Once a second (``now_m``: monotonic s): the health document of the period, put
@@ -757,6 +894,7 @@ class TwinPublication:
             "twin": "publication time minus the twin's receipt (the twin's own share)",
             "clock_settled": settled,
             "model": self.twin.name,
+            "tracking": {"on": self.tracker is not None, **self.last_tracking},
             "effects": self.predictor.describe(),
             "scale_maps": {
                 "linearised_radius_deg": reader.radius_deg,
@@ -772,6 +910,8 @@ class TwinPublication:
     def close(self) -> None:
         self.state_pub.close()
         self.frames_pub.close()
+        if self.tracking_pub is not None:
+            self.tracking_pub.close()
         self.health_pub.undeclare()
         self.schemas.close()
 

@@ -131,3 +131,7 @@ def test_without_dwells_nothing_moves_and_the_tcp_is_the_calibrated_one():
     hidden = LiveTracker(setup, desc, _angles, T0_NS)
     ups = _feed(hidden, c.q_deg[:5], np.full((5, 3), np.nan), c.t_s[:5])
     assert ups == [] and hidden.state.rows == 0
+    # nor one whose point is another target's (200 mm off the TCP: not this robot's step)
+    other = LiveTracker(setup, desc, _angles, T0_NS)
+    ups = _feed(other, c.q_deg[:5], c.xyz_mm[:5] + np.array([200.0, 0.0, 0.0]), c.t_s[:5])
+    assert ups == [] and other.other_targets == 5
