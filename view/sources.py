@@ -30,6 +30,7 @@ from calibration.twin.phase_detection import PhaseOptions, find_phases
 from calibration.twin.streams import CellStreams, stream_kind
 from view.model import TwinModel
 from view.phases import PhaseTimeline
+from view.tracking_panel import TrackingHistory, tracking_text
 
 FloatArray = NDArray[np.float64]
 TRACKER_VALID = 1  # status bit of a tracker channel: the measurement is valid
@@ -66,6 +67,8 @@ class Snapshot:
     #: live: host UTC ns at which the twin published the drawn sample (its
     #: ``t_publish_ns``), None in replay or without a live twin
     published_ns: int | None = None
+    #: live: the twin's tracking as markdown (view.tracking_panel; "" without updates)
+    tracking: str = ""
 
 
 class ReplayClock:
@@ -315,6 +318,7 @@ class LiveSource:
         self._twin_published_ns: int | None = None
         self._tracker_xyz: FloatArray | None = None
         self._health: dict[str, Any] = {}
+        self._tracking = TrackingHistory()
         self._first_t_ns: int | None = None
         self._phase = "waiting for gratings"
         self._poses_t: list[int] = []
@@ -340,6 +344,9 @@ class LiveSource:
             kind = stream_kind(names)
             if got.key.startswith("twin/") and {"q_deg", "tcp_mm"} <= set(names):
                 kind = "twin"
+            elif got.key.startswith("twin/") and {"error_mm", "parameters"} <= set(names):
+                kind = "tracking"
+                cols = [str(p) for p in got.schema.meta.get("parameters", [])]
             cols: list[str] = []
             if kind == "grating":
                 cols = sorted(
@@ -364,6 +371,8 @@ class LiveSource:
                 if "t_publish_ns" in c:
                     self._twin_published_ns = int(c["t_publish_ns"][-1])
                 self._twin.extend(t, np.asarray(c["tcp_mm"], dtype=float))
+            elif kind == "tracking":
+                self._tracking.extend(c, cols)
             elif kind == "grating" and len(cols) == self.twin.n_joints:
                 counts = np.column_stack([c[k] for k in cols])
                 self._grating.extend(t, counts)
@@ -456,6 +465,7 @@ class LiveSource:
             pts = np.array(self._pose_points).reshape(-1, 3)
             twin_pts = np.array(self._pose_twin).reshape(-1, 3)
             first = self._first_t_ns
+            tracking = tracking_text(self._tracking)
         note = ""
         read = self.twin.joint_deg(counts) if q is None and counts is not None else None
         if read is not None:
@@ -482,6 +492,7 @@ class LiveSource:
             latency_ms=latency,
             note=note,
             published_ns=published,
+            tracking=tracking,
         )
 
     def close(self) -> None:
