@@ -342,12 +342,12 @@ class LiveSource:
         if known is None:
             names = list(got.schema.names)
             kind = stream_kind(names)
+            cols: list[str] = []
             if got.key.startswith("twin/") and {"q_deg", "tcp_mm"} <= set(names):
                 kind = "twin"
             elif got.key.startswith("twin/") and {"error_mm", "parameters"} <= set(names):
-                kind = "tracking"
+                kind = "tracking"  # cols: the tracked parameters' names
                 cols = [str(p) for p in got.schema.meta.get("parameters", [])]
-            cols: list[str] = []
             if kind == "grating":
                 cols = sorted(
                     (c for c in names if c.startswith("grating") and c.endswith("_counts")),

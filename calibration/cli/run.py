@@ -95,6 +95,13 @@ def _add_live_options(live: argparse._ArgumentGroup) -> None:
         "docs/tracking.md)",
     )
     live.add_argument(
+        "--alarm-mm",
+        type=number(0.0, above=True),
+        default=None,
+        help="tracking: alarm when the tracked model moves the TCP at the validation poses "
+        "by more than this (mm; default: no alarm)",
+    )
+    live.add_argument(
         "--wait-s",
         type=number(0.0, above=True),
         default=60.0,

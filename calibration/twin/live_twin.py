@@ -409,7 +409,7 @@ class LiveSettings:
     effects are linearised within this radius (0: the full predictor per batch);
     ``frames_hz``: the rate of the link frames (0: none); ``tracking``: follow the robot
     through its production dwells when the model has ``[tracking]`` (docs/tracking.md,
-    "Live")."""
+    "Live"); ``alarm_mm``: its alarm (None: none)."""
 
     key: str = "cell/**"
     connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
@@ -422,6 +422,7 @@ class LiveSettings:
     effects_radius_deg: float = 0.25
     frames_hz: float = 30.0
     tracking: bool = True
+    alarm_mm: float | None = None
 
     @classmethod
     def from_options(cls, args: argparse.Namespace) -> LiveSettings:
@@ -438,6 +439,7 @@ class LiveSettings:
             effects_radius_deg=float(getattr(args, "effects_radius_deg", 0.25)),
             frames_hz=float(getattr(args, "frames_hz", 30.0)),
             tracking=not getattr(args, "no_tracking", False),
+            alarm_mm=getattr(args, "alarm_mm", None),
         )
 
     def zenoh_config(self) -> Any:
@@ -652,7 +654,7 @@ class LiveTwin:
         """The tracking setup of the twin's model, or None (one line says why): off by
         ``--no-tracking``, or the model without ``[tracking]`` or anything to track."""
         from calibration.errors import TrackingError
-        from calibration.twin.tracking import tracking_setup
+        from calibration.twin.tracking import TrackingSettings, tracking_setup
 
         if not self.args.tracking:
             self.say("tracking off (--no-tracking): the calibrated model is published")
@@ -664,7 +666,9 @@ class LiveTwin:
             )
             return None
         try:
-            return tracking_setup(twin.description)
+            return tracking_setup(
+                twin.description, settings=TrackingSettings(alarm_mm=self.args.alarm_mm)
+            )
         except TrackingError as exc:
             self.say(f"tracking off: the model {exc}")
             return None
