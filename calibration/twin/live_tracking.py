@@ -183,18 +183,20 @@ class LiveTracker:
         tracker = _stream("tracker", p_t, p_v, p_s)
         out: list[LiveTrackUpdate] = []
         used = -1  # the last grating sample of the last dwell dealt with
+        waiting = None  # the first sample of a dwell over but waiting for the tracker
         for d in dwells:
             if d.i1 >= len(g_t) - 1:
                 break  # still dwelling (or the newest samples): not over yet
             waited = self._newest_g - d.t1_ns >= opts.tracker_wait_s * 1e9
             if self._newest_p < d.t1_ns and not waited:
+                waiting = d.i0
                 break  # the tracker's samples of its end have not arrived yet
             used = d.i1
             if d.duration_s >= opts.min_dwell_s:
                 up = self._update(d, grating, tracker)
                 if up is not None:
                     out.append(up)
-        self._trim(g_t, g_c, used)
+        self._trim(g_t, g_c, used, waiting)
         return out
 
     def _update(self, dwell: Dwell, grating: Stream, tracker: Stream) -> LiveTrackUpdate | None:
@@ -229,9 +231,21 @@ class LiveTracker:
         self._p_t, self._p_v, self._p_s = [t], [v], [s]
         return t, v, s
 
-    def _trim(self, g_t: IntArray, g_c: IntArray, used: int) -> None:
-        """Drop the samples up to the last dwell dealt with, and any older than ``keep_s``."""
+    def _trim(self, g_t: IntArray, g_c: IntArray, used: int, waiting: int | None) -> None:
+        """Drop the samples up to the last dwell dealt with, those that can never be part
+        of a dwell (before the trailing still run; all of it but its last sample when it
+        spans more than a dwell may: the robot creeping), and any older than ``keep_s``;
+        never a dwell waiting for the tracker (from ``waiting`` on)."""
         keep_from = used + 1
+        if waiting is None and len(g_c) - keep_from > 1:
+            ph = self.options.phases
+            rest = g_c[keep_from:]
+            moved = np.flatnonzero(np.abs(np.diff(rest, axis=0)).max(axis=1) > ph.still_counts)
+            run0 = int(moved[-1]) + 1 if moved.size else 0
+            run = rest[run0:]
+            if int((run.max(axis=0) - run.min(axis=0)).max()) > ph.span_counts:
+                run0 = len(rest) - 1
+            keep_from += run0
         if len(g_t):
             oldest = int(g_t[-1]) - int(self.options.keep_s * 1e9)
             keep_from = max(keep_from, int(np.searchsorted(g_t, oldest)))
