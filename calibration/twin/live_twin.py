@@ -20,6 +20,12 @@ carries the end-to-end latency: publication time minus the grating sample's mapp
 (all samples, with ``clock_settled: false``, while none has).
 The batches that arrived together are evaluated in one vectorized call (one TCP, flange
 and scale evaluation per drain, not per 1 ms batch), and published as one batch.
+
+When the model carries ``[tracking]`` (and not ``--no-tracking``) the twin follows the
+robot: the tracker stream is subscribed too, each production dwell with the reflector on
+the TCP updates the tracked model (:mod:`calibration.twin.live_tracking`), the state is
+published from the tracked geometry from then on, and each update is a row on
+``twin/<cell>/robot/<robot>/tracking`` (docs/tracking.md, "Live").
 """
 
 from __future__ import annotations
@@ -898,7 +904,7 @@ class TwinPublication:
             "twin": "publication time minus the twin's receipt (the twin's own share)",
             "clock_settled": settled,
             "model": self.twin.name,
-            "tracking": {"on": self.tracker is not None, **self.last_tracking},
+            "tracking": self._tracking_health(),
             "effects": self.predictor.describe(),
             "scale_maps": {
                 "linearised_radius_deg": reader.radius_deg,
@@ -910,6 +916,13 @@ class TwinPublication:
         self.period_start, self.samples_period = now_m, 0
         self.lat, self.lat_all, self.upstream, self.own = [], [], [], []
         return doc
+
+    def _tracking_health(self) -> dict[str, Any]:
+        """The health document's ``tracking``: on or off, the dwells skipped as another
+        target's, and the latest update's state (docs/topics.md)."""
+        if self.tracker is None:
+            return {"on": False}
+        return {"on": True, "other_targets": self.tracker.other_targets, **self.last_tracking}
 
     def close(self) -> None:
         self.state_pub.close()
