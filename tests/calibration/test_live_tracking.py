@@ -71,7 +71,7 @@ def _scenario(seed: int, drift: CellDrift, hours: float):
     return checks, desc
 
 
-@pytest.mark.parametrize("seed", [3, 7])
+@pytest.mark.parametrize("seed", [3, 7, 11, 12])
 def test_the_live_tracker_follows_drift_and_a_step_and_its_tcp_the_truth(seed):
     checks, desc = _scenario(seed, DRIFT, 6.0)
     c = checks.checks
@@ -88,7 +88,7 @@ def test_the_live_tracker_follows_drift_and_a_step_and_its_tcp_the_truth(seed):
     off = effect_offsets(desc, q, c.t_s)
     offline = track_checks(setup, q, c.xyz_mm, off)
     static = static_errors_mm(setup, q, c.xyz_mm, off)
-    assert np.max(np.abs(err - offline.error_mm)) < 2e-3
+    assert np.max(np.abs(err - offline.error_mm)) < 1e-3
     assert err.mean() <= 0.5 * static.mean()
     # the step: reported once, within 5 checks of the emulator's (hidden) time
     step_row = int(np.searchsorted(c.t_s, checks.draws.step_times_s["tool_remount"]))
@@ -106,7 +106,7 @@ def test_the_live_tracker_follows_drift_and_a_step_and_its_tcp_the_truth(seed):
     tr_tcp, _ = tracked.tcp_and_flange(q[last], t_last)
     cal_err = np.linalg.norm(cal_tcp - checks.true_mm[last], axis=1).mean()
     tr_err = np.linalg.norm(tr_tcp - checks.true_mm[last], axis=1).mean()
-    assert tr_err < 0.5 * cal_err, (tr_err, cal_err)
+    assert tr_err < 0.2 * cal_err, (tr_err, cal_err)
 
 
 def test_without_dwells_nothing_moves_and_the_tcp_is_the_calibrated_one():
