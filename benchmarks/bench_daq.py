@@ -758,7 +758,11 @@ def _twin_cell_config(port: int) -> str:
 
 
 def twin_round(
-    seconds: float, radius_deg: float, warmup_s: float = 8.0, tree: str | None = None
+    seconds: float,
+    radius_deg: float,
+    warmup_s: float = 8.0,
+    tree: str | None = None,
+    tracking: bool = True,
 ) -> dict[str, Any]:
     """``daq run`` (a fake six-joint grating box at 1 kHz, in the daemon's process) → the
     live twin (``twin run --from``, a client of the daemon, ``--effects-radius-deg``) →
@@ -766,7 +770,11 @@ def twin_round(
     latency and the twin's, in the same seconds, plus the twin's CPU and the host's
     steal. ``radius_deg = 0``: the full effect predictor per batch. ``tree``: run the
     twin of another checkout of this repository (e.g. a worktree of an older commit;
-    ``radius_deg`` is then not passed: the twin as that commit had it)."""
+    ``radius_deg`` is then not passed: the twin as that commit had it). ``tracking``
+    False: ``--no-tracking`` (the calibration carries ``[tracking]``, so the twin follows
+    the robot by default: the tracker stream subscribed, the grating samples kept and
+    searched for dwells; the fake box moves steadily and has no tracker, so no dwell
+    updates the model here: what is measured is the per-batch cost of following)."""
     port = _free_port()
     span = warmup_s + seconds
     with tempfile.TemporaryDirectory() as tmp:
@@ -786,6 +794,7 @@ def twin_round(
                    "--publish-s", str(span + 10), "--quiet"]  # fmt: skip
             if tree is None:
                 cmd += ["--effects-radius-deg", str(radius_deg)]
+                cmd += [] if tracking else ["--no-tracking"]
             env = dict(os.environ)
             if tree is not None:
                 env["PYTHONPATH"] = str(Path(tree).resolve())
@@ -818,6 +827,7 @@ def twin_round(
     res.update(
         radius_deg=radius_deg,
         tree=tree,
+        tracking=tracking,
         twin_cpu_fraction=(c1 - c0) / (t1 - t0),
         host_steal_cores=(s1 - s0) / (t1 - t0),
         host_wakeup_late_ms=probe.summary(t1 - t0),
@@ -826,19 +836,25 @@ def twin_round(
 
 
 def twin_hop(seconds: float, rounds: int = 2, ref_tree: str | None = None) -> dict[str, Any]:
-    """Alternating rounds: the twin as it is (``--effects-radius-deg 0.25``) and the
-    reference, the same twin with the full effect predictor per batch (radius 0: the
-    twin's work per batch before), and with ``ref_tree`` the twin of that checkout; each
-    beside the daemon's own latency of that round."""
+    """Alternating rounds: the twin as it is (``--effects-radius-deg 0.25``, tracking on),
+    the same twin with ``--no-tracking``, and the reference, the same twin with the full
+    effect predictor per batch (radius 0: the twin's work per batch before), and with
+    ``ref_tree`` the twin of that checkout; each beside the daemon's own latency of that
+    round."""
     out: dict[str, Any] = {"rounds": []}
-    kinds = [("twin", 0.25, None), ("reference_full_predictor", 0.0, None)]
+    kinds = [
+        ("twin", 0.25, None, True),
+        ("twin_no_tracking", 0.25, None, False),
+        ("reference_full_predictor", 0.0, None, True),
+    ]
     if ref_tree is not None:
-        kinds.append(("reference_tree", -1.0, ref_tree))
+        kinds.append(("reference_tree", -1.0, ref_tree, True))
     for _ in range(rounds):
-        for _, radius, tree in kinds:
-            out["rounds"].append(twin_round(seconds, radius, tree=tree))
-    for name, radius, _ in kinds:
-        rs = [r for r in out["rounds"] if r["radius_deg"] == radius and r["twin_out"]]
+        for name, radius, tree, tracking in kinds:
+            res = twin_round(seconds, radius, tree=tree, tracking=tracking)
+            out["rounds"].append({**res, "kind": name})
+    for name, *_ in kinds:
+        rs = [r for r in out["rounds"] if r["kind"] == name and r["twin_out"]]
         if not rs:
             continue
         out[name] = {
@@ -1005,8 +1021,9 @@ def main(argv: list[str] | None = None) -> int:
         "--twin",
         type=float,
         metavar="S",
-        help="only the live twin's hop: alternating S-second rounds of the twin and of the "
-        "twin with the full effect predictor per batch, each beside the daemon's latency",
+        help="only the live twin's hop: alternating S-second rounds of the twin, of the twin "
+        "with --no-tracking and of the twin with the full effect predictor per batch, each "
+        "beside the daemon's latency",
     )
     ap.add_argument("--rounds", type=int, default=2, help="--twin: rounds of each (2)")
     ap.add_argument(

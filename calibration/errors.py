@@ -124,5 +124,13 @@ class LiveTwinError(CalibrationError, DeviceError):
     """The live twin cannot start (no grating stream where it was told to look)."""
 
 
-class TrackingError(CalibrationError, ValueError):
+class TrackingError(CalibrationError, InputDataError, ValueError):
     """``twin track``: a model or check that cannot be tracked."""
+
+
+class PlanError(CalibrationError, ConfigurationError, ValueError):
+    """``twin plan``: a campaign that cannot be planned in this cell (region, view, counts)."""
+
+
+class ProgramError(CalibrationError, ConfigurationError, ValueError):
+    """A robot program that cannot be written or read back (controller conventions)."""

@@ -25,16 +25,12 @@ from collections.abc import Callable
 from typing import Any
 
 from daq.config import DaqConfig, DeviceConfig
-from daq.errors import DaqError
+from daq.errors import DeviceAbsentError
 
 #: the longest an absent device is tried at start without ``wait_for_device_s`` (s)
 START_CHECK_S = 3.0
 #: while waiting for a device, one line per this many seconds (s)
 WAIT_REPORT_S = 10.0
-
-
-class DeviceAbsentError(DaqError):
-    """A configured device could not be opened at start (the message names it)."""
 
 
 def _say(line: str) -> None:

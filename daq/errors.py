@@ -34,3 +34,7 @@ class PublishError(TransportError):
         super().__init__(f"put failed: {cause!r}")
         self.payloads = payloads
         self.cause = cause
+
+
+class DeviceAbsentError(DaqError, DeviceError):
+    """A configured device could not be opened at start (the message names it)."""

@@ -25,6 +25,9 @@ POSE_IN_FRAME = "foxglove.PoseInFrame"
 FRAME_TRANSFORM = "foxglove.FrameTransform"
 #: our own schema of the joint channels (``<key>/joints``)
 JOINTS = "grating_twin.Joints"
+#: our own schema of the live twin's tracking channel (``<twin key>/tracking/values``):
+#: the same layout (groups of named numbers), other groups
+TRACKING = "grating_twin.Tracking"
 FLOAT64 = 8  # foxglove.NumericType
 
 _TIME = {
@@ -115,9 +118,12 @@ SCHEMAS[FRAME_TRANSFORM] = {
 }
 
 
-def joints_schema(groups: dict[str, tuple[list[str], str]], description: str) -> dict[str, Any]:
+def joints_schema(
+    groups: dict[str, tuple[list[str], str]], description: str, title: str = JOINTS
+) -> dict[str, Any]:
     """Our JSON schema of a joint channel: ``timestamp`` and, per group (``counts``,
-    ``deg``, ``grating_deg`` …), an object of named joints ``j1`` … ``jN`` with a unit."""
+    ``deg``, ``grating_deg`` …), an object of named joints ``j1`` … ``jN`` with a unit
+    (``title`` :data:`TRACKING`: the tracking channel's groups of named numbers)."""
     props: dict[str, Any] = {"timestamp": _TIME}
     for group, (names, unit) in groups.items():
         props[group] = {
@@ -129,7 +135,7 @@ def joints_schema(groups: dict[str, tuple[list[str], str]], description: str) ->
         }
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "title": JOINTS,
+        "title": title,
         "description": description,
         "type": "object",
         "properties": props,

@@ -12,7 +12,10 @@ Per stream, by its columns (so the same code serves the daemon, its workers' str
   (``grating_deg``, ``encoder_deg``, ``encoder_minus_grating_deg``) and ``<key>/tcp``,
   ``foxglove.PoseInFrame``;
 * the twin's frames (``frame_mm``, ``frame_quat``): ``<key>/tf``,
-  ``foxglove.FrameTransform``, one message per link frame.
+  ``foxglove.FrameTransform``, one message per link frame;
+* the twin's tracking (``parameters``, ``standard_errors``, ``error_mm``, ``state``):
+  ``<key>/values``, schema ``grating_twin.Tracking`` (groups ``parameters``,
+  ``standard_errors`` by parameter name, ``tracking``: error, λ, state code, steps, alarms).
 
 **Bounded rate.** A stream's viewer messages are written at most ``rate_hz`` times a
 second (``[recording] viewer_rate_hz``, 30): the newest sample's joints, TCP and
@@ -37,6 +40,15 @@ from edges.channel_names import counts_joint
 #: default of ``[recording] viewer_rate_hz``
 VIEWER_RATE_HZ = 30.0
 KIND_FOXGLOVE = "foxglove"  # MCAP channel metadata ``daq.kind`` (daq.recording)
+#: the live twin's tracking columns in its viewer channel's ``tracking`` group
+TRACKING_FIELDS = (
+    "error_mm",
+    "lambda",
+    "displacement_mm",
+    "state",
+    "steps",
+    "alarms",
+)
 
 
 def _joint_names(schema: StreamSchema, columns: list[str]) -> list[str]:
@@ -107,6 +119,8 @@ class StreamViewer:
             self._add_twin_state(names, meta)
         elif {"frame_mm", "frame_quat"} <= set(names):  # the live twin's link frames
             self._add_twin_frames(meta)
+        elif {"parameters", "standard_errors", "error_mm", "state"} <= set(names):
+            self._add_twin_tracking(meta)
         elif counts:  # gratings, encoders: raw counts per named joint
             self._add_counts(counts, meta)
         xyz = foxglove.xyz_columns(names)
@@ -151,6 +165,25 @@ class StreamViewer:
                 meta,
             )
             self._tf = (cid, frames, parents)
+
+    def _add_twin_tracking(self, meta: dict[str, str]) -> None:
+        """The live twin's tracking updates: the tracked parameters, their standard errors
+        and the one-step-ahead error, λ, state code, steps and alarms (plottable)."""
+        params = [str(p) for p in self.schema.meta.get("parameters", [])]
+        states = ", ".join(f"{i} {s}" for i, s in enumerate(self.schema.meta.get("states", [])))
+        groups = {
+            "parameters": (params, "tracked values, model units"),
+            "standard_errors": (params, "their standard errors"),
+            "tracking": (list(TRACKING_FIELDS), f"mm, λ, state code ({states}), counts"),
+        }
+        cid = self.rec.add_json(
+            f"{self.key}/values",
+            foxglove.TRACKING,
+            foxglove.joints_schema(groups, f"tracking of {self.key}", foxglove.TRACKING),
+            meta,
+        )
+        spec = [("parameters", "", params), ("standard_errors", "", params)]
+        self._joints = (cid, [*spec, ("tracking", "", list(TRACKING_FIELDS))])
 
     def _add_counts(self, counts: list[str], meta: dict[str, str]) -> None:
         """A device's raw counts per named joint."""
@@ -216,6 +249,8 @@ class StreamViewer:
                     values = np.array([cols[c][-1] for c in self._counts_columns], np.int64)
                 elif group == "encoder_deg":
                     values = cols["q_deg"][-1] + cols["encoder_minus_grating_deg"][-1]
+                elif group == "tracking":
+                    values = np.array([float(cols[c][-1]) for c in TRACKING_FIELDS])
                 else:
                     values = np.asarray(cols[column or group][-1], dtype=float)
                 groups[group] = (names, values)

@@ -18,6 +18,7 @@ SIGINT stop it, exit 0.
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import fcntl
 import json
@@ -145,7 +146,7 @@ class LogFilter:
         ours.close()
 
 
-def main_router(args: Any) -> int:
+def main_router(args: argparse.Namespace) -> int:
     """``daq router``: serve until SIGTERM/SIGINT; exit 0."""
     conf = load_router_config(args.config)
     acl = bool(_get(conf, "access_control/enabled"))

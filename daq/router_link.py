@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import zenoh
 
 log = logging.getLogger(__name__)
 
@@ -20,7 +23,7 @@ class RouterLink:
     """``up``: the session had at least one router at the last look; ``changes``: how
     often that flipped (each logged)."""
 
-    def __init__(self, session: Any, period_s: float = 0.01) -> None:
+    def __init__(self, session: zenoh.Session, period_s: float = 0.01) -> None:
         self._session = session
         self._period_s = period_s
         self.up = self._look()

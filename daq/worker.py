@@ -52,6 +52,7 @@ from daq.config import (
 )
 from daq.device_recording import DeviceRecording
 from daq.errors import DaqError
+from daq.router_link import RouterLink
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +172,7 @@ class DeviceWorker:
         utc_offset_ns: int,
         *,
         recording: DeviceRecording | None = None,
-        router_link: Any = None,
+        router_link: RouterLink | None = None,
     ) -> None:
         self.dev = dev
         #: data messages recorded while the daemon had no router (``RouterLink``)

@@ -191,6 +191,7 @@ class TwinView:
         self._status = g.add_markdown("starting")
         self._phase = g.add_markdown("")
         self._numbers = g.add_markdown("")
+        self._tracking = g.add_markdown("")
         mag = g.add_button_group("error vectors ×", MAGNIFICATIONS)
 
         @mag.on_click
@@ -326,6 +327,8 @@ class TwinView:
             view += f", drawn sample {self.stats.age_ms_p50:.1f} ms after the twin sent it"
         rows.append(view + ")")
         self._numbers.content = "  \n".join(rows)
+        if snap.tracking != self._tracking.content:
+            self._tracking.content = snap.tracking
 
     def run(self, duration_s: float | None = None) -> FrameStats:
         """Update the page at ``fps`` until :meth:`stop` (or ``duration_s``); the stats."""

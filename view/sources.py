@@ -31,6 +31,7 @@ from calibration.twin.streams import CellStreams, stream_kind
 from edges.channel_names import GRATING, joint_columns
 from view.model import TwinModel
 from view.phases import PhaseTimeline
+from view.tracking_panel import TrackingHistory, tracking_text
 
 if TYPE_CHECKING:
     import zenoh
@@ -72,6 +73,8 @@ class Snapshot:
     #: live: host UTC ns at which the twin published the drawn sample (its
     #: ``t_publish_ns``), None in replay or without a live twin
     published_ns: int | None = None
+    #: live: the twin's tracking as markdown (view.tracking_panel; "" without updates)
+    tracking: str = ""
 
 
 class ReplayClock:
@@ -321,6 +324,7 @@ class LiveSource:
         self._twin_published_ns: int | None = None
         self._tracker_xyz: FloatArray | None = None
         self._health: dict[str, Any] = {}
+        self._tracking = TrackingHistory()
         self._first_t_ns: int | None = None
         self._phase = "waiting for gratings"
         self._poses_t: list[int] = []
@@ -344,9 +348,12 @@ class LiveSource:
         if known is None:
             names = list(got.schema.names)
             kind = stream_kind(names)
+            cols: list[str] = []
             if got.key.startswith("twin/") and {"q_deg", "tcp_mm"} <= set(names):
                 kind = "twin"
-            cols: list[str] = []
+            elif got.key.startswith("twin/") and {"error_mm", "parameters"} <= set(names):
+                kind = "tracking"  # cols: the tracked parameters' names
+                cols = [str(p) for p in got.schema.meta.get("parameters", [])]
             if kind == "grating":
                 cols = joint_columns(names, GRATING)
             known = self._kinds[got.key] = (kind, cols)
@@ -367,6 +374,8 @@ class LiveSource:
                 if "t_publish_ns" in c:
                     self._twin_published_ns = int(c["t_publish_ns"][-1])
                 self._twin.extend(t, np.asarray(c["tcp_mm"], dtype=float))
+            elif kind == "tracking":
+                self._tracking.extend(c, cols)
             elif kind == "grating" and len(cols) == self.twin.n_joints:
                 counts = np.column_stack([c[k] for k in cols])
                 self._grating.extend(t, counts)
@@ -459,6 +468,7 @@ class LiveSource:
             pts = np.array(self._pose_points).reshape(-1, 3)
             twin_pts = np.array(self._pose_twin).reshape(-1, 3)
             first = self._first_t_ns
+            tracking = tracking_text(self._tracking)
         note = ""
         read = self.twin.joint_deg(counts) if q is None and counts is not None else None
         if read is not None:
@@ -485,6 +495,7 @@ class LiveSource:
             latency_ms=latency,
             note=note,
             published_ns=published,
+            tracking=tracking,
         )
 
     def close(self) -> None:

@@ -87,7 +87,7 @@ def run_plan(args: argparse.Namespace) -> int:
     files: each is one line of staging)."""
     from dataclasses import replace
 
-    from calibration.errors import OutputFileError
+    from calibration.errors import OutputFileError, PlanError
     from calibration.model.cell_geometry import (
         EMULATOR_TABLES,
         CellGeometrySpec,
@@ -96,7 +96,7 @@ def run_plan(args: argparse.Namespace) -> int:
         resolve,
     )
     from calibration.model.description import load_robot
-    from calibration.plan.campaign_plan import PlanError, PlanSettings, plan_campaign
+    from calibration.plan.campaign_plan import PlanSettings, plan_campaign
     from calibration.plan.plan_report import plan_report
     from calibration.plan.robot_programs import ProgramSettings, krl_program, rapid_module
     from edges.toml_schema import parse_toml_file

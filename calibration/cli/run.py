@@ -95,6 +95,20 @@ def _add_live_options(live: argparse._ArgumentGroup) -> None:
         help="publish the link frames (twin/.../frames) at most this often (30; 0: never)",
     )
     live.add_argument(
+        "--no-tracking",
+        action="store_true",
+        help="publish the calibrated model as it is: do not follow the robot through its "
+        "production dwells (default: follow it when the model has [tracking]; "
+        "docs/tracking.md)",
+    )
+    live.add_argument(
+        "--alarm-mm",
+        type=number(0.0, above=True),
+        default=None,
+        help="tracking: alarm when the tracked model moves the TCP at the validation poses "
+        "by more than this (mm; default: no alarm)",
+    )
+    live.add_argument(
         "--wait-s",
         type=number(0.0, above=True),
         default=60.0,

@@ -19,6 +19,7 @@ from calibration.identify.identifiability import (
 from calibration.model.kinematics import (
     KinematicModel,
 )
+from edges.errors import NumericalError
 
 FloatArray = NDArray[np.float64]
 
@@ -34,7 +35,7 @@ COLLAPSED = NO_EFFECT + " during the iterations"
 RAN_AWAY = "ran away during the iterations"
 
 
-class RunAway(Exception):
+class RunAway(NumericalError):
     """Raised by :class:`RunawayWatch`: free parameters (full-vector index -> reason) to drop."""
 
     def __init__(self, reasons: dict[int, str]) -> None:

@@ -48,7 +48,7 @@ from calibration.effects.effect_library import (
     gravity_candidate,
     regressor_matrix,
 )
-from calibration.errors import CalibrationError
+from calibration.errors import PlanError
 from calibration.identify.identifiability import analyze_model
 from calibration.identify.pose_selection import select_poses
 from calibration.model.cell_geometry import (
@@ -70,10 +70,6 @@ from calibration.model.kinematics import (
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
-
-
-class PlanError(CalibrationError, ValueError):
-    """A campaign that cannot be planned (region, view, counts)."""
 
 
 @dataclass(frozen=True)

@@ -25,17 +25,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.errors import CalibrationError
+from calibration.errors import ProgramError
 from calibration.model.description import RobotDescription
 
 FloatArray = NDArray[np.float64]
 
 #: Decimals of every joint angle written (deg): 1e-5° moves a 3 m arm's TCP 0.5 µm.
 DECIMALS = 5
-
-
-class ProgramError(CalibrationError, ValueError):
-    """A robot program that cannot be written or read back."""
 
 
 @dataclass(frozen=True)

@@ -16,12 +16,13 @@ from calibration.scales.relation_to_points import RelationToPoints, StopPoints
 from calibration.scales.scale_relation import RelationBasis
 from calibration.scales.target_set_fit import TargetSetFit, crb_covariance_targets
 from calibration.scales.whitened_gls import GlsFit, Whitener, gls_fit, whitened, worst_residual
+from edges.errors import NumericalError
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
-class NoJointFit(Exception):
+class NoJointFit(NumericalError):
     """The relation's fit to the points did not converge (the caller falls back)."""
 
 

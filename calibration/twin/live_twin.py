@@ -20,6 +20,12 @@ carries the end-to-end latency: publication time minus the grating sample's mapp
 (all samples, with ``clock_settled: false``, while none has).
 The batches that arrived together are evaluated in one vectorized call (one TCP, flange
 and scale evaluation per drain, not per 1 ms batch), and published as one batch.
+
+When the model carries ``[tracking]`` (and not ``--no-tracking``) the twin follows the
+robot: the tracker stream is subscribed too, each production dwell with the reflector on
+the TCP updates the tracked model (:mod:`calibration.twin.live_tracking`), the state is
+published from the tracked geometry from then on, and each update is a row on
+``twin/<cell>/robot/<robot>/tracking`` (docs/tracking.md, "Live").
 """
 
 from __future__ import annotations
@@ -41,9 +47,13 @@ from calibration.twin.streams import CellStreams, StreamBuilder, pick_streams
 
 if TYPE_CHECKING:
     from calibration.model.description import RobotDescription
+    from calibration.model.kinematics import KinematicModel
     from calibration.scales.scale_files import ScaleCalibration
+    from calibration.twin.live_tracking import LiveTracker, LiveTrackUpdate
+    from calibration.twin.tracking import TrackingSetup
     from calibration.twin.twin_run import TwinRun
     from daq.bus import Received
+    from daq.columnar import StreamSchema
 
 FloatArray = NDArray[np.float64]
 
@@ -52,7 +62,12 @@ TWIN_PREFIX = "twin"
 
 def twin_keys(cell: str, robot: str) -> dict[str, str]:
     base = f"{TWIN_PREFIX}/{cell}/robot/{robot}"
-    return {"state": f"{base}/state", "health": f"{base}/health", "frames": f"{base}/frames"}
+    return {
+        "state": f"{base}/state",
+        "health": f"{base}/health",
+        "frames": f"{base}/frames",
+        "tracking": f"{base}/tracking",
+    }
 
 
 def state_schema(key: str, n: int, cell: str, robot: str, model: str) -> Any:
@@ -79,6 +94,47 @@ def state_schema(key: str, n: int, cell: str, robot: str, model: str) -> Any:
             ),
         ),
         {"cell": cell, "robot": robot, "model": model, "source": "twin run"},
+    )
+
+
+#: ``state`` column codes of ``twin/.../tracking`` (the schema's ``meta.states``).
+TRACKING_STATES = ("following", "step", "alarm")
+
+
+def tracking_schema(
+    key: str, names: tuple[str, ...], cell: str, robot: str, model: str
+) -> StreamSchema:
+    """The columns of ``twin/<cell>/robot/<robot>/tracking``: one row per production dwell
+    that updated the tracked model (docs/topics.md, "Twin keys"; ``meta.parameters``: the
+    tracked parameters' model names, ``meta.states``: the ``state`` codes)."""
+    from daq.columnar import Column, StreamSchema
+
+    k = len(names)
+    return StreamSchema(
+        key,
+        (
+            Column("seq", "uint64", (), "", None, "tracking update number"),
+            Column("t_mapped_ns", "int64", (), "ns", "host_utc", "the dwell's tracker samples"),
+            Column("t_publish_ns", "int64", (), "ns", "host_utc", "when published"),
+            Column("point_mm", "float64", (3,), "mm", None, "the dwell's mean tracker point"),
+            Column("predicted_mm", "float64", (3,), "mm", None, "a-priori prediction"),
+            Column("error_mm", "float64", (), "mm", None, "one-step-ahead error"),
+            Column("parameters", "float64", (k,), "", None, "tracked values, model units"),
+            Column("standard_errors", "float64", (k,), "", None, "their standard errors"),
+            Column("lambda", "float64", (), "", None, "forgetting factor"),
+            Column("state", "uint8", (), "", None, "0 following, 1 step, 2 alarm"),
+            Column("displacement_mm", "float64", (), "mm", None, "TCP move, validation poses"),
+            Column("steps", "uint32", (), "", None, "steps detected so far"),
+            Column("alarms", "uint32", (), "", None, "alarms raised so far"),
+        ),
+        {
+            "cell": cell,
+            "robot": robot,
+            "model": model,
+            "source": "twin run",
+            "parameters": list(names),
+            "states": list(TRACKING_STATES),
+        },
     )
 
 
@@ -227,17 +283,15 @@ class TwinPredictor:
         self.full_calls = 0
         n = desc.n_joints
         self.frame_names: tuple[str, ...] = ("base", *(f"link{i + 1}" for i in range(n)), "tcp")
-        # the chain as 4x4 matrices, constants once: joint i is Trans_x(a)·Rx(α)Ry(β) ·
-        # Rz(θ + offset)·Trans_z(d), as calibration.model.kinematics walks it
-        md = self.model
-        self._base = np.eye(4)
-        self._base[:3, :3] = md.base_rotation()
-        self._base[:3, 3] = md.base_mm
-        self._link = np.zeros((n, 4, 4))
-        self._link[:, :3, :3] = md.link_constants()
-        self._link[:, 0, 3] = md.a_mm
-        self._link[:, 3, 3] = 1.0
-        self._tool = np.append(md.tool_mm, 1.0)
+        self._calibrated = _ChainConstants.of(self.model)
+        self._chain_of = self._calibrated  # the published geometry (tracked: set_geometry)
+
+    def set_geometry(self, model: KinematicModel) -> None:
+        """Publish ``model``'s geometry from now on (the tracked model: a dwell updated it);
+        the effects' share stays the calibrated description's (linearised against its
+        geometry), as :func:`calibration.twin.tracking.effect_offsets` holds it."""
+        self.model = model
+        self._chain_of = _ChainConstants.of(model)
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -247,12 +301,16 @@ class TwinPredictor:
             "full_predictor_calls": self.full_calls,
         }
 
-    def _chain(self, q_rad: np.ndarray, keep: bool) -> list[np.ndarray]:
+    def _chain(
+        self, q_rad: np.ndarray, keep: bool, consts: _ChainConstants | None = None
+    ) -> list[np.ndarray]:
         """Poses ``(m, 4, 4)`` of the base and of the frame after each joint (``keep``),
-        else of the flange alone; one small matmul per joint and factor."""
+        else of the flange alone; one small matmul per joint and factor (``consts``: the
+        geometry, default the published one)."""
+        k = self._chain_of if consts is None else consts
         q = np.atleast_2d(q_rad)
         m, n = q.shape
-        theta = q + self.model.theta_offset_rad
+        theta = q + k.theta_offset_rad
         c, s_ = np.cos(theta), np.sin(theta)
         z = np.zeros((m, n, 4, 4))  # Rz(θ)·Trans_z(d)
         z[:, :, 0, 0] = c
@@ -260,19 +318,22 @@ class TwinPredictor:
         z[:, :, 1, 0] = s_
         z[:, :, 1, 1] = c
         z[:, :, 2, 2] = 1.0
-        z[:, :, 2, 3] = self.model.d_mm
+        z[:, :, 2, 3] = k.d_mm
         z[:, :, 3, 3] = 1.0
-        t = np.broadcast_to(self._base, (m, 4, 4))
+        t = np.broadcast_to(k.base, (m, 4, 4))
         out = [t] if keep else []
         for i in range(n):
-            t = t @ self._link[i] @ z[:, i]
+            t = t @ k.link[i] @ z[:, i]
             if keep:
                 out.append(t)
         return out if keep else [t]
 
-    def _geometric(self, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        fl = self._chain(q_rad, keep=False)[0]
-        return (fl @ self._tool)[:, :3], fl
+    def _geometric(
+        self, q_rad: np.ndarray, consts: _ChainConstants | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        k = self._chain_of if consts is None else consts
+        fl = self._chain(q_rad, keep=False, consts=k)[0]
+        return (fl @ k.tool)[:, :3], fl
 
     def _full(self, q_rad: np.ndarray, t_s: np.ndarray) -> np.ndarray:
         from calibration.effects.model_effects import predict_tcp
@@ -284,7 +345,7 @@ class TwinPredictor:
         n = len(q0)
         step = self.h * np.eye(n)
         qs = np.vstack([q0, q0 + step, q0 - step])
-        c = self._full(qs, np.full(len(qs), t0)) - self._geometric(qs)[0]
+        c = self._full(qs, np.full(len(qs), t0)) - self._geometric(qs, self._calibrated)[0]
         self._c0 = c[0]
         self._g = (c[1 : n + 1] - c[n + 1 :]) / (2 * self.h)  # (n, 3): dc/dq_j
         self._q0 = q0.copy()
@@ -320,10 +381,34 @@ class TwinPredictor:
         m, k = t.shape[0], t.shape[1] + 1
         pos = np.empty((m, k, 3))
         pos[:, :-1] = t[:, :, :3, 3]
-        pos[:, -1] = (poses[-1] @ self._tool)[:, :3]
+        pos[:, -1] = (poses[-1] @ self._chain_of.tool)[:, :3]
         rot = np.concatenate([t[:, :, :3, :3], t[:, -1:, :3, :3]], axis=1)
         quat = _quaternions(rot.reshape(-1, 3, 3)).reshape(m, k, 4)
         return pos, quat
+
+
+@dataclass(frozen=True)
+class _ChainConstants:
+    """A geometry's chain as 4x4 matrices, built once: joint i is Trans_x(a)·Rx(α)Ry(β) ·
+    Rz(θ + offset)·Trans_z(d), as calibration.model.kinematics walks it."""
+
+    base: np.ndarray  # (4, 4)
+    link: np.ndarray  # (n, 4, 4)
+    tool: np.ndarray  # (4,) homogeneous
+    theta_offset_rad: np.ndarray  # (n,)
+    d_mm: np.ndarray  # (n,)
+
+    @classmethod
+    def of(cls, md: KinematicModel) -> _ChainConstants:
+        base = np.eye(4)
+        base[:3, :3] = md.base_rotation()
+        base[:3, 3] = md.base_mm
+        link = np.zeros((md.n_joints, 4, 4))
+        link[:, :3, :3] = md.link_constants()
+        link[:, 0, 3] = md.a_mm
+        link[:, 3, 3] = 1.0
+        tool = np.append(md.tool_mm, 1.0)
+        return cls(base, link, tool, np.asarray(md.theta_offset_rad), np.asarray(md.d_mm))
 
 
 @dataclass(frozen=True)
@@ -336,7 +421,9 @@ class LiveSettings:
     that ends the collection; ``collect_s``/``publish_s``: time limits (0: none);
     ``wait_s``: the longest wait for the first grating batch; ``effects_radius_deg``: the
     effects are linearised within this radius (0: the full predictor per batch);
-    ``frames_hz``: the rate of the link frames (0: none)."""
+    ``frames_hz``: the rate of the link frames (0: none); ``tracking``: follow the robot
+    through its production dwells when the model has ``[tracking]`` (docs/tracking.md,
+    "Live"); ``alarm_mm``: its alarm (None: none)."""
 
     key: str = "cell/**"
     connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
@@ -348,6 +435,8 @@ class LiveSettings:
     wait_s: float = 60.0
     effects_radius_deg: float = 0.25
     frames_hz: float = 30.0
+    tracking: bool = True
+    alarm_mm: float | None = None
 
     @classmethod
     def from_options(cls, args: argparse.Namespace) -> LiveSettings:
@@ -363,6 +452,8 @@ class LiveSettings:
             wait_s=float(getattr(args, "wait_s", 60.0)),
             effects_radius_deg=float(getattr(args, "effects_radius_deg", 0.25)),
             frames_hz=float(getattr(args, "frames_hz", 30.0)),
+            tracking=not getattr(args, "no_tracking", False),
+            alarm_mm=getattr(args, "alarm_mm", None),
         )
 
     def zenoh_config(self) -> Any:
@@ -522,18 +613,20 @@ class LiveTwin:
                 grating = next((b for b in self.builders.values() if b.kind == "grating"), None)
         return grating
 
-    def _narrow_to(self, grating: StreamBuilder) -> None:
-        """Subscribe to the grating key and the encoders' keys only (not the tracker and
-        whatever else ``--key`` matches): the twin's thread is woken for what it uses."""
+    def _narrow_to(self, grating: StreamBuilder, tracking: bool) -> None:
+        """Subscribe to the grating key and the encoders' keys only (and the tracker's when
+        ``tracking``; not whatever else ``--key`` matches): the twin's thread is woken for
+        what it uses."""
         from calibration.twin.streams import stream_kind
         from daq.bus import Receiver, fetch_schemas
 
+        kinds = ("encoders", "tracker") if tracking else ("encoders",)
         keys = [grating.key]
         for key, schema in sorted(fetch_schemas(self.session, self.args.key).items()):
-            if key != grating.key and stream_kind(c.name for c in schema.columns) == "encoders":
+            if key != grating.key and stream_kind(c.name for c in schema.columns) in kinds:
                 keys.append(key)
         for key, b in sorted(self.builders.items()):
-            if b.kind == "encoders" and key not in keys:
+            if b.kind in kinds and key not in keys:
                 keys.append(key)
         narrow = Receiver(self.session, keys)
         old, self.receiver = self.receiver, narrow
@@ -545,11 +638,17 @@ class LiveTwin:
 
         args, say = self.args, self.say
         grating = self._wait_for_grating()
-        self._narrow_to(grating)
+        setup = self._tracking_setup(twin)
+        self._narrow_to(grating, setup is not None)
         cell = str(grating.meta.get("cell", "cell"))
         robot = str(grating.meta.get("robot", "robot"))
-        out = TwinPublication(self.session, twin, args, cell, robot)
+        out = TwinPublication(self.session, twin, args, cell, robot, setup)
         say(f"publishing the live twin on {out.keys['state']} (health: {out.keys['health']})")
+        if setup is not None:
+            say(
+                f"tracking {', '.join(setup.names)} from the production dwells "
+                f"(on {out.keys['tracking']})"
+            )
         print(json.dumps({"twin": "live", "keys": out.keys}), flush=True)
         # the receiving thread waits for the interpreter at most this long while this
         # one computes (Python's default is 5 ms; the daemon uses the same)
@@ -573,6 +672,29 @@ class LiveTwin:
         out.close()
         say(f"published {out.seq} twin samples")
         return 0
+
+    def _tracking_setup(self, twin: CalibratedTwin) -> TrackingSetup | None:
+        """The tracking setup of the twin's model, or None (one line says why): off by
+        ``--no-tracking``, or the model without ``[tracking]`` or anything to track."""
+        from calibration.errors import TrackingError
+        from calibration.twin.tracking import TrackingSettings, tracking_setup
+
+        if not self.args.tracking:
+            self.say("tracking off (--no-tracking): the calibrated model is published")
+            return None
+        if twin.description.tracking is None:
+            self.say(
+                "tracking off: the model has no [tracking] table (calibrate it again with "
+                "this version's twin run or twin identify)"
+            )
+            return None
+        try:
+            return tracking_setup(
+                twin.description, settings=TrackingSettings(alarm_mm=self.args.alarm_mm)
+            )
+        except TrackingError as exc:
+            self.say(f"tracking off: the model {exc}")
+            return None
 
     def _drain(self) -> list[Received]:
         """The batches that have arrived (at most ~500; the first waited for at most
@@ -604,6 +726,9 @@ class LiveTwin:
                 recv.append(np.full(len(t_map[-1]), got.t_recv_ns, dtype=np.int64))
             elif b.kind == "encoders":
                 out.encoders(cols["t_mapped_ns"], np.column_stack([cols[c] for c in b.channels]))
+            elif b.kind == "tracker" and out.tracker is not None:
+                xyz = np.column_stack([cols[c] for c in b.channels]).astype(float)
+                out.tracker.add_tracker(cols["t_mapped_ns"], xyz, b.status_of(cols))
         if not counts:
             return None
         return _joined(counts), _joined(t_map), _joined(ok) == 1, _joined(recv)
@@ -627,7 +752,13 @@ class TwinPublication:
     latencies). :meth:`LiveTwin.publish` feeds it."""
 
     def __init__(
-        self, session: Any, twin: CalibratedTwin, settings: LiveSettings, cell: str, robot: str
+        self,
+        session: Any,
+        twin: CalibratedTwin,
+        settings: LiveSettings,
+        cell: str,
+        robot: str,
+        tracking: TrackingSetup | None = None,
     ) -> None:
         from daq.bus import JSON_ENCODING, ChannelPublisher, SchemaServer
 
@@ -647,6 +778,16 @@ class TwinPublication:
         frames = frames_schema(self.keys["frames"], names, cell, robot, twin.name)
         self.frames_pub = ChannelPublisher(session, frames, schemas=self.schemas)
         self.health_pub = session.declare_publisher(self.keys["health"], encoding=JSON_ENCODING)
+        self.tracker: LiveTracker | None = None
+        self.tracking_pub: Any = None
+        self.tracking_seq = 0
+        self.last_tracking: dict[str, Any] = {}
+        if tracking is not None:
+            from calibration.twin.live_tracking import LiveTracker
+
+            self.tracker = LiveTracker(tracking, desc, self.reader.exact, twin.t0_ns)
+            sch = tracking_schema(self.keys["tracking"], tracking.names, cell, robot, twin.name)
+            self.tracking_pub = ChannelPublisher(session, sch, schemas=self.schemas)
         hz = settings.frames_hz
         self.frames_every_ns = int(1e9 / hz) if hz > 0 else None
         self.next_frames_ns = 0
@@ -716,6 +857,45 @@ class TwinPublication:
                 }
             )
             self.frames_seq += 1
+        if self.tracker is not None:  # after the state went out: off the latency path
+            self.tracker.add_gratings(t_map, counts)
+            ups = self.tracker.updates()
+            if ups:
+                self._tracked(ups)
+
+    def _tracked(self, ups: list[LiveTrackUpdate]) -> None:
+        """Dwells updated the tracked model: publish from its geometry from now on (one
+        rebuild of the chain per update, none per batch) and put the updates out."""
+        assert self.tracker is not None and self.tracking_pub is not None
+        self.predictor.set_geometry(self.tracker.geometry)
+        m = len(ups)
+        codes = {s: i for i, s in enumerate(TRACKING_STATES)}
+        self.tracking_pub.publish(
+            {
+                "seq": np.arange(self.tracking_seq, self.tracking_seq + m, dtype=np.uint64),
+                "t_mapped_ns": np.array([u.check.t_ns for u in ups], dtype=np.int64),
+                "t_publish_ns": np.full(m, time.time_ns(), dtype=np.int64),
+                "point_mm": np.array([u.check.point_mm for u in ups]),
+                "predicted_mm": np.array([u.step.predicted_mm for u in ups]),
+                "error_mm": np.array([u.step.error_mm for u in ups]),
+                "parameters": np.array([u.parameters for u in ups]),
+                "standard_errors": np.array([u.standard_errors for u in ups]),
+                "lambda": np.array([u.step.forgetting for u in ups]),
+                "state": np.array([codes[u.step.state] for u in ups], dtype=np.uint8),
+                "displacement_mm": np.array([u.step.displacement_mm for u in ups]),
+                "steps": np.array([u.steps for u in ups], dtype=np.uint32),
+                "alarms": np.array([u.alarms for u in ups], dtype=np.uint32),
+            }
+        )
+        self.tracking_seq += m
+        last = ups[-1]
+        self.last_tracking = {
+            "updates": self.tracking_seq,
+            "state": last.step.state,
+            "error_mm": last.step.error_mm,
+            "steps": last.steps,
+            "alarms": last.alarms,
+        }
 
     def health(self, now_m: float) -> dict[str, Any] | None:
         """Once a second (``now_m``: monotonic s): the health document of the period, put
@@ -741,6 +921,7 @@ class TwinPublication:
             "twin": "publication time minus the twin's receipt (the twin's own share)",
             "clock_settled": settled,
             "model": self.twin.name,
+            "tracking": self._tracking_health(),
             "effects": self.predictor.describe(),
             "scale_maps": {
                 "linearised_radius_deg": reader.radius_deg,
@@ -753,9 +934,18 @@ class TwinPublication:
         self.lat, self.lat_all, self.upstream, self.own = [], [], [], []
         return doc
 
+    def _tracking_health(self) -> dict[str, Any]:
+        """The health document's ``tracking``: on or off, the dwells skipped as another
+        target's, and the latest update's state (docs/topics.md)."""
+        if self.tracker is None:
+            return {"on": False}
+        return {"on": True, "other_targets": self.tracker.other_targets, **self.last_tracking}
+
     def close(self) -> None:
         self.state_pub.close()
         self.frames_pub.close()
+        if self.tracking_pub is not None:
+            self.tracking_pub.close()
         self.health_pub.undeclare()
         self.schemas.close()
 

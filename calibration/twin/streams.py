@@ -128,13 +128,21 @@ class StreamBuilder:
         p = self._parts
         p["t"].append(np.asarray(cols["t_mapped_ns"], dtype=np.int64))
         p["v"].append(np.column_stack([cols[c] for c in self.channels]))
-        if "status" in cols and all(i >= 0 for i in self._status_index):
-            p["s"].append(np.asarray(cols["status"])[:, self._status_index].astype(np.uint16))
+        status = self.status_of(cols)
+        if status is not None:
+            p["s"].append(status)
         p["seq"].append(np.asarray(cols["seq"], dtype=np.uint64))
         p["epoch"].append(np.asarray(cols["epoch"], dtype=np.int32))
         p["rx"].append(np.asarray(cols["t_host_rx_ns"], dtype=np.int64))
         p["ok"].append(np.asarray(cols["t_mapped_ok"], dtype=np.uint8))
         p["dev"].append(np.asarray(cols["t_device_us"], dtype=np.int64))
+
+    def status_of(self, cols: dict[str, NDArray[Any]]) -> NDArray[np.uint16] | None:
+        """A batch's status ``(m, k)`` of this stream's channels (None: the batch has none)."""
+        if "status" in cols and all(i >= 0 for i in self._status_index):
+            out: NDArray[np.uint16] = np.asarray(cols["status"])[:, self._status_index]
+            return out.astype(np.uint16)
+        return None
 
     def build(self) -> Stream:
         p = self._parts

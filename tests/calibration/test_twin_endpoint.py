@@ -167,6 +167,8 @@ def test_the_daemons_endpoint_reaches_the_live_twin(tmp_path):
         assert all(abs(v) < 10_000 for v in cols["tcp_mm"][-1])
         assert health and health[-1]["samples"] > 0
         assert {"upstream_ms", "twin_ms", "latency_ms"} <= set(health[-1])
+        # the model has [tracking] (its updates: tests/calibration/test_twin_live_tracking.py)
+        assert health[-1]["tracking"]["on"] is True
         assert twin.poll() is None and daemon.poll() is None
         time.sleep(1.0)  # a few more viewer messages of the twin into the recording
     finally:

@@ -23,6 +23,8 @@ PY = sys.executable
         (["--effects-radius-deg", "nan"], "--effects-radius-deg"),
         (["--effects-radius-deg", "30"], "--effects-radius-deg"),
         (["--frames-hz", "inf"], "--frames-hz"),
+        (["--alarm-mm", "0"], "--alarm-mm"),
+        (["--alarm-mm", "nan"], "--alarm-mm"),
         (["--wait-s", "0"], "--wait-s"),
         (["--idle-s", "0"], "--idle-s"),
         (["--idle-s", "nan"], "--idle-s"),

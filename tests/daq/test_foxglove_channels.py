@@ -152,3 +152,48 @@ def test_joint_columns_named_by_their_joint_without_meta():
         "cell/c/robot/r/g/samples", _base(tuple(Column(c, "int64") for c in cols)), {}
     )
     assert _joint_names(schema, cols) == ["j10", "j2", "j1", "other"]
+
+
+def test_the_twins_tracking_becomes_a_plottable_channel(tmp_path):
+    from calibration.twin.live_twin import tracking_schema
+
+    names = ("base.x_mm", "joint2.length_scale")
+    schema = tracking_schema("twin/c/robot/r/tracking", names, "c", "r", "m")
+    path = tmp_path / "v.mcap"
+    rec = McapRecorder(path)
+    viewer = StreamViewer(rec, schema, rate_hz=30.0)
+    for k in range(3):  # one update a second
+        t = T0 + k * 10**9
+        cols = {
+            "seq": np.array([k], np.uint64),
+            "t_mapped_ns": np.array([t], np.int64),
+            "t_publish_ns": np.array([t], np.int64),
+            "point_mm": np.zeros((1, 3)),
+            "predicted_mm": np.zeros((1, 3)),
+            "error_mm": np.array([0.01 * (k + 1)]),
+            "parameters": np.array([[1000.0 + k, 1.0 + 1e-5 * k]]),
+            "standard_errors": np.array([[0.01, 1e-6]]),
+            "lambda": np.array([0.99]),
+            "state": np.array([k], np.uint8),
+            "displacement_mm": np.array([0.02]),
+            "steps": np.array([int(k >= 1)], np.uint32),
+            "alarms": np.array([int(k >= 2)], np.uint32),
+        }
+        assert viewer.due(t)
+        viewer.add(cols, t)
+    rec.close()
+    with path.open("rb") as fh:
+        msgs = []
+        for sch, channel, message in make_reader(fh).iter_messages():
+            assert sch.name == "grating_twin.Tracking"
+            assert channel.topic == "twin/c/robot/r/tracking/values"
+            doc = json.loads(sch.data)
+            jsonschema.Draft202012Validator.check_schema(doc)
+            msg = json.loads(message.data)
+            jsonschema.Draft202012Validator(doc).validate(msg)
+            msgs.append(msg)
+    assert len(msgs) == 3
+    last = msgs[-1]
+    assert last["parameters"] == {"base.x_mm": 1002.0, "joint2.length_scale": 1.00002}
+    assert last["tracking"]["state"] == 2 and last["tracking"]["alarms"] == 1
+    assert np.isclose(last["tracking"]["error_mm"], 0.03)

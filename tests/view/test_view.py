@@ -187,6 +187,12 @@ def test_the_live_source_keeps_the_latest_twin_sample_and_the_twins_health():
         schemas = SchemaServer(src, "twin")
         pub = ChannelPublisher(src, schema, schemas=schemas)
         health = src.declare_publisher("twin/c/robot/r/health")
+        from calibration.twin.live_twin import tracking_schema
+
+        names = ("base.x_mm", "joint2.length_scale")
+        tracking = ChannelPublisher(
+            src, tracking_schema("twin/c/robot/r/tracking", names, "c", "r", "m"), schemas=schemas
+        )
         source = LiveSource(dst, nominal_twin("kr500"), phase_period_s=0.2)
         deadline = time.monotonic() + 20
         k = 0
@@ -201,6 +207,15 @@ def test_the_live_source_keeps_the_latest_twin_sample_and_the_twins_health():
                  "tcp_mm": np.array([[0.0] * 3, [1.0, 2.0, float(k)]])}
             )  # fmt: skip
             health.put(json.dumps({"rate_hz": 999.0, "latency_ms": {"p50": 1.5, "p99": 4.0}}))
+            tracking.publish(
+                {"seq": np.array([k]), "t_mapped_ns": np.array([now]),
+                 "t_publish_ns": np.array([now]), "point_mm": np.zeros((1, 3)),
+                 "predicted_mm": np.zeros((1, 3)), "error_mm": np.array([0.02]),
+                 "parameters": np.array([[1000.0 + 0.01 * k, 1.0]]),
+                 "standard_errors": np.array([[0.001, 1e-6]]), "lambda": np.array([0.99]),
+                 "state": np.array([2], np.uint8), "displacement_mm": np.array([0.3]),
+                 "steps": np.array([1], np.uint32), "alarms": np.array([1], np.uint32)}
+            )  # fmt: skip
             time.sleep(0.05)
         snap = source.latest()
         assert snap.duration_s is None  # live
@@ -209,6 +224,9 @@ def test_the_live_source_keeps_the_latest_twin_sample_and_the_twins_health():
         time.sleep(0.2)
         snap = source.latest()
         assert snap.rate_hz == 999.0 and snap.latency_ms == (1.5, 4.0)
+        # the twin's tracking: the alarm state, the error history, each parameter's drift
+        assert "tracking: **alarm**" in snap.tracking and "alarms 1" in snap.tracking
+        assert "base.x_mm" in snap.tracking and "drift +" in snap.tracking, snap.tracking
     finally:
         if source is not None:
             source.close()
