@@ -40,7 +40,7 @@ from daq.errors import ConfigError, DaqError
 from daq.foxglove_channels import StreamViewer
 from daq.health import HealthLoop
 from daq.pipeline import DeviceStream, build_schemas
-from daq.recording import (
+from daq.recording_writer import (
     KIND_HEALTH,
     TWIN_HEALTH_SCHEMA,
     TWIN_HEALTH_SCHEMA_NAME,

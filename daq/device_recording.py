@@ -20,7 +20,7 @@ from daq.bus import health_key
 from daq.columnar import StreamSchema
 from daq.config import DaqConfig, DeviceConfig
 from daq.foxglove_channels import StreamViewer
-from daq.recording import HEALTH_SCHEMA, HEALTH_SCHEMA_NAME, KIND_HEALTH, BackgroundRecorder
+from daq.recording_writer import HEALTH_SCHEMA, HEALTH_SCHEMA_NAME, KIND_HEALTH, BackgroundRecorder
 
 log = logging.getLogger(__name__)
 

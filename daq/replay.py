@@ -8,7 +8,7 @@ queryable as the daemon's, and a liveliness token is held per recorded device. O
 loop, start offset (seconds after the first message), key-expression filter. Derived
 viewer channels (Foxglove) are not republished. The file is streamed, so a truncated
 recording replays up to its last complete chunk, and a damaged chunk in the middle costs
-only that chunk (``daq.recording``; the result's ``damaged`` lists the regions skipped).
+only that chunk (``daq.recording_reader``; the result's ``damaged`` lists the regions skipped).
 ``daq replay`` refuses such a file unless ``--allow-partial`` (:func:`survey` reads it
 once before anything is published), and says on stderr what was readable and what not.
 A data key whose schema is missing or unreadable is never republished: every subscriber
@@ -32,7 +32,8 @@ from daq.bus import DATA_ENCODING, JSON_ENCODING, SchemaServer, device_key, open
 from daq.columnar import ENCODING_NAME, StreamSchema
 from daq.config import ZenohConfig
 from daq.errors import DaqError, RecordingError
-from daq.recording import KIND_FOXGLOVE, RecordedMessage, Recording, read_recording
+from daq.recording_reader import RecordedMessage, Recording, read_recording
+from daq.recording_writer import KIND_FOXGLOVE
 
 log = logging.getLogger(__name__)
 
