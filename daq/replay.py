@@ -231,7 +231,7 @@ def replay(
     is not an MCAP recording (checked before the session opens), a pass that found
     nothing to send (no readable message, a ``--topic`` that matches no recorded key,
     a ``--start`` past the end), a non-finite or non-positive ``speed``, a negative
-    ``start_s``."""
+    ``start_s``. Long for its options (the signature alone is 14 lines)."""
     pace = _Pace.checked(speed, fast, start_s, duration_s)
     read_recording(path)  # not a recording: said before any session opens
     stop = stop or threading.Event()
