@@ -18,13 +18,16 @@ import json
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from calibration.errors import StreamError
 from edges.channel_names import ENCODER, GRATING, counts_joint, joint_columns
+
+if TYPE_CHECKING:  # the reader (and mcap) load only when a recording is read
+    from daq.recording_reader import Recording
 
 KINDS = ("grating", "tracker", "encoders")
 
@@ -209,10 +212,10 @@ def pick_streams(
 ALLOW_PARTIAL = "--allow-partial"
 
 
-def recording_damage(rec: Any) -> str:
-    """What a streaming pass over a damaged recording ``rec`` (``daq.recording_reader.Recording``)
-    read and what it did not, in words ("" when nothing but the footer is missing: a
-    recording that was not closed, every record in it read)."""
+def recording_damage(rec: Recording) -> str:
+    """What a streaming pass over a damaged recording ``rec`` read and what it did not, in
+    words ("" when nothing but the footer is missing: a recording that was not closed,
+    every record in it read)."""
     lost = [d for d in rec.damaged if d.record != "footer"]
     if not lost:
         return ""
