@@ -338,7 +338,7 @@ EMULATED_ONLY = {
 }
 
 
-def check_run_options(args: Any) -> None:
+def check_run_options(args: argparse.Namespace) -> None:
     """Refuse an option that does not apply beside ``--config`` (or ``$DAQ_CONFIG``)
     instead of ignoring it, and ``--record`` with ``--no-record``."""
     if args.record is not None and args.no_record:
