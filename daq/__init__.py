@@ -28,7 +28,8 @@ from daq.errors import ConfigError, DaqError, RecordingError, SchemaError, Trans
 if TYPE_CHECKING:
     from daq.bus import ChannelPublisher, Received, Receiver, open_session
     from daq.daemon import Daemon
-    from daq.recording import Recording, read_recording, recover
+    from daq.recording_reader import Recording, read_recording
+    from daq.recording_recover import recover
 
 #: The daemon's configuration from a TOML file / text (the names say what they load);
 #: ``load`` and ``loads`` are the old names, kept for programs that use them.
@@ -42,9 +43,9 @@ _LAZY = {
     "Receiver": "daq.bus",
     "open_session": "daq.bus",
     "Daemon": "daq.daemon",
-    "Recording": "daq.recording",
-    "read_recording": "daq.recording",
-    "recover": "daq.recording",
+    "Recording": "daq.recording_reader",
+    "read_recording": "daq.recording_reader",
+    "recover": "daq.recording_recover",
 }
 
 

@@ -289,7 +289,7 @@ def _run_command(args: argparse.Namespace) -> int:
 
         if args.record and "{" not in args.record:
             # a recording is written as it runs, not staged: its place is checked first
-            from daq.recording import check_stream_output
+            from daq.recording_writer import check_stream_output
 
             inputs = [args.config, args.sim_config, os.environ.get("DAQ_CONFIG")]
             check_stream_output(args.record, "--record", inputs, create_dirs=True)
@@ -299,7 +299,7 @@ def _run_command(args: argparse.Namespace) -> int:
 
         set_realtime(args.realtime_priority, "--realtime-priority")
     if args.command == "record":
-        from daq.recording import main_record
+        from daq.cli_recording import main_record
 
         return main_record(args, sink_zenoh(args))
     if args.command == "replay":
@@ -307,11 +307,11 @@ def _run_command(args: argparse.Namespace) -> int:
 
         return main_replay(args, resolve(args).zenoh)
     if args.command == "recover":
-        from daq.recording import main_recover
+        from daq.cli_recording import main_recover
 
         return main_recover(args)
     if args.command == "info":
-        from daq.recording import main_info
+        from daq.cli_recording import main_info
 
         return main_info(args)
     if args.command == "router":

@@ -52,7 +52,7 @@ if TYPE_CHECKING:
 ENV_PREFIX = "DAQ_"
 ENV_CONFIG = "DAQ_CONFIG"
 #: the largest ``[recording] chunk_size_bytes`` (the reader loads one chunk at a time and
-#: refuses records over ``daq.recording.MAX_RECORD_BYTES``, 256 MiB)
+#: refuses records over ``daq.recording_reader.MAX_RECORD_BYTES``, 256 MiB)
 MAX_CHUNK_BYTES = 64 << 20
 #: the fastest device rate the daemon takes (Hz), from cell.toml (``rate_hz``) or from
 #: ``daq run --rate``: one bound wherever the value comes from

@@ -40,7 +40,7 @@ from daq.errors import ConfigError, DaqError
 from daq.foxglove_channels import StreamViewer
 from daq.health import HealthLoop
 from daq.pipeline import DeviceStream, build_schemas
-from daq.recording import (
+from daq.recording_writer import (
     KIND_HEALTH,
     TWIN_HEALTH_SCHEMA,
     TWIN_HEALTH_SCHEMA_NAME,
@@ -365,7 +365,7 @@ EMULATED_ONLY = {
 }
 
 
-def check_run_options(args: Any) -> None:
+def check_run_options(args: argparse.Namespace) -> None:
     """Refuse an option that does not apply beside ``--config`` (or ``$DAQ_CONFIG``)
     instead of ignoring it, and ``--record`` with ``--no-record``."""
     if args.record is not None and args.no_record:

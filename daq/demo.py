@@ -298,7 +298,7 @@ def _check_outputs(out_dir: Path, mcap: Path) -> None:
     """Refuse before anything runs: ``--out`` a file, the recording a directory or
     where nothing can be written (the recording is streamed, not staged)."""
     from daq.errors import DaqError
-    from daq.recording import check_stream_output
+    from daq.recording_writer import check_stream_output
 
     if out_dir.exists() and not out_dir.is_dir():
         raise DaqError(f"--out {out_dir}: exists and is not a directory")

@@ -22,9 +22,9 @@ import logging
 import sys
 import time
 from collections.abc import Callable
-from typing import Any
 
 from daq.config import DaqConfig, DeviceConfig
+from daq.device_drivers import DriverFactory
 from daq.errors import DeviceAbsentError
 
 #: the longest an absent device is tried at start without ``wait_for_device_s`` (s)
@@ -37,7 +37,7 @@ def _say(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def _try_open(driver_factory: Callable[[DeviceConfig], Any], dev: DeviceConfig, s: float) -> str:
+def _try_open(driver_factory: DriverFactory, dev: DeviceConfig, s: float) -> str:
     """Open ``dev`` for up to ``s`` seconds and close it again; why it failed ("": it
     opened)."""
     from drivers.errors import DriverError
@@ -58,7 +58,7 @@ def _try_open(driver_factory: Callable[[DeviceConfig], Any], dev: DeviceConfig, 
 
 def check_devices_present(
     cfg: DaqConfig,
-    driver_factory: Callable[[DeviceConfig], Any],
+    driver_factory: DriverFactory,
     *,
     say: Callable[[str], None] = _say,
 ) -> None:

@@ -2,7 +2,7 @@
 
 :class:`DeviceRecording` registers them on the recorder, in this order: the device's
 health key (JSON, ``daq.health.v1``), then per channel group its columnar key and the
-Foxglove viewer channels derived from it (:mod:`daq.viewer`). A device stream in a thread
+Foxglove viewer channels derived from it (:mod:`daq.foxglove_channels`). A device stream in a thread
 writes its messages as it publishes them (:mod:`daq.pipeline`); a device in a worker
 process is written from the daemon's subscription to its keys (:mod:`daq.worker`); the
 health loop writes the health documents (:mod:`daq.health`). The recording is the same.
@@ -20,7 +20,7 @@ from daq.bus import health_key
 from daq.columnar import StreamSchema
 from daq.config import DaqConfig, DeviceConfig
 from daq.foxglove_channels import StreamViewer
-from daq.recording import HEALTH_SCHEMA, HEALTH_SCHEMA_NAME, KIND_HEALTH, BackgroundRecorder
+from daq.recording_writer import HEALTH_SCHEMA, HEALTH_SCHEMA_NAME, KIND_HEALTH, BackgroundRecorder
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +87,7 @@ class DeviceRecording:
         for k, payload in enumerate(payloads):
             self.recorder.write(channel, payload, t_ns, t_ns, first_seq + k)
         viewer = self.viewers[group]
-        if viewer is not None and viewer.due(t_ns):  # at a bounded rate (daq.viewer)
+        if viewer is not None and viewer.due(t_ns):  # at a bounded rate (daq.foxglove_channels)
             viewer.add(columns() if callable(columns) else columns, t_ns)
 
     def write_health(self, doc: bytes) -> None:

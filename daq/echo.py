@@ -357,7 +357,7 @@ def main_echo(args: Any, zc: ZenohConfig) -> int:
         jsonl = sys.stdout
     elif args.jsonl:
         # written as batches come: checked up front, not staged
-        from daq.recording import check_stream_output
+        from daq.recording_writer import check_stream_output
 
         config_path = getattr(args, "config", None) or os.environ.get("DAQ_CONFIG")
         check_stream_output(args.jsonl, "--jsonl", [config_path], regular=False)

@@ -3,7 +3,7 @@
 joint channels in a JSON schema of our own (named joint fields, for Foxglove's Plot
 panel), so a recording shows tracker points, the twin's TCP and the arm in a 3-D panel
 and plots joint angles without custom code. What derives them from the columnar streams:
-:mod:`daq.viewer`.
+:mod:`daq.foxglove_channels`.
 
 Foxglove's convention is metres; our columns are millimetres, so positions are divided by
 1000 here. The schemas below follow the published JSON schemas' field names and types

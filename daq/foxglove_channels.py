@@ -39,7 +39,7 @@ from edges.channel_names import counts_joint
 
 #: default of ``[recording] viewer_rate_hz``
 VIEWER_RATE_HZ = 30.0
-KIND_FOXGLOVE = "foxglove"  # MCAP channel metadata ``daq.kind`` (daq.recording)
+KIND_FOXGLOVE = "foxglove"  # MCAP channel metadata ``daq.kind`` (daq.recording_writer)
 #: the live twin's tracking columns in its viewer channel's ``tracking`` group
 TRACKING_FIELDS = (
     "error_mm",
@@ -65,8 +65,8 @@ def _joint_names(schema: StreamSchema, columns: list[str]) -> list[str]:
 
 
 class ViewerRecorder(Protocol):
-    """Where the viewer channels go: :class:`~daq.recording.McapRecorder`, or
-    :class:`~daq.recording.BackgroundRecorder` in front of one."""
+    """Where the viewer channels go: :class:`~daq.recording_writer.McapRecorder`, or
+    :class:`~daq.recording_writer.BackgroundRecorder` in front of one."""
 
     def add_json(
         self,
@@ -84,8 +84,8 @@ class ViewerRecorder(Protocol):
 
 class StreamViewer:
     """The viewer channels of one columnar stream, registered on ``recorder`` (anything
-    with ``add_json`` and ``write``: :class:`~daq.recording.McapRecorder`,
-    :class:`~daq.recording.BackgroundRecorder`). ``points``: the device's ``foxglove``
+    with ``add_json`` and ``write``: :class:`~daq.recording_writer.McapRecorder`,
+    :class:`~daq.recording_writer.BackgroundRecorder`). ``points``: the device's ``foxglove``
     setting (``auto``, ``points``, ``poses``, ``none``) for xyz streams."""
 
     def __init__(

@@ -8,7 +8,7 @@ queryable as the daemon's, and a liveliness token is held per recorded device. O
 loop, start offset (seconds after the first message), key-expression filter. Derived
 viewer channels (Foxglove) are not republished. The file is streamed, so a truncated
 recording replays up to its last complete chunk, and a damaged chunk in the middle costs
-only that chunk (``daq.recording``; the result's ``damaged`` lists the regions skipped).
+only that chunk (``daq.recording_reader``; the result's ``damaged`` lists the regions skipped).
 ``daq replay`` refuses such a file unless ``--allow-partial`` (:func:`survey` reads it
 once before anything is published), and says on stderr what was readable and what not.
 A data key whose schema is missing or unreadable is never republished: every subscriber
@@ -32,7 +32,8 @@ from daq.bus import DATA_ENCODING, JSON_ENCODING, SchemaServer, device_key, open
 from daq.columnar import ENCODING_NAME, StreamSchema
 from daq.config import ZenohConfig
 from daq.errors import DaqError, RecordingError
-from daq.recording import KIND_FOXGLOVE, RecordedMessage, Recording, read_recording
+from daq.recording_reader import RecordedMessage, Recording, read_recording
+from daq.recording_writer import KIND_FOXGLOVE
 
 log = logging.getLogger(__name__)
 
@@ -230,7 +231,7 @@ def replay(
     is not an MCAP recording (checked before the session opens), a pass that found
     nothing to send (no readable message, a ``--topic`` that matches no recorded key,
     a ``--start`` past the end), a non-finite or non-positive ``speed``, a negative
-    ``start_s``. Long for its options and the damage check before anything is sent."""
+    ``start_s``. Long for its options (the signature alone is 14 lines)."""
     pace = _Pace.checked(speed, fast, start_s, duration_s)
     read_recording(path)  # not a recording: said before any session opens
     stop = stop or threading.Event()

@@ -235,7 +235,7 @@ def recorded_columns(path: str | Path, key: str) -> dict[str, np.ndarray]:
     """Every column of ``key``'s columnar messages in an MCAP recording, concatenated in
     file order (a streaming read: a truncated file gives what its complete chunks hold)."""
     from daq.columnar import StreamSchema, decode
-    from daq.recording import read_recording
+    from daq.recording_reader import read_recording
 
     parts: dict[str, list[np.ndarray]] = {}
     for m in read_recording(path).messages_iter({key}):

@@ -93,7 +93,7 @@ def test_the_core_leaves_the_twin_view_and_emulator_out():
     core = declared()[""]
     for heavy in ("scipy", "matplotlib", "viser", "pymodbus"):
         assert heavy not in core, heavy
-    assert {"zstandard", "lz4"} <= core  # daq/recording.py decompresses chunks itself
+    assert {"zstandard", "lz4"} <= core  # daq/recording_reader.py decompresses chunks itself
 
 
 def test_make_test_says_in_one_line_how_to_get_chromium_where_it_cannot_install_it(tmp_path):

@@ -122,7 +122,7 @@ def test_packages_import_only_what_their_layer_allows():
 def test_calibration_reads_daq_formats_only():
     """The twin reads the daemon's formats (columnar batches, MCAP recordings, the bus and
     its config, their errors); it never runs the daemon or its drivers."""
-    formats = {"daq.bus", "daq.columnar", "daq.config", "daq.recording", "daq.errors"}
+    formats = {"daq.bus", "daq.columnar", "daq.config", "daq.recording_reader", "daq.errors"}
     reached = {d for n, deps in graph().items() if n.startswith("calibration.") for d in deps}
     assert {d for d in reached if d.startswith("daq.")} <= formats
 

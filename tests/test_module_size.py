@@ -19,8 +19,6 @@ OVER_LONG_MODULES: dict[str, str] = {
     "calibration/effects/effect_library.py": "being split after the current merge",
     # measurement, the fit rounds, statistics and documents in one module
     "calibration/twin/twin_run.py": "being split after the current merge",
-    # the MCAP writer, a background recorder, its streaming parser, recover and commands
-    "daq/recording.py": "being split after the current merge",
 }
 
 #: What a long function's docstring says: "Long for its options …", "Long because …".

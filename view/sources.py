@@ -6,7 +6,7 @@ latest sample wins and the ones between two frames are only counted.
 
 * :class:`ReplaySource` reads the recording once with the project's reader
   (:func:`calibration.twin.streams.read_recording_streams`, built on
-  :mod:`daq.recording` and :mod:`daq.columnar`) and answers for any time of a
+  :mod:`daq.recording_reader` and :mod:`daq.columnar`) and answers for any time of a
   :class:`ReplayClock` (play, pause, speed, seek): a pure function of the time.
 * :class:`LiveSource` subscribes to the daemon's data keys (``cell/**``) and the live
   twin's (``twin/**``, docs/topics.md) with :class:`daq.bus.Receiver`, keeping the latest

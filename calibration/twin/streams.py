@@ -4,7 +4,7 @@ The twin needs three streams: the grating reader (``grating<k>_counts``), the la
 (``x_mm, y_mm, z_mm``) and, optionally, the motor encoders (``encoder<k>_counts``). A
 stream's kind is decided by its columns, not by the device's name, so any cell whose
 drivers publish those columns works. Recordings are *streamed* with the project's reader
-(``daq.recording.read_recording``), which also reads a truncated file up to its last
+(``daq.recording_reader.read_recording``), which also reads a truncated file up to its last
 complete chunk.
 
 Lost data is never hidden: :func:`lost_intervals` lists, per stream, the mapped-time spans
@@ -18,13 +18,16 @@ import json
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from calibration.errors import StreamError
 from edges.channel_names import ENCODER, GRATING, counts_joint, joint_columns
+
+if TYPE_CHECKING:  # the reader (and mcap) load only when a recording is read
+    from daq.recording_reader import Recording
 
 KINDS = ("grating", "tracker", "encoders")
 
@@ -217,10 +220,10 @@ def pick_streams(
 ALLOW_PARTIAL = "--allow-partial"
 
 
-def recording_damage(rec: Any) -> str:
-    """What a streaming pass over a damaged recording ``rec`` (``daq.recording.Recording``)
-    read and what it did not, in words ("" when nothing but the footer is missing: a
-    recording that was not closed, every record in it read)."""
+def recording_damage(rec: Recording) -> str:
+    """What a streaming pass over a damaged recording ``rec`` read and what it did not, in
+    words ("" when nothing but the footer is missing: a recording that was not closed,
+    every record in it read)."""
     lost = [d for d in rec.damaged if d.record != "footer"]
     if not lost:
         return ""
@@ -240,7 +243,7 @@ def read_recording_streams(path: str | Path, *, allow_partial: bool = False) -> 
     then its readable part is used and ``note`` says so (phases.json, report.json)."""
     from daq.columnar import StreamSchema, decode
     from daq.errors import DaqError
-    from daq.recording import read_recording
+    from daq.recording_reader import read_recording
 
     try:
         rec = read_recording(path)

@@ -86,7 +86,8 @@ def test_replay_gives_bit_identical_model_and_report(replayed, tmp_path):
 
 def _drop_slice(src: Path, dst: Path, device: str, t_from_s: float, t_to_s: float) -> int:
     """Copy ``src`` without ``device``'s messages logged in [t_from_s, t_to_s) from the start."""
-    from daq.recording import McapRecorder, read_recording
+    from daq.recording_reader import read_recording
+    from daq.recording_writer import McapRecorder
 
     rec = read_recording(src)
     dropped = 0

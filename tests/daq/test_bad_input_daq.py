@@ -88,7 +88,9 @@ from mcap.stream_reader import breakup_chunk
 from daq import config as cfg
 from daq.columnar import Column, StreamSchema, encode
 from daq.errors import ConfigError, DaqError, RecordingError
-from daq.recording import MAGIC, McapRecorder, read_recording, recover, scan
+from daq.recording_reader import MAGIC, read_recording, scan
+from daq.recording_recover import recover
+from daq.recording_writer import McapRecorder
 from tests import bad_input
 from tests.bad_input import snapshot
 

@@ -222,7 +222,7 @@ def _recorded_seq(path: Path, keys: list[str]) -> dict[str, np.ndarray]:
 
 def twin_docs(path: Path) -> int:
     """Messages of the twin's health key in a recording."""
-    from daq.recording import read_recording
+    from daq.recording_reader import read_recording
 
     key = f"twin/{CELL}/robot/robot1/health"
     return sum(1 for _ in read_recording(path).messages_iter({key}))

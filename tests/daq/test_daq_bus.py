@@ -119,7 +119,7 @@ def test_router_mode_and_record_process(tmp_path):
     here a Python session in router mode), and ``daq record`` as a separate recorder."""
     from daq.config import load
     from daq.daemon import Daemon
-    from daq.recording import scan
+    from daq.recording_reader import scan
     from daq.testing import FakeDriver
 
     rport = free_port()

@@ -19,7 +19,7 @@ import pytest
 
 from daq.bus import Receiver, open_session
 from daq.daemon import Daemon
-from daq.recording import read_recording
+from daq.recording_reader import read_recording
 from daq.testing import FakeDriver, free_port, loopback_sink, recorded_columns
 from daq.testing import daq_cli as daq
 

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from daq.columnar import StreamSchema, decode
-from daq.recording import read_recording
+from daq.recording_reader import read_recording
 from daq.testing import free_port
 
 pytestmark = pytest.mark.timeout(180)
@@ -195,6 +195,6 @@ def test_daq_run_without_config_records_the_emulated_cell(tmp_path):
 
 
 def _scan(path: Path):
-    from daq.recording import scan
+    from daq.recording_reader import scan
 
     return scan(path)

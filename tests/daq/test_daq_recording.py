@@ -17,7 +17,9 @@ from mcap.reader import make_reader
 
 from daq import foxglove
 from daq.columnar import Column, StreamSchema, decode, encode
-from daq.recording import McapRecorder, read_recording, recover, scan
+from daq.recording_reader import read_recording, scan
+from daq.recording_recover import recover
+from daq.recording_writer import McapRecorder
 
 SCHEMA = StreamSchema(
     "cell/c/robot/r/dev/ch",
@@ -90,7 +92,7 @@ def test_foxglove_channels(tmp_path):
 WRITER = r"""
 import sys, time, numpy as np
 from daq.columnar import Column, StreamSchema, encode
-from daq.recording import McapRecorder
+from daq.recording_writer import McapRecorder
 schema = StreamSchema("cell/c/robot/r/dev/ch", (Column("seq", "uint64"),))
 rec = McapRecorder(sys.argv[1], chunk_interval_s=0.05, chunk_size_bytes=1 << 20)
 cid = rec.add_columnar(schema)

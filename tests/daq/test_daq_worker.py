@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from daq.config import loads
-from daq.recording import read_recording
+from daq.recording_reader import read_recording
 from daq.testing import child_pids, daq_cli, free_port, recorded_columns
 from daq.worker import config_from_spec, worker_spec, worker_zenoh
 

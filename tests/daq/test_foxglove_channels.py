@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 
 from daq.columnar import Column, StreamSchema
 from daq.foxglove_channels import StreamViewer
-from daq.recording import McapRecorder
+from daq.recording_writer import McapRecorder
 
 PUBLISHED = Path(__file__).parents[1] / "data" / "foxglove_schemas"
 T0 = 1_795_000_000_000_000_000  # host UTC ns
