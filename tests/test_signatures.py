@@ -44,10 +44,6 @@ EXCEPTIONS: dict[str, str] = {
     # the closed loop's effect library and the live twin: modules being split elsewhere
     "calibration.effects.effect_library:EffectKind.slot(return)": _OTHER_BRANCH,
     "calibration.effects.effect_library:GravityDeflection.slot(return)": _OTHER_BRANCH,
-    "calibration.twin.live_twin:state_schema(return)": _OTHER_BRANCH,
-    "calibration.twin.live_twin:frames_schema(return)": _OTHER_BRANCH,
-    "calibration.twin.live_twin:AngleReader.__init__(scale)": _OTHER_BRANCH,
-    "calibration.twin.live_twin:AngleReader.__init__(home_deg)": _OTHER_BRANCH,
     "calibration.twin.live_twin:LiveSettings.zenoh_config(return)": _OTHER_BRANCH,
     "calibration.twin.live_twin:TwinPublication.__init__(session)": _OTHER_BRANCH,
     # the daemon's command handlers take argparse's namespace (argparse.Namespace)

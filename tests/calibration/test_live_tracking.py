@@ -17,8 +17,8 @@ import pytest
 from calibration.effects.calibrate import calibrate
 from calibration.model.description import load_robot
 from calibration.twin.live_tracking import LiveTracker
-from calibration.twin.live_twin import TwinPredictor
 from calibration.twin.tracking import effect_offsets, static_errors_mm, track_checks, tracking_setup
+from calibration.twin.twin_predictor import TwinPredictor
 from sim_devices.drift import CellDrift
 from sim_devices.pose_campaign import (
     CampaignSettings,

@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 from calibration.model.description import load_robot
-from calibration.twin.live_twin import TwinPredictor
+from calibration.twin.twin_predictor import TwinPredictor
 from daq.testing import free_port
 
 DATA = Path(__file__).parents[1] / "data"

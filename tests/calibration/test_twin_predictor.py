@@ -1,4 +1,4 @@
-"""The live twin's TCP (calibration.twin.live_twin.TwinPredictor) against the full predictor,
+"""The live twin's TCP (calibration.twin.twin_predictor.TwinPredictor) against the full predictor,
 and its link frames against the kinematics."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 from calibration.effects.model_effects import predict_tcp
 from calibration.model.description import load_robot
 from calibration.model.kinematics import KinematicModel, flange_poses
-from calibration.twin.live_twin import TwinPredictor, _quaternions
+from calibration.twin.twin_predictor import TwinPredictor, rotation_quaternions
 
 MODEL = Path(__file__).parents[1] / "data" / "twin_calibrated_small" / "calibrated.toml"
 
@@ -75,7 +75,7 @@ def test_link_frames_follow_the_kinematics(desc):
     assert pred.frame_names == ("base", "link1", "link2", "link3", "link4", "link5", "link6", "tcp")
     fl = flange_poses(model, q)
     assert np.allclose(pos[:, 6], fl[:, :3, 3]) and np.allclose(
-        quat[:, 6], _quaternions(fl[:, :3, :3])
+        quat[:, 6], rotation_quaternions(fl[:, :3, :3])
     )
     assert np.allclose(pos[:, 7], pred._geometric(q)[0])  # the TCP
     assert np.allclose(pos[:, 0], model.base_mm)
@@ -86,7 +86,7 @@ def test_linearised_scale_maps_match_the_maps():
     import json
 
     from calibration.scales.scale_files import read_scale_toml
-    from calibration.twin.live_twin import AngleReader
+    from calibration.twin.twin_predictor import AngleReader
 
     data = MODEL.parent
     scale = read_scale_toml(str(data / "scale.toml"))

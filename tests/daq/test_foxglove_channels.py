@@ -155,7 +155,7 @@ def test_joint_columns_named_by_their_joint_without_meta():
 
 
 def test_the_twins_tracking_becomes_a_plottable_channel(tmp_path):
-    from calibration.twin.live_twin import tracking_schema
+    from calibration.twin.twin_keys import tracking_schema
 
     names = ("base.x_mm", "joint2.length_scale")
     schema = tracking_schema("twin/c/robot/r/tracking", names, "c", "r", "m")

@@ -187,7 +187,7 @@ def test_the_live_source_keeps_the_latest_twin_sample_and_the_twins_health():
         schemas = SchemaServer(src, "twin")
         pub = ChannelPublisher(src, schema, schemas=schemas)
         health = src.declare_publisher("twin/c/robot/r/health")
-        from calibration.twin.live_twin import tracking_schema
+        from calibration.twin.twin_keys import tracking_schema
 
         names = ("base.x_mm", "joint2.length_scale")
         tracking = ChannelPublisher(
