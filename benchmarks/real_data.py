@@ -143,7 +143,9 @@ def _rot(axis: int, angle: FloatArray) -> FloatArray:
     return r
 
 
-def mdh_points(rows: FloatArray, base: FloatArray, tool: FloatArray, q_rad: FloatArray) -> FloatArray:
+def mdh_points(
+    rows: FloatArray, base: FloatArray, tool: FloatArray, q_rad: FloatArray
+) -> FloatArray:
     """Points ``(m, 3)``: rows ``(6, 5)`` (a mm, α rad, d mm, θ0 rad, β rad), base
     (x, y, z mm, rx, ry, rz rad fixed-axis), tool ``(3,)`` mm, joints ``(m, 6)`` rad."""
     m = len(q_rad)
@@ -217,7 +219,9 @@ def geometric_fit(desc: RobotDescription, q_deg: FloatArray, xyz_mm: FloatArray)
     angle = [f in ("alpha", "theta", "beta") for _, f in FREE_JOINT_PARAMETERS]
     hi = np.array([0.1 if a else 20.0 for a in angle] + [np.inf] * 6 + [20.0, 20.0])
     x0 = np.zeros(len(FREE_JOINT_PARAMETERS) + 8)
-    res = least_squares(residual, x0, bounds=(-hi, hi), method="trf", x_scale="jac", xtol=1e-10, ftol=1e-10)
+    res = least_squares(
+        residual, x0, bounds=(-hi, hi), method="trf", x_scale="jac", xtol=1e-10, ftol=1e-10
+    )
     return unpack(res.x)
 
 
@@ -226,4 +230,8 @@ def split(
 ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
     """A random split of ``m`` rows: identification, validation, the rest held out."""
     perm = np.random.default_rng([seed, 29]).permutation(m)
-    return perm[:n_identify], perm[n_identify : n_identify + n_validate], perm[n_identify + n_validate :]
+    return (
+        perm[:n_identify],
+        perm[n_identify : n_identify + n_validate],
+        perm[n_identify + n_validate :],
+    )

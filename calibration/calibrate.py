@@ -21,6 +21,7 @@ from calibration.description import RobotDescription
 if TYPE_CHECKING:  # the solvers load when calibrate runs
     from calibration.closed_loop import ClosedLoopResult, LoopSettings
     from calibration.identification import IdentificationResult, ProgressCallback
+    from calibration.learned_residual import LearnedStage
 
 
 @dataclass(frozen=True, eq=False)
@@ -32,6 +33,8 @@ class CalibrationResult:
     geometric: IdentificationResult
     loop: ClosedLoopResult | None
     description: RobotDescription
+    #: the learned residual stage's decision (None: not tried; it follows the loop)
+    learned: LearnedStage | None = None
 
     @property
     def result(self) -> IdentificationResult:
@@ -58,6 +61,7 @@ def calibrate(
     point_sigma_mm: ArrayLike | None = None,
     loop_settings: LoopSettings | None = None,
     sweep_referenced: bool = False,
+    learned: bool = True,
     progress: ProgressCallback | None = None,
     say: Callable[[str], None] | None = None,
     on_geometric: Callable[[IdentificationResult], None] | None = None,
@@ -69,7 +73,8 @@ def calibrate(
     the identification (:func:`~calibration.identification.identify`) and the loop;
     ``sweep_referenced`` to the loop (:func:`~calibration.closed_loop.run_closed_loop`).
     ``on_geometric`` sees the geometric result before the loop starts (a caller's checks
-    and messages, in order)."""
+    and messages, in order). With ``effects`` and ``learned``, the learned residual stage
+    follows the loop (:func:`learned_stage_of`)."""
     from calibration.closed_loop import LoopSettings, run_closed_loop
     from calibration.identification import identify
     from calibration.kinematics import KinematicModel
@@ -103,4 +108,36 @@ def calibrate(
         say=say,
         sweep_referenced=sweep_referenced,
     )
-    return CalibrationResult(geometric, loop, loop.calibrated_description(description))
+    calibrated = loop.calibrated_description(description)
+    if not learned:
+        return CalibrationResult(geometric, loop, calibrated)
+    stage, calibrated = learned_stage_of(loop, campaign, calibrated)
+    if say is not None:
+        say(f"learned residual stage: {'accepted' if stage.accepted else 'rejected'}, "
+            f"{stage.reason} ({stage.fit_s:.1f} s)")  # fmt: skip
+    return CalibrationResult(geometric, loop, calibrated, stage)
+
+
+def learned_stage_of(
+    loop: ClosedLoopResult, campaign: Campaign, calibrated: RobotDescription
+) -> tuple[LearnedStage, RobotDescription]:
+    """The learned residual stage on the loop's final residuals (identification poses fit,
+    validation poses check), and ``calibrated`` with its ``[residual]`` table: the traced
+    model's standard deviation (from the validation residuals when there are any) and the
+    stage when accepted."""
+    import numpy as np
+
+    from calibration.description import ResidualDescription
+    from calibration.learned_residual import learned_stage
+
+    errors = loop.final.errors_mm
+    val = "validate" in errors
+    stage = learned_stage(
+        campaign.q_rad[campaign.mask("identify")],
+        errors["identify"],
+        campaign.q_rad[campaign.mask("validate")] if val else None,
+        errors["validate"] if val else None,
+    )
+    traced_sd = float(np.sqrt(np.mean(errors["validate" if val else "identify"] ** 2)))
+    residual = ResidualDescription(traced_sd_mm=traced_sd, learned=stage.description)
+    return stage, replace(calibrated, residual=residual)

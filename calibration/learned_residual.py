@@ -31,12 +31,17 @@ and its prediction of 10 000 poses with standard deviations meets the 0.1 s targ
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
+from weakref import WeakKeyDictionary
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import cho_factor, cho_solve, lapack, solve_triangular
 from scipy.optimize import minimize
+from scipy.stats import t as student_t
+
+from calibration.description import LearnedResidualDescription
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -48,7 +53,9 @@ REACH = 2.0
 #: The Nyström pivots stop when no training pose's k(x, x) is off by more than this · s².
 PIVOT_TOL = 1e-4
 #: Most pivots of the variance's Nyström projection.
-MAX_PIVOTS = 400
+MAX_PIVOTS = 120
+#: Poses predicted at once.
+BLOCK = 1000
 #: Bounds of the length scales (rad): below the finest pose spacing a campaign has, and
 #: beyond which a joint no longer matters.
 LENGTH_BOUNDS = (0.05, 100.0)
@@ -207,7 +214,19 @@ class LearnedResidual:
         return len(self.q_rad)
 
     def predict(self, q_rad: ArrayLike) -> ResidualPrediction:
-        """The correction and predictive standard deviation at joint angles ``(m, n)`` rad."""
+        """The correction and predictive standard deviation at joint angles ``(m, n)`` rad
+        (in blocks of :data:`BLOCK` poses: the ``(block, N)`` kernel stays in cache)."""
+        q = np.atleast_2d(np.asarray(q_rad, dtype=float))
+        parts = [self._predict_block(q[i : i + BLOCK]) for i in range(0, len(q), BLOCK)]
+        if not parts:
+            return ResidualPrediction(np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=bool))
+        return ResidualPrediction(
+            mean_mm=np.concatenate([p.mean_mm for p in parts]),
+            sd_mm=np.concatenate([p.sd_mm for p in parts]),
+            within_reach=np.concatenate([p.within_reach for p in parts]),
+        )
+
+    def _predict_block(self, q_rad: FloatArray) -> ResidualPrediction:
         h = self.hyper
         fx = circle_features(q_rad, h.length_scales)
         c = float(np.sum(1.0 / np.asarray(h.length_scales) ** 2))
@@ -271,3 +290,133 @@ def fit_learned_residual(
     hyper = fit_hyperparameters(q, y)
     sd = float(np.sqrt(np.mean(y**2))) if traced_sd_mm is None else traced_sd_mm
     return LearnedResidual(q_rad=q, residual_mm=y, hyper=hyper, traced_sd_mm=sd)
+
+
+# -- stored with the model ------------------------------------------------------------------
+#: Poses the hyperparameters are fitted on (a random subset beyond it: the likelihood's
+#: O(N³) per evaluation would exceed the 3 s budget of 1000 poses; the final model uses all).
+HYPER_POSES = 400
+
+_MODELS: WeakKeyDictionary[LearnedResidualDescription, LearnedResidual] = WeakKeyDictionary()
+
+
+def model_of(learned: LearnedResidualDescription, traced_sd_mm: float) -> LearnedResidual:
+    """The factored model of a stored stage (factored once per description object and
+    traced standard deviation: the live twin predicts one pose at a time)."""
+    model = _MODELS.get(learned)
+    if model is None or model.traced_sd_mm != traced_sd_mm:
+        model = _factored(learned, traced_sd_mm)
+        _MODELS[learned] = model
+    return model
+
+
+def _factored(learned: LearnedResidualDescription, traced_sd_mm: float) -> LearnedResidual:
+    """The model from exactly the stored numbers (so a file read back predicts the same)."""
+    return LearnedResidual(
+        q_rad=np.radians(np.array(learned.q_deg, dtype=float)),
+        residual_mm=np.array(learned.residual_mm, dtype=float),
+        hyper=Hyperparameters(learned.length_scales_rad, learned.signal_sd_mm, learned.noise_sd_mm),
+        traced_sd_mm=traced_sd_mm,
+        reach=learned.reach,
+    )
+
+
+def stored(
+    q_rad: ArrayLike, residual_mm: ArrayLike, hyper: Hyperparameters, reach: float = REACH
+) -> LearnedResidualDescription:
+    """The stage as a description stores it (angles in degrees, as every file has them)."""
+    q = np.degrees(np.atleast_2d(np.asarray(q_rad, dtype=float)))
+    r = np.asarray(residual_mm, dtype=float)
+    return LearnedResidualDescription(
+        kernel=KERNEL,
+        length_scales_rad=hyper.length_scales,
+        signal_sd_mm=hyper.signal_sd_mm,
+        noise_sd_mm=hyper.noise_sd_mm,
+        reach=reach,
+        q_deg=tuple(tuple(float(v) for v in row) for row in q),
+        residual_mm=tuple(tuple(float(v) for v in row) for row in r),
+    )
+
+
+# -- the decision ---------------------------------------------------------------------------
+#: One-sided significance of the cross-validated error reduction the stage must reach.
+ALPHA = 0.01
+
+CRITERION = (
+    "a Gaussian process of the traced model's identification residuals over the joint "
+    "angles (periodic ARD kernel, hyperparameters by marginal likelihood) is accepted when "
+    "its leave-one-out squared error per pose is lower than the traced model's residual "
+    f"with one-sided paired t-test p < {ALPHA}, and it does not make the validation mean "
+    "error worse"
+)
+
+
+@dataclass(frozen=True)
+class LearnedStage:
+    """The learned stage's decision. ``share``: the fraction of the traced model's mean
+    squared identification residual the stage explains, cross-validated (leave-one-out);
+    ``p_value`` of the paired test; validation mean AP (mm) before and after (NaN without
+    validation poses); ``description``: the stored stage when accepted."""
+
+    accepted: bool
+    reason: str
+    share: float
+    p_value: float
+    identify_mean_mm: float
+    loo_mean_mm: float
+    validate_before_mm: float
+    validate_after_mm: float
+    hyper: Hyperparameters
+    fit_s: float
+    description: LearnedResidualDescription | None = None
+
+
+def learned_stage(
+    q_identify_rad: ArrayLike,
+    residual_identify_mm: ArrayLike,
+    q_validate_rad: ArrayLike | None = None,
+    residual_validate_mm: ArrayLike | None = None,
+    *,
+    seed: int = 0,
+) -> LearnedStage:
+    """Fit the stage on the identification residuals ``(m, 3)`` mm (tracker − traced model)
+    and decide whether it stays (see :data:`CRITERION`)."""
+    started = time.perf_counter()
+    q = np.atleast_2d(np.asarray(q_identify_rad, dtype=float))
+    r = np.asarray(residual_identify_mm, dtype=float)
+    sub = np.random.default_rng(seed).permutation(len(q))[:HYPER_POSES]
+    hyper = fit_hyperparameters(q[sub], r[sub])
+    desc = stored(q, r, hyper)
+    model = _factored(desc, float(np.sqrt(np.mean(r**2))))
+    loo = model.loo_residuals()
+    gain = np.sum(r**2, axis=1) - np.sum(loo**2, axis=1)
+    sd = float(np.std(gain, ddof=1)) if len(gain) > 1 else 0.0
+    t_stat = float(np.mean(gain)) / (sd / math.sqrt(len(gain))) if sd > 0 else 0.0
+    p = float(student_t.sf(t_stat, len(gain) - 1))
+    share = 1.0 - float(np.mean(np.sum(loo**2, axis=1)) / np.mean(np.sum(r**2, axis=1)))
+    before = after = float("nan")
+    if q_validate_rad is not None and residual_validate_mm is not None:
+        rv = np.asarray(residual_validate_mm, dtype=float)
+        pred = model.predict(q_validate_rad)
+        before = float(np.linalg.norm(rv, axis=1).mean())
+        after = float(np.linalg.norm(rv - pred.mean_mm, axis=1).mean())
+    if p >= ALPHA:
+        accepted, reason = False, f"not significant (p = {p:.2g} ≥ {ALPHA})"
+    elif after > before:
+        accepted = False
+        reason = f"undone: validation mean AP {before:.4f} -> {after:.4f} mm"
+    else:
+        accepted, reason = True, f"significant (p = {p:.2g} < {ALPHA})"
+    return LearnedStage(
+        accepted=accepted,
+        reason=reason,
+        share=share,
+        p_value=p,
+        identify_mean_mm=float(np.linalg.norm(r, axis=1).mean()),
+        loo_mean_mm=float(np.linalg.norm(loo, axis=1).mean()),
+        validate_before_mm=before,
+        validate_after_mm=after,
+        hyper=hyper,
+        fit_s=time.perf_counter() - started,
+        description=desc if accepted else None,
+    )
