@@ -120,8 +120,8 @@ class LearnedResidualDescription:
     signal_sd_mm: float
     noise_sd_mm: float
     reach: float
-    q_deg: tuple[tuple[float, ...], ...]
-    residual_mm: tuple[tuple[float, ...], ...]
+    q_deg: tuple[tuple[float, ...], ...] = field(repr=False)
+    residual_mm: tuple[tuple[float, ...], ...] = field(repr=False)
 
 
 @dataclass(frozen=True)
