@@ -127,7 +127,9 @@ def run(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_real_data", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.bench_real_data", description=__doc__
+    )
     parser.add_argument("--quick", action="store_true", help="one split, 100 UR10 poses")
     parser.add_argument("--splits", type=int, default=10)
     parser.add_argument("--sizes", help="N identification poses, comma separated")

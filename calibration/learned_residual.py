@@ -14,8 +14,9 @@ describes. This module models it with a Gaussian process over the joint angles:
 * **prediction** ``(m, 3)`` mean with one predictive standard deviation per pose and axis,
   ``sqrt(var_f + σ²)``: the spread of a tracker reading about the prediction. The mean
   uses every training point; the latent variance ``var_f`` uses a Nyström projection on
-  pivots chosen by a pivoted Cholesky (error in ``k(x, x)`` below :data:`PIVOT_TOL` · s² at
-  the training points), so 10 000 poses cost one ``(m, N)`` kernel and ``(m, r)`` algebra;
+  pivots chosen by a pivoted Cholesky (error in ``k(x, x)`` below :data:`PIVOT_TOL` · σ² at
+  the training points, at most :data:`MAX_PIVOTS`), so 10 000 poses cost one ``(m, N)``
+  kernel and ``(m, r)`` algebra;
 * **reach**: a pose whose nearest training pose lies beyond :data:`REACH` in the kernel's
   metric (``d² = 4 Σ sin²(Δq_j/2)/l_j²``) is outside the data's reach: no correction, the
   traced model's standard deviation, and flagged.
@@ -32,6 +33,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from weakref import WeakKeyDictionary
 
@@ -40,6 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import cho_factor, cho_solve, lapack, solve_triangular
 from scipy.optimize import minimize
 from scipy.stats import t as student_t
+from threadpoolctl import threadpool_limits
 
 from calibration.description import LearnedResidualDescription
 
@@ -50,13 +54,17 @@ KERNEL = "periodic_ard_se"
 #: Kernel distance beyond which a pose is outside the data's reach (correlation with the
 #: nearest training pose below exp(−REACH²/2) = 0.14).
 REACH = 2.0
-#: The Nyström pivots stop when no training pose's k(x, x) is off by more than this · s².
-PIVOT_TOL = 1e-4
+#: The Nyström pivots stop when no training pose's k(x, x) is off by more than this · σ²
+#: (the variance matters beside the noise's: 1 % of it moves the sd by 0.5 %).
+PIVOT_TOL = 1e-2
 #: Most pivots of the variance's Nyström projection.
-MAX_PIVOTS = 120
+MAX_PIVOTS = 300
 #: Starting length scales (rad) of the likelihood's search: its surface has a smooth
 #: (long) and a fine (short) optimum on real arms; both are tried, the better kept.
 LENGTH_STARTS = (0.1, 1.0)
+#: Fewer poses are predicted without limiting the BLAS threads (its products are then too
+#: small to be threaded, and the limit costs time per call: the live twin's one pose).
+SMALL = 64
 #: Poses predicted at once.
 BLOCK = 1000
 #: Bounds of the length scales (rad): below the finest pose spacing a campaign has, and
@@ -95,6 +103,14 @@ def kernel_matrix(fa: FloatArray, fb: FloatArray, hyper: Hyperparameters) -> Flo
     np.exp(k, out=k)
     k *= hyper.signal_sd_mm**2
     return k
+
+
+@contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """BLAS on one thread: on a shared 2-core host a multithreaded OpenBLAS made the fit
+    50x slower (``python -m benchmarks.bench_learned_residual``)."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
 
 
 # -- marginal likelihood --------------------------------------------------------------------
@@ -199,6 +215,10 @@ class LearnedResidual:
     def __post_init__(self) -> None:
         """Factor once: the Cholesky of K + σ²I, the weights K⁻¹y and the variance's
         Nyström matrix (``O(N³)``, 0.05 s for 1000 poses)."""
+        with one_blas_thread():
+            self._factor()
+
+    def _factor(self) -> None:
         h = self.hyper
         f = circle_features(self.q_rad, h.length_scales)
         kf = kernel_matrix(f, f, h)
@@ -206,7 +226,7 @@ class LearnedResidual:
         k[np.diag_indices_from(k)] += h.noise_sd_mm**2
         chol = cho_factor(k, lower=True)
         alpha = cho_solve(chol, self.residual_mm)
-        pivots, lp = _pivoted_cholesky(kf, PIVOT_TOL * h.signal_sd_mm**2, MAX_PIVOTS)
+        pivots, lp = _pivoted_cholesky(kf, PIVOT_TOL * h.noise_sd_mm**2, MAX_PIVOTS)
         # k*ᵀ K⁻¹ k* with k(x, X) ≈ k(x, P) K_PP⁻¹ K_PX: a quadratic form in k(x, P)
         g = solve_triangular(lp, kf[pivots], lower=True)  # (r, N) = L_P⁻¹ K_PX
         c = g @ cho_solve(chol, g.T)  # (r, r)
@@ -226,7 +246,8 @@ class LearnedResidual:
         """The correction and predictive standard deviation at joint angles ``(m, n)`` rad
         (in blocks of :data:`BLOCK` poses: the ``(block, N)`` kernel stays in cache)."""
         q = np.atleast_2d(np.asarray(q_rad, dtype=float))
-        parts = [self._predict_block(q[i : i + BLOCK]) for i in range(0, len(q), BLOCK)]
+        with one_blas_thread() if len(q) > SMALL else nullcontext():
+            parts = [self._predict_block(q[i : i + BLOCK]) for i in range(0, len(q), BLOCK)]
         if not parts:
             return ResidualPrediction(np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=bool))
         return ResidualPrediction(
@@ -296,7 +317,8 @@ def fit_learned_residual(
     """Hyperparameters by marginal likelihood, then the factored model."""
     q = np.atleast_2d(np.asarray(q_rad, dtype=float))
     y = np.asarray(residual_mm, dtype=float)
-    hyper = fit_hyperparameters(q, y)
+    with one_blas_thread():
+        hyper = fit_hyperparameters(q, y)
     sd = float(np.sqrt(np.mean(y**2))) if traced_sd_mm is None else traced_sd_mm
     return LearnedResidual(q_rad=q, residual_mm=y, hyper=hyper, traced_sd_mm=sd)
 
@@ -394,10 +416,12 @@ def learned_stage(
     q = np.atleast_2d(np.asarray(q_identify_rad, dtype=float))
     r = np.asarray(residual_identify_mm, dtype=float)
     sub = np.random.default_rng(seed).permutation(len(q))[:HYPER_POSES]
-    hyper = fit_hyperparameters(q[sub], r[sub])
+    with one_blas_thread():
+        hyper = fit_hyperparameters(q[sub], r[sub])
     desc = stored(q, r, hyper)
     model = _factored(desc, float(np.sqrt(np.mean(r**2))))
-    loo = model.loo_residuals()
+    with one_blas_thread():
+        loo = model.loo_residuals()
     gain = np.sum(r**2, axis=1) - np.sum(loo**2, axis=1)
     sd = float(np.std(gain, ddof=1)) if len(gain) > 1 else 0.0
     t_stat = float(np.mean(gain)) / (sd / math.sqrt(len(gain))) if sd > 0 else 0.0

@@ -1,0 +1,135 @@
+"""The learned residual stage's speed: ours (numpy) against scikit-learn's GP, 1 vs 2 threads.
+
+Data: 1000 training poses (6 joints, uniform over ±180°) whose 3-D residual is a smooth
+function of the angles (a few mm-scale sines, products of joints) plus 0.02 mm noise;
+10 000 poses to predict. Rows, each timed in this process, the BLAS limited to 1 thread and
+then to 2 (``threadpoolctl``; on this shared 2-core host a multithreaded OpenBLAS has been
+seen 10-30x slower than one thread):
+
+* ``fit``: hyperparameters by marginal likelihood and the factorisation
+  (:func:`calibration.learned_residual.fit_learned_residual`; target ≤ 3 s for 1000 poses);
+* ``predict``: mean and standard deviation of 10 000 poses (target ≤ 0.1 s);
+* ``sklearn fit`` / ``sklearn predict``: ``GaussianProcessRegressor`` with an ARD RBF on
+  each joint's (cos, sin) plus a white kernel (12 length scales: it has no per-joint
+  periodic ARD kernel), its default L-BFGS-B without restarts, ``return_std=True``; the
+  ratio column is sklearn's time over ours in the same thread setting. Skipped (a note)
+  when scikit-learn is not installed: it is not a dependency of the project.
+
+    OMP_NUM_THREADS=1 python -m benchmarks.bench_learned_residual [--quick]
+
+(OMP_NUM_THREADS=1 only for the rest of the process: the rows set the BLAS threads
+themselves.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+
+from benchmarks import format_table
+from calibration.learned_residual import fit_learned_residual
+
+Row = dict[str, Any]
+
+
+def dataset(n_train: int, n_predict: int, seed: int = 0) -> tuple[Any, Any, Any, Any]:
+    """Training angles ``(n, 6)`` rad and residuals ``(n, 3)`` mm; angles to predict and
+    their noise-free residuals."""
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-np.pi, np.pi, (n_train + n_predict, 6))
+    y = np.column_stack(
+        [
+            0.1 * np.sin(q[:, 1]) * np.cos(q[:, 2]),
+            0.08 * np.sin(q[:, 0] + q[:, 3]),
+            0.05 * np.cos(2 * q[:, 1]) + 0.03 * np.sin(q[:, 4]),
+        ]
+    )
+    noisy = y[:n_train] + rng.normal(0, 0.02, (n_train, 3))
+    return q[:n_train], noisy, q[n_train:], y[n_train:]
+
+
+@contextlib.contextmanager
+def blas_threads(n: int) -> Iterator[None]:
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # without it: whatever the environment set
+        yield
+        return
+    with threadpool_limits(limits=n, user_api="blas"):
+        yield
+
+
+def timed(fn: Callable[[], Any], repeat: int) -> tuple[float, Any]:
+    """Best of ``repeat`` wall times (s) and the last result."""
+    best, out = float("inf"), None
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t)
+    return best, out
+
+
+def _sklearn_rows(
+    q: Any, y: Any, qx: Any, yx: Any, threads: int, ours: dict[str, float]
+) -> list[Row]:
+    try:
+        from sklearn.gaussian_process import GaussianProcessRegressor
+        from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
+    except ImportError:
+        return [{"benchmark": "sklearn", "threads": threads, "note": "scikit-learn not installed"}]
+
+    def features(a: Any) -> Any:
+        return np.concatenate([np.cos(a), np.sin(a)], axis=1)
+
+    kernel = ConstantKernel(0.01) * RBF(length_scale=np.ones(12)) + WhiteKernel(1e-3)
+    gp = GaussianProcessRegressor(kernel=kernel, normalize_y=False)
+    with blas_threads(threads):
+        fit_s, _ = timed(lambda: gp.fit(features(q), y), 1)
+        pred_s, (mean, _) = timed(lambda: gp.predict(features(qx), return_std=True), 2)
+    return [
+        {"benchmark": f"sklearn fit {len(q)}", "threads": threads, "seconds": round(fit_s, 3),
+         "ratio_vs_ours": round(fit_s / ours["fit"], 2)},
+        {"benchmark": f"sklearn predict {len(qx)} (+std)", "threads": threads,
+         "seconds": round(pred_s, 4), "ratio_vs_ours": round(pred_s / ours["predict"], 2),
+         "rms_error_mm": round(float(np.sqrt(np.mean((mean - yx) ** 2))), 4)},
+    ]  # fmt: skip
+
+
+def run(quick: bool = False) -> list[Row]:
+    n_train, n_predict = (200, 1000) if quick else (1000, 10_000)
+    q, y, qx, yx = dataset(n_train, n_predict)
+    rows: list[Row] = []
+    for threads in (1, 2):
+        with blas_threads(threads):
+            fit_s, model = timed(lambda: fit_learned_residual(q, y), 1 if quick else 2)
+            pred_s, pred = timed(lambda m=model: m.predict(qx), 3)
+        rows.append(
+            {"benchmark": f"fit {n_train} (hyperparameters + factor)", "threads": threads,
+             "seconds": round(fit_s, 3), "target_s": 3.0}
+        )  # fmt: skip
+        rows.append(
+            {"benchmark": f"predict {n_predict} (mean + sd)", "threads": threads,
+             "seconds": round(pred_s, 4), "target_s": 0.1,
+             "rms_error_mm": round(float(np.sqrt(np.mean((pred.mean_mm - yx) ** 2))), 4),
+             "note": f"{len(model._pivots)} variance pivots"}
+        )  # fmt: skip
+        if not quick:
+            rows += _sklearn_rows(q, y, qx, yx, threads, {"fit": fit_s, "predict": pred_s})
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_learned_residual")
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args(argv)
+    print(format_table(run(args.quick)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
