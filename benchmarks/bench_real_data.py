@@ -52,9 +52,10 @@ def one_split(data: RealData, n_identify: int, seed: int) -> Row:
     cal = calibrate(data.description, data.campaign(ident, val))
     identify_s = time.perf_counter() - started
     q_held = np.radians(data.q_deg[held])
+    t_held = held.astype(float)  # the campaign's clock: the row number (drift terms)
     meas = data.xyz_mm[held]
-    twin = predict_tcp_sd(cal.description, q_held)
-    traced = predict_tcp_sd(replace(cal.description, residual=None), q_held)
+    twin = predict_tcp_sd(cal.description, q_held, t_held)
+    traced = predict_tcp_sd(replace(cal.description, residual=None), q_held, t_held)
     geo = geometric_fit(data.description, data.q_deg[ident], data.xyz_mm[ident])
     e_geo = np.linalg.norm(meas - geo.points(data.q_deg[held]), axis=1)
     e_traced = np.linalg.norm(meas - traced.points_mm, axis=1)

@@ -5,7 +5,7 @@ data README's D-H table in the project's modified D-H, no base: it is fitted) an
 poses ``q_deg`` ``(m, 6)`` with the measured points ``xyz_mm`` ``(m, 3)``; a split of the
 rows into identification, validation and held-out poses becomes a
 :class:`~calibration.campaign_files.Campaign`. Beside it, an independent geometric fit
-(:func:`geometric_fit`: MDH + base + tool, 25 parameters, ``scipy.optimize.least_squares``,
+(:func:`geometric_fit`: MDH + base + tool, 27 parameters, ``scipy.optimize.least_squares``,
 its own forward kinematics) is the reference every benchmark compares with.
 
 The data stay where they are (their licences ask for attribution; nothing is copied).
