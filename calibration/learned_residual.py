@@ -312,13 +312,15 @@ def _pivoted_cholesky(
 
 
 def fit_learned_residual(
-    q_rad: ArrayLike, residual_mm: ArrayLike, traced_sd_mm: float | None = None
+    q_rad: ArrayLike, residual_mm: ArrayLike, traced_sd_mm: float | None = None, seed: int = 0
 ) -> LearnedResidual:
-    """Hyperparameters by marginal likelihood, then the factored model."""
+    """Hyperparameters by marginal likelihood (on :data:`HYPER_POSES` of the poses drawn
+    with ``seed``, beyond that many), then the model factored on every pose."""
     q = np.atleast_2d(np.asarray(q_rad, dtype=float))
     y = np.asarray(residual_mm, dtype=float)
+    sub = np.random.default_rng(seed).permutation(len(q))[:HYPER_POSES]
     with one_blas_thread():
-        hyper = fit_hyperparameters(q, y)
+        hyper = fit_hyperparameters(q[sub], y[sub])
     sd = float(np.sqrt(np.mean(y**2))) if traced_sd_mm is None else traced_sd_mm
     return LearnedResidual(q_rad=q, residual_mm=y, hyper=hyper, traced_sd_mm=sd)
 
