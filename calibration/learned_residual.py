@@ -58,7 +58,7 @@ REACH = 2.0
 #: (the variance matters beside the noise's: 1 % of it moves the sd by 0.5 %).
 PIVOT_TOL = 1e-2
 #: Most pivots of the variance's Nyström projection.
-MAX_PIVOTS = 300
+MAX_PIVOTS = 150
 #: Starting length scales (rad) of the likelihood's search: its surface has a smooth
 #: (long) and a fine (short) optimum on real arms; both are tried, the better kept.
 LENGTH_STARTS = (0.1, 1.0)
