@@ -7,7 +7,7 @@ then to 2 (``threadpoolctl``; on this shared 2-core host a multithreaded OpenBLA
 seen 10-30x slower than one thread), and once more at 2 threads with the stage's own
 one-thread limit lifted (what the shipped code protects against):
 
-* ``fit``: hyperparameters by marginal likelihood (on 300 of the poses, as the stage does)
+* ``fit``: hyperparameters by marginal likelihood (on 400 of the poses, as the stage does)
   and the factorisation on all of them
   (:func:`calibration.learned_residual.fit_learned_residual`; target ≤ 3 s for 1000 poses);
 * ``predict``: mean and standard deviation of 10 000 poses (target ≤ 0.1 s);

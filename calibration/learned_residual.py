@@ -328,7 +328,7 @@ def fit_learned_residual(
 # -- stored with the model ------------------------------------------------------------------
 #: Poses the hyperparameters are fitted on (a random subset beyond it: the likelihood's
 #: O(N³) per evaluation would exceed the 3 s budget of 1000 poses; the final model uses all).
-HYPER_POSES = 300
+HYPER_POSES = 400
 
 _MODELS: WeakKeyDictionary[LearnedResidualDescription, LearnedResidual] = WeakKeyDictionary()
 
