@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from calibration.effects.model_effects import load_checked_robot
+from calibration.effects.model_effects import TcpPrediction, load_checked_robot, predict_tcp_sd
 from calibration.errors import DataFileError, OutputFileError
 from calibration.identify.campaign_files import joint_columns, read_targets
 from calibration.model.kinematics import KinematicModel
@@ -93,7 +93,10 @@ def run_compensate(args: argparse.Namespace) -> int:
                 f"(target {targets.target[first]!r}): "
                 f"{res.reason[first]} ({bad.size} such target(s); --skip-bad leaves them out)"
             )
-        _write_joints(out_path, desc.n_joints, targets.target, res)
+        q_ok = np.where(res.ok[:, None], res.q_deg, 0.0)  # failed rows: a finite stand-in
+        times = None if targets.t_s is None else np.asarray(targets.t_s, dtype=float)
+        pred = predict_tcp_sd(desc, np.radians(q_ok), times)
+        _write_joints(out_path, desc.n_joints, targets.target, res, pred)
     for k in bad:
         print(
             f"twin compensate: skipped target {targets.target[k]!r} (line "
@@ -112,18 +115,25 @@ def run_compensate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_joints(path: Path, n_joints: int, ids: tuple[str, ...], res: CompensationResult) -> None:
+def _write_joints(
+    path: Path, n_joints: int, ids: tuple[str, ...], res: CompensationResult, pred: TcpPrediction
+) -> None:
     """joints.csv: the reached targets; ``force_deflection_mm`` (the process force's
-    deflection taken out, mm) only when the targets gave a force."""
+    deflection taken out, mm) only when the targets gave a force; then ``sd_mm`` (the
+    predictive standard deviation per axis of the TCP at the joints, empty where the model
+    states none) and ``beyond_reach`` (1: outside the learned residual stage's data)."""
     deflection = res.force_deflection_mm
     header = ["target", *joint_columns(n_joints), "residual_mm", "branch", "travel_deg"]
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh, lineterminator="\n")
-        w.writerow([*header, *([] if deflection is None else ["force_deflection_mm"])])
+        extra = [] if deflection is None else ["force_deflection_mm"]
+        w.writerow([*header, *extra, "sd_mm", "beyond_reach"])
         for i in np.flatnonzero(res.ok):
             travel = f"{res.travel_deg[i]:.6f}" if np.isfinite(res.travel_deg[i]) else ""
             row: list[str | int] = [ids[i], *(f"{v:.9f}" for v in res.q_deg[i])]
             row += [f"{res.residual_mm[i]:.3e}", int(res.branch[i]), travel]
             if deflection is not None:
                 row.append(f"{np.linalg.norm(deflection[i]):.6f}")
+            sd = pred.sd_mm[i]
+            row += ["" if np.isnan(sd) else f"{sd:.6f}", int(pred.beyond_reach[i])]
             w.writerow(row)

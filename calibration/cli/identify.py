@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.effects.calibrate import calibrate, start_for
+from calibration.effects.calibrate import CalibrationResult, calibrate, start_for
 from calibration.effects.model_effects import load_checked_robot
 from calibration.errors import (
     CalibrationError,
@@ -66,6 +66,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def _register_identify(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """``twin identify``'s options. Long because it is a flat argparse builder, one option after
+    another."""
     p = sub.add_parser(
         "identify",
         help="identify kinematic parameters from a campaign",
@@ -101,6 +103,12 @@ def _register_identify(sub: argparse._SubParsersAction[argparse.ArgumentParser])
         action="store_true",
         help="the geometric model alone (default: also search the residuals for effects the "
         "geometric model lacks and add the significant ones)",
+    )
+    p.add_argument(
+        "--no-learned",
+        action="store_true",
+        help="no learned residual stage after the effects (default: a Gaussian process of "
+        "what the effects leave, kept when it lowers the cross-validated error significantly)",
     )
     p.add_argument(
         "--effect-kinds",
@@ -229,6 +237,7 @@ def _identify(
             desc,
             campaign,
             effects=not args.no_effects,
+            learned=not args.no_learned,
             start=start,
             loss=args.loss,
             f_scale_mm=args.f_scale_mm,
@@ -244,7 +253,7 @@ def _identify(
         raise IdentificationError(f"{args.data}: {exc}") from None
     _require_converged(cal.result, "final")
     cal.description.save(out_path)
-    return _reported(args, desc, campaign, cal.result, cal.loop, report_dir, say)
+    return _reported(args, desc, campaign, cal, report_dir, say)
 
 
 @dataclass(frozen=True)
@@ -275,14 +284,14 @@ def _reported(
     args: argparse.Namespace,
     desc: RobotDescription,
     campaign: Campaign,
-    result: IdentificationResult,
-    loop: ClosedLoopResult | None,
+    cal: CalibrationResult,
     report_dir: Path | None,
     say: Callable[[str], None],
 ) -> list[str]:
     """The report written to the staged ``report_dir`` (when asked for); the lines to print."""
     from calibration.effects.identification_report import build_report, write_report
 
+    result, loop = cal.result, cal.loop
     doc, errors = build_report(
         result,
         desc,
@@ -290,6 +299,7 @@ def _reported(
         robot_source=str(args.robot),
         calibrated_path=str(args.out),
         closed_loop=loop,
+        learned=cal.learned,
     )
     doc["solver"]["point_weights"] = (
         f"tracker MPE ±({args.tracker_mpe_um.replace(',', ' µm + ')} µm/m) as 2σ"
@@ -297,6 +307,18 @@ def _reported(
         else "none (all points weigh the same)"
     )
     lines = _result_lines(doc, loop, campaign)
+    if cal.learned is not None:
+        st = cal.learned
+        kept = "kept" if st.accepted else "not kept"
+        lines.append(
+            f"unexplained residual (learned): {kept}, {st.reason}; explains "
+            f"{100 * st.share:.1f} % of the traced mean square (leave-one-out)"
+            + (
+                f", validate mean AP {st.validate_before_mm:.4f} -> {st.validate_after_mm:.4f} mm"
+                if np.isfinite(st.validate_before_mm)
+                else ""
+            )
+        )
     lines.append(f"wrote {args.out}")
     if report_dir is not None:
         started = time.perf_counter()
@@ -378,7 +400,7 @@ def _require_converged(result: IdentificationResult, which: str) -> None:
 
 
 def run_predict(args: argparse.Namespace) -> int:
-    from calibration.effects.model_effects import predict_tcp, times_outside_span
+    from calibration.effects.model_effects import predict_tcp_sd, times_outside_span
 
     with OutputSet([args.data, args.model], error=OutputFileError) as outputs:
         out_path = outputs.file(args.out, "--out")
@@ -388,14 +410,22 @@ def run_predict(args: argparse.Namespace) -> int:
         )
         if not args.no_unit_check:
             check_joint_angle_units(str(args.data), readings.q_deg, _limits(desc))
-        points = predict_tcp(desc, np.radians(readings.q_deg), readings.t_s)
-        write_points(out_path, readings.pose, points)
+        pred = predict_tcp_sd(desc, np.radians(readings.q_deg), readings.t_s)
+        write_points(out_path, readings.pose, pred.points_mm, pred.sd_mm, pred.beyond_reach)
     outside, span = times_outside_span(desc, readings.t_s)
     if outside and span is not None:
         print(
             f"twin predict: warning: {outside} row(s) outside the campaign's time span "
             f"[{span[0]:.0f}, {span[1]:.0f}] s: the drift terms are held at their value at "
             "the nearer end (a polynomial in time is never extrapolated)",
+            file=sys.stderr,
+        )
+    far = int(np.count_nonzero(pred.beyond_reach))
+    if far:
+        print(
+            f"twin predict: {far} row(s) outside the learned residual stage's reach (kernel "
+            "distance to the nearest identification pose): the traced model and its standard "
+            "deviation (beyond_reach = 1)",
             file=sys.stderr,
         )
     if readings.skipped:

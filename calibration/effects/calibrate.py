@@ -21,6 +21,7 @@ from calibration.model.description import RobotDescription, TrackingDescription
 
 if TYPE_CHECKING:  # the solvers load when calibrate runs
     from calibration.effects.closed_loop import ClosedLoopResult, LoopSettings
+    from calibration.effects.learned_residual import LearnedStage
     from calibration.identify.identification_result import IdentificationResult
     from calibration.identify.levenberg_marquardt import ProgressCallback
 
@@ -34,6 +35,8 @@ class CalibrationResult:
     geometric: IdentificationResult
     loop: ClosedLoopResult | None
     description: RobotDescription
+    #: the learned residual stage's decision (None: not tried; it follows the loop)
+    learned: LearnedStage | None = None
 
     @property
     def result(self) -> IdentificationResult:
@@ -60,6 +63,7 @@ def calibrate(
     point_sigma_mm: ArrayLike | None = None,
     loop_settings: LoopSettings | None = None,
     sweep_referenced: bool = False,
+    learned: bool = True,
     progress: ProgressCallback | None = None,
     say: Callable[[str], None] | None = None,
     on_geometric: Callable[[IdentificationResult], None] | None = None,
@@ -71,7 +75,9 @@ def calibrate(
     the identification (:func:`~calibration.identify.identification.identify`) and the loop;
     ``sweep_referenced`` to the loop (:func:`~calibration.effects.closed_loop.run_closed_loop`).
     ``on_geometric`` sees the geometric result before the loop starts (a caller's checks
-    and messages, in order)."""
+    and messages, in order). With ``effects`` and ``learned``, the learned residual stage
+    follows the loop (:func:`learned_stage_of`). Long for its keyword options, each handed to
+    the identification or the loop."""
     from calibration.effects.closed_loop import LoopSettings, run_closed_loop
     from calibration.identify.identification import identify
     from calibration.model.kinematics import KinematicModel
@@ -106,7 +112,14 @@ def calibrate(
         sweep_referenced=sweep_referenced,
     )
     calibrated = loop.calibrated_description(description)
-    return CalibrationResult(geometric, loop, _tracked(calibrated, loop.result, campaign))
+    calibrated = _tracked(calibrated, loop.result, campaign)
+    if not learned:
+        return CalibrationResult(geometric, loop, calibrated)
+    stage, calibrated = learned_stage_of(loop, campaign, calibrated)
+    if say is not None:
+        say(f"learned residual stage: {'accepted' if stage.accepted else 'rejected'}, "
+            f"{stage.reason} ({stage.fit_s:.1f} s)")  # fmt: skip
+    return CalibrationResult(geometric, loop, calibrated, stage)
 
 
 def _tracked(
@@ -134,3 +147,28 @@ def tracking_description(result: IdentificationResult, campaign: Campaign) -> Tr
         identify_deg=rows(campaign.q_deg[idm]),
         reference_deg=rows(reference),
     )
+
+
+def learned_stage_of(
+    loop: ClosedLoopResult, campaign: Campaign, calibrated: RobotDescription
+) -> tuple[LearnedStage, RobotDescription]:
+    """The learned residual stage on the loop's final residuals (identification poses fit,
+    validation poses check), and ``calibrated`` with its ``[residual]`` table: the traced
+    model's standard deviation (from the validation residuals when there are any) and the
+    stage when accepted."""
+    import numpy as np
+
+    from calibration.effects.learned_residual import learned_stage
+    from calibration.model.description import ResidualDescription
+
+    errors = loop.final.errors_mm
+    val = "validate" in errors
+    stage = learned_stage(
+        campaign.q_rad[campaign.mask("identify")],
+        errors["identify"],
+        campaign.q_rad[campaign.mask("validate")] if val else None,
+        errors["validate"] if val else None,
+    )
+    traced_sd = float(np.sqrt(np.mean(errors["validate" if val else "identify"] ** 2)))
+    residual = ResidualDescription(traced_sd_mm=traced_sd, learned=stage.description)
+    return stage, replace(calibrated, residual=residual)

@@ -32,6 +32,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration.effects.closed_loop import CRITERION, ClosedLoopResult, Stage
 from calibration.effects.effect_library import KINDS
+from calibration.effects.learned_residual import CRITERION as LEARNED_CRITERION
+from calibration.effects.learned_residual import LearnedStage
 from calibration.identify.campaign_files import Campaign
 from calibration.identify.identification import (
     IdentificationResult,
@@ -158,11 +160,14 @@ def build_report(
     robot_source: str,
     calibrated_path: str | None = None,
     closed_loop: ClosedLoopResult | None = None,
+    learned: LearnedStage | None = None,
 ) -> tuple[dict[str, Any], list[SetErrors]]:
     """The JSON document of the report and the per-set errors it was made from.
 
     With ``closed_loop``, ``result`` is its final identification and *after* is the final
-    model with its effect terms; the document gains a ``closed_loop`` section.
+    model with its effect terms; the document gains a ``closed_loop`` section. With
+    ``learned`` (the learned residual stage's decision) a ``learned_residual`` section:
+    the "unexplained residual (learned)", kept apart from the traced effects.
     """
     nominal = KinematicModel.from_description(description)
     idm = campaign.mask("identify")
@@ -192,7 +197,66 @@ def build_report(
     }
     if closed_loop is not None:
         doc["closed_loop"] = closed_loop_document(closed_loop, description.n_joints)
+    if learned is not None:
+        doc["learned_residual"] = learned_residual_document(learned)
     return doc, errors
+
+
+def learned_residual_document(stage: LearnedStage) -> dict[str, Any]:
+    """The learned stage's section: the decision, its share of the traced model's error
+    (leave-one-out on the identification poses), the validation before/after."""
+    h = stage.hyper
+    return {
+        "name": "unexplained residual (learned)",
+        "accepted": stage.accepted,
+        "reason": stage.reason,
+        "criterion": LEARNED_CRITERION,
+        "share_of_traced_mean_square": stage.share,
+        "p_value": stage.p_value,
+        "identify_mean_AP_mm": {"traced": stage.identify_mean_mm, "learned_loo": stage.loo_mean_mm},
+        "validate_mean_AP_mm": {
+            "traced": _opt(stage.validate_before_mm),
+            "learned": _opt(stage.validate_after_mm),
+        },
+        "kernel": {
+            "length_scales_rad": list(h.length_scales),
+            "signal_sd_mm": h.signal_sd_mm,
+            "noise_sd_mm": h.noise_sd_mm,
+        },
+        "elapsed_s": stage.fit_s,  # a timing: twin run strips it (bit-identical files)
+    }
+
+
+def _learned_markdown(sec: Mapping[str, Any]) -> list[str]:
+    """The learned stage, apart from the traced effects."""
+    verdict = "kept" if sec["accepted"] else "not kept"
+    val = sec["validate_mean_AP_mm"]
+    k = sec["kernel"]
+    lines = [
+        "## Unexplained residual (learned)",
+        "",
+        f"What the traced model (geometry and named effects) leaves, as a Gaussian process "
+        f"over the joint angles: **{verdict}**, {sec['reason']}. It explains "
+        f"{100 * sec['share_of_traced_mean_square']:.1f} % of the traced model's mean square "
+        "error (leave-one-out on the identification poses): identification mean AP "
+        f"{_f(sec['identify_mean_AP_mm']['traced'])} mm traced, "
+        f"{_f(sec['identify_mean_AP_mm']['learned_loo'])} mm with it (left out).",
+    ]
+    if val["traced"] is not None:
+        lines.append(
+            f"Validation mean AP {_f(val['traced'])} mm traced, {_f(val['learned'])} mm with it."
+        )
+    lengths = ", ".join(f"{v:.3g}" for v in k["length_scales_rad"])
+    lines += [
+        "",
+        f"Kernel: length scales {lengths} rad (joints 1–{len(k['length_scales_rad'])}), "
+        f"signal {_f(k['signal_sd_mm'])} mm, noise {_f(k['noise_sd_mm'])} mm. "
+        "It names no cause: whatever it models is still unexplained physics.",
+        "",
+        f"Criterion: {sec['criterion']}.",
+        "",
+    ]
+    return lines
 
 
 def _loop_errors(campaign: Campaign, closed_loop: ClosedLoopResult) -> list[SetErrors]:
@@ -399,6 +463,8 @@ def markdown_report(doc: Mapping[str, Any]) -> str:
     lines += _summary_markdown(doc)
     if doc.get("closed_loop"):
         lines += _closed_loop_markdown(doc["closed_loop"])
+    if doc.get("learned_residual"):
+        lines += _learned_markdown(doc["learned_residual"])
     for set_name, s in doc["sets"].items():
         lines += _set_markdown(set_name, s)
     lines += [

@@ -17,7 +17,9 @@ starting at Home (lost motion).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -33,6 +35,9 @@ from calibration.effects.effect_library import (
 from calibration.errors import EffectLibraryError, ModelEffectError
 from calibration.model.description import RobotDescription, load_robot
 from calibration.model.kinematics import KinematicModel
+
+if TYPE_CHECKING:  # scipy loads only for a model that has a learned stage
+    from calibration.effects.learned_residual import LearnedResidual
 
 FloatArray = NDArray[np.float64]
 
@@ -74,7 +79,56 @@ def load_checked_robot(name_or_path: str | Path) -> RobotDescription:
 def predict_tcp(
     description: RobotDescription, q_rad: ArrayLike, t_s: ArrayLike | None = None
 ) -> FloatArray:
-    """TCP points ``(N, 3)`` mm in the tracker frame with every modelled effect applied."""
+    """TCP points ``(N, 3)`` mm in the tracker frame with every modelled effect applied,
+    and the learned residual stage's correction where the description has one (within
+    the data's reach: :func:`predict_tcp_sd`)."""
+    points = traced_tcp(description, q_rad, t_s)
+    learned = _learned(description)
+    if learned is None:
+        return points
+    return points + learned.predict(np.atleast_2d(np.asarray(q_rad, dtype=float))).mean_mm
+
+
+@dataclass(frozen=True)
+class TcpPrediction:
+    """Points ``(N, 3)`` mm; their predictive standard deviation ``sd_mm`` ``(N,)`` per axis
+    (NaN: the description states none); ``beyond_reach`` ``(N,)``: the learned stage did
+    not apply (outside its data's reach: the traced model and its standard deviation)."""
+
+    points_mm: FloatArray
+    sd_mm: FloatArray
+    beyond_reach: NDArray[np.bool_]
+
+
+def predict_tcp_sd(
+    description: RobotDescription, q_rad: ArrayLike, t_s: ArrayLike | None = None
+) -> TcpPrediction:
+    """:func:`predict_tcp` with each point's predictive standard deviation: the learned
+    stage's where it applies, else the traced model's (``[residual] traced_sd_mm``)."""
+    q = np.atleast_2d(np.asarray(q_rad, dtype=float))
+    points = traced_tcp(description, q, t_s)
+    residual = description.residual
+    learned = _learned(description)
+    if learned is not None:
+        pred = learned.predict(q)
+        return TcpPrediction(points + pred.mean_mm, pred.sd_mm, ~pred.within_reach)
+    sd = np.nan if residual is None else residual.traced_sd_mm
+    return TcpPrediction(points, np.full(len(q), sd), np.zeros(len(q), dtype=bool))
+
+
+def _learned(description: RobotDescription) -> LearnedResidual | None:
+    residual = description.residual
+    if residual is None or residual.learned is None:
+        return None
+    from calibration.effects.learned_residual import model_of
+
+    return model_of(residual.learned, residual.traced_sd_mm)
+
+
+def traced_tcp(
+    description: RobotDescription, q_rad: ArrayLike, t_s: ArrayLike | None = None
+) -> FloatArray:
+    """TCP points ``(N, 3)`` mm of the traced model: geometry and the named effects."""
     specs, values = description_effects(description)
     q = np.atleast_2d(np.asarray(q_rad, dtype=float))
     t = None if t_s is None else np.asarray(t_s, dtype=float)

@@ -501,14 +501,28 @@ def write_joint_readings(path: str | Path, readings: JointReadings) -> None:
             w.writerow([pose, _fmt(readings.t_s[i], 3), *(_fmt(v, 9) for v in readings.q_deg[i])])
 
 
-def write_points(path: str | Path, pose: Sequence[str], xyz_mm: ArrayLike) -> None:
-    """Write a points.csv: ``pose,x_mm,y_mm,z_mm`` (mm to 1 nm)."""
+def write_points(
+    path: str | Path,
+    pose: Sequence[str],
+    xyz_mm: ArrayLike,
+    sd_mm: ArrayLike | None = None,
+    beyond_reach: ArrayLike | None = None,
+) -> None:
+    """Write a points.csv: ``pose,x_mm,y_mm,z_mm`` (mm to 1 nm); with ``sd_mm`` ``(m,)``
+    also ``sd_mm`` (per axis, empty where unknown) and ``beyond_reach`` (1: the learned
+    residual stage did not apply, outside its data's reach)."""
     xyz = np.asarray(xyz_mm, dtype=float).reshape(-1, 3)
+    m = len(xyz)
+    sd = None if sd_mm is None else np.broadcast_to(np.asarray(sd_mm, dtype=float), (m,))
+    far = np.zeros(m, dtype=bool) if beyond_reach is None else np.asarray(beyond_reach, bool)
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh, lineterminator="\n")
-        w.writerow(["pose", "x_mm", "y_mm", "z_mm"])
-        for p, row in zip(pose, xyz, strict=True):
-            w.writerow([p, *(_fmt(v, 6) for v in row)])
+        w.writerow(
+            ["pose", "x_mm", "y_mm", "z_mm", *(["sd_mm", "beyond_reach"] if sd is not None else [])]
+        )
+        for i, (p, row) in enumerate(zip(pose, xyz, strict=True)):
+            extra = [] if sd is None else ["" if np.isnan(sd[i]) else _fmt(sd[i], 6), int(far[i])]
+            w.writerow([p, *(_fmt(v, 6) for v in row), *extra])
 
 
 @dataclass(frozen=True)

@@ -139,6 +139,31 @@ class EffectDescription:
     parameters: Mapping[str, EffectValue] = field(default_factory=dict)
 
 
+@dataclass(frozen=True, eq=False)
+class LearnedResidualDescription:
+    """The learned residual stage's Gaussian process (:mod:`calibration.effects.learned_residual`):
+    its hyperparameters and training points, joint angles ``q_deg`` ``(N, n)`` and the
+    traced model's residuals ``residual_mm`` ``(N, 3)`` (tracker − traced model). Compared
+    by identity (it is the key of the factored model's cache)."""
+
+    kernel: str
+    length_scales_rad: tuple[float, ...]
+    signal_sd_mm: float
+    noise_sd_mm: float
+    reach: float
+    q_deg: tuple[tuple[float, ...], ...] = field(repr=False)
+    residual_mm: tuple[tuple[float, ...], ...] = field(repr=False)
+
+
+@dataclass(frozen=True)
+class ResidualDescription:
+    """What the model does not explain: the traced model's per-axis standard deviation
+    (mm, the identification residuals' RMS), and the learned stage when it was accepted."""
+
+    traced_sd_mm: float
+    learned: LearnedResidualDescription | None = None
+
+
 @dataclass(frozen=True)
 class RobotDescription:
     """A whole robot: joints from base to flange, tool, optional base guess, Home."""
@@ -150,6 +175,7 @@ class RobotDescription:
     home_deg: tuple[float, ...] | None = None
     effects: tuple[EffectDescription, ...] = ()
     tracking: TrackingDescription | None = None
+    residual: ResidualDescription | None = None
 
     @property
     def n_joints(self) -> int:
@@ -209,7 +235,7 @@ def load_robot(name_or_path: str | Path) -> RobotDescription:
 
 
 # -- parsing ----------------------------------------------------------------------------
-_TOP_KEYS = {"name", "home_deg", "joint", "tool", "base", "effect", "tracking"}
+_TOP_KEYS = {"name", "home_deg", "joint", "tool", "base", "effect", "tracking", "residual"}
 
 
 def _parse_joint(data: Any, source: str, index: int) -> JointDescription:
@@ -289,6 +315,7 @@ def _parse(doc: dict[str, Any], source: str) -> RobotDescription:
         raise top.fail("effect", "expected [[effect]] tables")
     effects = tuple(_parse_effect(e, source, i) for i, e in enumerate(raw_effects))
     tracking = _parse_tracking(doc, source, len(joints)) if "tracking" in doc else None
+    residual = _parse_residual(top.table("residual"), len(joints)) if "residual" in doc else None
     return RobotDescription(
         name=name,
         joints=joints,
@@ -297,7 +324,47 @@ def _parse(doc: dict[str, Any], source: str) -> RobotDescription:
         home_deg=home,
         effects=effects,
         tracking=tracking,
+        residual=residual,
     )
+
+
+_POSITIVE = Range(0.0, lo_open=True, what="positive")
+
+
+def _rows(t: TomlTable, key: str, width: int) -> tuple[tuple[float, ...], ...]:
+    """An array of ``width``-number arrays (one per training point)."""
+    value = t.get(key)
+    if not isinstance(value, list) or not value:
+        raise t.fail(key, f"expected a non-empty array of {width}-number arrays")
+    return tuple(t.numbers(key, row, length=width) for row in value)
+
+
+def _parse_residual(t: TomlTable, n_joints: int) -> ResidualDescription:
+    """``[residual]`` and its optional ``[residual.learned]``; the training points must
+    be as many as their residuals."""
+    t.check_keys({"traced_sd_mm", "learned"})
+    traced = t.number("traced_sd_mm", rng=_POSITIVE)
+    if "learned" not in t.data:
+        return ResidualDescription(traced_sd_mm=traced)
+    g = t.table("learned")
+    keys = ("kernel", "length_scales_rad", "signal_sd_mm", "noise_sd_mm", "reach")
+    g.check_keys({*keys, "q_deg", "residual_mm"})
+    kernel = g.string("kernel")
+    if kernel != "periodic_ard_se":
+        raise g.fail("kernel", f"unknown kernel {kernel!r} (known: periodic_ard_se)")
+    q, r = _rows(g, "q_deg", n_joints), _rows(g, "residual_mm", 3)
+    if len(q) != len(r):
+        raise g.fail("residual_mm", f"{len(r)} rows for {len(q)} rows of q_deg")
+    learned = LearnedResidualDescription(
+        kernel=kernel,
+        length_scales_rad=g.numbers("length_scales_rad", length=n_joints, rng=_POSITIVE),
+        signal_sd_mm=g.number("signal_sd_mm", rng=_POSITIVE),
+        noise_sd_mm=g.number("noise_sd_mm", rng=_POSITIVE),
+        reach=g.number("reach", rng=_POSITIVE),
+        q_deg=q,
+        residual_mm=r,
+    )
+    return ResidualDescription(traced_sd_mm=traced, learned=learned)
 
 
 def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
@@ -335,4 +402,17 @@ def _to_document(desc: RobotDescription) -> dict[str, Any]:
             "identify_deg": [list(r) for r in tr.identify_deg],
             "reference_deg": [list(r) for r in tr.reference_deg],
         }
+    if desc.residual is not None:
+        doc["residual"] = {"traced_sd_mm": desc.residual.traced_sd_mm}
+        g = desc.residual.learned
+        if g is not None:
+            doc["residual"]["learned"] = {
+                "kernel": g.kernel,
+                "length_scales_rad": list(g.length_scales_rad),
+                "signal_sd_mm": g.signal_sd_mm,
+                "noise_sd_mm": g.noise_sd_mm,
+                "reach": g.reach,
+                "q_deg": [list(row) for row in g.q_deg],
+                "residual_mm": [list(row) for row in g.residual_mm],
+            }
     return doc

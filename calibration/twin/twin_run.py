@@ -50,6 +50,7 @@ if TYPE_CHECKING:
     from calibration.effects.closed_loop import ClosedLoopResult, LoopSettings
     from calibration.effects.effect_library import EffectSpec, GravityDeflection
     from calibration.effects.identification_report import SetErrors
+    from calibration.effects.learned_residual import LearnedStage
     from calibration.identify.identification import IdentificationResult
     from calibration.model.kinematics import KinematicModel
 
@@ -319,6 +320,7 @@ class TwinRound:
     loop: ClosedLoopResult | None
     deflection_rad: dict[int, FloatArray] | None  # taken out of each joint's sweep (S, n)
     calibrated: RobotDescription  # this round's twin (calibration.effects.calibrate)
+    learned: LearnedStage | None = None  # its learned residual stage's decision
 
     @property
     def result(self) -> IdentificationResult:
@@ -445,7 +447,9 @@ def _twin_round(
         robot, campaign, effects=effects, loop_settings=loop_settings, say=say,
         sweep_referenced=deflection is None,
     )  # fmt: skip
-    return TwinRound(scales, campaign, cal.geometric, cal.loop, deflection, cal.description)
+    return TwinRound(
+        scales, campaign, cal.geometric, cal.loop, deflection, cal.description, cal.learned
+    )
 
 
 def _refitted_rounds(
@@ -855,6 +859,7 @@ def report_document(
         robot_source=robot_source,
         calibrated_path=CALIBRATED_FILE,
         closed_loop=final.loop,
+        learned=final.learned,
     )
     doc["solver"]["point_weights"] = "none (all points weigh the same)"
     doc["twin_run"] = {

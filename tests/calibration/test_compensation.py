@@ -84,7 +84,7 @@ def test_twin_compensate_writes_joints_on_target(cell_files, tmp_path):
     assert proc.returncode == 0, proc.stderr
     header, rows = read_joints(tmp_path / "joints.csv")
     assert header[:7] == ["target", *(f"q{i}_deg" for i in range(1, 7))]
-    assert header[7:] == ["residual_mm", "branch", "travel_deg"]
+    assert header[7:] == ["residual_mm", "branch", "travel_deg", "sd_mm", "beyond_reach"]
     q = np.array([[float(v) for v in r[1:7]] for r in rows])
     assert np.max(np.linalg.norm(predict_tcp(cal, np.radians(q)) - target, axis=1)) < 1e-5
     travel = np.array([float(r[9]) for r in rows])

@@ -1,0 +1,265 @@
+"""The learned residual stage: its Gaussian process, its storage, its use, and what it
+recovers of an effect the library does not have.
+
+The undeclared effect comes from a physical parameter set of the test's own, applied to
+the emulator's own forward model (``TrueCell.tcp_mm``): a dress pack (cable and hose
+bundle) of 400 N effective pull hangs from the forearm and bends it down, by
+``F L³ / (3 E I)`` (a 1.2 m aluminium tube, 150/130 mm: 0.30 mm) times a shape of the arm
+posture, ``cos²(q2 + q3) · (1 + cos q4)/2`` (the forearm's horizontal reach and the
+pack's wind-up on joint 4). No candidate of the library describes it; the twin gets the
+campaign and the nominal description, never the shape. Accuracy is judged on 1000 fresh
+poses against the emulator's truth.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from functools import cache
+
+import numpy as np
+import pytest
+
+from calibration.cli import main
+from calibration.effects.calibrate import CalibrationResult, calibrate
+from calibration.effects.closed_loop import LoopSettings
+from calibration.effects.learned_residual import (
+    Hyperparameters,
+    LearnedResidual,
+    _neg_log_likelihood,
+    fit_learned_residual,
+    stored,
+)
+from calibration.effects.model_effects import predict_tcp, predict_tcp_sd
+from calibration.errors import DescriptionError
+from calibration.identify.campaign_files import read_points
+from calibration.model.description import ResidualDescription, RobotDescription, load_robot
+from sim_devices.pose_campaign import (
+    CampaignData,
+    CampaignSettings,
+    emulated_campaign,
+    sample_reachable_poses,
+)
+
+# -- the Gaussian process ----------------------------------------------------------------
+
+
+def smooth_data(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-np.pi, np.pi, (n, 3))
+    y = np.column_stack([np.sin(q[:, 0]), np.cos(q[:, 1]) * 0.5, np.sin(q[:, 2] + q[:, 0])])
+    return q, 0.1 * y + rng.normal(0, 0.01, (n, 3))
+
+
+def test_likelihood_gradient_matches_finite_differences():
+    q, y = smooth_data(40)
+    theta = np.array([0.3, -0.2, 0.1, math.log(0.08), math.log(0.02)])
+    value, grad = _neg_log_likelihood(theta, q, y)
+    for i in range(len(theta)):
+        step = np.zeros_like(theta)
+        step[i] = 1e-6
+        fd = (
+            _neg_log_likelihood(theta + step, q, y)[0] - _neg_log_likelihood(theta - step, q, y)[0]
+        ) / 2e-6
+        assert fd == pytest.approx(grad[i], rel=1e-5, abs=1e-6), i
+    assert np.isfinite(value)
+
+
+def test_leave_one_out_errors_equal_refits_without_each_pose():
+    q, y = smooth_data(30)
+    hyper = Hyperparameters((1.0, 0.7, 1.3), 0.1, 0.02)
+    model = LearnedResidual(q, y, hyper, traced_sd_mm=0.1)
+    loo = model.loo_residuals()
+    for i in (0, 7, 29):
+        keep = np.arange(30) != i
+        sub = LearnedResidual(q[keep], y[keep], hyper, traced_sd_mm=0.1)
+        assert np.allclose(y[i] - sub.predict(q[i : i + 1]).mean_mm[0], loo[i], atol=1e-9)
+
+
+def test_variance_projection_matches_the_exact_variance():
+    q, y = smooth_data(400, seed=1)
+    model = fit_learned_residual(q, y)
+    qx = np.random.default_rng(5).uniform(-np.pi, np.pi, (300, 3))
+    pred = model.predict(qx)
+    exact = model.exact_latent_variance(qx)
+    approx = pred.sd_mm**2 - model.hyper.noise_sd_mm**2
+    # 2 % of the predictive variance a user reads (noise included): 1 % of its sd
+    assert np.max(np.abs(approx - exact)[pred.within_reach]) < 0.02 * np.min(pred.sd_mm**2)
+
+
+def test_the_kernel_is_periodic_in_each_joint():
+    q, y = smooth_data(200, seed=2)
+    model = fit_learned_residual(q, y)
+    a = np.array([[math.radians(179.999), 0.3, -1.0]])
+    b = np.array([[math.radians(-180.001), 0.3, -1.0]])
+    assert np.allclose(model.predict(a).mean_mm, model.predict(b).mean_mm, atol=1e-9)
+
+
+def test_a_pose_beyond_the_reach_gets_the_traced_model_and_says_so():
+    q = np.random.default_rng(3).uniform(-0.3, 0.3, (50, 3))
+    y = 0.1 * np.sin(q) + np.random.default_rng(4).normal(0, 0.01, (50, 3))
+    model = LearnedResidual(q, y, Hyperparameters((0.2, 0.2, 0.2), 0.1, 0.01), 0.123)
+    pred = model.predict(np.array([[0.0, 0.0, 0.0], [3.0, 3.0, 3.0]]))
+    assert pred.within_reach.tolist() == [True, False]
+    assert np.all(pred.mean_mm[1] == 0.0) and pred.sd_mm[1] == 0.123
+    assert np.linalg.norm(pred.mean_mm[0]) > 0 and pred.sd_mm[0] < 0.05
+
+
+# -- stored with the model -----------------------------------------------------------------
+
+
+def described(robot: str = "kr500", lengths: float = 0.3) -> RobotDescription:
+    """The preset with a hand-made learned stage on 40 poses near its Home."""
+    desc = load_robot(robot)
+    rng = np.random.default_rng(8)
+    q = np.radians(desc.home) + rng.uniform(-0.2, 0.2, (40, desc.n_joints))
+    r = 0.05 * np.sin(3 * q[:, :3]) + rng.normal(0, 0.005, (40, 3))
+    hyper = Hyperparameters((lengths,) * desc.n_joints, 0.05, 0.005)
+    return replace(desc, residual=ResidualDescription(0.07, stored(q, r, hyper)))
+
+
+def test_the_stage_reads_back_identically():
+    desc = described()
+    again = RobotDescription.loads(desc.dumps())
+    assert again.residual is not None and again.residual.learned is not None
+    assert again.residual.learned.q_deg == desc.residual.learned.q_deg  # type: ignore[union-attr]
+    q = np.radians(desc.home) + np.random.default_rng(9).uniform(-0.3, 0.3, (20, 6))
+    a, b = predict_tcp_sd(desc, q), predict_tcp_sd(again, q)
+    assert np.array_equal(a.points_mm, b.points_mm) and np.array_equal(a.sd_mm, b.sd_mm)
+    assert np.array_equal(predict_tcp(again, q), a.points_mm)
+    plain = replace(desc, residual=None)
+    assert np.max(np.abs(predict_tcp(desc, q) - predict_tcp(plain, q))) > 1e-3  # applied
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda t: t.replace('kernel = "periodic_ard_se"', 'kernel = "rbf"'), "key 'kernel'"),
+        (lambda t: t.replace("traced_sd_mm = 0.07", "traced_sd_mm = -1.0"), "key 'traced_sd_mm'"),
+        (lambda t: t.replace("[residual.learned]", "[residual.learned]\nextra = 1"), "key 'extra'"),
+    ],
+)
+def test_a_bad_stage_is_refused_naming_its_key(edit, message):
+    text = edit(described().dumps())
+    with pytest.raises(DescriptionError, match=message):
+        RobotDescription.loads(text, "cal.toml")
+
+
+def test_rows_must_match_their_residuals():
+    desc = described()
+    g = desc.residual.learned  # type: ignore[union-attr]
+    short = replace(desc.residual, learned=replace(g, residual_mm=g.residual_mm[:-1]))  # type: ignore[arg-type]
+    with pytest.raises(DescriptionError, match="key 'residual_mm': 39 rows for 40 rows of q_deg"):
+        RobotDescription.loads(replace(desc, residual=short).dumps(), "cal.toml")
+
+
+def test_twin_predict_writes_sd_and_flags_poses_beyond_reach(tmp_path, capsys):
+    desc = described()
+    model = tmp_path / "cal.toml"
+    desc.save(model)
+    near = np.array(desc.home) + 2.0
+    far = np.array(desc.home) + np.array([60.0, 30.0, -30.0, 90.0, 40.0, 90.0])
+    joints = tmp_path / "joints.csv"
+    header = "pose,t_s," + ",".join(f"q{i}_deg" for i in range(1, 7))
+    rows = [f"{p},0.0," + ",".join(f"{v:.6f}" for v in q) for p, q in (("a", near), ("b", far))]
+    joints.write_text("\n".join([header, *rows]) + "\n")
+    out = tmp_path / "points.csv"
+    assert main(["predict", "--model", str(model), "--data", str(joints), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "1 row(s) outside the learned residual stage's reach" in err
+    text = out.read_text().splitlines()
+    assert text[0] == "pose,x_mm,y_mm,z_mm,sd_mm,beyond_reach"
+    assert text[1].endswith(",0") and text[2].endswith(",1")
+    assert float(text[2].split(",")[4]) == pytest.approx(0.07)
+    assert read_points(out)[1].shape == (2, 3)  # the reader still reads it
+
+
+# -- emulated: what the stage recovers, and that it stays out of clean data -------------
+
+HOSE_PULL_N, TUBE_MM, TUBE_E_N_PER_MM2 = 400.0, 1200.0, 7.0e4
+TUBE_I_MM4 = math.pi / 64 * (150.0**4 - 130.0**4)
+
+
+def dress_pack_mm(data: CampaignData, q_rad: np.ndarray) -> np.ndarray:
+    """The dress pack's downward bending of the forearm ``(m, 3)`` mm, tracker frame."""
+    sag = HOSE_PULL_N * TUBE_MM**3 / (3 * TUBE_E_N_PER_MM2 * TUBE_I_MM4)
+    shape = np.cos(q_rad[:, 1] + q_rad[:, 2]) ** 2 * (1 + np.cos(q_rad[:, 3])) / 2
+    down = -data.cell.model.base_rotation()[:, 2]  # the robot base's −z in the tracker frame
+    return (sag * shape)[:, None] * down
+
+
+@cache
+def emulated(
+    seed: int, effect: bool, kinds: tuple[str, ...] | None
+) -> tuple[CampaignData, CalibrationResult]:
+    """1000 identification poses (random: a learned stage needs them spread; the issue's
+    largest real campaign), 150 validation."""
+    data = emulated_campaign("kr500", seed, CampaignSettings(n_identify=1000, selection=None))
+    campaign = data.campaign
+    if effect:
+        campaign = replace(campaign, xyz_mm=campaign.xyz_mm + dress_pack_mm(data, data.q_true_rad))
+    settings = LoopSettings(kinds=kinds) if kinds else LoopSettings()
+    return data, calibrate(data.cell.nominal, campaign, loop_settings=settings)
+
+
+def held_out(seed: int, effect: bool, kinds: tuple[str, ...] | None) -> dict[str, float]:
+    """On 1000 fresh poses: the learned stage's share of the traced model's error against
+    the truth, and the RMS z-score of tracker readings against the prediction."""
+    data, cal = emulated(seed, effect, kinds)
+    q = sample_reachable_poses(data.cell.nominal, 1000, np.random.default_rng([seed, 99]))
+    truth = data.cell.tcp_mm(q) + (dress_pack_mm(data, q) if effect else 0.0)
+    twin = predict_tcp_sd(cal.description, q)
+    traced = predict_tcp(replace(cal.description, residual=None), q)
+    e_twin = np.linalg.norm(twin.points_mm - truth, axis=1).mean()
+    e_traced = np.linalg.norm(traced - truth, axis=1).mean()
+    read, ok = data.cell.tracker.measure(truth, np.random.default_rng([seed, 98]))
+    z = (read - twin.points_mm)[ok] / twin.sd_mm[ok, None]
+    assert cal.learned is not None
+    return {
+        "accepted": float(cal.learned.accepted),
+        "recovered": 1.0 - e_twin / e_traced,
+        "z_rms": float(np.sqrt(np.mean(z**2))),
+    }
+
+
+#: The fast tests offer the loop only the gravity candidate (the loop's generic harmonics
+#: take a part of the dress pack's shape and the 77-candidate search costs 10 s a seed):
+#: the learned stage then sees all of it. The slow sweep offers every candidate.
+FAST_KINDS = ("gravity_deflection",)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_an_undeclared_smooth_effect_is_learned(seed):
+    r = held_out(seed, True, FAST_KINDS)
+    assert r["accepted"] == 1.0
+    assert r["recovered"] >= 0.7, r
+    assert 0.8 <= r["z_rms"] <= 1.25, r
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_clean_data_keep_no_learned_stage(seed):
+    r = held_out(seed, False, FAST_KINDS)
+    assert r["accepted"] == 0.0, r
+    assert 0.8 <= r["z_rms"] <= 1.25, r
+
+
+@pytest.mark.slow
+def test_twenty_seeds_the_effect_is_learned():
+    """``pytest -m slow tests/test_learned_residual.py``: the fast test over 20 seeds.
+
+    With every candidate offered the loop first adds generic harmonics of joint 4 that take
+    a part of the shape, and the stage recovers less of what is left: 0.56 at worst over 20
+    seeds (docs/closed-loop.md); this sweep checks the stage on the whole effect."""
+    effect = [held_out(seed, True, FAST_KINDS) for seed in range(1, 21)]
+    assert min(r["recovered"] for r in effect) >= 0.7, effect
+    for r in effect:
+        assert r["accepted"] == 1.0 and 0.8 <= r["z_rms"] <= 1.25, r
+
+
+@pytest.mark.slow
+def test_twenty_clean_seeds_every_candidate():
+    """Clean data, every candidate kind offered: the stage is kept in at most 1 of 20."""
+    clean = [held_out(seed, False, None) for seed in range(1, 21)]
+    assert sum(r["accepted"] for r in clean) <= 1, clean
+    for r in clean:
+        assert 0.8 <= r["z_rms"] <= 1.25, r
