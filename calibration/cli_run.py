@@ -17,7 +17,7 @@ from typing import Any
 from calibration.errors import DataFileError, OptionError, OutputFileError
 from edges.command import progress
 from edges.inputs import MAX_TOML_BYTES, read_input_bytes
-from edges.options import number
+from edges.options import integer, number
 from edges.outputs import OutputSet
 
 
@@ -39,6 +39,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="live: skip the campaign, publish the twin calibrated by an earlier run in DIR",
     )
     p.add_argument("--no-effects", action="store_true", help="the geometry alone")
+    p.add_argument(
+        "--max-effects",
+        type=integer(0),
+        default=None,
+        metavar="N",
+        help="add at most N effects (default 6); the report names the best candidate left",
+    )
     p.add_argument("--no-report", action="store_true", help="no figures (report.json only)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     live = p.add_argument_group("live (without --replay)")
@@ -175,7 +182,10 @@ def run_run(args: argparse.Namespace) -> int:
 
             live = LiveTwin(LiveSettings.from_options(args), say)
             streams = live.collect()
-        result = run_twin(streams, args.robot, effects=not args.no_effects, say=say)
+        result = run_twin(
+            streams, args.robot, effects=not args.no_effects, max_effects=args.max_effects,
+            say=say,
+        )  # fmt: skip
         run = write_twin_run(staged, Path(args.out), result, report=not args.no_report, say=say)
         outputs.commit()  # before publishing, which may go on until Ctrl-C
         print(run["stage_table"])
