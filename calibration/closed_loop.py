@@ -11,6 +11,8 @@ library, then the generic search) is scored on the identification poses
   penalty of ``ln(3m)`` per added parameter (BIC-like, m poses);
 * **significance**: the partial F-test of the candidate's parameters on all identification
   poses, Bonferroni-corrected over the candidates of the round (``p·N < α``, α = 1e-3).
+  A harmonic's orders are scanned (1..K, K from the joint's coverage and the number of
+  poses): the best order is the scan's candidate, its p Šidák-corrected for the K orders.
 
 A candidate is significant when both hold. A drift candidate is also tried as a
 first-order lag, its time constant profiled (:mod:`calibration.effect_shapes`). Of the
@@ -53,6 +55,7 @@ from calibration.candidate_scoring import (
     CandidateScore,
     Competitor,
     LinearizedModel,
+    best_of_scan,
     choose,
     competitors,
     score_candidate,
@@ -72,6 +75,7 @@ from calibration.effect_library import (
     joint_moment,
     predict_points,
     regressor_matrix,
+    scan_key,
     split_values,
     to_descriptions,
 )
@@ -97,7 +101,8 @@ CRITERION = (
     "a candidate is added when its 5-fold cross-validated error reduction on the "
     "identification poses, in units of the noise variance, exceeds ln(3m) per parameter, "
     "and the partial F-test of its parameters, Bonferroni-corrected over the candidates of "
-    "the round, is significant (p·N < α); the best such candidate by penalized CV score "
+    "the round (a harmonic's best order Šidák-corrected for the orders scanned first), is "
+    "significant (p·N < α); the best such candidate by penalized CV score "
     "is added (unless the data cannot tell it from a significant candidate of a more "
     "physical kind: then that one), everything is re-identified, and a step that makes the "
     "validation error worse is undone"
@@ -664,16 +669,38 @@ def _score_round(
             else:
                 profiles[spec] = profile
         columns[spec] = problem.columns(spec, sw, kin)
+    scanned = _scan_orders(lin, columns)
     n = len(columns)
     scores = [
         score_candidate(
             lin, spec, cols, n_candidates=n, alpha=settings.alpha, penalty=penalty,
             rtol=settings.rtol, extra_parameters=extra.get(spec, 0),
+            scanned=scanned.get(spec, 1),
         )
         for spec, cols in columns.items()
     ]  # fmt: skip
     scores.sort(key=lambda c: (not c.significant, c.n_parameters == 0, -c.score))
     return _Round(lin, scores, columns, profiles)
+
+
+def _scan_orders(
+    lin: LinearizedModel, columns: dict[EffectSpec, FloatArray]
+) -> dict[EffectSpec, int]:
+    """Keep the best order of each harmonic scan in ``columns`` (in place, the others
+    dropped: one candidate per scan in the round); how many orders each winner beat."""
+    scans: dict[tuple[str, int], list[EffectSpec]] = {}
+    for spec in columns:
+        key = scan_key(spec)
+        if key is not None:
+            scans.setdefault(key, []).append(spec)
+    scanned: dict[EffectSpec, int] = {}
+    for specs in scans.values():
+        best = specs[best_of_scan(lin, [columns[s] for s in specs])]
+        for s in specs:
+            if s != best:
+                del columns[s]
+        scanned[best] = len(specs)
+    return scanned
 
 
 def _profile_lag(
