@@ -36,23 +36,32 @@ def stopped(res: ClosedLoopResult) -> dict[str, Any]:
 
 def test_undone_candidates_are_the_reason_not_insignificance():
     """An error only the identification poses have (added to them alone) is significant
-    there and refuted by the validation poses: every step is undone, and the loop says so
-    instead of calling the candidates insignificant; the best candidate left is named."""
+    there and refuted by the validation poses: every step is undone. With at most two tried,
+    the loop says that is why it stopped, instead of calling the candidates insignificant,
+    and names the best candidate left; with the default four, fewer are significant, and the
+    stop for want of significance still counts the ones undone."""
     clean = emulated("kr500", "clean", 1).campaign
     idm = clean.mask("identify")
     xyz = clean.xyz_mm.copy()
     xyz[idm, 0] += 0.05 * np.sin(2 * clean.q_rad[idm, 0])
     fooled = dataclasses.replace(clean, xyz_mm=xyz)
     desc = twin_description(emulated("kr500", "clean", 1).cell.nominal, "none")
-    res = run_closed_loop(desc, fooled)
-    assert res.added == () and len(res.rejected) == res.settings.max_rejected
+    res = run_closed_loop(desc, fooled, settings=LoopSettings(max_rejected=2))
+    assert res.added == () and len(res.rejected) == 2
     assert res.stop.code == "set_aside"
     doc = stopped(res)
-    assert "undone by the validation re-check" in str(doc["reason"])
-    assert "no candidate is significant" not in str(doc["reason"])
+    assert "2 significant candidate(s) were undone by the validation re-check" in doc["reason"]
+    assert "no candidate is significant" not in doc["reason"]
     best = res.stop.best_remaining
     assert best is not None and best.label not in {r.label for r in res.rejected}
     assert doc["best_remaining"]["effect"] == best.label
+    default = run_closed_loop(desc, fooled)
+    assert default.added == () and default.rejected
+    n = len(default.rejected)
+    if default.stop.code == "none_significant":
+        assert f"({n} set aside by the validation re-check)" in default.stop.text
+    else:
+        assert default.stop.code == "set_aside" and n == default.settings.max_rejected
 
 
 def test_the_maximum_is_the_reason_and_the_next_effect_is_named():
