@@ -34,7 +34,7 @@ from calibration.twin_run import run_twin
 from daq.demo import sim_config_text
 from drivers.tracker_ascii import ST_BEAM_BROKEN, ST_DROPOUT
 from sim_devices.config import CellConfig
-from sim_devices.plant import Plant
+from sim_devices.plant import JointState, Plant
 from sim_devices.tracker import TrackerInstrument
 
 #: The demo's defaults (python -m daq.demo): speed, device rate (Hz), recording margin (s).
@@ -43,6 +43,22 @@ RATE_HZ = 1000.0
 MARGIN_S = 8.0
 T0_NS = 1_800_000_000 * 10**9  # mapped time of the emulator's start (any fixed epoch)
 TRACKER_STATUS = {0: VALID_BIT, 1: ST_BEAM_BROKEN, 2: ST_DROPOUT}
+
+
+class _SampledPlant(Plant):
+    """The plant keeping the joint states of its last instants: the grating reader and the
+    tracker sample the same ones, so the gear correction (most of the cost) is computed
+    once. The values are the plant's own."""
+
+    _kept: tuple[Any, JointState] | None = None
+
+    def joint_state(self, sim_s: Any) -> JointState:
+        t = np.atleast_1d(np.asarray(sim_s, dtype=float))
+        if self._kept is not None and np.array_equal(self._kept[0], t):
+            return self._kept[1]
+        state = super().joint_state(t)
+        self._kept = (t, state)
+        return state
 
 
 def demo_config(seed: int, effect: str = "gravity_deflection") -> CellConfig:
@@ -77,7 +93,7 @@ def _stream(
 def simulated_streams(seed: int, effect: str = "gravity_deflection") -> CellStreams:
     """The demo's recording of ``seed`` sampled on the simulated clock (module docstring)."""
     config = demo_config(seed, effect)
-    plant = Plant.from_config(config)
+    plant = _SampledPlant.from_config(config)
     duration_s = float(plant.trajectory.end_s) / SPEED + MARGIN_S  # wall seconds
     wall = np.arange(0.0, duration_s, 1.0 / RATE_HZ)
     state = plant.joint_state(plant.clock.sim_s(wall))
