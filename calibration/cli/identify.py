@@ -1,7 +1,7 @@
 """``twin identify`` and ``twin predict``: identification from a campaign, and prediction.
 
 twin identify --robot robot.toml --data campaign.csv --out calibrated.toml [--report DIR]
-    [--no-effects] [--effect-kinds K,K] [--effects-alpha A]
+    [--no-effects] [--effect-kinds K,K] [--effects-alpha A] [--max-effects N]
 twin predict --model calibrated.toml --data joints.csv --out points.csv
 
 ``twin identify`` runs the closed loop by default (geometric identification, then effects
@@ -15,7 +15,7 @@ import argparse
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -52,6 +52,7 @@ from calibration.model.unit_plausibility import (
     check_campaign_units,
     check_joint_angle_units,
 )
+from edges.options import integer
 from edges.outputs import OutputSet
 
 if TYPE_CHECKING:  # the closed loop loads when a command runs it, not for --help
@@ -122,6 +123,13 @@ def _register_identify(sub: argparse._SubParsersAction[argparse.ArgumentParser])
         help="family-wise false-positive probability of one search round (default 1e-3)",
     )
     p.add_argument(
+        "--max-effects",
+        type=integer(0),
+        default=None,
+        metavar="N",
+        help="add at most N effects (default 6); the report names the best candidate left",
+    )
+    p.add_argument(
         OVERRIDE,
         action="store_true",
         help="do not refuse tracker points or joint angles that look like other units "
@@ -186,9 +194,12 @@ def _loop_settings(args: argparse.Namespace) -> LoopSettings:
     if args.effect_kinds:
         kinds = tuple(k.strip() for k in args.effect_kinds.split(",") if k.strip())
     try:
-        return LoopSettings(alpha=args.effects_alpha, kinds=kinds)
+        settings = LoopSettings(alpha=args.effects_alpha, kinds=kinds)
     except ValueError as exc:
         raise OptionError(f"--effect-kinds: {exc}") from None
+    if args.max_effects is None:
+        return settings
+    return replace(settings, max_effects=args.max_effects)
 
 
 def _robot_file(name: str) -> str | None:
@@ -367,7 +378,11 @@ def _result_lines(
         for st in doc["closed_loop"]["stages"]:
             ap = st["sets"][set_name]["AP"]
             lines.append(f"stage {st['label']}: {set_name} mean AP {ap['mean']:.4f} mm")
-        for c in doc["closed_loop"]["stopped"]["not_identifiable"]:
+        stop = doc["closed_loop"]["stopped"]
+        best = stop["best_remaining"]
+        left = f" (best remaining: {best['effect']})" if best else ""
+        lines.append(f"stopped: {stop['reason']}{left}")
+        for c in stop["not_identifiable"]:
             lines.append(f"not identifiable: {c['effect']}")
     for name, s in doc["sets"].items():
         b, a = s["before"]["AP"], s["after"]["AP"]

@@ -18,7 +18,7 @@ from typing import Any
 from calibration.errors import DataFileError, OptionError, OutputFileError
 from edges.command import progress
 from edges.inputs import MAX_TOML_BYTES, read_input_bytes
-from edges.options import number
+from edges.options import integer, number
 from edges.outputs import OutputSet
 
 
@@ -45,6 +45,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         action="store_true",
         help="with --replay: use the readable part of a damaged recording (said on stderr, "
         "recorded in phases.json and report.json)",
+    )
+    p.add_argument(
+        "--max-effects",
+        type=integer(0),
+        default=None,
+        metavar="N",
+        help="add at most N effects (default 6); the report names the best candidate left",
     )
     p.add_argument("--no-report", action="store_true", help="no figures (report.json only)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -198,7 +205,10 @@ def run_run(args: argparse.Namespace) -> int:
 
             live = LiveTwin(LiveSettings.from_options(args), say)
             streams = live.collect()
-        result = run_twin(streams, args.robot, effects=not args.no_effects, say=say)
+        result = run_twin(
+            streams, args.robot, effects=not args.no_effects, max_effects=args.max_effects,
+            say=say,
+        )  # fmt: skip
         run = write_twin_run(staged, Path(args.out), result, report=not args.no_report, say=say)
         outputs.commit()  # before publishing, which may go on until Ctrl-C
         print(run["stage_table"])

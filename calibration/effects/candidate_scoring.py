@@ -4,9 +4,13 @@ Everything here works on the current model linearized at its solution: ``residua
 ``(3m,)`` and ``jacobian`` ``(3m, p)`` weighted like the fit, and each candidate's weighted
 regressor ``(3m, k)``. Columns are scaled to unit RMS so that units do not matter.
 
-* **Score** (:func:`score_candidates`): the drop of the K-fold cross-validated error in
+* **Score** (:func:`score_candidate`): the drop of the K-fold cross-validated error in
   units of the noise variance, minus a penalty per parameter, and the partial F-test of
   the candidate's parameters, Bonferroni-corrected over the round's candidates.
+* **Scans** (:func:`best_of_scan`): of a harmonic's orders, the one that lowers the
+  residual most is scored, its p-value Šidák-corrected for the orders scanned
+  (``1 − (1 − p)^K``) before the round's Bonferroni correction: the scan pays for every
+  order it looked at.
 * **Overlap** (:func:`principal_cosines`): the cosines of the principal angles between two
   candidates' column spaces after the model's is projected out (1: the data cannot tell
   them apart along that direction), and how much of a candidate the model already spans.
@@ -61,7 +65,7 @@ class CandidateScore:
     score: float  # cv_gain − penalty · n_parameters
     f_statistic: float
     p_value: float
-    p_adjusted: float  # Bonferroni: p · number of candidates (at most 1)
+    p_adjusted: float  # Šidák over a scan's orders, then Bonferroni over the round (≤ 1)
     significant: bool
     note: str = ""
     in_model: float = 0.0  # fraction of the candidate's (scaled) columns the model spans
@@ -208,11 +212,14 @@ def score_candidate(
     penalty: float,
     rtol: float,
     extra_parameters: int = 0,
+    scanned: int = 1,
 ) -> CandidateScore:
     """Score one candidate's weighted columns ``(3m, k)`` against the linearized model.
 
     ``extra_parameters`` counts shape parameters profiled for this candidate (a lag's τ):
     they are charged in the F-test's degrees of freedom and the penalty like linear ones.
+    ``scanned``: the candidate is the best of that many scanned alternatives (a harmonic's
+    orders, :func:`best_of_scan`); its p-value is Šidák-corrected for them.
     """
     cs = scaled(cols)
     energy = float(np.sum(cs * cs))
@@ -231,13 +238,31 @@ def score_candidate(
     dof = len(lin.residual) - lin.jacobian.shape[1] - k_eff
     f_stat = ((lin.sse0 - sse1) / k_eff) / (sse1 / dof) if dof > 0 and sse1 > 0 else math.inf
     p_value = float(f_distribution.sf(f_stat, k_eff, dof)) if dof > 0 else 1.0
-    p_adj = min(1.0, p_value * max(n_candidates, 1))
+    p_scan = -math.expm1(scanned * math.log1p(-p_value)) if p_value < 1.0 else 1.0
+    p_adj = min(1.0, p_scan * max(n_candidates, 1))
     cv1 = lin.cv_sse_with(ck)
     gain = (lin.cv0 - cv1) / lin.sigma2
     score = gain - penalty * k_eff
-    note = "" if k == cols.shape[1] else f"{cols.shape[1] - k} parameter(s) redundant"
+    notes = [] if k == cols.shape[1] else [f"{cols.shape[1] - k} parameter(s) redundant"]
+    if scanned > 1:
+        notes.append(f"the best of {scanned} orders scanned")
+    note = "; ".join(notes)
     significant = bool(p_adj < alpha and score > 0.0)
     return CandidateScore(spec, k, gain, score, f_stat, p_value, p_adj, significant, note, in_model)
+
+
+def best_of_scan(lin: LinearizedModel, scan: Sequence[FloatArray]) -> int:
+    """Index of the scanned alternative (each its weighted columns ``(3m, k)``, e.g. one
+    harmonic order) that lowers the residual sum of squares most, the model refitted
+    beside it. Cheap (a projection and a small least-squares solve each): the full score is
+    computed for the winner alone."""
+    gains = []
+    for cols in scan:  # the SSE drop c·b of the normal equations, small (k, k) solves
+        perp = lin.perp(scaled(cols))
+        b = perp.T @ lin.fit0
+        coef, *_ = np.linalg.lstsq(perp.T @ perp, b, rcond=None)
+        gains.append(float(coef @ b))
+    return int(np.argmax(gains))
 
 
 def principal_cosines(lin: LinearizedModel, a: FloatArray, b: FloatArray) -> FloatArray:

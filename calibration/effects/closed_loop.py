@@ -11,6 +11,8 @@ library, then the generic search) is scored on the identification poses
   penalty of ``ln(3m)`` per added parameter (BIC-like, m poses);
 * **significance**: the partial F-test of the candidate's parameters on all identification
   poses, Bonferroni-corrected over the candidates of the round (``p·N < α``, α = 1e-3).
+  A harmonic's orders are scanned (1..K, K from the joint's coverage and the number of
+  poses): the best order is the scan's candidate, its p Šidák-corrected for the K orders.
 
 A candidate is significant when both hold. A drift candidate is also tried as a
 first-order lag, its time constant profiled (:mod:`calibration.effects.effect_shapes`). Of the
@@ -22,7 +24,9 @@ decides (a gravity term before a harmonic on a joint gravity loads). All paramet
 :mod:`calibration.identify.identification`; a gravity term found in its linear form is refitted in
 its physical form (shared moments, compliance ratios), kept when the linear form is not
 significantly better. A step that makes the validation error worse is undone and its
-candidate set aside. The search repeats until no candidate is significant. Candidate
+candidate set aside. The search repeats until no candidate is significant, the maximum
+number of effects is in, or too many candidates were set aside; the result says which
+(:class:`StopReason`) and names the best candidate left. Candidate
 columns a combination of the current model's are dropped first (a constant tracker scale,
 for one, is exactly a scaling of every length and the base position: it is reported as not
 identifiable rather than scored).
@@ -50,6 +54,7 @@ from calibration.effects.candidate_scoring import (
     CandidateScore,
     Competitor,
     LinearizedModel,
+    best_of_scan,
     choose,
     competitors,
     score_candidate,
@@ -68,6 +73,7 @@ from calibration.effects.effect_library import (
     joint_moment,
     predict_points,
     regressor_matrix,
+    scan_key,
     split_values,
     to_descriptions,
 )
@@ -95,7 +101,8 @@ CRITERION = (
     "a candidate is added when its 5-fold cross-validated error reduction on the "
     "identification poses, in units of the noise variance, exceeds ln(3m) per parameter, "
     "and the partial F-test of its parameters, Bonferroni-corrected over the candidates of "
-    "the round, is significant (p·N < α); the best such candidate by penalized CV score "
+    "the round (a harmonic's best order Šidák-corrected for the orders scanned first), is "
+    "significant (p·N < α); the best such candidate by penalized CV score "
     "is added (unless the data cannot tell it from a significant candidate of a more "
     "physical kind: then that one), everything is re-identified, and a step that makes the "
     "validation error worse is undone"
@@ -125,6 +132,8 @@ class LoopSettings:
             raise IdentificationError("alpha must be in (0, 1)")
         if self.kinds is not None:
             check_kinds(self.kinds)
+        if self.max_effects < 0:
+            raise IdentificationError(f"max_effects must be >= 0, got {self.max_effects}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -191,9 +200,67 @@ class Rejected:
         return {"effect": self.label, "reason": self.reason}
 
 
+#: Why the search stopped (:attr:`StopReason.code`).
+STOP_CODES = ("max_effects", "set_aside", "none_significant", "no_candidate_left")
+
+
+@dataclass(frozen=True)
+class StopReason:
+    """Why the search stopped, in words and as a ``code`` of :data:`STOP_CODES`, and the
+    best candidate left (the last round's best by significance, then penalized CV score,
+    that is neither in the model nor set aside; None: no identifiable candidate left)."""
+
+    code: str
+    text: str
+    best_remaining: CandidateScore | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        best = self.best_remaining
+        return {
+            "code": self.code,
+            "reason": self.text,
+            "best_remaining": None if best is None else best.as_dict(),
+        }
+
+
+def _stop_reason(
+    code: str,
+    settings: LoopSettings,
+    scored: _Round | None,
+    rejected: list[Rejected],
+    set_aside: Collection[EffectSpec],
+) -> StopReason:
+    """The stop in words, and the best candidate left in the round that ended the search
+    (``scored``): the one the loop would add next when any is significant (the physical
+    priority applied, :func:`~calibration.effects.candidate_scoring.choose`), else the best
+    score."""
+    undone = len(rejected)
+    if code == "max_effects":
+        text = f"the maximum number of effects ({settings.max_effects}) is reached"
+    elif code == "set_aside":
+        text = (
+            f"{undone} significant candidate(s) were undone by the validation re-check "
+            f"(at most {settings.max_rejected} are tried)"
+        )
+    elif code == "none_significant":
+        text = "no remaining candidate is significant"
+    else:
+        text = "no candidate is left to try"
+    if undone and code != "set_aside":
+        text += f" ({undone} set aside by the validation re-check)"
+    scores = [] if scored is None else scored.scores
+    left = [c for c in scores if c.n_parameters > 0 and c.spec not in set_aside]
+    if not left:
+        return StopReason(code, text)
+    if scored is not None and left[0].significant:
+        return StopReason(code, text, choose(scored.lin, left, scored.columns)[0])
+    return StopReason(code, text, left[0])
+
+
 @dataclass(frozen=True, eq=False)
 class ClosedLoopResult:
-    """Every stage (nominal, geometric, + each added effect), and the round that stopped."""
+    """Every stage (nominal, geometric, + each added effect), the round that stopped and
+    why it stopped."""
 
     stages: tuple[Stage, ...]
     last_round: tuple[CandidateScore, ...]
@@ -203,6 +270,7 @@ class ClosedLoopResult:
     elapsed_s: float
     kinds: tuple[str, ...] = ()  # the candidate kinds offered
     rejected: tuple[Rejected, ...] = ()
+    stop: StopReason = StopReason("no_candidate_left", "no candidate is left to try")
 
     @property
     def final(self) -> Stage:
@@ -378,7 +446,8 @@ def run_closed_loop(
     stages, result = _first_stages(problem, geometric)
     tell(f"closed loop: {len(library)} candidate effects")
     search = _Search(problem, library, penalty, span, settings, tell)
-    last_round, rejected = search.run(stages, result)
+    last_round, rejected, stop = search.run(stages, result)
+    tell(f"closed loop: stopped: {stop.text}")
     return ClosedLoopResult(
         stages=tuple(stages),
         last_round=tuple(last_round),
@@ -388,6 +457,7 @@ def run_closed_loop(
         elapsed_s=time.perf_counter() - started,
         kinds=tuple(KINDS) if allowed is None else tuple(allowed),
         rejected=tuple(rejected),
+        stop=stop,
     )
 
 
@@ -405,30 +475,36 @@ class _Search:
 
     def run(
         self, stages: list[Stage], result: IdentificationResult
-    ) -> tuple[list[CandidateScore], list[Rejected]]:
+    ) -> tuple[list[CandidateScore], list[Rejected], StopReason]:
         """Add effects round by round to ``stages`` (in place) from the geometric
-        ``result`` until no candidate is significant; the last round's scores and the
-        candidates set aside. One loop: its rounds share the model so far and the set aside."""
+        ``result`` until no candidate is significant, the maximum number of effects is in
+        or too many were set aside; the last round's scores, the candidates set aside and
+        why it stopped. One loop: its rounds share the model so far and the set aside.
+        The maximum reached, one more round is scored to name the best candidate left."""
         problem, settings, tell = self.problem, self.settings, self.tell
         specs: tuple[EffectSpec, ...] = ()
         rejected: list[Rejected] = []
         set_aside: set[EffectSpec] = set()
-        while len(specs) < settings.max_effects:
+        while True:
             offered = [s for s in self.library if s not in specs and s not in set_aside]
             offered = [s for s in offered if not _same_slot(s, specs)]
             if not offered:
-                return [], rejected
+                return [], rejected, _stop_reason("no_candidate_left", settings, None, rejected, ())
             scored = _score_round(
                 problem, result, specs, offered, settings, self.penalty, self.span
             )
             scores = scored.scores
+            if len(specs) >= settings.max_effects:
+                stop = _stop_reason("max_effects", settings, scored, rejected, set_aside)
+                return scores, rejected, stop
             if not scores[0].significant:
                 best = scores[0]
                 tell(
                     f"closed loop: nothing significant left (best: {best.label}, "
                     f"CV gain {best.cv_gain:.1f} σ², corrected p {best.p_adjusted:.2g})"
                 )
-                return scores, rejected
+                stop = _stop_reason("none_significant", settings, scored, rejected, set_aside)
+                return scores, rejected, stop
             chosen, reason = choose(scored.lin, scores, scored.columns)
             step = _guarded(
                 _try_step(problem, result, specs, chosen.spec, scored.lin, scored.columns, tell),
@@ -441,7 +517,8 @@ class _Search:
                 set_aside.add(chosen.spec)
                 tell(f"closed loop: set aside {chosen.label}: {step}")
                 if len(rejected) >= settings.max_rejected:
-                    return scores, rejected
+                    stop = _stop_reason("set_aside", settings, scored, rejected, set_aside)
+                    return scores, rejected, stop
                 continue
             specs, result = step.specs, step.result
             stages.append(_effect_stage(step, chosen, reason, scored, stages[-1], problem))
@@ -449,7 +526,6 @@ class _Search:
                 f"closed loop: added {specs[-1].label} (CV gain {chosen.cv_gain:.1f} σ², "
                 f"F {chosen.f_statistic:.1f}, corrected p {chosen.p_adjusted:.2g}; {reason})"
             )
-        return [], rejected
 
 
 def _first_stages(
@@ -594,16 +670,38 @@ def _score_round(
             else:
                 profiles[spec] = profile
         columns[spec] = problem.columns(spec, sw, kin)
+    scanned = _scan_orders(lin, columns)
     n = len(columns)
     scores = [
         score_candidate(
             lin, spec, cols, n_candidates=n, alpha=settings.alpha, penalty=penalty,
             rtol=settings.rtol, extra_parameters=extra.get(spec, 0),
+            scanned=scanned.get(spec, 1),
         )
         for spec, cols in columns.items()
     ]  # fmt: skip
     scores.sort(key=lambda c: (not c.significant, c.n_parameters == 0, -c.score))
     return _Round(lin, scores, columns, profiles)
+
+
+def _scan_orders(
+    lin: LinearizedModel, columns: dict[EffectSpec, FloatArray]
+) -> dict[EffectSpec, int]:
+    """Keep the best order of each harmonic scan in ``columns`` (in place, the others
+    dropped: one candidate per scan in the round); how many orders each winner beat."""
+    scans: dict[tuple[str, int], list[EffectSpec]] = {}
+    for spec in columns:
+        key = scan_key(spec)
+        if key is not None:
+            scans.setdefault(key, []).append(spec)
+    scanned: dict[EffectSpec, int] = {}
+    for specs in scans.values():
+        best = specs[best_of_scan(lin, [columns[s] for s in specs])]
+        for s in specs:
+            if s != best:
+                del columns[s]
+        scanned[best] = len(specs)
+    return scanned
 
 
 def _profile_lag(

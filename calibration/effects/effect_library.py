@@ -50,7 +50,7 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
@@ -84,8 +84,15 @@ DRIFT_MIN_LENGTH_MM = 50.0
 #: Joint moves smaller than this (rad) keep the previous approach direction: 10× the
 #: gratings' read noise, far below any move between measurement poses.
 MIN_MOVE_RAD = 1e-5
-#: Harmonic orders offered per joint (library and generic search).
-HARMONIC_ORDERS = (1, 2, 3)
+#: Harmonic orders per revolution are scanned from 1 up to this (library and generic
+#: search): rings and their mounting screws, gear stages and encoders make errors at orders
+#: nobody declares. The scan pays for its orders (:func:`harmonic_orders`).
+MAX_HARMONIC_ORDER = 24
+#: Orders 1..3 (eccentricity, ovality, triangularity) are always scanned.
+MIN_HARMONIC_ORDER = 3
+#: A scanned order's period spans at least this many poses on average over the joint's
+#: coverage: finer structure is not resolved by the poses.
+POSES_PER_PERIOD = 4.0
 
 
 # -- data ---------------------------------------------------------------------------------
@@ -191,6 +198,7 @@ class Kinematics:
     q_rad: FloatArray
     tcp_mm: FloatArray
     jacobian: FloatArray
+    _rotation_axes: dict[int, FloatArray] = field(default_factory=dict, repr=False)
 
     @classmethod
     def of(cls, model: KinematicModel, q_rad: FloatArray) -> Kinematics:
@@ -233,10 +241,13 @@ class Kinematics:
 
     def rotation_axes(self, frame: int) -> FloatArray:
         """∂TCP per rad of a small rotation of link ``frame`` about its own x, y, z axes
-        ``(r, 3, 3)`` (columns): ``axis × (TCP − origin)``; the z column is ∂TCP/∂θ."""
-        axes = self.frame_axes(frame)
-        lever = self.tcp_mm - self.frame_origin(frame)
-        return np.cross(axes, lever[:, :, None], axis=1)
+        ``(r, 3, 3)`` (columns): ``axis × (TCP − origin)``; the z column is ∂TCP/∂θ.
+        Kept per frame: a harmonic scan asks for the same frame at every order."""
+        if frame not in self._rotation_axes:
+            axes = self.frame_axes(frame)
+            lever = self.tcp_mm - self.frame_origin(frame)
+            self._rotation_axes[frame] = np.cross(axes, lever[:, :, None], axis=1)
+        return self._rotation_axes[frame]
 
 
 # -- specs and kinds --------------------------------------------------------------------------
@@ -1231,6 +1242,23 @@ def check_kinds(kinds: Collection[str]) -> None:
 
 
 # -- candidates, terms, descriptions ----------------------------------------------------------
+def harmonic_orders(q_rad: ArrayLike) -> tuple[int, ...]:
+    """Harmonic orders ``1..K`` scanned for a joint read at ``q_rad`` ``(m,)`` rad.
+
+    ``K`` is what the poses resolve: a period ``2π/K`` spanning :data:`POSES_PER_PERIOD`
+    poses on average over the joint's coverage (``K = 2π·m / (4·coverage)``), at least
+    :data:`MIN_HARMONIC_ORDER`, at most :data:`MAX_HARMONIC_ORDER`; none for a joint that
+    does not move. The closed loop scores the best order of each scan, Šidák-corrected
+    for the orders scanned (:func:`calibration.effects.candidate_scoring.score_candidate`).
+    """
+    q = np.asarray(q_rad, dtype=float)
+    coverage = float(np.ptp(q)) if q.size else 0.0
+    if coverage <= MIN_MOVE_RAD:
+        return ()
+    resolved = int(2.0 * math.pi * len(q) / (POSES_PER_PERIOD * coverage))
+    return tuple(range(1, min(MAX_HARMONIC_ORDER, max(MIN_HARMONIC_ORDER, resolved)) + 1))
+
+
 def loaded_joints(ctx: EffectContext) -> tuple[int, ...]:
     """Joints (1-based) whose RMS gravity torque over the poses is at least
     :data:`LOADED_JOINT_FRACTION` of the largest (none without a mass model)."""
@@ -1264,6 +1292,8 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
     ``kinds`` restricts the kinds offered (default: all but ``gravity_compliance``, the
     mass-model form of the gravity term, which is offered only when named). Time terms
     need ``t_s``, lost motion the approach directions, ``gravity_compliance`` a mass model.
+    Harmonics come at every order :func:`harmonic_orders` resolves; each joint's orders of
+    one kind are one scan (:func:`scan_key`).
     """
     allowed = set(KINDS) if kinds is None else set(kinds)
     check_kinds(allowed)
@@ -1285,8 +1315,9 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
     loaded = loaded_joints(ctx)
     if loaded and kinds is not None:  # the mass-model form: only when asked for by name
         offer(EffectSpec("gravity_compliance", joints=loaded))
+    orders = [harmonic_orders(ctx.data.q_rad[:, j]) for j in range(n)]
     for j in range(1, n + 1):
-        for k in HARMONIC_ORDERS:
+        for k in orders[j - 1]:
             offer(EffectSpec("joint_harmonic", joint=j, order=k))
     for j in range(1, n + 1):
         offer(EffectSpec("lost_motion", joint=j))
@@ -1296,16 +1327,20 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
                 offer(EffectSpec("length_drift", joint=j, parameter=parameter))
     offer(EffectSpec("instrument_scale"))
     offer(EffectSpec("instrument_scale_drift"))
-    for j in range(1, n + 1):
-        for k in HARMONIC_ORDERS:
-            offer(EffectSpec("cartesian_harmonic", joint=j, order=k))
-    for j in range(1, n + 1):
-        for k in HARMONIC_ORDERS:
-            offer(EffectSpec("link_harmonic", joint=j, order=k))
+    for kind in ("cartesian_harmonic", "link_harmonic"):
+        for j in range(1, n + 1):
+            for k in orders[j - 1]:
+                offer(EffectSpec(kind, joint=j, order=k))
     for frame in range(n + 1):
         offer(EffectSpec("cartesian_time", joint=frame, order=1))
     offer(EffectSpec("cartesian_time", joint=0, order=2))
     return out
+
+
+def scan_key(spec: EffectSpec) -> tuple[str, int] | None:
+    """The scan a candidate belongs to: a harmonic's kind and joint (its orders are scanned
+    together, the best one scored); None for a candidate scored on its own."""
+    return (spec.kind, spec.joint) if isinstance(KINDS[spec.kind], HarmonicOfJoint) else None
 
 
 def regressor_matrix(

@@ -435,15 +435,10 @@ def _stage_entry(i: int, stage: Stage, previous: Stage | None) -> dict[str, Any]
 
 
 def _stopped(loop: ClosedLoopResult) -> dict[str, Any]:
-    """Why the search stopped, its best remaining candidate, the ones not identifiable."""
-    identifiable = [c for c in loop.last_round if c.n_parameters > 0]
+    """Why the search stopped (``code``, ``reason``), its best remaining candidate, the
+    ones not identifiable."""
     return {
-        "reason": (
-            "no candidate is significant"
-            if loop.last_round
-            else "maximum number of effects reached or no candidate left"
-        ),
-        "best_remaining": identifiable[0].as_dict() if identifiable else None,
+        **loop.stop.as_dict(),
         "not_identifiable": [
             {"effect": c.label, "note": c.note} for c in loop.last_round if c.n_parameters == 0
         ],
@@ -613,10 +608,14 @@ def _stopped_markdown(stop: Mapping[str, Any]) -> list[str]:
     best = stop["best_remaining"]
     text = f"Stopped: {stop['reason']}"
     if best:
+        significant = "significant" if best["significant"] else "not significant"
         text += (
-            f" (best remaining: {best['effect']}, CV gain {_f(best['cv_gain_sigma2'], 1)} σ², "
+            f" (best remaining: {best['effect']}, {significant}: CV score "
+            f"{_f(best['score'], 1)} σ², CV gain {_f(best['cv_gain_sigma2'], 1)} σ², "
             f"corrected p {best['p_adjusted']:.2g})"
         )
+    else:
+        text += " (no identifiable candidate remains)"
     lines = ["", text + "."]
     if stop["not_identifiable"]:
         lines += [

@@ -40,7 +40,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.effects.effect_library import (
-    HARMONIC_ORDERS,
     EffectContext,
     EffectData,
     EffectSpec,
@@ -386,10 +385,16 @@ def prior_sd(names: list[str], n_geometry: int, specs: list[EffectSpec]) -> Floa
     return np.concatenate([out, np.array(effect, dtype=float)])
 
 
+#: The cyclic orders a plan designs for: the low ones a joint's gear and grating usually
+#: show. The loop scans higher orders too (effect_library.harmonic_orders), but a design
+#: spread over 24 orders per joint would spend its poses on terms few arms have.
+PLANNED_HARMONIC_ORDERS = (1, 2, 3)
+
+
 def loop_effects(ctx: EffectContext, which: tuple[str, ...]) -> list[EffectSpec]:
     """The closed loop's usual effects a campaign must pin down with the geometry: the
     gravity deflection (linear form, counterbalance terms included), each joint's
-    cyclic error (orders :data:`~calibration.effects.effect_library.HARMONIC_ORDERS`) and the
+    cyclic error (orders :data:`PLANNED_HARMONIC_ORDERS`) and the
     tracker's scale. Time terms and lost motion depend on the order and the clock, not
     on the poses chosen, and are left out. ``which``: of "gravity", "harmonic", "scale"."""
     specs: list[EffectSpec] = []
@@ -398,7 +403,9 @@ def loop_effects(ctx: EffectContext, which: tuple[str, ...]) -> list[EffectSpec]
         specs.append(gravity)
     for j in range(1, ctx.description.n_joints + 1):
         if "harmonic" in which:
-            specs += [EffectSpec("joint_harmonic", joint=j, order=k) for k in HARMONIC_ORDERS]
+            specs += [
+                EffectSpec("joint_harmonic", joint=j, order=k) for k in PLANNED_HARMONIC_ORDERS
+            ]
     if "scale" in which:
         specs.append(EffectSpec("instrument_scale"))
     return specs

@@ -909,17 +909,26 @@ def run_twin(
     robot: str | RobotDescription,
     *,
     effects: bool = True,
+    max_effects: int | None = None,
     say: Say = quiet,
 ) -> TwinRun:
     """Measurements, the twin (maps and loop fitted jointly) and its documents; writes
     nothing (:mod:`calibration.cli.run_files` writes the files). ``robot``: a preset name, a
-    description file or a description."""
+    description file or a description; ``max_effects``: at most this many effects (None:
+    the loop's default)."""
     started = time.perf_counter()
     desc = load_robot(robot) if isinstance(robot, str) else robot
     meas = measure_campaign(streams, desc, say=say)
     export_s = time.perf_counter() - started
     say("scale calibration (chain order), identification and closed loop")
-    twin = calibrate_twin(meas, effects=effects, say=say)
+    settings = None
+    if max_effects is not None:
+        from calibration.effects.closed_loop import (
+            LoopSettings,  # loaded with the loop, as calibrate does
+        )
+
+        settings = LoopSettings(max_effects=max_effects)
+    twin = calibrate_twin(meas, effects=effects, loop_settings=settings, say=say)
     export = CampaignExport.of(meas, twin.final.scales, twin.final.campaign)
     source = robot if isinstance(robot, str) else desc.name
     doc, errors = report_document(desc, source, twin, export.phases)

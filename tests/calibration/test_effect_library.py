@@ -21,6 +21,7 @@ from calibration.effects.effect_library import (
     counterbalance_terms,
     from_description,
     gravity_candidate,
+    harmonic_orders,
     regressor_matrix,
     to_descriptions,
 )
@@ -314,8 +315,15 @@ def test_directions_follow_time_order():
 def test_candidates():
     specs = candidate_effects(CTX)
     kinds = [s.kind for s in specs]
-    assert kinds.count("joint_harmonic") == 18 and kinds.count("cartesian_harmonic") == 18
-    assert kinds.count("link_harmonic") == 18 and len(specs) == 77
+    # harmonics: every order the poses resolve, per joint (3..24 of them; was 1..3)
+    orders = [harmonic_orders(CTX.data.q_rad[:, j]) for j in range(6)]
+    assert all(o == tuple(range(1, len(o) + 1)) and 3 <= len(o) <= 24 for o in orders)
+    n_orders = sum(len(o) for o in orders)
+    for kind in ("joint_harmonic", "cartesian_harmonic", "link_harmonic"):
+        assert sorted((s.joint, s.order) for s in specs if s.kind == kind) == sorted(
+            (j + 1, k) for j, o in enumerate(orders) for k in o
+        )
+    assert len(specs) == 23 + 3 * n_orders  # gravity, 6 lost motions, 6 drifts, 2 scales, 8 time
     assert kinds.count("lost_motion") == 6 and kinds.count("cartesian_time") == 8
     drift = {(s.joint, s.parameter) for s in specs if s.kind == "length_drift"}
     assert drift == {(1, "d"), (2, "a"), (3, "a"), (4, "a"), (4, "d"), (6, "d")}
