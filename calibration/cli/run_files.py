@@ -57,7 +57,7 @@ def _without_timings(obj: Any) -> Any:
 def _write_reports(dest: Path, run: TwinRun, *, figures: bool, say: Say) -> Path:
     """report/ (report.json without the solver times; with ``figures``, report.md and the
     figures too) and, with ``figures``, scale-report/; the report directory."""
-    from calibration.effects.identification_report import write_report
+    from calibration.effects.report_rendering import write_report
     from calibration.scales.scale_report import write_report as write_scale_report
 
     report_dir = dest / "report"
