@@ -147,7 +147,7 @@ def calibrate_twin(
     first = one_round(None)
     idm = first.campaign.mask("identify")
     say(f"identification: {int(idm.sum())} poses, validation {int((~idm).sum())}")
-    found = sweep_deflections(meas, first)
+    found = sweep_deflections(meas, first.scales, first.campaign, first.loop)
     if found is None:  # no gravity deflection found: nothing to take out
         return TwinCalibration((first,))
     say("closed loop found gravity deflection: refitting the scale maps without it")
@@ -199,7 +199,7 @@ def _refitted_rounds(
         say(f"joint fit round {len(rounds)}: the twin adds {added or 'nothing'}")
         if len(rounds) >= MAX_ROUNDS:
             break
-        refined = sweep_deflections(meas, current)
+        refined = sweep_deflections(meas, current.scales, current.campaign, current.loop)
         if refined is None:
             break
         moved = _deflection_moved(deflection, *refined)

@@ -22,17 +22,21 @@ if TYPE_CHECKING:
     from calibration.effects.effect_library import EffectSpec, GravityDeflection
     from calibration.identify.identification import IdentificationResult
     from calibration.model.kinematics import KinematicModel
-    from calibration.twin.fit_rounds import TwinRound
 
 FloatArray = NDArray[np.float64]
 
 
 def sweep_deflections(
-    meas: CampaignMeasurements, rnd: TwinRound
+    meas: CampaignMeasurements,
+    scales: ScaleCampaignResult,
+    campaign: Campaign,
+    loop: ClosedLoopResult | None,
 ) -> tuple[dict[int, FloatArray], FloatArray] | None:
-    """The round's gravity deflection of every link ``(S, n)`` rad at each joint's sweep
+    """A round's gravity deflection of every link ``(S, n)`` rad at each joint's sweep
     stops, and per joint its variance summed over all sweeps' stops ``(n,)`` (None when
-    the round's loop found no gravity deflection).
+    the round's loop found no gravity deflection). ``scales``, ``campaign``, ``loop``: the
+    round's (:class:`~calibration.twin.fit_rounds.TwinRound`) maps, the poses read through
+    them and its closed loop.
 
     Only what the poses can tell from the maps goes back into them: a moment whose effect
     on joint j depends on q_j alone (it vanishes relative to j's sweep configuration, e.g.
@@ -42,15 +46,13 @@ def sweep_deflections(
     standard error (a rigid joint's estimate is noise) is not taken out, a well determined
     one nearly all of it, and nothing switches on and off between rounds.
     """
-    loop = rnd.loop
     term = None if loop is None else _gravity_term(loop)
     if loop is None or term is None:
         return None
     robot = meas.robot
-    acting = _acting_moments(robot, rnd.campaign, term)
+    acting = _acting_moments(robot, campaign, term)
     sweeps = {
-        j: _sweep_deflection(robot, rnd.scales, sweep, term, acting)
-        for j, sweep in meas.sweeps.items()
+        j: _sweep_deflection(robot, scales, sweep, term, acting) for j, sweep in meas.sweeps.items()
     }
     n = meas.n_joints
     ratio_var = _compliance_ratio_variance(term.spec, loop, n)
