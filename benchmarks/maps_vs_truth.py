@@ -2,7 +2,7 @@
 
     python -m benchmarks.maps_vs_truth demo-out/campaign.mcap demo-out/sim-cell.toml
 
-Runs the twin's joint fit on the recording (``calibration.twin.twin_run``: phases, pairing,
+Runs the twin's joint fit on the recording (``calibration.twin.fit_rounds``: phases, pairing,
 maps in chain order, identification, closed loop, the deflection taken out of the sweeps)
 and prints, per round and joint, the terms the map kept, its relation residual, the RMS
 over the sweep stops of the map minus the true strip relation (from the emulator's
@@ -20,8 +20,9 @@ import numpy as np
 from calibration.errors import CalibrationError
 from calibration.model.description import load_robot
 from calibration.scales.scale_relation import ARCSEC_PER_DEG, COUNTER_MODULUS
+from calibration.twin.campaign_measurement import measure_campaign
+from calibration.twin.fit_rounds import calibrate_twin
 from calibration.twin.streams import read_recording_streams
-from calibration.twin.twin_run import calibrate_twin, measure_campaign
 from daq.errors import DaqError
 from edges.command import run_command, take_debug_flag
 from edges.options import OptionParser

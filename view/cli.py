@@ -100,9 +100,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def _replay_source(args: argparse.Namespace, say: Any) -> tuple[Any, Any, str]:
     from calibration.errors import CalibrationError, TwinRunError
+    from calibration.twin.campaign_measurement import measure_campaign
     from calibration.twin.phase_detection import find_phases
     from calibration.twin.streams import read_recording_streams
-    from calibration.twin.twin_run import measure_campaign
     from view.model import load_calibration, nominal_twin, provisional_twin
     from view.phases import PhaseTimeline
     from view.sources import ReplaySource, pose_points

@@ -30,7 +30,7 @@ from view.errors import ViewError
 from view.scene import ghost_model
 
 if TYPE_CHECKING:
-    from calibration.twin.twin_run import CampaignMeasurements
+    from calibration.twin.campaign_measurement import CampaignMeasurements
 
 FloatArray = NDArray[np.float64]
 
@@ -101,7 +101,7 @@ def load_calibration(model_path: str | Path, robot: str | None = None) -> TwinMo
     overrides it).
     """
     from calibration.scales.scale_files import read_scale_toml
-    from calibration.twin.twin_run import stage_table
+    from calibration.twin.run_documents import stage_table
 
     path = Path(model_path)
     desc = RobotDescription.load(path)
@@ -160,9 +160,10 @@ def nominal_twin(robot: str) -> TwinModel:
 def provisional_twin(robot: str, meas: CampaignMeasurements) -> TwinModel:
     """The nominal ``robot`` read through scale maps fitted from a recording's sweeps.
 
-    ``meas``: the recording's :class:`~calibration.twin.twin_run.CampaignMeasurements`. The
-    base is the rigid registration of the nominal TCPs onto the tracker's pose points
-    (the identification's own starting point) when there are at least 3 poses.
+    ``meas``: the recording's
+    :class:`~calibration.twin.campaign_measurement.CampaignMeasurements`. The base is the
+    rigid registration of the nominal TCPs onto the tracker's pose points (the
+    identification's own starting point) when there are at least 3 poses.
     """
     from calibration.model.kinematics import tcp_positions
     from calibration.model.registration import rigid_registration

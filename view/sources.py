@@ -36,7 +36,7 @@ from view.tracking_panel import TrackingHistory, tracking_text
 if TYPE_CHECKING:
     import zenoh
 
-    from calibration.twin.twin_run import CampaignMeasurements
+    from calibration.twin.campaign_measurement import CampaignMeasurements
 
 FloatArray = NDArray[np.float64]
 TRACKER_VALID = 1  # status bit of a tracker channel: the measurement is valid
@@ -156,8 +156,8 @@ class PosePoints:
 
 
 def pose_points(meas: CampaignMeasurements, twin: TwinModel) -> PosePoints:
-    """The poses of :class:`~calibration.twin.twin_run.CampaignMeasurements` with the twin's
-    TCP at each (one vectorized evaluation)."""
+    """The poses of :class:`~calibration.twin.campaign_measurement.CampaignMeasurements`
+    with the twin's TCP at each (one vectorized evaluation)."""
     if not meas.poses:
         return PosePoints.empty()
     dwells = meas.phases.dwells

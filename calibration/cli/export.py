@@ -50,8 +50,9 @@ def run_export(args: argparse.Namespace) -> int:
     from calibration.cli.run_files import write_campaign_files
     from calibration.errors import OutputFileError
     from calibration.model.description import load_robot
+    from calibration.twin.campaign_measurement import ENCODER_COUNTS_PER_REV
+    from calibration.twin.run_documents import export_campaign
     from calibration.twin.streams import read_recording_streams
-    from calibration.twin.twin_run import ENCODER_COUNTS_PER_REV, export_campaign
 
     say = progress("twin export", args.quiet)
     cpr = args.encoder_counts_per_rev or ENCODER_COUNTS_PER_REV

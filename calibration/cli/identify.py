@@ -300,7 +300,8 @@ def _reported(
     say: Callable[[str], None],
 ) -> list[str]:
     """The report written to the staged ``report_dir`` (when asked for); the lines to print."""
-    from calibration.effects.identification_report import build_report, write_report
+    from calibration.effects.identification_report import build_report
+    from calibration.effects.report_rendering import write_report
 
     result, loop = cal.result, cal.loop
     doc, errors = build_report(

@@ -1,6 +1,6 @@
 """The files of ``twin export`` and ``twin run``, at the command line's edge.
 
-:func:`write_campaign_files` writes a :class:`~calibration.twin.twin_run.CampaignExport`
+:func:`write_campaign_files` writes a :class:`~calibration.twin.run_documents.CampaignExport`
 (``home.csv``, ``sweep.csv``, ``scale.toml``, ``campaign.csv``, ``phases.json``);
 :func:`write_twin_run` writes a :class:`~calibration.twin.twin_run.TwinRun` (those, and
 ``calibrated.toml``, ``report/``, ``scale-report/``, ``run.json``; docs/twin-run.md,
@@ -18,16 +18,15 @@ from typing import Any
 
 from calibration.identify.campaign_files import write_campaign
 from calibration.scales.scale_files import write_csv, write_scale_toml
-from calibration.twin.twin_run import (
+from calibration.twin.campaign_measurement import Say, quiet
+from calibration.twin.run_documents import (
     CALIBRATED_FILE,
     CAMPAIGN_FILES,
     CampaignExport,
-    Say,
-    TwinRun,
     home_table,
-    quiet,
     sweep_table,
 )
+from calibration.twin.twin_run import TwinRun
 
 #: run.json's ``paths_relative_to``: its paths are relative to its own directory
 RUN_PATHS_RELATIVE_TO = "run.json"
@@ -35,7 +34,7 @@ RUN_PATHS_RELATIVE_TO = "run.json"
 
 def write_campaign_files(dest: Path, export: CampaignExport) -> dict[str, Path]:
     """home.csv, sweep.csv, scale.toml, campaign.csv and phases.json into ``dest``; their
-    paths by key (:data:`~calibration.twin.twin_run.CAMPAIGN_FILES`)."""
+    paths by key (:data:`~calibration.twin.run_documents.CAMPAIGN_FILES`)."""
     dest.mkdir(parents=True, exist_ok=True)
     files = {key: dest / name for key, name in CAMPAIGN_FILES.items()}
     write_csv(files["home"], *home_table(export.measurements))
@@ -58,7 +57,7 @@ def _without_timings(obj: Any) -> Any:
 def _write_reports(dest: Path, run: TwinRun, *, figures: bool, say: Say) -> Path:
     """report/ (report.json without the solver times; with ``figures``, report.md and the
     figures too) and, with ``figures``, scale-report/; the report directory."""
-    from calibration.effects.identification_report import write_report
+    from calibration.effects.report_rendering import write_report
     from calibration.scales.scale_report import write_report as write_scale_report
 
     report_dir = dest / "report"

@@ -176,7 +176,7 @@ class CalibratedTwin:
         name: str,
     ) -> CalibratedTwin:
         """From a run's values in memory (``phases``: the summary phases.json holds)."""
-        from calibration.twin.twin_run import ENCODER_COUNTS_PER_REV
+        from calibration.twin.campaign_measurement import ENCODER_COUNTS_PER_REV
 
         n = description.n_joints
         offset = np.asarray(phases.get("encoder_offset_deg") or [0.0] * n, dtype=float)

@@ -171,7 +171,7 @@ def test_the_joint_fit_goes_on_while_the_deflection_moves_beyond_its_noise():
     once more. Within twice the standard error nothing moves."""
     import numpy as np
 
-    from calibration.twin.twin_run import _deflection_moved
+    from calibration.twin.fit_rounds import _deflection_moved
 
     old = {1: np.zeros((4, 3)), 2: np.zeros((5, 3))}
     noise = np.full(3, 1e-10)  # summed variance per joint over the 9 stops (rad²)

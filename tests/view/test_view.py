@@ -134,8 +134,8 @@ def test_the_replay_clock_plays_pauses_seeks_and_stops_at_the_end():
 
 # -- the sources ----------------------------------------------------------------------------
 def test_a_replayed_campaign_gives_the_arm_the_poses_and_the_phase_at_each_instant():
+    from calibration.twin.campaign_measurement import measure_campaign
     from calibration.twin.streams import read_recording_streams
-    from calibration.twin.twin_run import measure_campaign
     from view.model import provisional_twin
     from view.sources import ReplaySource, pose_points
 
