@@ -41,9 +41,7 @@ _TOML_VALUE = (
 
 #: ``module:function(parameter)`` or ``module:function(return)`` -> why it is ``Any``.
 EXCEPTIONS: dict[str, str] = {
-    # the closed loop's effect library and the live twin: modules being split elsewhere
-    "calibration.effects.effect_library:EffectKind.slot(return)": _OTHER_BRANCH,
-    "calibration.effects.effect_library:GravityDeflection.slot(return)": _OTHER_BRANCH,
+    # the live twin: a module being split elsewhere
     "calibration.twin.live_twin:LiveSettings.zenoh_config(return)": _OTHER_BRANCH,
     "calibration.twin.live_twin:TwinPublication.__init__(session)": _OTHER_BRANCH,
     # the daemon's command handlers take argparse's namespace (argparse.Namespace)

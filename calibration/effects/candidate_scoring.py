@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import f as f_distribution
 
-from calibration.effects.effect_library import EffectSpec
+from calibration.effects.effect_base import EffectSpec
 
 FloatArray = NDArray[np.float64]
 

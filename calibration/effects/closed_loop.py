@@ -1,7 +1,7 @@
 """The closed loop: residual → missing effect → extended model → before/after.
 
 After the geometric identification, the residuals are searched for structure the tracker
-noise cannot explain. Each candidate of :mod:`calibration.effects.effect_library` (the physical
+noise cannot explain. Each candidate of :mod:`calibration.effects.effect_candidates` (the physical
 library, then the generic search) is scored on the identification poses
 (:mod:`calibration.effects.candidate_scoring`):
 
@@ -48,7 +48,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.stats import f as f_distribution
 
 from calibration.effects.candidate_scoring import (
     CandidateScore,
@@ -59,30 +58,29 @@ from calibration.effects.candidate_scoring import (
     competitors,
     score_candidate,
 )
-from calibration.effects.effect_library import (
-    KINDS,
+from calibration.effects.effect_base import (
     EffectContext,
     EffectData,
     EffectSpec,
     Evidence,
-    Kinematics,
-    candidate_effects,
+    ModelAtPoses,
+)
+from calibration.effects.effect_candidates import candidate_effects, scan_key
+from calibration.effects.effect_kinds import (
+    KINDS,
     check_kinds,
-    counterbalance_term,
     effect_terms,
-    joint_moment,
     predict_points,
     regressor_matrix,
-    scan_key,
     split_values,
     to_descriptions,
 )
 from calibration.effects.effect_shapes import (
-    PhysicalGravityFit,
     TimeConstantProfile,
-    fit_physical_gravity,
     profile_time_constant,
 )
+from calibration.effects.gravity_form import form_decision, physical_gravity
+from calibration.effects.loop_stop import Rejected, ScoredRound, StopReason, stop_reason
 from calibration.errors import IdentificationError
 from calibration.identify.campaign_files import Campaign
 from calibration.identify.identification import (
@@ -107,8 +105,6 @@ CRITERION = (
     "physical kind: then that one), everything is re-identified, and a step that makes the "
     "validation error worse is undone"
 )
-#: Significance of the linear gravity form's extra freedom over the physical form.
-PHYSICAL_FORM_ALPHA = 0.01
 
 
 @dataclass(frozen=True)
@@ -188,75 +184,6 @@ def mean_ap_mm(errors_mm: FloatArray) -> float:
     return float(np.linalg.norm(errors_mm, axis=1).mean())
 
 
-@dataclass(frozen=True)
-class Rejected:
-    """A candidate set aside: chosen, but the step made the validation error worse (or its
-    re-identification failed)."""
-
-    label: str
-    reason: str
-
-    def as_dict(self) -> dict[str, str]:
-        return {"effect": self.label, "reason": self.reason}
-
-
-#: Why the search stopped (:attr:`StopReason.code`).
-STOP_CODES = ("max_effects", "set_aside", "none_significant", "no_candidate_left")
-
-
-@dataclass(frozen=True)
-class StopReason:
-    """Why the search stopped, in words and as a ``code`` of :data:`STOP_CODES`, and the
-    best candidate left (the last round's best by significance, then penalized CV score,
-    that is neither in the model nor set aside; None: no identifiable candidate left)."""
-
-    code: str
-    text: str
-    best_remaining: CandidateScore | None = None
-
-    def as_dict(self) -> dict[str, Any]:
-        best = self.best_remaining
-        return {
-            "code": self.code,
-            "reason": self.text,
-            "best_remaining": None if best is None else best.as_dict(),
-        }
-
-
-def _stop_reason(
-    code: str,
-    settings: LoopSettings,
-    scored: _Round | None,
-    rejected: list[Rejected],
-    set_aside: Collection[EffectSpec],
-) -> StopReason:
-    """The stop in words, and the best candidate left in the round that ended the search
-    (``scored``): the one the loop would add next when any is significant (the physical
-    priority applied, :func:`~calibration.effects.candidate_scoring.choose`), else the best
-    score."""
-    undone = len(rejected)
-    if code == "max_effects":
-        text = f"the maximum number of effects ({settings.max_effects}) is reached"
-    elif code == "set_aside":
-        text = (
-            f"{undone} significant candidate(s) were undone by the validation re-check "
-            f"(at most {settings.max_rejected} are tried)"
-        )
-    elif code == "none_significant":
-        text = "no remaining candidate is significant"
-    else:
-        text = "no candidate is left to try"
-    if undone and code != "set_aside":
-        text += f" ({undone} set aside by the validation re-check)"
-    scores = [] if scored is None else scored.scores
-    left = [c for c in scores if c.n_parameters > 0 and c.spec not in set_aside]
-    if not left:
-        return StopReason(code, text)
-    if scored is not None and left[0].significant:
-        return StopReason(code, text, choose(scored.lin, left, scored.columns)[0])
-    return StopReason(code, text, left[0])
-
-
 @dataclass(frozen=True, eq=False)
 class ClosedLoopResult:
     """Every stage (nominal, geometric, + each added effect), the round that stopped and
@@ -270,7 +197,9 @@ class ClosedLoopResult:
     elapsed_s: float
     kinds: tuple[str, ...] = ()  # the candidate kinds offered
     rejected: tuple[Rejected, ...] = ()
-    stop: StopReason = StopReason("no_candidate_left", "no candidate is left to try")
+    stop: StopReason = field(
+        default_factory=lambda: StopReason("no_candidate_left", "no candidate is left to try")
+    )
 
     @property
     def final(self) -> Stage:
@@ -372,10 +301,10 @@ class _Problem:
 
     def linearized(
         self, result: IdentificationResult, specs: tuple[EffectSpec, ...], settings: LoopSettings
-    ) -> tuple[LinearizedModel, FloatArray, Kinematics]:
+    ) -> tuple[LinearizedModel, FloatArray, ModelAtPoses]:
         """The model at its solution, weighted like the fit; the weights ``(m,)``."""
         model, values = result.model, result.effect_values
-        kin = Kinematics.of(model, self.ctx.data.q_rad)
+        kin = ModelAtPoses.of(model, self.ctx.data.q_rad)
         sw = np.sqrt(self.prior * result.pose_weights)
         pred = predict_points(model, specs, values, self.ctx)
         residual = ((pred - self.meas) * sw[:, None]).ravel()
@@ -387,7 +316,7 @@ class _Problem:
         )
         return lin, sw, kin
 
-    def columns(self, spec: EffectSpec, sw: FloatArray, kin: Kinematics) -> FloatArray:
+    def columns(self, spec: EffectSpec, sw: FloatArray, kin: ModelAtPoses) -> FloatArray:
         """A candidate's weighted regressor ``(3m, k)``."""
         sel = slice(0, self.m)
         r = KINDS[spec.kind].regressor(spec, self.ctx, sel, kin) * sw[:, None, None]
@@ -438,11 +367,9 @@ def run_closed_loop(
     allowed = kinds if kinds is not None else settings.kinds
     span = _campaign_span(campaign)
     library = [_with_span(s, span) for s in candidate_effects(problem.ctx, allowed)]
-    penalty = (
-        math.log(3 * problem.m)
-        if settings.penalty_per_parameter is None
-        else settings.penalty_per_parameter
-    )
+    penalty = settings.penalty_per_parameter
+    if penalty is None:
+        penalty = math.log(3 * problem.m)
     stages, result = _first_stages(problem, geometric)
     tell(f"closed loop: {len(library)} candidate effects")
     search = _Search(problem, library, penalty, span, settings, tell)
@@ -473,6 +400,17 @@ class _Search:
     settings: LoopSettings
     tell: Callable[[str], None]
 
+    def stop(
+        self,
+        code: str,
+        scored: ScoredRound | None,
+        rejected: list[Rejected],
+        set_aside: Collection[EffectSpec],
+    ) -> StopReason:
+        """Why the search stopped (``code``) and the best candidate left in ``scored``."""
+        max_effects, max_rejected = self.settings.max_effects, self.settings.max_rejected
+        return stop_reason(code, max_effects, max_rejected, scored, rejected, set_aside)
+
     def run(
         self, stages: list[Stage], result: IdentificationResult
     ) -> tuple[list[CandidateScore], list[Rejected], StopReason]:
@@ -489,13 +427,13 @@ class _Search:
             offered = [s for s in self.library if s not in specs and s not in set_aside]
             offered = [s for s in offered if not _same_slot(s, specs)]
             if not offered:
-                return [], rejected, _stop_reason("no_candidate_left", settings, None, rejected, ())
+                return [], rejected, self.stop("no_candidate_left", None, rejected, ())
             scored = _score_round(
                 problem, result, specs, offered, settings, self.penalty, self.span
             )
             scores = scored.scores
             if len(specs) >= settings.max_effects:
-                stop = _stop_reason("max_effects", settings, scored, rejected, set_aside)
+                stop = self.stop("max_effects", scored, rejected, set_aside)
                 return scores, rejected, stop
             if not scores[0].significant:
                 best = scores[0]
@@ -503,7 +441,7 @@ class _Search:
                     f"closed loop: nothing significant left (best: {best.label}, "
                     f"CV gain {best.cv_gain:.1f} σ², corrected p {best.p_adjusted:.2g})"
                 )
-                stop = _stop_reason("none_significant", settings, scored, rejected, set_aside)
+                stop = self.stop("none_significant", scored, rejected, set_aside)
                 return scores, rejected, stop
             chosen, reason = choose(scored.lin, scores, scored.columns)
             step = _guarded(
@@ -517,7 +455,7 @@ class _Search:
                 set_aside.add(chosen.spec)
                 tell(f"closed loop: set aside {chosen.label}: {step}")
                 if len(rejected) >= settings.max_rejected:
-                    stop = _stop_reason("set_aside", settings, scored, rejected, set_aside)
+                    stop = self.stop("set_aside", scored, rejected, set_aside)
                     return scores, rejected, stop
                 continue
             specs, result = step.specs, step.result
@@ -584,7 +522,7 @@ def _effect_stage(
     step: _Step,
     chosen: CandidateScore,
     reason: str,
-    scored: _Round,
+    scored: ScoredRound,
     previous: Stage,
     problem: _Problem,
 ) -> Stage:
@@ -632,18 +570,6 @@ def _same_slot(spec: EffectSpec, specs: tuple[EffectSpec, ...]) -> bool:
     return any(KINDS[s.kind].slot(s) == slot for s in specs)
 
 
-@dataclass(frozen=True, eq=False)
-class _Round:
-    """One round of the search: the model linearized at its solution, and every offered
-    candidate's weighted columns ``(3m, k)`` and score (significant first, then best CV
-    score first); a drift's time-constant profile."""
-
-    lin: LinearizedModel
-    scores: list[CandidateScore]
-    columns: dict[EffectSpec, FloatArray]
-    profiles: dict[EffectSpec, TimeConstantProfile]
-
-
 def _score_round(
     problem: _Problem,
     result: IdentificationResult,
@@ -652,7 +578,7 @@ def _score_round(
     settings: LoopSettings,
     penalty: float,
     span: tuple[float, ...],
-) -> _Round:
+) -> ScoredRound:
     """Score every offered candidate against the model ``result`` with ``specs``; a drift
     is offered as a lag when the data says so."""
     lin, sw, kin = problem.linearized(result, specs, settings)
@@ -681,7 +607,7 @@ def _score_round(
         for spec, cols in columns.items()
     ]  # fmt: skip
     scores.sort(key=lambda c: (not c.significant, c.n_parameters == 0, -c.score))
-    return _Round(lin, scores, columns, profiles)
+    return ScoredRound(lin, scores, columns, profiles)
 
 
 def _scan_orders(
@@ -708,7 +634,7 @@ def _profile_lag(
     problem: _Problem,
     spec: EffectSpec,
     sw: FloatArray,
-    kin: Kinematics,
+    kin: ModelAtPoses,
     lin: LinearizedModel,
     span: tuple[float, ...],
 ) -> TimeConstantProfile:
@@ -738,7 +664,7 @@ def _try_step(
         return f"re-identification failed: {exc}"
     if spec.kind != "gravity_deflection" or spec.parameter == "physical":
         return new_specs, linear, {}
-    physical = _physical_gravity(problem, spec, lin, columns[spec])
+    physical = physical_gravity(problem.ctx, problem.m, spec, lin, columns[spec])
     if physical is None:
         return new_specs, linear, {}
     phys_spec, fit = physical
@@ -750,104 +676,11 @@ def _try_step(
     except IdentificationError as exc:
         tell(f"closed loop: physical gravity form not kept: {exc}")
         return new_specs, linear, {"gravity_form": {"kept": "linear", "reason": str(exc)}}
-    info = _form_decision(problem, linear, phys, spec, phys_spec, fit)
+    info = form_decision(problem.ctx, problem.m, linear, phys, spec, phys_spec, fit)
     tell(f"closed loop: gravity deflection, {info['gravity_form']['reason']}")
     if info["gravity_form"]["kept"] == "physical":
         return phys_specs, phys, info
     return new_specs, linear, info
-
-
-def _physical_gravity(
-    problem: _Problem,
-    spec: EffectSpec,
-    lin: LinearizedModel,
-    cols: FloatArray,
-) -> tuple[EffectSpec, PhysicalGravityFit] | None:
-    """The physical form's spec and fit from the linear candidate's columns."""
-    base = problem.ctx.base_moments
-    names = base.names
-    blocks: dict[int, FloatArray] = {}
-    own: list[int] = []  # counterbalance terms: a joint's own torque profile, not shared
-    n_joints = problem.ctx.description.n_joints
-    for c, term in enumerate(spec.names):
-        if counterbalance_term(term) is not None:
-            own.append(c)
-            continue
-        j, moment = joint_moment(term, spec.kind, n_joints)
-        block = blocks.setdefault(j, np.zeros((cols.shape[0], len(names))))
-        block[:, names.index(moment)] = cols[:, c]
-    if len(blocks) < 1:
-        return None
-    if own:  # fitted freely beside the shared moments: part of the model for the profile
-        lin = LinearizedModel.build(  # (folds unused by the profile)
-            lin.residual, np.hstack([lin.jacobian, cols[:, own]]), problem.m, len(lin.folds), 0
-        )
-    fit = fit_physical_gravity(lin, blocks)
-    if not fit.success or not np.all(np.isfinite(fit.ratios)):
-        return None
-    phys = EffectSpec(
-        "gravity_deflection",
-        parameter="physical",
-        joints=fit.joints,
-        names=names + tuple(spec.names[c] for c in own),
-        shape=tuple(float(r) for r in fit.ratios),
-    )
-    return phys, fit
-
-
-def _form_decision(
-    problem: _Problem,
-    linear: IdentificationResult,
-    phys: IdentificationResult,
-    spec: EffectSpec,
-    phys_spec: EffectSpec,
-    fit: PhysicalGravityFit,
-) -> dict[str, Any]:
-    """Keep the physical form unless the linear one is significantly better (F-test)."""
-    sse_lin = _weighted_sse(linear)
-    sse_phys = _weighted_sse(phys)
-    k_lin = len(spec.names)
-    k_phys = len(phys_spec.names) + len(phys_spec.joints) - 1  # moments, own terms, ratios
-    dof = 3 * problem.m - int(np.count_nonzero(linear.free))
-    d1 = max(k_lin - k_phys, 1)
-    f_stat = ((sse_phys - sse_lin) / d1) / max(sse_lin / max(dof, 1), 1e-300)
-    p = float(f_distribution.sf(max(f_stat, 0.0), d1, max(dof, 1)))
-    kept = "physical" if p >= PHYSICAL_FORM_ALPHA else "linear"
-    reason = (
-        f"physical form kept ({k_phys} parameters against {k_lin}; the linear form's extra "
-        f"freedom: F = {f_stat:.2f}, p = {p:.2g})"
-        if kept == "physical"
-        else f"linear form kept: the joints do not share the same moments (F = {f_stat:.2f}, "
-        f"p = {p:.2g} < {PHYSICAL_FORM_ALPHA})"
-    )
-    stated = problem.ctx.description.base is not None and (
-        problem.ctx.description.base.gravity is not None
-    )
-    return {
-        "gravity_form": {
-            "kept": kept,
-            "reason": reason,
-            "gravity_direction": [float(v) for v in problem.ctx.gravity],
-            "gravity_source": "the description's [base] gravity"
-            if stated
-            else "−z of the robot base frame (floor mounting, the default)",
-            "f_statistic": float(f_stat),
-            "p_value": p,
-            "reference_joint": fit.reference,
-            "joints": list(fit.joints),
-            "compliance_ratio": [float(r) for r in fit.ratios],
-            "compliance_ratio_se": [float(r) for r in fit.ratio_se],
-            "moments": list(phys_spec.names[: len(fit.moments)]),
-            "weighted_moment_urad": [float(w) for w in fit.moments],
-            "weighted_moment_se_urad": [float(w) for w in fit.moment_se],
-        }
-    }
-
-
-def _weighted_sse(result: IdentificationResult) -> float:
-    """The LM's weighted residual sum of squares at its solution."""
-    r = np.asarray(result.optimize_result.fun, dtype=float)
-    return float(r @ r)
 
 
 def _evidence(
@@ -856,7 +689,7 @@ def _evidence(
     """The added effect's evidence on the validation set (identification set without one)."""
     set_name = _set_name(contexts)
     ctx = contexts[set_name]
-    kin = Kinematics.of(stage.model, ctx.data.q_rad)
+    kin = ModelAtPoses.of(stage.model, ctx.data.q_rad)
     values = stage.values_of(spec)
     sel = slice(0, len(ctx.data))
     ev: Evidence = KINDS[spec.kind].evidence(spec, values, ctx, sel, kin)

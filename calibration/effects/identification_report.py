@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration.effects.closed_loop import CRITERION, ClosedLoopResult, Stage
-from calibration.effects.effect_library import KINDS
+from calibration.effects.effect_kinds import KINDS
 from calibration.effects.learned_residual import CRITERION as LEARNED_CRITERION
 from calibration.effects.learned_residual import LearnedStage
 from calibration.identify.campaign_files import Campaign

@@ -2,9 +2,9 @@
 
 A calibrated description may carry ``[[effect]]`` tables (non-geometric terms identified by
 the closed loop, :mod:`calibration.effects.closed_loop`). Every ``kind`` is one of the effect
-library's (:data:`calibration.effects.effect_library.KINDS`, the one registry), and the points come
+library's (:data:`calibration.effects.effect_kinds.KINDS`, the one registry), and the points come
 from the one predictor the identification and the loop use
-(:func:`calibration.effects.effect_library.predict_points`), so a calibrated model predicts exactly
+(:func:`calibration.effects.effect_kinds.predict_points`), so a calibrated model predicts exactly
 what the loop fitted. An unknown kind or a bad parameter fails with an error naming the
 ``[[effect]]`` table, rather than being predicted without it; ``twin robot`` checks a
 description with the same function (:func:`description_effects`).
@@ -24,14 +24,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.effects.effect_library import (
-    KINDS,
-    EffectContext,
-    EffectData,
-    EffectSpec,
-    from_description,
-    predict_points,
-)
+from calibration.effects.effect_base import EffectContext, EffectData, EffectSpec
+from calibration.effects.effect_kinds import KINDS, from_description, predict_points
 from calibration.errors import EffectLibraryError, ModelEffectError
 from calibration.model.description import RobotDescription, load_robot
 from calibration.model.kinematics import KinematicModel

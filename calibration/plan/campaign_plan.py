@@ -9,7 +9,7 @@
 2. **Identification set** (:func:`select_identification`): what the campaign must pin
    down is the identifiable geometry (:func:`calibration.identify.identifiability.analyze_model`)
    plus the closed loop's usual effects, with the loop's own regressors
-   (:mod:`calibration.effects.effect_library`: the gravity deflection in its linear form, each
+   (:mod:`calibration.effects.effect_kinds`: the gravity deflection in its linear form, each
    joint's cyclic error, the tracker's scale; :func:`loop_effects`). Each candidate's
    3-row block of that Jacobian is column-scaled, reduced to the directions the
    candidates can observe at all, and weighted by the tracker's σ at its distance.
@@ -39,14 +39,9 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.effects.effect_library import (
-    EffectContext,
-    EffectData,
-    EffectSpec,
-    Kinematics,
-    gravity_candidate,
-    regressor_matrix,
-)
+from calibration.effects.effect_base import EffectContext, EffectData, EffectSpec, ModelAtPoses
+from calibration.effects.effect_candidates import gravity_candidate
+from calibration.effects.effect_kinds import regressor_matrix
 from calibration.errors import PlanError
 from calibration.identify.identifiability import analyze_model
 from calibration.identify.pose_selection import select_poses
@@ -336,7 +331,7 @@ def observability(
     names = [n for n, f in zip(analysis.parameter_names, analysis.free, strict=True) if f]
     ctx = EffectContext(description, EffectData(q_rad))
     specs = loop_effects(ctx, settings.effects)
-    kin = Kinematics(model, q_rad, tcp, jac)
+    kin = ModelAtPoses(model, q_rad, tcp, jac)
     effects = regressor_matrix(specs, ctx, slice(0, len(q_rad)), kin)
     names += [f"{sp.label}: {p}" for sp in specs for p in sp.parameter_names()]
     full = np.concatenate([geo, effects], axis=2)
@@ -386,7 +381,7 @@ def prior_sd(names: list[str], n_geometry: int, specs: list[EffectSpec]) -> Floa
 
 
 #: The cyclic orders a plan designs for: the low ones a joint's gear and grating usually
-#: show. The loop scans higher orders too (effect_library.harmonic_orders), but a design
+#: show. The loop scans higher orders too (effect_candidates.harmonic_orders), but a design
 #: spread over 24 orders per joint would spend its poses on terms few arms have.
 PLANNED_HARMONIC_ORDERS = (1, 2, 3)
 

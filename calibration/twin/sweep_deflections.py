@@ -19,7 +19,8 @@ from calibration.twin.campaign_measurement import CampaignMeasurements
 
 if TYPE_CHECKING:
     from calibration.effects.closed_loop import ClosedLoopResult
-    from calibration.effects.effect_library import EffectSpec, GravityDeflection
+    from calibration.effects.effect_base import EffectSpec
+    from calibration.effects.effect_gravity import GravityDeflection
     from calibration.identify.identification import IdentificationResult
     from calibration.model.kinematics import KinematicModel
 
@@ -80,7 +81,8 @@ class _GravityTerm:
 
 def _gravity_term(loop: ClosedLoopResult) -> _GravityTerm | None:
     """The loop's gravity deflection term (None: it found none)."""
-    from calibration.effects.effect_library import KINDS, GravityDeflection, split_values
+    from calibration.effects.effect_gravity import GravityDeflection
+    from calibration.effects.effect_kinds import KINDS, split_values
 
     final = loop.final
     gravity = [s for s in final.specs if s.kind == "gravity_deflection"]
@@ -101,11 +103,11 @@ def _acting_moments(
 ) -> NDArray[np.bool_]:
     """Which moments' share of each joint ``(n, P)`` the identification poses see apart
     from that joint's own angle (relative to Home): what the maps cannot hold."""
-    from calibration.effects.effect_library import EffectContext, EffectData, Kinematics
+    from calibration.effects.effect_base import EffectContext, EffectData, ModelAtPoses
 
     q_poses = campaign.q_rad[campaign.mask("identify")]
     ref_ctx = EffectContext(robot, EffectData(q_poses, sweep_reference=np.radians(robot.home)))
-    d_ref = term.kind.deflection_jacobian(term.spec, ref_ctx, Kinematics.of(term.model, q_poses))
+    d_ref = term.kind.deflection_jacobian(term.spec, ref_ctx, ModelAtPoses.of(term.model, q_poses))
     rms = np.sqrt(np.mean(d_ref**2, axis=0))  # (n, P): what the poses see apart from maps
     acting: NDArray[np.bool_] = rms > 1e-9 * max(float(rms.max(initial=0.0)), 1e-300)
     return acting
@@ -120,7 +122,7 @@ def _sweep_deflection(
 ) -> tuple[FloatArray, FloatArray]:
     """The term's deflection of every link ``(S, n)`` rad at one sweep's stops (the stops
     read through ``scales``, the ``acting`` moments only) and its variance ``(S, n)``."""
-    from calibration.effects.effect_library import EffectContext, EffectData, Kinematics
+    from calibration.effects.effect_base import EffectContext, EffectData, ModelAtPoses
 
     by_joint = {r.joint: r.scale for r in scales}
     assert sweep.chain_counts is not None
@@ -133,7 +135,7 @@ def _sweep_deflection(
         )
     )
     ctx = EffectContext(robot, EffectData(q))
-    kin = Kinematics.of(term.model, q)
+    kin = ModelAtPoses.of(term.model, q)
     unit = np.eye(len(term.values))
     jac = np.stack(
         [term.kind.joint_deflections_rad(term.spec, u, ctx, kin, acting) for u in unit], axis=2

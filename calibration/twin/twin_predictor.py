@@ -122,7 +122,7 @@ class TwinPredictor:
         self.radius = float(np.radians(radius_deg))
         self.radius_deg = float(radius_deg)
         self.max_age_s = float(max_age_s)
-        # below calibration.effects.effect_library.MIN_MOVE_RAD: the stencil's poses keep q0's
+        # below calibration.effects.effect_base.MIN_MOVE_RAD: the stencil's poses keep q0's
         # approach directions (direction-dependent terms see one pose, not a motion)
         self.h = float(h_rad)
         self._q0: np.ndarray | None = None

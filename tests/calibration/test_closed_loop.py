@@ -30,13 +30,9 @@ from benchmarks.bench_attribution import (
 )
 from calibration.effects.candidate_scoring import LinearizedModel, principal_cosines
 from calibration.effects.closed_loop import LoopSettings, campaign_effect_data, run_closed_loop
-from calibration.effects.effect_library import (
-    KINDS,
-    EffectContext,
-    EffectSpec,
-    Kinematics,
-    gravity_candidate,
-)
+from calibration.effects.effect_base import EffectContext, EffectSpec, ModelAtPoses
+from calibration.effects.effect_candidates import gravity_candidate
+from calibration.effects.effect_kinds import KINDS
 from calibration.effects.identification_report import closed_loop_document
 from calibration.effects.model_effects import predict_tcp
 from calibration.identify.position_residuals import stacked_jacobian
@@ -190,7 +186,7 @@ def test_attribution_is_stated():
     idm = _data.campaign.mask("identify")
     ctx = EffectContext(desc, campaign_effect_data(desc, _data.campaign).subset(idm))
     geo = res.geometric.result
-    kin = Kinematics.of(geo.model, ctx.data.q_rad)
+    kin = ModelAtPoses.of(geo.model, ctx.data.q_rad)
     sel = slice(0, len(ctx.data))
     grav = KINDS["gravity_deflection"].regressor(gravity_candidate(ctx), ctx, sel, kin)
     harm = KINDS["joint_harmonic"].regressor(EffectSpec("joint_harmonic", 2, 1), ctx, sel, kin)

@@ -10,22 +10,21 @@ import numpy as np
 import pytest
 import tomli_w
 
-from calibration.effects.effect_library import (
-    KINDS,
-    EffectContext,
-    EffectData,
-    EffectLibraryError,
-    EffectSpec,
-    Kinematics,
+from calibration.effects.effect_base import EffectContext, EffectData, EffectSpec, ModelAtPoses
+from calibration.effects.effect_candidates import (
     candidate_effects,
-    counterbalance_terms,
-    from_description,
     gravity_candidate,
     harmonic_orders,
+)
+from calibration.effects.effect_gravity import counterbalance_terms
+from calibration.effects.effect_kinds import (
+    KINDS,
+    from_description,
     regressor_matrix,
     to_descriptions,
 )
 from calibration.effects.model_effects import ModelEffectError, predict_tcp
+from calibration.errors import EffectLibraryError
 from calibration.model.description import EffectDescription, RobotDescription, load_robot
 from calibration.model.gravity_regressor import (
     base_moments,
@@ -42,7 +41,7 @@ MODEL = KinematicModel.from_description(DESC)
 Q = sample_reachable_poses(DESC, 40, np.random.default_rng(3))
 T = np.linspace(0.0, 3600.0, 40)
 CTX = EffectContext(DESC, EffectData.from_sequence(Q, T, np.radians(DESC.home)))
-KIN = Kinematics.of(MODEL, Q)
+KIN = ModelAtPoses.of(MODEL, Q)
 ALL = slice(0, len(Q))
 
 GRAVITY = gravity_candidate(CTX)

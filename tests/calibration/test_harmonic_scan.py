@@ -16,12 +16,8 @@ import pytest
 from benchmarks.bench_attribution import twin_description
 from calibration.effects.candidate_scoring import LinearizedModel, score_candidate
 from calibration.effects.closed_loop import ClosedLoopResult, run_closed_loop
-from calibration.effects.effect_library import (
-    MAX_HARMONIC_ORDER,
-    MIN_HARMONIC_ORDER,
-    EffectSpec,
-    harmonic_orders,
-)
+from calibration.effects.effect_base import MAX_HARMONIC_ORDER, MIN_HARMONIC_ORDER, EffectSpec
+from calibration.effects.effect_candidates import harmonic_orders
 from sim_devices.effects import UndeclaredEffects
 from sim_devices.pose_campaign import CampaignData, CampaignSettings, emulated_campaign
 

@@ -1,0 +1,127 @@
+"""The candidates the closed loop offers for some poses (:func:`candidate_effects`): the
+library, then the generic search; harmonics at every order the poses resolve
+(:func:`harmonic_orders`), each joint's orders of one kind one scan (:func:`scan_key`)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from calibration.effects.effect_base import (
+    DRIFT_MIN_LENGTH_MM,
+    LOADED_JOINT_FRACTION,
+    MAX_HARMONIC_ORDER,
+    MIN_HARMONIC_ORDER,
+    MIN_MOVE_RAD,
+    POSES_PER_PERIOD,
+    EffectContext,
+    EffectSpec,
+)
+from calibration.effects.effect_gravity import counterbalance_terms
+from calibration.effects.effect_harmonics import HarmonicOfJoint
+from calibration.effects.effect_kinds import KINDS, check_kinds
+
+
+# -- candidates, terms, descriptions ----------------------------------------------------------
+def harmonic_orders(q_rad: ArrayLike) -> tuple[int, ...]:
+    """Harmonic orders ``1..K`` scanned for a joint read at ``q_rad`` ``(m,)`` rad.
+
+    ``K`` is what the poses resolve: a period ``2π/K`` spanning :data:`POSES_PER_PERIOD`
+    poses on average over the joint's coverage (``K = 2π·m / (4·coverage)``), at least
+    :data:`MIN_HARMONIC_ORDER`, at most :data:`MAX_HARMONIC_ORDER`; none for a joint that
+    does not move. The closed loop scores the best order of each scan, Šidák-corrected
+    for the orders scanned (:func:`calibration.effects.candidate_scoring.score_candidate`).
+    """
+    q = np.asarray(q_rad, dtype=float)
+    coverage = float(np.ptp(q)) if q.size else 0.0
+    if coverage <= MIN_MOVE_RAD:
+        return ()
+    resolved = int(2.0 * math.pi * len(q) / (POSES_PER_PERIOD * coverage))
+    return tuple(range(1, min(MAX_HARMONIC_ORDER, max(MIN_HARMONIC_ORDER, resolved)) + 1))
+
+
+def loaded_joints(ctx: EffectContext) -> tuple[int, ...]:
+    """Joints (1-based) whose RMS gravity torque over the poses is at least
+    :data:`LOADED_JOINT_FRACTION` of the largest (none without a mass model)."""
+    rms = np.sqrt(np.mean(ctx.torques_nmm**2, axis=0))
+    top = float(rms.max(initial=0.0))
+    if top <= 0.0:
+        return ()
+    return tuple(int(j) + 1 for j in np.flatnonzero(rms >= LOADED_JOINT_FRACTION * top))
+
+
+def gravity_candidate(ctx: EffectContext) -> EffectSpec | None:
+    """The gravity deflection in its linear form: every loaded joint with every base
+    moment acting on it (None when gravity loads no joint)."""
+    base = ctx.base_moments
+    names = tuple(
+        f"joint{j + 1}.{base.names[i]}" for j, cols in enumerate(base.per_joint) for i in cols
+    )
+    if not names:
+        return None
+    for j, joint in enumerate(ctx.description.joints, start=1):
+        if joint.counterbalance and j in base.loaded_joints:
+            names += counterbalance_terms(j)
+    return EffectSpec(
+        "gravity_deflection", parameter="linear", joints=base.loaded_joints, names=names
+    )
+
+
+def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) -> list[EffectSpec]:
+    """Every candidate for these poses: the library, then the generic search.
+
+    ``kinds`` restricts the kinds offered (default: all but ``gravity_compliance``, the
+    mass-model form of the gravity term, which is offered only when named). Time terms
+    need ``t_s``, lost motion the approach directions, ``gravity_compliance`` a mass model.
+    Harmonics come at every order :func:`harmonic_orders` resolves; each joint's orders of
+    one kind are one scan (:func:`scan_key`).
+    """
+    allowed = set(KINDS) if kinds is None else set(kinds)
+    check_kinds(allowed)
+    n = ctx.description.n_joints
+    has_t = ctx.data.t_s is not None and float(np.ptp(ctx.data.t_s)) > 0
+    out: list[EffectSpec] = []
+
+    def offer(spec: EffectSpec) -> None:
+        kind = KINDS[spec.kind]
+        if spec.kind not in allowed or (kind.needs_time and not has_t):
+            return
+        if kind.needs_direction and ctx.data.direction is None:
+            return
+        out.append(spec)
+
+    gravity = gravity_candidate(ctx)
+    if gravity is not None:
+        offer(gravity)
+    loaded = loaded_joints(ctx)
+    if loaded and kinds is not None:  # the mass-model form: only when asked for by name
+        offer(EffectSpec("gravity_compliance", joints=loaded))
+    orders = [harmonic_orders(ctx.data.q_rad[:, j]) for j in range(n)]
+    for j in range(1, n + 1):
+        for k in orders[j - 1]:
+            offer(EffectSpec("joint_harmonic", joint=j, order=k))
+    for j in range(1, n + 1):
+        offer(EffectSpec("lost_motion", joint=j))
+    for j, joint in enumerate(ctx.description.joints, start=1):
+        for parameter, length in (("d", joint.d_mm), ("a", joint.a_mm)):
+            if abs(length) >= DRIFT_MIN_LENGTH_MM:
+                offer(EffectSpec("length_drift", joint=j, parameter=parameter))
+    offer(EffectSpec("instrument_scale"))
+    offer(EffectSpec("instrument_scale_drift"))
+    for kind in ("cartesian_harmonic", "link_harmonic"):
+        for j in range(1, n + 1):
+            for k in orders[j - 1]:
+                offer(EffectSpec(kind, joint=j, order=k))
+    for frame in range(n + 1):
+        offer(EffectSpec("cartesian_time", joint=frame, order=1))
+    offer(EffectSpec("cartesian_time", joint=0, order=2))
+    return out
+
+
+def scan_key(spec: EffectSpec) -> tuple[str, int] | None:
+    """The scan a candidate belongs to: a harmonic's kind and joint (its orders are scanned
+    together, the best one scored); None for a candidate scored on its own."""
+    return (spec.kind, spec.joint) if isinstance(KINDS[spec.kind], HarmonicOfJoint) else None
