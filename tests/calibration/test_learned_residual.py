@@ -263,3 +263,19 @@ def test_twenty_clean_seeds_every_candidate():
     assert sum(r["accepted"] for r in clean) <= 1, clean
     for r in clean:
         assert 0.8 <= r["z_rms"] <= 1.25, r
+
+
+def test_tracking_holds_the_learned_stage_with_the_effects():
+    """``twin track``'s held terms are the description's prediction minus its geometry,
+    the learned stage included (a model with a stage and no ``[[effect]]`` too)."""
+    from calibration.effects.model_effects import predict_tcp
+    from calibration.model.kinematics import KinematicModel, tcp_positions
+    from calibration.twin.tracking import effect_offsets
+
+    desc = described()
+    assert not desc.effects
+    q = np.radians(np.array(desc.home))[None, :] + np.linspace(-0.2, 0.2, 5)[:, None]
+    t = np.arange(5.0)
+    expected = predict_tcp(desc, q, t) - tcp_positions(KinematicModel.from_description(desc), q)
+    assert np.abs(expected).max() > 1e-6  # the stage moves these poses
+    np.testing.assert_array_equal(effect_offsets(desc, q, t), expected)
