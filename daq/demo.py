@@ -17,6 +17,12 @@
 4. prints the stage table (nominal → geometric → + found effects), where the reports are,
    and the time each step took.
 
+``--plan DIR`` runs a planned campaign instead of the random poses: ``DIR/campaign_joints.csv``
+of ``twin plan`` (its identify poses then its validate poses, each in the plan's order, as
+``[cell] plan``), the tracker honouring the reflector's cone and range
+(``[tracker] line_of_sight = true``), and ``twin run --identify-poses N`` (the plan's N).
+Without it the campaign is the default one.
+
 ``--record-only`` stops after step 2 (how the replay tests' recording is made, see
 docs/twin-run.md). Zenoh stays on loopback (``--port``), no scouting.
 """
@@ -33,18 +39,38 @@ import time
 from pathlib import Path
 from typing import Any
 
+#: A planned campaign holds at Home this many wall seconds first: the daemon's devices
+#: connect within seconds on a loaded host, the tracker last (4.6 s measured), and a short
+#: campaign's first sweeps would be lost.
+START_HOLD_WALL_S = 8.0
+
 EFFECTS = ("gravity_deflection", "grating_cyclic", "thermal_drift", "tracker_scale", "none")
 
 
 def sim_config_text(
-    robot: str, seed: int, speed: float, effect: str, *, encoders: bool, rate_hz: float
+    robot: str,
+    seed: int,
+    speed: float,
+    effect: str,
+    *,
+    encoders: bool,
+    rate_hz: float,
+    plan: str = "",
 ) -> str:
+    """The emulated cell's ``cell.toml``; ``plan``: a plan's ``campaign_joints.csv`` (its
+    poses instead of the random ones, and the tracker's line of sight on)."""
     lines = [
         "[cell]",
         f"robot = {json.dumps(robot)}",  # a JSON string is a TOML basic string
         f"seed = {seed}",
         f"speed = {speed}",
         'program = "campaign"',
+    ]
+    if plan:
+        lines.append(f"plan = {json.dumps(plan)}  # twin plan's poses")
+        # the devices connect within seconds (wall): the campaign starts after them
+        lines.append(f"start_hold_s = {START_HOLD_WALL_S * speed:g}")
+    lines += [
         "",
         "[grating]",
         f"rate_hz = {rate_hz}",
@@ -54,6 +80,10 @@ def sim_config_text(
         "",
         "[tracker]",
         'target = "program"  # link J for joint J\'s scale calibration, TCP for the poses',
+    ]
+    if plan:
+        lines.append("line_of_sight = true  # the reflector's cone and range, as a tracker")
+    lines += [
         "",
     ]
     if effect != "none":
@@ -61,9 +91,10 @@ def sim_config_text(
     return "\n".join(lines)
 
 
-def prepare(args: argparse.Namespace, sim: Path) -> tuple[str, float]:
-    """The emulated cell's configuration text and its program's length in simulated
-    seconds, checked before anything is written (``--robot`` is named when it is wrong)."""
+def prepare(args: argparse.Namespace, sim: Path) -> tuple[str, float, int]:
+    """The emulated cell's configuration text, its program's length in simulated seconds
+    and its identification poses, checked before anything is written (``--robot`` is
+    named when it is wrong, a bad plan by its file, line and column)."""
     from sim_devices.config import CellConfig, robot_option
     from sim_devices.plant import Plant
 
@@ -75,16 +106,34 @@ def prepare(args: argparse.Namespace, sim: Path) -> tuple[str, float]:
         args.effect,
         encoders=not args.no_encoders,
         rate_hz=args.rate,
+        plan=plan_file(args),
     )
     config = CellConfig.loads(text, source=f"{sim} (from the demo's options)")
-    return text, float(Plant.from_config(config).trajectory.end_s)
+    trajectory = Plant.from_config(config).trajectory
+    n_identify = sum(label.startswith("identification ") for label in trajectory.labels)
+    return text, float(trajectory.end_s), n_identify
+
+
+def plan_file(args: argparse.Namespace) -> str:
+    """``--plan DIR``'s ``campaign_joints.csv``, absolute ("" without ``--plan``)."""
+    if not args.plan:
+        return ""
+    from daq.errors import DaqError
+
+    path = Path(args.plan) / "campaign_joints.csv"
+    if not path.is_file():
+        raise DaqError(f"--plan {args.plan}: no campaign_joints.csv in it (twin plan --out DIR)")
+    return str(path.resolve())
 
 
 def record(
-    args: argparse.Namespace, out_dir: Path, mcap: Path, prepared: tuple[str, float] | None = None
+    args: argparse.Namespace,
+    out_dir: Path,
+    mcap: Path,
+    prepared: tuple[str, float, int] | None = None,
 ) -> dict[str, Any]:
     sim = out_dir / "sim-cell.toml"
-    text, length = prepared or prepare(args, sim)
+    text, length, _ = prepared or prepare(args, sim)
     sim.write_text(text, encoding="utf-8")
     duration = length / args.speed + args.margin_s
     env = dict(os.environ)
@@ -290,6 +339,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="a progress line this often while recording, when not on a terminal "
         "(10 s; on a terminal one line updated every second; 0: none)",
     )
+    p.add_argument(
+        "--plan",
+        type=path_text,
+        metavar="DIR",
+        help="run the planned campaign of twin plan --out DIR (its campaign_joints.csv) "
+        "instead of random poses, the tracker's line of sight on (default: random poses)",
+    )
     p.add_argument("--mcap", type=path_text, help="recording path (default OUT/campaign.mcap)")
     return p
 
@@ -326,8 +382,11 @@ def _main(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     twin_out = out_dir / "twin"
-    print(f"demo: twin run --replay {mcap} --robot {args.robot} --out {twin_out}", flush=True)
-    rc = twin_main(["run", "--replay", str(mcap), "--robot", args.robot, "--out", str(twin_out)])
+    twin_args = ["run", "--replay", str(mcap), "--robot", args.robot, "--out", str(twin_out)]
+    if args.plan:  # the plan's identify poses come first
+        twin_args += ["--identify-poses", str(prepared[2])]
+    print(f"demo: twin {' '.join(twin_args)}", flush=True)
+    rc = twin_main(twin_args)
     twin_s = time.perf_counter() - t0
     total = time.perf_counter() - started
     print(

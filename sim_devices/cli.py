@@ -181,7 +181,7 @@ def _load(path: str | None) -> CellConfig:
 def _inputs(args: argparse.Namespace, config: CellConfig) -> list[str | None]:
     """The files a run reads (an output may be none of them)."""
     robot = config.cell.robot
-    return [args.config, robot if Path(robot).exists() else None]
+    return [args.config, robot if Path(robot).exists() else None, config.cell.plan or None]
 
 
 KINDS = ("grating", "tracker", "encoders")

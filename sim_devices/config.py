@@ -45,7 +45,12 @@ from sim_devices.effects import EFFECT_NAMES, UndeclaredEffects
 from sim_devices.errors import SimConfigError, SimError
 
 if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
+
     from calibration.model.description import RobotDescription
+
+    FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -57,11 +62,17 @@ class CellSection:
     eccentricity_mm: float = 0.002
     truth_file: str = ""  # write the truth here at start ("" = don't)
     run_dir: str = ""  # where pty symlinks go ("" = a fresh temp dir)
+    # a plan's campaign_joints.csv (twin plan): the campaign program's poses, identify
+    # then validate, each in the file's order ("" = random poses); relative to the cell file
+    plan: str = ""
+    # robot seconds the campaign holds at Home before it starts (the operator starting the
+    # program once every device is recorded: a daemon connecting late loses no sweep)
+    start_hold_s: float = 0.0
 
 
 PROGRAMS = {
     "campaign": "grating calibration (home returns, 2° sweeps; tracker target on the swept "
-    "link) + 100 id + 150 validation poses (TCP target)",
+    "link) + 100 id + 150 validation poses (TCP target; [cell] plan: a plan's poses)",
     "random": "free trajectory through random reachable poses, looping",
     "hold": "stand still at Home",
 }
@@ -163,6 +174,7 @@ SEED = Range(0, MAX_SEED)
 RANGES: dict[str, Range] = {
     "cell.seed": SEED,
     "cell.speed": Range(0.0, 1000.0, lo_open=True, what="program seconds per wall second"),
+    "cell.start_hold_s": Range(0.0, 1e6, what="robot seconds"),
     "cell.eccentricity_mm": Range(0.0, 1.0, what="mm; a strip's mounting eccentricity is µm"),
     "effects.stiffness_nmm_per_rad": Range(0.0, lo_open=True, empty=False, what="N·mm/rad"),
     "effects.backlash_deg": Range(0.0, 10.0, empty=False, what="deg, full gap"),
@@ -239,7 +251,11 @@ class CellConfig:
     def load(cls, path: str | Path) -> CellConfig:
         """Read ``cell.toml`` (bounded); every error a :class:`SimConfigError` naming it."""
         doc = parse_toml_file(path, SimConfigError, "a cell config")
-        return cls.from_document(doc, str(path))
+        cfg = cls.from_document(doc, str(path))
+        plan = cfg.cell.plan
+        if plan and not Path(plan).is_absolute():  # relative to the cell file
+            cfg = replace(cfg, cell=replace(cfg.cell, plan=str(Path(path).parent / plan)))
+        return cfg
 
     @classmethod
     def loads(cls, text: str, source: str = "<string>") -> CellConfig:
@@ -275,6 +291,8 @@ def _check(cfg: CellConfig, source: str) -> None:
 
     if cfg.cell.program not in PROGRAMS:
         fail("cell", "program", f"must be one of {', '.join(PROGRAMS)}, got {cfg.cell.program!r}")
+    if cfg.cell.plan and cfg.cell.program != "campaign":
+        fail("cell", "plan", f"only the 'campaign' program runs a plan, not {cfg.cell.program!r}")
     if not cfg.cell.robot.strip():
         fail("cell", "robot", "must name a preset or a robot description file")
     ids = cfg.encoders.node_ids
@@ -374,7 +392,33 @@ def load_cell(path: str | None) -> CellConfig:
             f"of at most {GRATING_CHANNELS} joints"
         )
     check_for_robot(cfg, n, source)
+    read_plan(cfg, robot_option(cfg.cell.robot), source)
     return cfg
+
+
+def read_plan(
+    cfg: CellConfig, robot: RobotDescription, source: str
+) -> tuple[FloatArray, FloatArray] | None:
+    """The poses of ``[cell] plan`` (None: no plan): identify ``(N, n)`` and validate
+    ``(M, n)`` rad, each in the file's order; a bad file is one line naming the key, the
+    file, its line and column (the angles must be within the robot's limits)."""
+    if not cfg.cell.plan:
+        return None
+    import numpy as np
+
+    from calibration.errors import CalibrationError
+    from calibration.identify.campaign_files import read_planned_poses
+
+    where = f"{source}: [cell]: key 'plan':"
+    limits = [(j.lower_deg, j.upper_deg) for j in robot.joints]
+    try:
+        plan = read_planned_poses(cfg.cell.plan, robot.n_joints, limits_deg=limits)
+    except CalibrationError as exc:
+        raise SimConfigError(f"{where} {one_line(str(exc))}") from None
+    identify = np.radians(plan.of_set("identify"))
+    if not len(identify):
+        raise SimConfigError(f"{where} {plan.source}: no 'identify' pose")
+    return identify, np.radians(plan.of_set("validate"))
 
 
 # -- command-line options ---------------------------------------------------------------

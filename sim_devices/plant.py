@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration.model.description import RobotDescription, load_robot
 from calibration.model.kinematics import KinematicModel, tcp_positions
-from sim_devices.config import CellConfig
+from sim_devices.config import CellConfig, read_plan
 from sim_devices.effects import (
     grating_reading_rad,
     true_point_mm,
@@ -159,7 +159,10 @@ class Plant:
             nominal, config.cell.seed, eccentricity_mm=config.cell.eccentricity_mm, tracker=tracker
         )
         rng = np.random.default_rng(config.cell.seed + 1)
-        trajectory = build_program(config.cell.program, nominal, rng)
+        planned = read_plan(config, nominal, "cell config")
+        trajectory = build_program(
+            config.cell.program, nominal, rng, planned, start_hold_s=config.cell.start_hold_s
+        )
         return cls(cell, trajectory, config, clock or SimClock(config.cell.speed))
 
     @property
@@ -369,12 +372,14 @@ def campaign_moves(
     dwell_s: float = 1.0,
     joints: tuple[int, ...] | None = None,
     target_change_s: float = 20.0,
+    poses: tuple[FloatArray, FloatArray] | None = None,
 ) -> list[Move]:
     """The calibration campaign as moves (method.md §2-3).
 
     Per joint: ``home_returns`` returns to Home at ``slow_speed`` from random angles, then
     a sweep limit to limit stopping every ``sweep_step_deg`` and back; then the
-    identification and validation poses. Each stop dwells ``dwell_s`` (for the tracker).
+    identification and validation poses: random, or ``poses`` (identify ``(N, n)``,
+    validate ``(M, n)`` rad, a plan's, in its order). Each stop dwells ``dwell_s``.
 
     The tracker target (:attr:`Move.target`): on link j during joint j's returns and sweeps,
     on the TCP for the poses. The reflector is mounted on the first swept link before the
@@ -408,20 +413,33 @@ def campaign_moves(
         moves.append(Move(tuple(home), 0.3, 0.5, f"joint{j + 1} done", link))
     if moves:
         moves.append(Move(tuple(home), 0.3, target_change_s, "target tcp", "tcp"))
-    for name, count in (("identification", n_identification), ("validation", n_validation)):
-        for k, q in enumerate(_random_poses(desc, count, rng)):
+    if poses is None:
+        poses = (_random_poses(desc, n_identification, rng), _random_poses(desc, n_validation, rng))
+    for name, q_set in zip(("identification", "validation"), poses, strict=True):
+        for k, q in enumerate(q_set):
             moves.append(Move(tuple(q), 0.3, dwell_s, f"{name} {k}"))
     moves.append(Move(tuple(home), 0.3, 1.0, "end"))
     return moves
 
 
-def build_program(name: str, desc: RobotDescription, rng: np.random.Generator) -> Trajectory:
-    """A built-in program by name (``campaign``, ``random``, ``hold``)."""
+def build_program(
+    name: str,
+    desc: RobotDescription,
+    rng: np.random.Generator,
+    planned: tuple[FloatArray, FloatArray] | None = None,
+    *,
+    start_hold_s: float = 0.0,
+) -> Trajectory:
+    """A built-in program by name (``campaign``, ``random``, ``hold``); ``planned``: the
+    campaign's identify and validate poses (rad), a plan's (:func:`campaign_moves`);
+    ``start_hold_s``: the campaign first holds at Home this long (robot seconds)."""
     vmax = np.radians(DEFAULT_VMAX_DEG_S[: desc.n_joints])
     amax = np.radians(DEFAULT_AMAX_DEG_S2[: desc.n_joints])
     home = np.radians(desc.home)
     if name == "campaign":
-        moves = campaign_moves(desc, rng)
+        moves = campaign_moves(desc, rng, poses=planned)
+        if start_hold_s > 0.0 and moves:  # the first target mounted already
+            moves.insert(0, Move(tuple(home), 0.3, start_hold_s, "start hold", moves[0].target))
         return Trajectory.build(home, moves, vmax, amax)
     if name == "random":
         poses = _random_poses(desc, 50, rng)

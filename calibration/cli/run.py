@@ -53,6 +53,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="N",
         help="add at most N effects (default 6); the report names the best candidate left",
     )
+    p.add_argument(
+        "--identify-poses",
+        type=integer(1),
+        default=None,
+        metavar="N",
+        help="the first N poses found identify, the rest validate (a planned campaign's "
+        "count, identify poses first; default: the first 40 %%)",
+    )
     p.add_argument("--no-report", action="store_true", help="no figures (report.json only)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     live = p.add_argument_group("live (without --replay)")
@@ -205,9 +213,12 @@ def run_run(args: argparse.Namespace) -> int:
 
             live = LiveTwin(LiveSettings.from_options(args), say)
             streams = live.collect()
+        from calibration.twin.phase_detection import PhaseOptions
+
+        phases = PhaseOptions(identify_count=args.identify_poses)
         result = run_twin(
             streams, args.robot, effects=not args.no_effects, max_effects=args.max_effects,
-            say=say,
+            phase_options=phases, say=say,
         )  # fmt: skip
         run = write_twin_run(staged, Path(args.out), result, report=not args.no_report, say=say)
         outputs.commit()  # before publishing, which may go on until Ctrl-C

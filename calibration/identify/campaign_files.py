@@ -5,9 +5,11 @@
 is seconds since the start of the campaign; q are the grating joint angles (degrees); x, y, z
 the tracker TCP target in the tracker frame (mm). Other columns are ignored.
 
-``joints.csv`` (input of ``twin predict``): ``pose,t_s,q1_deg..qN_deg``; other columns
-ignored. ``points.csv`` (its output): ``pose,x_mm,y_mm,z_mm``. ``targets.csv`` (input of
-``twin compensate``) and ``loads.csv`` (a load test, ``twin stiffness``): see their readers.
+``campaign_joints.csv`` (``twin plan``'s joint list, the emulated cell's ``[cell] plan``):
+``pose,set,q1_deg..qN_deg``. ``joints.csv`` (input of ``twin predict``):
+``pose,t_s,q1_deg..qN_deg``; other columns ignored. ``points.csv`` (its output):
+``pose,x_mm,y_mm,z_mm``. ``targets.csv`` (input of ``twin compensate``) and ``loads.csv``
+(a load test, ``twin stiffness``): see their readers.
 
 A bad row (a value that is not a finite number, a joint outside its limits, a duplicated
 pose id, too few fields, an unknown set) raises :class:`DataFileError` naming the file, the
@@ -299,6 +301,45 @@ def read_joint_readings(
         t_s=np.array([v[0] for v in values], dtype=float),
         q_deg=np.array([v[1] for v in values], dtype=float).reshape(len(poses), n_joints),
         skipped=tuple(skipped),
+    )
+
+
+@dataclass(frozen=True)
+class PlannedPoses:
+    """The rows of a plan's ``campaign_joints.csv`` (``twin plan``): pose ids, sets and
+    joint angles ``(m, n)`` degrees, in the file's (travel) order."""
+
+    source: str
+    pose: tuple[str, ...]
+    set: tuple[str, ...]
+    q_deg: FloatArray
+
+    def of_set(self, set_name: str) -> FloatArray:
+        """The angles ``(k, n)`` deg of one set, in the file's order."""
+        return self.q_deg[[s == set_name for s in self.set]]
+
+
+def read_planned_poses(
+    path: str | Path, n_joints: int, *, limits_deg: JointLimits | None = None
+) -> PlannedPoses:
+    """Read a plan's ``campaign_joints.csv`` (``pose,set,q1_deg..qN_deg``; other columns
+    ignored); a bad row is a :class:`DataFileError` naming the file, line and column."""
+    source, header, rows = _read_table(path)
+    qcols = joint_columns(n_joints)
+    _check_columns(source, header, ["pose", "set", *qcols], n_joints)
+
+    def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
+        set_name = f["set"].strip()
+        if set_name not in SETS:
+            raise _RowError("set", f"{set_name!r} is not one of {', '.join(SETS)}")
+        return set_name, _joint_angles(f, qcols, limits_deg)
+
+    poses, values, _ = _parse_rows(source, header, rows, parse, False)
+    return PlannedPoses(
+        source=source,
+        pose=tuple(poses),
+        set=tuple(str(v[0]) for v in values),
+        q_deg=np.array([v[1] for v in values], dtype=float).reshape(len(poses), n_joints),
     )
 
 

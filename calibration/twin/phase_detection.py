@@ -30,7 +30,8 @@ its own controller's or a pendant operator's. Everything here comes from the gra
 5. **Poses.** Every other dwell with at least two joints away from Home. In time order,
    the first ``identify_fraction`` of them (rounded, 100 of 250 for the method's
    campaign) are ``identify`` poses, the rest ``validate`` (method.md §3: 100
-   identification poses, then 150 others).
+   identification poses, then 150 others); or the first ``identify_count`` (a planned
+   campaign's, which the emulated cell runs identify poses first).
 6. Everything else (dwells away from Home on one joint, Home dwells approached fast or by
    several joints) is ``other``, counted in the summary.
 """
@@ -60,6 +61,9 @@ class PhaseOptions:
     home_tolerance: float = 0.25  # sweep steps
     home_speed_ratio: float = 1.5
     identify_fraction: float = 0.4
+    #: the first this many poses are ``identify`` (a planned campaign's count, ``twin run
+    #: --identify-poses``); None: ``identify_fraction`` of them
+    identify_count: int | None = None
 
 
 @dataclass(frozen=True)
@@ -273,6 +277,8 @@ def find_phases(t_ns: IntArray, counts: IntArray, opts: PhaseOptions | None = No
         else:
             other.append(d.index)
     n_id = round(opts.identify_fraction * len(poses_idx))
+    if opts.identify_count is not None:
+        n_id = min(opts.identify_count, len(poses_idx))
     poses = [
         Pose(
             f"{'id' if k < n_id else 'val'}{k if k < n_id else k - n_id:03d}",

@@ -39,6 +39,7 @@ from calibration.twin.campaign_measurement import (
     quiet,
 )
 from calibration.twin.fit_rounds import TwinCalibration, calibrate_twin
+from calibration.twin.phase_detection import PhaseOptions
 from calibration.twin.run_documents import CampaignExport, report_document, stage_table
 from calibration.twin.streams import CellStreams
 
@@ -83,15 +84,16 @@ def run_twin(
     *,
     effects: bool = True,
     max_effects: int | None = None,
+    phase_options: PhaseOptions | None = None,
     say: Say = quiet,
 ) -> TwinRun:
     """Measurements, the twin (maps and loop fitted jointly) and its documents; writes
     nothing (:mod:`calibration.cli.run_files` writes the files). ``robot``: a preset name, a
     description file or a description; ``max_effects``: at most this many effects (None:
-    the loop's default)."""
+    the loop's default); ``phase_options``: how the phases are found (None: defaults)."""
     started = time.perf_counter()
     desc = load_robot(robot) if isinstance(robot, str) else robot
-    meas = measure_campaign(streams, desc, say=say)
+    meas = measure_campaign(streams, desc, phase_options=phase_options, say=say)
     export_s = time.perf_counter() - started
     say("scale calibration (chain order), identification and closed loop")
     settings = None
