@@ -127,10 +127,7 @@ def plan_file(args: argparse.Namespace) -> str:
 
 
 def record(
-    args: argparse.Namespace,
-    out_dir: Path,
-    mcap: Path,
-    prepared: tuple[str, float, int] | None = None,
+    args: argparse.Namespace, out_dir: Path, mcap: Path, prepared: tuple[str, float, int] | None
 ) -> dict[str, Any]:
     sim = out_dir / "sim-cell.toml"
     text, length, _ = prepared or prepare(args, sim)

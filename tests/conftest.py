@@ -23,6 +23,7 @@ REALTIME_MODULES = frozenset(
         "test_daq_bus",
         "test_daq_daemon",
         "test_daq_demo",
+        "test_demo_planned",
         "test_daq_emulated",
         "test_daq_loss",
         "test_daq_scheduling",

@@ -6,7 +6,9 @@ twin plan --robot kr500 [--cell cell.toml] --poses 50 --validate 30 --out DIR
 writes, together and only when the plan succeeded, ``DIR/campaign_joints.csv``
 (``pose,set,q1_deg..qN_deg`` in travel order, the description's angles),
 ``DIR/<name>.src`` + ``DIR/<name>.dat`` (KUKA KRL), ``DIR/<name>.mod`` (ABB RAPID) and
-``DIR/report.md``. See docs/planning.md; the method is :mod:`calibration.plan.campaign_plan`.
+``DIR/report.md``; and the scale-calibration sweeps planned (``DIR/sweeps.csv``,
+``DIR/twin_sweeps.src/.dat/.mod``; ``--no-sweeps``: not). See docs/planning.md; the
+method is :mod:`calibration.plan.campaign_plan` (the sweeps: :mod:`~calibration.plan.sweep_plan`).
 """
 
 from __future__ import annotations
@@ -14,12 +16,17 @@ from __future__ import annotations
 import argparse
 import io
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from edges.options import integer
 from edges.outputs import OutputSet
+
+if TYPE_CHECKING:
+    from calibration.model.cell_geometry import CellGeometry
+    from calibration.model.description import RobotDescription
 
 #: The most poses either set may have (the candidate pool is this times a few).
 MAX_PLAN_POSES = 2000
@@ -79,6 +86,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default="I",
         help="I: mean prediction variance over the region (default); D: the O1 index",
     )
+    p.add_argument(
+        "--no-sweeps",
+        action="store_true",
+        help="leave the scale-calibration sweeps out (sweeps.csv, twin_sweeps.*)",
+    )
     p.set_defaults(func=run_plan)
 
 
@@ -135,9 +147,10 @@ def run_plan(args: argparse.Namespace) -> int:
         (staged / f"{prog.name}.mod").write_text(
             rapid_module(robot, q_deg, labels, via, prog), encoding="utf-8"
         )
-        (staged / "report.md").write_text(
-            plan_report(robot, geometry, settings, plan, prog), encoding="utf-8"
-        )
+        report = plan_report(robot, geometry, settings, plan, prog)
+        if not args.no_sweeps:
+            report += _write_sweeps(staged, robot, geometry, args.seed)
+        (staged / "report.md").write_text(report, encoding="utf-8")
     t = plan.travel
     print(
         f"wrote {args.out}: {int(plan.is_identify.sum())} identify + "
@@ -145,6 +158,35 @@ def run_plan(args: argparse.Namespace) -> int:
         f"({t.time_s / t.random_time_s:.2f}x a random order)"
     )
     return 0
+
+
+def _write_sweeps(staged: Path, robot: RobotDescription, geometry: CellGeometry, seed: int) -> str:
+    """Plan the scale-calibration sweeps, stage ``sweeps.csv`` and ``twin_sweeps.*``;
+    the report's section on them."""
+    from calibration.plan.robot_programs import ProgramSettings, krl_program, rapid_module
+    from calibration.plan.sweep_plan import (
+        SweepSettings,
+        plan_sweeps,
+        sweep_program_poses,
+        sweep_report,
+        sweeps_csv,
+    )
+
+    sweeps = plan_sweeps(robot, geometry, SweepSettings(seed=seed))
+    (staged / "sweeps.csv").write_text(sweeps_csv(sweeps), encoding="utf-8")
+    # the method's sweeps: 3 % speed, a stop every 2° long enough for the tracker
+    prog = ProgramSettings(name="twin_sweeps", krl_velocity_pct=3, rapid_speed="v20", dwell_s=1.0)
+    q_deg, labels, via = sweep_program_poses(sweeps)
+    src, dat = krl_program(robot, q_deg, labels, via, prog)
+    (staged / f"{prog.name}.src").write_text(src, encoding="utf-8")
+    (staged / f"{prog.name}.dat").write_text(dat, encoding="utf-8")
+    (staged / f"{prog.name}.mod").write_text(
+        rapid_module(robot, q_deg, labels, via, prog), encoding="utf-8"
+    )
+    lost = [s.joint for s in sweeps.sweeps if not s.whole]
+    if lost:
+        print(f"sweeps: joints {lost} not swept whole in view (see report.md)")
+    return sweep_report(robot, sweeps)
 
 
 def joints_csv(q_deg: NDArray[np.float64], is_identify: NDArray[np.bool_]) -> str:

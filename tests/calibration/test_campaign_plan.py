@@ -25,7 +25,8 @@ from sim_devices.truth import TrueCell
 pytestmark = pytest.mark.timeout(120)
 
 ROOT = Path(__file__).resolve().parents[2]
-SMALL = ["--poses", "12", "--validate", "6", "--candidates", "600"]
+# the sweeps (twin plan's default) are tests/calibration/test_sweep_plan.py's
+SMALL = ["--poses", "12", "--validate", "6", "--candidates", "600", "--no-sweeps"]
 
 
 def twin_plan(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
