@@ -2,11 +2,14 @@
 the emulated cell running it (``python -m daq.demo --plan DIR --record-only``: ``sim-cell``
 under ``daq run``, recorded to MCAP, the tracker honouring the reflector's cone) → ``twin
 run --replay --identify-poses N`` calibrates from the recording with every planned pose
-measured (the demo's random campaign loses ~34 of 250 poses to the cone).
+measured (of the default campaign's 250 random poses the emulator's geometry puts 243 out of
+the cone, docs/planning.md).
 
 Kept short: a KR500 with its joint ranges narrowed (the sweeps limit to limit are most of
 the program), 12 + 8 planned poses, the program at 160x (the recorded small campaign's
-speed, docs/twin-run.md).
+speed, docs/twin-run.md). Like that recording it needs a host the daemon keeps up on: at
+load 15-20 on two cores the grating's clock mapping did not settle in most runs
+(docs/planning.md, "The emulated cell runs a plan").
 """
 
 from __future__ import annotations
