@@ -175,7 +175,13 @@ def _write_sweeps(staged: Path, robot: RobotDescription, geometry: CellGeometry,
     sweeps = plan_sweeps(robot, geometry, SweepSettings(seed=seed))
     (staged / "sweeps.csv").write_text(sweeps_csv(sweeps), encoding="utf-8")
     # the method's sweeps: 3 % speed, a stop every 2° long enough for the tracker
-    prog = ProgramSettings(name="twin_sweeps", krl_velocity_pct=3, rapid_speed="v20", dwell_s=1.0)
+    prog = ProgramSettings(
+        name="twin_sweeps",
+        krl_velocity_pct=3,
+        rapid_speed="v20",
+        dwell_s=1.0,
+        content="sweep stops, each joint forward then back",
+    )
     q_deg, labels, via = sweep_program_poses(sweeps)
     src, dat = krl_program(robot, q_deg, labels, via, prog)
     (staged / f"{prog.name}.src").write_text(src, encoding="utf-8")

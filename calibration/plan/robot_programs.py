@@ -43,6 +43,8 @@ class ProgramSettings:
     krl_velocity_pct: int = 20
     rapid_speed: str = "v200"
     dwell_s: float = 3.0
+    #: what the poses are, in the programs' first comment
+    content: str = "poses in travel order"
 
 
 def controller_angles_deg(description: RobotDescription, q_deg: ArrayLike) -> FloatArray:
@@ -94,7 +96,7 @@ def krl_program(
         dat.append(f"  DECL E6AXIS X{label}={_e6axis(row)}")
     dat.append("ENDDAT")
     src = ["&ACCESS RVP", "&REL 1", f"DEF {name}( )"]
-    src.append(f"  ; twin plan: {len(labels)} poses in travel order; exact stop at each")
+    src.append(f"  ; twin plan: {len(labels)} {settings.content}; exact stop at each")
     src.append("  INT I")
     src.append("  BAS (#INITMOV,0)")
     src.append("  FOR I=1 TO 6")
@@ -129,7 +131,7 @@ def rapid_module(
     _check(description)
     a = controller_angles_deg(description, q_deg)
     home = controller_angles_deg(description, np.array([description.home]))[0]
-    lines = [f"MODULE {settings.name}", f"  ! twin plan: {len(labels)} poses in travel order"]
+    lines = [f"MODULE {settings.name}", f"  ! twin plan: {len(labels)} {settings.content}"]
     lines.append(f"  CONST jointtarget jHome:={_jointtarget(home)};")
     for label, row in zip(labels, a, strict=True):
         lines.append(f"  CONST jointtarget j{label}:={_jointtarget(row)};")
