@@ -163,7 +163,7 @@ def _why(view: NDArray[np.int8], clear: NDArray[np.int8], geometry: CellGeometry
         reasons[VIEW_REASONS[int(code)]] += 1
     for code in clear[(view == 0) & (clear != 0)].tolist():
         reasons[collision_reason(geometry, int(code))] += 1
-    return ", ".join(f"{text}: {k} stops" for text, k in reasons.most_common())
+    return ", ".join(f"{text}: {k} stop{'s' if k > 1 else ''}" for text, k in reasons.most_common())
 
 
 @dataclass(frozen=True, eq=False)

@@ -11,14 +11,24 @@ import csv
 import os
 import subprocess
 import sys
+from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from calibration.model.description import load_robot
+from calibration.model.cell_geometry import CellGeometrySpec, resolve
+from calibration.model.description import PRESET_PACKAGE, load_robot
+from calibration.model.kinematics import KinematicModel
 from calibration.model.statics import gravity_torques_for
 from calibration.plan.robot_programs import read_krl, read_rapid
+from calibration.plan.sweep_plan import (
+    SweepSettings,
+    default_sweep,
+    gravity_torque_nm,
+    plan_joint_sweep,
+    torque_model,
+)
 from sim_devices.config import CellConfig
 from sim_devices.plant import campaign_moves
 from sim_devices.tracker_view import cell_geometry, true_collision_codes, true_view_codes
@@ -126,3 +136,21 @@ def test_sweep_programs_parse_back_and_the_report_says_what_is_not_whole(planned
         if not ok.all():
             assert f"* joint {j}: at best {int(ok.sum())} of {len(ok)} stops" in report
             assert "out of its acceptance cone" in report
+
+
+def test_without_masses_a_stated_proxy_sets_the_torque(tmp_path):
+    """A description without masses: unit masses at the joint origins and the tool point,
+    said in the report; the wrist's last joint is still swept whole in view."""
+    text = files(PRESET_PACKAGE).joinpath("kr500.toml").read_text(encoding="utf-8")
+    keep = [x for x in text.splitlines() if not x.startswith(("mass_kg", "com_mm"))]
+    (tmp_path / "r.toml").write_text("\n".join(keep) + "\n", encoding="utf-8")
+    desc = load_robot(str(tmp_path / "r.toml"))
+    masses, source = torque_model(desc)
+    assert source.startswith("a proxy") and masses.total_mass_kg == desc.n_joints + 1
+    settings = SweepSettings(n_candidates=120, refine_rounds=8)
+    sweep = plan_joint_sweep(desc, resolve(CellGeometrySpec(), desc), 6, settings)
+    assert sweep.whole and sweep.reason == ""
+    home = gravity_torque_nm(
+        KinematicModel.from_description(desc), masses, default_sweep(desc, 6), 6
+    )
+    assert sweep.torque_range_nm < np.ptp(home)
