@@ -216,7 +216,8 @@ class _Candidates:
     def logdet_gains(self, info: FloatArray, available: NDArray[np.bool_]) -> FloatArray:
         """log det(info + H_iᵀH_i) − log det(info) ``(N,)`` for all candidates (determinant
         lemma: ``log det(I + Hᵢ info⁻¹ Hᵢᵀ)``); −inf for those not ``available``."""
-        hv = self.times(np.linalg.inv(info))  # (N, 3, p)
+        inv: FloatArray = np.linalg.inv(info).astype(np.float64)
+        hv = self.times(inv)  # (N, 3, p)
         m3 = block_products(hv, self.h) + np.eye(3)
         m3 = 0.5 * (m3 + m3.transpose(0, 2, 1))
         gains = spd3_logdet(m3)
@@ -244,11 +245,11 @@ def _greedy(
     chosen: list[int] = []
     available = np.ones(len(h), dtype=bool)
     info = cands.ridge.copy()
-    inv = np.linalg.inv(info)
+    inv: FloatArray = np.linalg.inv(info).astype(np.float64)
     s = np.zeros((len(h), 3, 3))
     for step in range(k):
         if step % GREEDY_REFRESH == 0:
-            inv = np.linalg.inv(info)
+            inv = np.linalg.inv(info).astype(np.float64)
             s = block_products(cands.times(inv), h)
         m3 = s + np.eye(3)
         score = spd3_logdet(0.5 * (m3 + m3.transpose(0, 2, 1)))
