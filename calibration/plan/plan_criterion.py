@@ -39,9 +39,11 @@ IntArray = NDArray[np.intp]
 
 #: Candidates an exchange pass considers: the chosen and those whose addition would lower
 #: the criterion most (a swap's partner is almost always among them).
-SHORTLIST = 500
+SHORTLIST = 200
+#: Passes that share one shortlist (the chosen change little between two passes).
+RESHORTLIST = 2
 #: An exchange pass that lowers the criterion by less than this fraction ends the search.
-MIN_PASS_GAIN = 1e-4
+MIN_PASS_GAIN = 1e-3
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,30 +125,16 @@ class _State:
         self.res = self.g - _rows_times(self.h, self.d)
         self.f3 = _rows_times(self.u, p.w @ self.d - p.x)
 
-    def copy(self) -> _State:
-        new = object.__new__(_State)
-        new.__dict__.update({k: v.copy() if isinstance(v, np.ndarray) else v
-                             for k, v in self.__dict__.items()})  # fmt: skip
-        return new
-
     def deltas(self, sign: float) -> FloatArray:
-        """The change of ``f`` ``(n,)`` from adding (``sign`` +1) or removing (−1) each row:
-        ``−tr(K⁻¹T) + 2·tr(K⁻¹·F·Rᵀ) + tr(K⁻¹·T·K⁻¹·R·Rᵀ)``, ``K = σI + Q``."""
-        k_inv = _inv3(sign * np.eye(3) + self.q3)
-        res_t = self.res.transpose(0, 2, 1)
-        fr = self.f3 @ res_t  # (n, 3, 3)
-        rr = self.res @ res_t
-        kt = k_inv @ self.t3
-        # tr(X·Y) = Σ X ∘ Yᵀ
-        out: FloatArray = (
-            -np.trace(kt, axis1=1, axis2=2)
-            + 2.0 * np.sum(k_inv * fr.transpose(0, 2, 1), axis=(1, 2))
-            + np.sum((kt @ k_inv) * rr, axis=(1, 2))  # rr symmetric
-        )
-        return out
+        """The change of ``f`` ``(n,)`` from adding (``sign`` +1) or removing (−1) each row."""
+        return _deltas(self.q3, self.t3, self.res, self.f3, sign)
 
-    def update(self, local: int, sign: float) -> None:
-        """Add (``sign`` +1) or remove (−1) the candidate at ``local`` (module text)."""
+    def update(
+        self, local: int, sign: float, *, apply: bool = True
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Add (``sign`` +1) or remove (−1) the candidate at ``local`` (module text); the
+        new ``Q``, ``T``, ``R``, ``F``. Without ``apply`` the state stays as it is and the
+        costly ``u``, ``u·W`` are not updated: what a trial removal needs."""
         b, u_b, uw_b = self.h[local], self.u[local].copy(), self.uw[local].copy()
         t_b, r_b, f_b = self.t3[local].copy(), self.res[local].copy(), self.f3[local].copy()
         k_inv = np.linalg.inv(sign * np.eye(3) + self.q3[local])
@@ -154,15 +142,37 @@ class _State:
         pw = _rows_times(self.uw, u_b.T)  # u·W·u_bᵀ (n, 3, 3)
         ck = c @ k_inv
         ckt = ck.transpose(0, 2, 1)
-        self.u -= _rows_times(ck, u_b)
-        self.uw -= _rows_times(ck, uw_b)
-        self.q3 -= ck @ c.transpose(0, 2, 1)
-        self.t3 += -ck @ pw.transpose(0, 2, 1) - pw @ ckt + ck @ t_b @ ckt
         kr = k_inv @ r_b
-        self.res -= _rows_times(ck, r_b)
-        self.f3 += -_rows_times(ck, f_b) + _rows_times(pw, kr) - _rows_times(ck, t_b @ kr)
-        self.a -= u_b.T @ k_inv @ u_b
-        self.d += u_b.T @ kr
+        q3 = self.q3 - ck @ c.transpose(0, 2, 1)
+        t3 = self.t3 - ck @ pw.transpose(0, 2, 1) - pw @ ckt + ck @ t_b @ ckt
+        res = self.res - _rows_times(ck, r_b)
+        f3 = self.f3 - _rows_times(ck, f_b) + _rows_times(pw, kr) - _rows_times(ck, t_b @ kr)
+        if apply:
+            self.u -= _rows_times(ck, u_b)
+            self.uw -= _rows_times(ck, uw_b)
+            self.a -= u_b.T @ k_inv @ u_b
+            self.d += u_b.T @ kr
+            self.q3, self.t3, self.res, self.f3 = q3, t3, res, f3
+        return q3, t3, res, f3
+
+
+def _deltas(
+    q3: FloatArray, t3: FloatArray, res: FloatArray, f3: FloatArray, sign: float
+) -> FloatArray:
+    """``−tr(K⁻¹T) + 2·tr(K⁻¹·F·Rᵀ) + tr(K⁻¹·T·K⁻¹·R·Rᵀ)`` ``(n,)``, ``K = σI + Q``: the
+    change of ``f`` from adding (σ = +1) or removing (−1) each row."""
+    k_inv = _inv3(sign * np.eye(3) + q3)
+    res_t = res.transpose(0, 2, 1)
+    fr = f3 @ res_t  # (n, 3, 3)
+    rr = res @ res_t
+    kt = k_inv @ t3
+    # tr(X·Y) = Σ X ∘ Yᵀ
+    out: FloatArray = (
+        -np.trace(kt, axis1=1, axis2=2)
+        + 2.0 * np.sum(k_inv * fr.transpose(0, 2, 1), axis=(1, 2))
+        + np.sum((kt @ k_inv) * rr, axis=(1, 2))  # rr symmetric
+    )
+    return out
 
 
 def _info(problem: DesignProblem, chosen: list[int]) -> tuple[FloatArray, FloatArray]:
@@ -179,29 +189,28 @@ def exchange(problem: DesignProblem, chosen: list[int], passes: int) -> int:
     n = problem.h.shape[0]
     swaps = 0
     value = criterion_value(problem, np.array(chosen)).total_mm2
-    for _ in range(passes):
-        full = _State(problem, np.arange(n), *_info(problem, chosen))
-        gain = -full.deltas(1.0)
-        gain[chosen] = -np.inf
-        short = np.argsort(gain)[::-1][: min(SHORTLIST, n - len(chosen))]
-        rows = np.concatenate([np.array(chosen, dtype=np.intp), short])
-        state = _State(problem, rows, *_info(problem, chosen))
-        local = {int(r): i for i, r in enumerate(rows)}
-        in_set = np.zeros(len(rows), dtype=bool)
-        in_set[: len(chosen)] = True
+    rows = np.zeros(0, dtype=np.intp)
+    for i in range(passes):
+        if i % RESHORTLIST == 0:
+            full = _State(problem, np.arange(n), *_info(problem, chosen))
+            gain = -full.deltas(1.0)
+            gain[chosen] = -np.inf
+            short = np.argsort(gain)[::-1][: min(SHORTLIST, n - len(chosen))]
+            rows = np.concatenate([np.array(chosen, dtype=np.intp), short])
+        state = _State(problem, rows, *_info(problem, chosen))  # exact again, each pass
+        local = {int(r): j for j, r in enumerate(rows)}
+        in_set = np.isin(rows, chosen)
         made = 0
         for pos in range(len(chosen)):
             out = local[chosen[pos]]
-            trial = state.copy()
-            trial.update(out, -1.0)
-            delta = trial.deltas(1.0)
+            delta = _deltas(*state.update(out, -1.0, apply=False), 1.0)  # after its removal
             keep = float(delta[out])  # putting it back
             delta[in_set] = np.inf
             best = int(np.argmin(delta))
             if not delta[best] < keep - 1e-9 * abs(keep):
                 continue
-            trial.update(best, 1.0)
-            state = trial
+            state.update(out, -1.0)
+            state.update(best, 1.0)
             in_set[out], in_set[best] = False, True
             chosen[pos] = int(rows[best])
             made += 1
