@@ -13,14 +13,17 @@
    joint's cyclic error, the tracker's scale; :func:`loop_effects`). Each candidate's
    3-row block of that Jacobian is column-scaled, reduced to the directions the
    candidates can observe at all, and weighted by the tracker's σ at its distance.
-   Start: D-optimal greedy selection with exchange (the O1 index,
-   :func:`calibration.identify.pose_selection.select_poses`); then **I-optimal** exchange passes:
-   swap a chosen pose for the candidate that most lowers the mean prediction variance
-   over the region, ``trace(W·M⁻¹)`` (``M`` the chosen poses' information plus the
-   prior information of :func:`prior_sd` (Bayesian I-optimality), ``W`` the
-   mean of the unweighted blocks' ``BᵀB`` over every candidate in view: the region where
-   the robot works, as a user measures it), by rank-3 Woodbury updates for every
-   candidate at once.
+   The effects the loop cannot add from ``n_identify`` poses (:func:`loop_can_add`: the
+   linear gravity term's 30-odd parameters from 50) are not fitted but left out, scaled
+   to their prior. Start: D-optimal greedy selection (the O1 index,
+   :func:`calibration.identify.pose_selection.select_poses`); then **I-optimal** exchange
+   passes: swap a chosen pose for the candidate that most lowers the expected mean squared
+   prediction error over the region (:mod:`calibration.plan.plan_criterion`: the fit's
+   variance ``trace(W·M⁻¹)``, ``M`` the chosen poses' information plus the prior
+   information of :func:`prior_sd` (Bayesian I-optimality), ``W`` the mean of the
+   unweighted blocks' ``BᵀB`` over every candidate in view, the region where the robot
+   works as a user measures it; plus the bias of the left-out effects the fit aliases),
+   by rank-3 updates for every candidate at once.
 3. **Validation set** (:func:`spread_validation`): farthest-point sampling of the
    reflector positions among the other candidates, from a seeded start; not optimised.
 4. **Order** (:func:`travel_order`): a closed tour from Home; a leg takes
@@ -594,6 +597,7 @@ class CampaignPlan:
     parameter_sigma: FloatArray  # (p,) predicted 1 σ, the planned identification set
     random_parameter_sigma: FloatArray  # (p,) the same for N random candidates
     random_i_value_mm2: float  # the I criterion of N random candidates
+    left_out: tuple[str, ...] = ()  # effects the criterion counts as bias (not fitted)
 
 
 def plan_campaign(
@@ -632,4 +636,5 @@ def plan_campaign(
         parameter_sigma=parameter_sigmas(obs, sel.indices),
         random_parameter_sigma=parameter_sigmas(obs, random_rows),
         random_i_value_mm2=criterion_value(design_problem(obs), random_rows).total_mm2,
+        left_out=obs.left_out,
     )
