@@ -396,10 +396,11 @@ def loop_can_add(n_parameters: int, m: int, n_model: int) -> bool:
     (``n_model`` parameters fitted besides). The loop adds a candidate whose
     cross-validated gain (the held-out SSE drop in units of the current residual
     variance) beats ``ln(3m)`` per parameter (:mod:`calibration.effects.closed_loop`); that
-    gain cannot much exceed the residual's degrees of freedom, ``3m − n_model −
+    gain hardly exceeds the residual's degrees of freedom, ``3m − n_model −
     n_parameters``, which it approaches when the effect dominates the residual. 30-odd
-    gravity terms need about 100 poses: from 50 the loop leaves them out, whatever the
-    poses, and a plan must make the fit's aliasing of them small instead."""
+    gravity terms beside 27 geometric ones need about 85 poses: from 50 the loop mostly
+    leaves them out (the cross-validation's inflation lets them in on some arms), and
+    a plan must keep the fit's aliasing of them small."""
     return n_parameters * float(np.log(3 * m)) < 3 * m - n_model - n_parameters
 
 
