@@ -185,9 +185,8 @@ def times_matrix(h: FloatArray, a: FloatArray) -> FloatArray:
 
 @dataclass(frozen=True, eq=False)
 class _Candidates:
-    """The candidate poses' Jacobian blocks ``h`` ``(N, 3, p)``; a small ridge ``(p, p)``
-    (1e-6 of a mean pose's information) keeps the first steps' information invertible and
-    its rank-3 updates well clear of rounding. A block's information ``HᵢᵀHᵢ`` is
+    """The candidate poses' Jacobian blocks ``h`` ``(N, 3, p)``; a tiny ridge ``(p, p)``
+    (1e-9 of a mean pose's information) keeps the first steps' information invertible. A block's information ``HᵢᵀHᵢ`` is
     formed only for the few poses that need it (:meth:`block`): all N at once would be
     ``N·p²`` numbers (330 MB for 5000 candidates and 91 parameters)."""
 
@@ -198,7 +197,7 @@ class _Candidates:
     @classmethod
     def of(cls, h: FloatArray) -> _Candidates:
         n_cand, _, p = h.shape
-        ridge = 1e-6 * float(np.sum(h * h)) / p / n_cand
+        ridge = 1e-9 * float(np.sum(h * h)) / p / n_cand
         return cls(h, ridge * np.eye(p), np.ascontiguousarray(h.reshape(-1, p).T))
 
     def times(self, a: FloatArray) -> FloatArray:
@@ -225,8 +224,11 @@ class _Candidates:
         return gains
 
 
-#: The greedy selection updates every candidate's ``Hᵢ info⁻¹ Hᵢᵀ`` by rank-3 steps
-#: (``N·9·p`` each, not ``N·3·p²``) and recomputes it exactly this often (rounding).
+#: Once the chosen poses' information has full rank, the greedy selection updates every
+#: candidate's ``Hᵢ info⁻¹ Hᵢᵀ`` by rank-3 steps (``N·9·p`` each, not ``N·3·p²``) and
+#: recomputes it exactly this often (rounding). Before, the ridge alone holds the
+#: unseen directions: ``info⁻¹`` is ~1e9 there and a rank-3 step would cancel every
+#: digit, so those steps recompute it exactly.
 GREEDY_REFRESH = 16
 
 
@@ -248,7 +250,7 @@ def _greedy(
     inv: FloatArray = np.linalg.inv(info).astype(np.float64)
     s = np.zeros((len(h), 3, 3))
     for step in range(k):
-        if step % GREEDY_REFRESH == 0:
+        if 3 * step <= p + 3 or step % GREEDY_REFRESH == 0:
             inv = np.linalg.inv(info).astype(np.float64)
             s = block_products(cands.times(inv), h)
         m3 = s + np.eye(3)
