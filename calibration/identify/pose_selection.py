@@ -186,9 +186,10 @@ def times_matrix(h: FloatArray, a: FloatArray) -> FloatArray:
 @dataclass(frozen=True, eq=False)
 class _Candidates:
     """The candidate poses' Jacobian blocks ``h`` ``(N, 3, p)``; a tiny ridge ``(p, p)``
-    (1e-9 of a mean pose's information) keeps the first steps' information invertible. A block's information ``HᵢᵀHᵢ`` is
-    formed only for the few poses that need it (:meth:`block`): all N at once would be
-    ``N·p²`` numbers (330 MB for 5000 candidates and 91 parameters)."""
+    (1e-9 of a mean pose's information) keeps the first steps' information invertible.
+    A block's information ``HᵢᵀHᵢ`` is formed only for the few poses that need it
+    (:meth:`block`): all N at once would be ``N·p²`` numbers (330 MB for 5000
+    candidates and 91 parameters)."""
 
     h: FloatArray
     ridge: FloatArray
