@@ -22,12 +22,14 @@ poses in view. Also: the planned order's travel time against random orders, and 
 selection time of 50 from 5000 against a plain greedy D-optimal selection in the same run.
 
     python -m benchmarks.bench_plan [--seeds 10]     # the whole proof (minutes)
+    python -m benchmarks.bench_plan --speed          # the selection's time alone (seconds)
     python -m benchmarks --only plan --quick         # smoke run, numbers mean nothing
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -198,12 +200,18 @@ def main(argv: list[str] | None = None) -> int:
         "--clean", action="store_true", help="the emulator's effects off (geometry alone)"
     )
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument(
+        "--speed", action="store_true", help="only the selection's time (seeds 1..--seeds)"
+    )
     args = parser.parse_args(argv)
     effects = UndeclaredEffects() if args.clean else EFFECTS
     from benchmarks import format_table
 
     if args.quick:
         rows = run(True)
+    elif args.speed:
+        rows = [{"seed": s, **selection_timing(s)} for s in range(1, args.seeds + 1)]
+        print(f"load average (1, 5, 15 min): {os.getloadavg()}")
     else:
         outcomes = []
         for s in range(1, args.seeds + 1):

@@ -13,14 +13,17 @@
    joint's cyclic error, the tracker's scale; :func:`loop_effects`). Each candidate's
    3-row block of that Jacobian is column-scaled, reduced to the directions the
    candidates can observe at all, and weighted by the tracker's σ at its distance.
-   Start: D-optimal greedy selection with exchange (the O1 index,
-   :func:`calibration.identify.pose_selection.select_poses`); then **I-optimal** exchange passes:
-   swap a chosen pose for the candidate that most lowers the mean prediction variance
-   over the region, ``trace(W·M⁻¹)`` (``M`` the chosen poses' information plus the
-   prior information of :func:`prior_sd` (Bayesian I-optimality), ``W`` the
-   mean of the unweighted blocks' ``BᵀB`` over every candidate in view: the region where
-   the robot works, as a user measures it), by rank-3 Woodbury updates for every
-   candidate at once.
+   The effects the loop cannot add from ``n_identify`` poses (:func:`loop_can_add`: the
+   linear gravity term's 30-odd parameters from 50) are not fitted but left out, scaled
+   to their prior. Start: D-optimal greedy selection (the O1 index,
+   :func:`calibration.identify.pose_selection.select_poses`); then **I-optimal** exchange
+   passes: swap a chosen pose for the candidate that most lowers the expected mean squared
+   prediction error over the region (:mod:`calibration.plan.plan_criterion`: the fit's
+   variance ``trace(W·M⁻¹)``, ``M`` the chosen poses' information plus the prior
+   information of :func:`prior_sd` (Bayesian I-optimality), ``W`` the mean of the
+   unweighted blocks' ``BᵀB`` over every candidate in view, the region where the robot
+   works as a user measures it; plus the bias of the left-out effects the fit aliases),
+   by rank-3 updates for every candidate at once.
 3. **Validation set** (:func:`spread_validation`): farthest-point sampling of the
    reflector positions among the other candidates, from a seeded start; not optimised.
 4. **Order** (:func:`travel_order`): a closed tour from Home; a leg takes
@@ -60,6 +63,11 @@ from calibration.model.inverse_kinematics import solve_ik
 from calibration.model.kinematics import (
     KinematicModel,
     identification_jacobian,
+)
+from calibration.plan.plan_criterion import (
+    DesignProblem,
+    criterion_value,
+    exchange,
 )
 
 FloatArray = NDArray[np.float64]
@@ -115,6 +123,11 @@ class Observability:
     scale: FloatArray
     names: tuple[str, ...]
     prior: FloatArray  # (r, r) prior information of the reduced parameters
+    #: ``(N, 3, q)`` the effects the loop cannot add from ``n_identify`` poses
+    #: (:func:`loop_can_add`), each column scaled to its prior 1 σ; σ-weighted and plain
+    left_out_weighted: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 0)))
+    left_out_plain: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 0)))
+    left_out: tuple[str, ...] = ()  # the left-out effects' labels
 
 
 @dataclass(frozen=True, eq=False)
@@ -124,8 +137,9 @@ class Selection:
     indices: IntArray
     criterion: str
     d_index: float  # O1 of the chosen set
-    i_value_mm2: float  # mean prediction variance over the region (mm², σ-weighted units)
+    i_value_mm2: float  # expected mean squared prediction error over the region (mm²)
     exchanges: int
+    bias_mm2: float = 0.0  # its part from the left-out effects (plan_criterion)
 
 
 @dataclass(frozen=True, eq=False)
@@ -323,7 +337,8 @@ def observability(
     q_rad: FloatArray,
     settings: PlanSettings,
 ) -> Observability:
-    """The candidates' blocks for the identifiable geometry and the gravity term."""
+    """The candidates' blocks for the identifiable geometry and the loop's effects: those
+    the loop can add from ``settings.n_identify`` poses fitted, the others left out."""
     model = KinematicModel.from_description(description)
     analysis = analyze_model(model, q_rad)
     tcp, jac = identification_jacobian(model, q_rad)
@@ -331,12 +346,17 @@ def observability(
     names = [n for n, f in zip(analysis.parameter_names, analysis.free, strict=True) if f]
     ctx = EffectContext(description, EffectData(q_rad))
     specs = loop_effects(ctx, settings.effects)
+    fitted = [
+        sp
+        for sp in specs
+        if loop_can_add(len(sp.parameter_names()), settings.n_identify, geo.shape[2])
+    ]
+    left = [sp for sp in specs if sp not in fitted]
     kin = ModelAtPoses(model, q_rad, tcp, jac)
-    effects = regressor_matrix(specs, ctx, slice(0, len(q_rad)), kin)
-    names += [f"{sp.label}: {p}" for sp in specs for p in sp.parameter_names()]
+    effects = regressor_matrix(fitted, ctx, slice(0, len(q_rad)), kin)
+    names += [f"{sp.label}: {p}" for sp in fitted for p in sp.parameter_names()]
     full = np.concatenate([geo, effects], axis=2)
-    scale = np.sqrt(np.mean(full**2, axis=(0, 1)))
-    scale[scale == 0] = 1.0
+    scale = _column_rms(full)
     scaled = full / scale
     gram = np.einsum("nip,niq->pq", scaled, scaled)
     ev, vec = np.linalg.eigh(gram)
@@ -346,10 +366,42 @@ def observability(
     dist = np.linalg.norm(
         reflector_in_base(model, geometry, q_rad)[0] - geometry.station_mm, axis=1
     )
-    weighted = plain / tracker_sigma_mm(settings, dist)[:, None, None]
-    sd = prior_sd(names, len(geo[0, 0]), specs) * scale  # in scaled units
+    sigma = tracker_sigma_mm(settings, dist)[:, None, None]
+    sd = prior_sd(names, len(geo[0, 0]), fitted) * scale  # in scaled units
     prior = basis.T @ (basis / sd[:, None] ** 2)
-    return Observability(weighted, plain, basis, scale, tuple(names), prior)
+    out = regressor_matrix(left, ctx, slice(0, len(q_rad)), kin)
+    # a left-out effect as large as its prior says at the TCP, spread over its columns
+    out_sd = np.concatenate(
+        [np.full(len(sp.parameter_names()), PRIOR_EFFECT_MM[sp.kind])
+         / np.sqrt(len(sp.parameter_names())) for sp in left]
+        or [np.zeros(0)]
+    )  # fmt: skip
+    out_plain = out / _column_rms(out) * out_sd
+    return Observability(
+        plain / sigma, plain, basis, scale, tuple(names), prior,
+        out_plain / sigma, out_plain, tuple(sp.label for sp in left),
+    )  # fmt: skip
+
+
+def _column_rms(blocks: FloatArray) -> FloatArray:
+    """Each column's rms over the blocks ``(N, 3, p)`` (1 where a column is all zero)."""
+    rms = np.sqrt(np.mean(blocks**2, axis=(0, 1)))
+    rms[rms == 0] = 1.0
+    out: FloatArray = rms
+    return out
+
+
+def loop_can_add(n_parameters: int, m: int, n_model: int) -> bool:
+    """Whether the closed loop can add an effect of ``n_parameters`` from ``m`` poses
+    (``n_model`` parameters fitted besides). The loop adds a candidate whose
+    cross-validated gain (the held-out SSE drop in units of the current residual
+    variance) beats ``ln(3m)`` per parameter (:mod:`calibration.effects.closed_loop`); that
+    gain hardly exceeds the residual's degrees of freedom, ``3m − n_model −
+    n_parameters``, which it approaches when the effect dominates the residual. 30-odd
+    gravity terms beside 27 geometric ones need about 85 poses: from 50 the loop mostly
+    leaves them out (the cross-validation's inflation lets them in on some arms), and
+    a plan must keep the fit's aliasing of them small."""
+    return n_parameters * float(np.log(3 * m)) < 3 * m - n_model - n_parameters
 
 
 #: What a user knows of the parameters before measuring (1 σ): a nominal description
@@ -406,8 +458,14 @@ def loop_effects(ctx: EffectContext, which: tuple[str, ...]) -> list[EffectSpec]
     return specs
 
 
-def _i_value(info: FloatArray, w: FloatArray) -> float:
-    return float(np.trace(np.linalg.solve(info, w)))
+def design_problem(obs: Observability) -> DesignProblem:
+    """The criterion's arrays (:mod:`calibration.plan.plan_criterion`) over every candidate
+    in view: the region where the robot works, as a user measures it."""
+    n = len(obs.plain)
+    w = np.einsum("nip,niq->pq", obs.plain, obs.plain) / n
+    x = np.einsum("nip,niq->pq", obs.plain, obs.left_out_plain) / n
+    z = float(np.sum(obs.left_out_plain**2)) / n
+    return DesignProblem(obs.weighted, obs.left_out_weighted, w, x, z, obs.prior)
 
 
 def select_identification(obs: Observability, k: int, settings: PlanSettings) -> Selection:
@@ -416,74 +474,18 @@ def select_identification(obs: Observability, k: int, settings: PlanSettings) ->
     n = h.shape[0]
     if k > n:
         raise PlanError(f"--poses {k}: only {n} candidate poses are in view and clear")
-    start = select_poses(h, k, index="O1", exchange_passes=0)
-    chosen = [int(i) for i in start.indices]
-    w = np.einsum("nip,niq->pq", obs.plain, obs.plain) / n
-    taken = h[np.array(chosen)]
-    info = np.einsum("nip,niq->pq", taken, taken) + obs.prior
+    problem = design_problem(obs)
+    chosen = [int(i) for i in select_poses(h, k, index="O1", exchange_passes=0).indices]
     exchanges = 0
     if settings.criterion == "I":
-        for _ in range(settings.exchange_passes):
-            # each pass looks at the candidates that would help the current set most
-            gains = _i_gains(h, np.linalg.inv(info), w)
-            gains[np.array(chosen)] = -np.inf
-            pool = np.argsort(gains)[::-1][: min(SHORTLIST, n - k)]
-            swaps = 0
-            for pos in range(k):
-                info, swapped = _i_exchange(h, w, chosen, pos, info, pool)
-                swaps += swapped
-            exchanges += swaps
-            if not swaps:
-                break
+        exchanges = exchange(problem, chosen, settings.exchange_passes)
     idx = np.array(chosen, dtype=np.intp)
+    taken = h[idx]
+    info = np.einsum("nip,niq->pq", taken, taken) + obs.prior
     s = np.sqrt(np.clip(np.linalg.eigvalsh(info), 0, None))
     d_index = float(np.exp(np.mean(np.log(s))) / np.sqrt(k))
-    return Selection(idx, settings.criterion, d_index, _i_value(info, w), exchanges)
-
-
-#: Candidates each I-optimal exchange pass considers (those that would lower the
-#: criterion most if added to the current set): 10x fewer evaluations on 5000.
-SHORTLIST = 400
-
-
-def _i_gains(h: FloatArray, a: FloatArray, w: FloatArray) -> FloatArray:
-    """The drop of ``trace(W·A')`` from adding each block of ``h`` ``(N, 3, r)`` to the
-    information ``A⁻¹``: with ``U = H A``, ``trace((I + U Hᵀ)⁻¹ U W Uᵀ)`` (Woodbury)."""
-    u = h @ a
-    s = np.eye(3) + u @ h.transpose(0, 2, 1)
-    t = u @ w @ u.transpose(0, 2, 1)
-    gains: FloatArray = np.trace(np.linalg.solve(s, t), axis1=1, axis2=2)
-    return gains
-
-
-def _i_exchange(
-    h: FloatArray,
-    w: FloatArray,
-    chosen: list[int],
-    pos: int,
-    info: FloatArray,
-    pool: IntArray,
-) -> tuple[FloatArray, int]:
-    """Swap ``chosen[pos]`` for the candidate of ``pool`` that lowers ``trace(W M⁻¹)``
-    most, if that beats keeping it (``chosen`` in place). The new information, 1 if
-    swapped."""
-    out = chosen[pos]
-    minus = info - h[out].T @ h[out]
-    a = np.linalg.inv(minus)
-    gain = _i_gains(h[pool], a, w)
-    gain[np.isin(pool, chosen)] = -np.inf
-    best_at = int(np.argmax(gain))
-    if gain[best_at] > gain_of(h[out], a, w) * (1.0 + 1e-9):
-        best = int(pool[best_at])
-        chosen[pos] = best
-        return minus + h[best].T @ h[best], 1
-    return info, 0
-
-
-def gain_of(hc: FloatArray, a: FloatArray, w: FloatArray) -> float:
-    """The drop of ``trace(W·M⁻¹)`` from adding one block ``hc`` ``(3, r)`` to ``A⁻¹``."""
-    u = hc @ a
-    return float(np.trace(np.linalg.solve(np.eye(3) + u @ hc.T, u @ w @ u.T)))
+    value = criterion_value(problem, idx)
+    return Selection(idx, settings.criterion, d_index, value.total_mm2, exchanges, value.bias_mm2)
 
 
 def parameter_sigmas(obs: Observability, indices: IntArray) -> FloatArray:
@@ -596,6 +598,7 @@ class CampaignPlan:
     parameter_sigma: FloatArray  # (p,) predicted 1 σ, the planned identification set
     random_parameter_sigma: FloatArray  # (p,) the same for N random candidates
     random_i_value_mm2: float  # the I criterion of N random candidates
+    left_out: tuple[str, ...] = ()  # effects the criterion counts as bias (not fitted)
 
 
 def plan_campaign(
@@ -624,9 +627,6 @@ def plan_campaign(
     is_id = np.zeros(len(rows), dtype=bool)
     is_id[: len(sel.indices)] = True
     random_rows = rng.choice(len(cands.q_rad), settings.n_identify, replace=False)
-    h = obs.weighted[random_rows]
-    info = np.einsum("nip,niq->pq", h, h)
-    w = np.einsum("nip,niq->pq", obs.plain, obs.plain) / len(obs.plain)
     return CampaignPlan(
         q_rad=q,
         is_identify=is_id[travel.order],
@@ -636,5 +636,6 @@ def plan_campaign(
         parameter_names=obs.names,
         parameter_sigma=parameter_sigmas(obs, sel.indices),
         random_parameter_sigma=parameter_sigmas(obs, random_rows),
-        random_i_value_mm2=_i_value(info + obs.prior, w),
+        random_i_value_mm2=criterion_value(design_problem(obs), random_rows).total_mm2,
+        left_out=obs.left_out,
     )

@@ -57,16 +57,20 @@ def plan_report(
         "",
         "## Index",
         "",
-        f"Criterion: **{'I-optimality' if sel.criterion == 'I' else 'D-optimality (O1)'}** over "
-        "the identifiable geometry and the gravity term (compliance × gravity moments per "
-        "loaded joint), started from a D-optimal greedy selection with exchange, then "
+        f"Criterion: **{'I-optimality' if sel.criterion == 'I' else 'D-optimality (O1)'}**: "
+        "the expected mean squared prediction error over the region of the twin fitted to "
+        "the identifiable geometry and the effects the closed loop can add from this many "
+        "poses, with the bias of those it cannot ("
+        + (", ".join(plan.left_out) or "none")
+        + "), started from a D-optimal greedy selection, then "
         f"{sel.exchanges} I-optimal exchanges."
         if sel.criterion == "I"
         else "Criterion: **D-optimality (O1)**, greedy with exchange.",
         "",
         "| | planned | random (same count) |",
         "|---|---|---|",
-        f"| mean prediction variance over the region (I, mm²) | {sel.i_value_mm2:.4g} | "
+        f"| expected mean squared prediction error over the region (I, mm²) | "
+        f"{sel.i_value_mm2:.4g} (bias {sel.bias_mm2:.4g}) | "
         f"{plan.random_i_value_mm2:.4g} |",
         f"| O1 (D-optimality) | {sel.d_index:.4g} | |",
         "",

@@ -95,3 +95,21 @@ def test_sampled_poses_are_reachable_and_within_limits(candidates):
     stretched = np.zeros(6)  # Home: forearm horizontal, not a singular pose ...
     stretched[2] = np.radians(-90.0 + np.degrees(np.arctan2(55.0, 1025.0)))  # ... this is
     assert not reachable_mask(desc, stretched[None, :])[0]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_greedy_by_rank3_updates_is_the_exact_greedy(seed):
+    # 40 steps of 12 parameters: exact steps while rank-deficient, then rank-3 updates
+    # with a refresh; every step must pick what the determinant recomputed from scratch picks
+    rng = np.random.default_rng(seed)
+    h = rng.normal(size=(300, 3, 12)) * rng.uniform(0.1, 3.0, size=(1, 1, 12))
+    sel = select_poses(h, 40, exchange_passes=0)
+    ridge = 1e-9 * float(np.sum(h * h)) / 12 / 300 * np.eye(12)
+    info, chosen = ridge.copy(), []
+    for _ in range(40):
+        logdet = np.linalg.slogdet(info + np.einsum("nip,niq->npq", h, h))[1]
+        logdet[chosen] = -np.inf
+        best = int(np.argmax(logdet))
+        chosen.append(best)
+        info = info + h[best].T @ h[best]
+    assert sel.indices.tolist() == chosen

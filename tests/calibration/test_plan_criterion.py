@@ -1,0 +1,90 @@
+"""The planner's criterion (:mod:`calibration.plan.plan_criterion`): its rank-3 updates
+against the criterion computed from scratch, and the exchange lowering it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration.identify.pose_selection import select_poses
+from calibration.plan.campaign_plan import loop_can_add
+from calibration.plan.plan_criterion import (
+    DesignProblem,
+    _info,
+    _State,
+    criterion_value,
+    exchange,
+)
+
+
+def _problem(seed: int, n: int = 300, r: int = 12, q: int = 5) -> DesignProblem:
+    rng = np.random.default_rng(seed)
+    plain = rng.normal(size=(n, 3, r)) * rng.uniform(0.2, 2.0, size=(n, 1, 1))
+    left = 0.3 * rng.normal(size=(n, 3, q)) + 0.5 * plain[:, :, :q]  # partly aliased
+    sigma = rng.uniform(0.5, 2.0, size=(n, 1, 1))
+    w = np.einsum("nip,niq->pq", plain, plain) / n
+    x = np.einsum("nip,niq->pq", plain, left) / n
+    z = float(np.sum(left**2)) / n
+    return DesignProblem(plain / sigma, left / sigma, w, x, z, 0.3 * np.eye(r))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_deltas_are_the_criterion_changes(seed: int) -> None:
+    p = _problem(seed)
+    rng = np.random.default_rng(seed + 10)
+    chosen = [int(i) for i in rng.choice(len(p.h), 20, replace=False)]
+    base = criterion_value(p, np.array(chosen)).total_mm2
+    state = _State(p, np.arange(len(p.h)), *_info(p, chosen))
+    add, remove = state.deltas(1.0), state.deltas(-1.0)
+    others = [i for i in range(len(p.h)) if i not in chosen][:5]
+    for i in others:
+        exact = criterion_value(p, np.array([*chosen, i])).total_mm2 - base
+        assert add[i] == pytest.approx(exact, rel=1e-8, abs=1e-12)
+    for pos in (0, 7):
+        rest = chosen[:pos] + chosen[pos + 1 :]
+        exact = criterion_value(p, np.array(rest)).total_mm2 - base
+        assert remove[chosen[pos]] == pytest.approx(exact, rel=1e-8, abs=1e-12)
+
+
+def test_updates_match_a_fresh_state() -> None:
+    p = _problem(4)
+    chosen = list(range(0, 40, 2))
+    state = _State(p, np.arange(len(p.h)), *_info(p, chosen))
+    state.update(chosen[3], -1.0)
+    state.update(101, 1.0)
+    swapped = [*chosen[:3], *chosen[4:], 101]
+    fresh = _State(p, np.arange(len(p.h)), *_info(p, swapped))
+    for name in ("a", "d", "u", "uw", "q3", "t3", "res", "f3"):
+        got, want = getattr(state, name), getattr(fresh, name)
+        assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want)), name
+
+
+def test_without_left_out_terms_it_is_the_bayesian_i_criterion() -> None:
+    p = _problem(5, q=0)
+    rows = np.arange(25)
+    h = p.h[rows]
+    expected = np.trace(p.w @ np.linalg.inv(p.prior + np.einsum("nip,niq->pq", h, h)))
+    value = criterion_value(p, rows)
+    assert value.bias_mm2 == pytest.approx(0.0, abs=1e-12)
+    assert value.total_mm2 == pytest.approx(expected, rel=1e-10)
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_exchange_lowers_the_criterion_below_the_d_optimal_start(seed: int) -> None:
+    p = _problem(seed)
+    chosen = [int(i) for i in select_poses(p.h, 20, exchange_passes=0).indices]
+    start = criterion_value(p, np.array(chosen))
+    swaps = exchange(p, chosen, 6)
+    end = criterion_value(p, np.array(chosen))
+    assert swaps > 0 and len(set(chosen)) == 20
+    assert end.total_mm2 < start.total_mm2 and end.bias_mm2 < start.bias_mm2
+    rng = np.random.default_rng(seed)
+    randoms = [criterion_value(p, rng.choice(len(p.h), 20, replace=False)) for _ in range(10)]
+    assert end.total_mm2 < min(r.total_mm2 for r in randoms)
+
+
+def test_loop_can_add_follows_the_penalty_and_the_degrees_of_freedom() -> None:
+    # the linear gravity term (34 parameters) beside 27 geometric ones: not from 50 poses
+    assert not loop_can_add(34, 50, 27) and not loop_can_add(34, 80, 27)
+    assert loop_can_add(34, 90, 27) and loop_can_add(34, 150, 27)
+    assert loop_can_add(2, 50, 27)  # a cyclic error's two terms
