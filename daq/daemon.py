@@ -253,6 +253,7 @@ class Daemon:
     def _restart_ended_workers(self) -> None:
         for w in self.workers:
             w.check()
+            w.send_counts()  # into its next health document
 
     def run(self, duration_s: float | None = None) -> list[dict[str, Any]]:
         """Acquire until stopped; returns the last health documents."""

@@ -106,10 +106,44 @@ def config_from_spec(spec: Mapping[str, Any]) -> tuple[DaqConfig, DeviceConfig, 
 # -- the worker process ---------------------------------------------------------------------
 
 
-def _stop_on_eof(stop: threading.Event) -> None:
+class ParentCounts:
+    """What the daemon tells its worker on stdin after the spec, one JSON line each time:
+    ``{"messages_unrouted": N}``, the device's messages the daemon recorded while it had
+    no router (a worker cannot see the router: the daemon counts). Added to each health
+    document the worker publishes (``None``: the daemon is not a client of routers)."""
+
+    def __init__(self) -> None:
+        self.messages_unrouted: int | None = None
+
+    def read(self, line: str) -> None:
+        try:
+            doc = json.loads(line)
+            self.messages_unrouted = int(doc["messages_unrouted"])
+        except (ValueError, KeyError, TypeError):
+            log.warning("worker: ignored a line from the daemon: %.80s", line)
+
+
+class _HealthWithParentCounts:
+    """A stream's health source with the daemon's counts added (:class:`ParentCounts`)."""
+
+    def __init__(self, stream: Any, counts: ParentCounts) -> None:
+        self._stream = stream
+        self._counts = counts
+        self.health_key = stream.health_key
+        self.recording = stream.recording
+
+    def health(self, period_s: float) -> dict[str, Any]:
+        doc: dict[str, Any] = self._stream.health(period_s)
+        if self._counts.messages_unrouted is not None:
+            doc["messages_unrouted"] = self._counts.messages_unrouted
+        return doc
+
+
+def _read_parent(stop: threading.Event, counts: ParentCounts) -> None:
     try:
-        while sys.stdin.readline():
-            pass
+        for line in sys.stdin:
+            if line.strip():
+                counts.read(line)
     finally:
         stop.set()
 
@@ -125,7 +159,8 @@ def main() -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    threading.Thread(target=_stop_on_eof, args=(stop,), name="stdin", daemon=True).start()
+    counts = ParentCounts()
+    threading.Thread(target=_read_parent, args=(stop, counts), name="stdin", daemon=True).start()
     if cfg.publish.gil_switch_s > 0:
         sys.setswitchinterval(min(sys.getswitchinterval(), cfg.publish.gil_switch_s))
     keep_freed_heap()
@@ -138,7 +173,7 @@ def main() -> int:
     )
     health = HealthLoop(session, cfg.publish.health_period_s)
     try:
-        health.add(stream)
+        health.add(_HealthWithParentCounts(stream, counts))
         stream.start()
         health.run(stop)
         stream.join(timeout=10.0)
@@ -254,9 +289,21 @@ class DeviceWorker:
         self.start()
         return True
 
+    def send_counts(self) -> None:
+        """Tell the worker the daemon's counts of its device (:class:`ParentCounts`), for
+        its next health document; nothing when the daemon has no router to count."""
+        if self._router_link is None or self.proc is None or self.proc.stdin is None:
+            return
+        with self._lock:
+            line = json.dumps({"messages_unrouted": self.unrouted})
+        with contextlib.suppress(OSError, ValueError):  # a worker that ended: check() sees it
+            self.proc.stdin.write(line + "\n")
+            self.proc.stdin.flush()
+
     def stop(self) -> None:
-        """Ask the worker to stop (its stdin closes)."""
+        """Ask the worker to stop (its stdin closes, after the daemon's last counts)."""
         if self.proc is not None and self.proc.stdin is not None:
+            self.send_counts()
             stdin, self.proc.stdin = self.proc.stdin, None  # communicate() must not touch it
             with contextlib.suppress(OSError):
                 stdin.close()

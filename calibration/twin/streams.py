@@ -243,8 +243,10 @@ def read_recording_streams(path: str | Path, *, allow_partial: bool = False) -> 
     then its readable part is used and ``note`` says so (phases.json, report.json)."""
     from daq.columnar import StreamSchema, decode
     from daq.errors import DaqError
+    from daq.recording_holes import HOLES_TOPIC
     from daq.recording_reader import read_recording
 
+    holes: list[dict[str, Any]] = []
     try:
         rec = read_recording(path)
     except DaqError as exc:
@@ -254,6 +256,9 @@ def read_recording_streams(path: str | Path, *, allow_partial: bool = False) -> 
     m = None
     try:
         for m in rec.messages_iter():
+            if m.topic == HOLES_TOPIC:  # a subscriber's recording says what it lacks
+                holes.append(json.loads(m.data))
+                continue
             if m.channel.message_encoding != "daq.columnar.v1" or m.schema is None:
                 continue
             b = builders.get(m.topic)
@@ -285,7 +290,22 @@ def read_recording_streams(path: str | Path, *, allow_partial: bool = False) -> 
         note = f"not closed ({rec.error}); every record read"
     else:
         note = ""
+    if holes:
+        note = "; ".join(x for x in (note, holes_note(holes)) if x)
     return pick_streams(builders, str(path), complete=rec.complete, note=note)
+
+
+def holes_note(holes: list[dict[str, Any]]) -> str:
+    """One phrase for the hole records of a subscriber's recording (daq.recording_holes):
+    messages lacking per key, and why."""
+    per_key: dict[str, tuple[int, set[str]]] = {}
+    for h in holes:
+        n, why = per_key.get(str(h.get("key")), (0, set()))
+        per_key[str(h.get("key"))] = (n + int(h.get("count", 0)), why | {str(h.get("reason"))})
+    said = ", ".join(
+        f"{k}: {n} messages ({'/'.join(sorted(why))})" for k, (n, why) in sorted(per_key.items())
+    )
+    return f"the recorder marked {len(holes)} hole(s) ({said})"
 
 
 def lost_intervals(
