@@ -106,44 +106,56 @@ def config_from_spec(spec: Mapping[str, Any]) -> tuple[DaqConfig, DeviceConfig, 
 # -- the worker process ---------------------------------------------------------------------
 
 
-class ParentCounts:
-    """What the daemon tells its worker on stdin after the spec, one JSON line each time:
-    ``{"messages_unrouted": N}``, the device's messages the daemon recorded while it had
-    no router (a worker cannot see the router: the daemon counts). Added to each health
-    document the worker publishes (``None``: the daemon is not a client of routers)."""
+class DaemonReport:
+    """What the daemon adds to a device's health documents (docs/topics.md): the
+    device's messages it recorded while it had no router (``messages_unrouted``; a worker
+    cannot see the router: the daemon counts; None: the daemon is not a client of
+    routers) and its host's clock against the router's (``host_clock``,
+    :mod:`daq.host_clock`; None: not measured). A worker learns them on stdin, after
+    its spec, one JSON line at a time; the daemon's own streams take them directly."""
 
     def __init__(self) -> None:
         self.messages_unrouted: int | None = None
+        self.host_clock: dict[str, Any] | None = None
 
     def read(self, line: str) -> None:
+        """One line from the daemon: ``{"messages_unrouted": N, "host_clock": {...}}``
+        (either key may be absent)."""
         try:
             doc = json.loads(line)
-            self.messages_unrouted = int(doc["messages_unrouted"])
-        except (ValueError, KeyError, TypeError):
+            if "messages_unrouted" in doc:
+                self.messages_unrouted = int(doc["messages_unrouted"])
+            if isinstance(doc.get("host_clock"), dict):
+                self.host_clock = doc["host_clock"]
+        except (ValueError, TypeError, AttributeError):
             log.warning("worker: ignored a line from the daemon: %.80s", line)
 
-
-class _HealthWithParentCounts:
-    """A stream's health source with the daemon's counts added (:class:`ParentCounts`)."""
-
-    def __init__(self, stream: Any, counts: ParentCounts) -> None:
-        self._stream = stream
-        self._counts = counts
-        self.health_key = stream.health_key
-        self.recording = stream.recording
-
-    def health(self, period_s: float) -> dict[str, Any]:
-        doc: dict[str, Any] = self._stream.health(period_s)
-        if self._counts.messages_unrouted is not None:
-            doc["messages_unrouted"] = self._counts.messages_unrouted
+    def add_to(self, doc: dict[str, Any]) -> dict[str, Any]:
+        if self.messages_unrouted is not None:
+            doc["messages_unrouted"] = self.messages_unrouted
+        if self.host_clock is not None:
+            doc["host_clock"] = self.host_clock
         return doc
 
 
-def _read_parent(stop: threading.Event, counts: ParentCounts) -> None:
+class HealthWithReport:
+    """A stream's health source with the daemon's report added (:class:`DaemonReport`)."""
+
+    def __init__(self, stream: Any, report: DaemonReport) -> None:
+        self._stream = stream
+        self.report = report
+        self.health_key: str = stream.health_key
+        self.recording: DeviceRecording | None = stream.recording
+
+    def health(self, period_s: float) -> dict[str, Any]:
+        return self.report.add_to(self._stream.health(period_s))
+
+
+def _read_parent(stop: threading.Event, report: DaemonReport) -> None:
     try:
         for line in sys.stdin:
             if line.strip():
-                counts.read(line)
+                report.read(line)
     finally:
         stop.set()
 
@@ -159,8 +171,8 @@ def main() -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    counts = ParentCounts()
-    threading.Thread(target=_read_parent, args=(stop, counts), name="stdin", daemon=True).start()
+    report = DaemonReport()
+    threading.Thread(target=_read_parent, args=(stop, report), name="stdin", daemon=True).start()
     if cfg.publish.gil_switch_s > 0:
         sys.setswitchinterval(min(sys.getswitchinterval(), cfg.publish.gil_switch_s))
     keep_freed_heap()
@@ -173,7 +185,7 @@ def main() -> int:
     )
     health = HealthLoop(session, cfg.publish.health_period_s)
     try:
-        health.add(_HealthWithParentCounts(stream, counts))
+        health.add(HealthWithReport(stream, report))
         stream.start()
         health.run(stop)
         stream.join(timeout=10.0)
@@ -213,6 +225,7 @@ class DeviceWorker:
         #: data messages recorded while the daemon had no router (``RouterLink``)
         self.unrouted = 0
         self._router_link = router_link
+        self._host_clock: dict[str, Any] | None = None  # the latest sent
         self.schemas = schemas
         self.recording = recording
         self.recorded = 0  # data messages written to the recorder
@@ -289,13 +302,18 @@ class DeviceWorker:
         self.start()
         return True
 
-    def send_counts(self) -> None:
-        """Tell the worker the daemon's counts of its device (:class:`ParentCounts`), for
-        its next health document; nothing when the daemon has no router to count."""
+    def send_report(self, host_clock: dict[str, Any] | None = None) -> None:
+        """Tell the worker the daemon's report of its device (:class:`DaemonReport`), for
+        its next health document; nothing when the daemon has no router to report on."""
         if self._router_link is None or self.proc is None or self.proc.stdin is None:
             return
+        if host_clock is not None:
+            self._host_clock = host_clock
         with self._lock:
-            line = json.dumps({"messages_unrouted": self.unrouted})
+            doc: dict[str, Any] = {"messages_unrouted": self.unrouted}
+        if self._host_clock is not None:
+            doc["host_clock"] = self._host_clock
+        line = json.dumps(doc)
         with contextlib.suppress(OSError, ValueError):  # a worker that ended: check() sees it
             self.proc.stdin.write(line + "\n")
             self.proc.stdin.flush()
@@ -303,7 +321,7 @@ class DeviceWorker:
     def stop(self) -> None:
         """Ask the worker to stop (its stdin closes, after the daemon's last counts)."""
         if self.proc is not None and self.proc.stdin is not None:
-            self.send_counts()
+            self.send_report()
             stdin, self.proc.stdin = self.proc.stdin, None  # communicate() must not touch it
             with contextlib.suppress(OSError):
                 stdin.close()
