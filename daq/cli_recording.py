@@ -109,13 +109,7 @@ def main_record(args: Any, zc: Any) -> int:
     # with lost messages: daq.bus.Receiver)
     known = fetch_schemas(session, args.key)
     rate = float(getattr(args, "viewer_rate_hz", 30.0))
-    # a client of routers: a hole's reason may be this session's lost router
-    link = None
-    if zc.mode == "client":
-        from daq.router_link import RouterLink
-
-        link = RouterLink(session, said=(RECORDER_LOST, RECORDER_BACK))
-    holes = HoleFinder((lambda: link.changes) if link is not None else None)
+    link, holes = _hole_finder(session, zc)
     channels = _SubscribedChannels(rec, session, known, rate, holes)
     sub = session.declare_subscriber(args.key, zenoh.handlers.FifoChannel(65536))
     print(json.dumps({"recording": str(rec.path), "key": args.key}), flush=True)
@@ -136,17 +130,20 @@ def main_record(args: Any, zc: Any) -> int:
         if link is not None:
             link.close()
         session.close()
-    print(
-        json.dumps(
-            {
-                "recorded": str(rec.path),
-                "holes": holes.holes,
-                "messages_missing": holes.messages_missing,
-            }
-        ),
-        flush=True,
-    )
+    said = {"recorded": str(rec.path), "holes": holes.holes}
+    print(json.dumps({**said, "messages_missing": holes.messages_missing}), flush=True)
     return 0
+
+
+def _hole_finder(session: Any, zc: Any) -> tuple[Any, HoleFinder]:
+    """The hole finder of ``daq record`` and, for a client of routers, the watch of its
+    router (a hole's reason may be this session's lost router; None: a peer)."""
+    if zc.mode != "client":
+        return None, HoleFinder()
+    from daq.router_link import RouterLink
+
+    link = RouterLink(session, said=(RECORDER_LOST, RECORDER_BACK))
+    return link, HoleFinder(lambda: link.changes)
 
 
 class _SubscribedChannels:

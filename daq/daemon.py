@@ -100,17 +100,7 @@ class Daemon:
             self.session = open_session(zc)
             undo.callback(self.session.close)
             self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")
-            # a client of routers: what it records while none is reachable is counted
-            self.router_link = RouterLink(self.session) if cfg.zenoh.mode == "client" else None
-            if self.router_link is not None:
-                undo.callback(self.router_link.close)
-            # ... and its clock is measured against the router's (daq.host_clock)
-            self.clock_watch: HostClockWatch | None = None
-            if cfg.zenoh.mode == "client":
-                self.clock_watch = HostClockWatch(
-                    self.session, self.host_now_ns, cfg.publish.clock_tolerance_s
-                )
-                undo.callback(self.clock_watch.close)
+            self.router_link, self.clock_watch = self._watch_router(undo)
             undo.pop_all()
         self.report = DaemonReport()  # added to the health of the devices in threads
         self.recorder: BackgroundRecorder | None = None
@@ -140,6 +130,21 @@ class Daemon:
         except BaseException:
             self.close()
             raise
+
+    def _watch_router(
+        self, undo: contextlib.ExitStack
+    ) -> tuple[RouterLink | None, HostClockWatch | None]:
+        """For a client of routers: what it records while none is reachable is counted
+        (``RouterLink``) and its clock is measured against the router's
+        (:mod:`daq.host_clock`), each closed by ``undo`` should the start fail; a peer:
+        neither."""
+        if self.cfg.zenoh.mode != "client":
+            return None, None
+        link = RouterLink(self.session)
+        undo.callback(link.close)
+        clock = HostClockWatch(self.session, self.host_now_ns, self.cfg.publish.clock_tolerance_s)
+        undo.callback(clock.close)
+        return link, clock
 
     def _zenoh_with_workers(
         self, driver_factory: DriverFactory

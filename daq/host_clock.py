@@ -59,7 +59,7 @@ class ClockOffset:
         return asdict(self)
 
 
-def serve_clock(session: zenoh.Session, name: str) -> Any:
+def serve_clock(session: zenoh.Session, name: str) -> zenoh.Queryable[None]:
     """Answer :data:`CLOCK_KEY` queries with ``{"t_utc_ns": now, "reference": name}``;
     the queryable (undeclared with the session)."""
 

@@ -28,10 +28,10 @@ import json
 from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Any
 
-#: MCAP channel of the hole records: its topic, schema name, and ``daq.kind``
-HOLES_TOPIC = "daq/holes"
+from daq.recording_reader import HOLES_TOPIC as HOLES_TOPIC  # readers know the topic
+
+#: MCAP channel of the hole records: its schema name, and ``daq.kind``
 HOLES_SCHEMA_NAME = "daq.hole.v1"
 KIND_HOLES = "holes"
 HOLES_SCHEMA = {
@@ -143,7 +143,7 @@ class HoleFinder:
             _Pending(key, last[0] + 1, batch_seq - 1, last[1], t_ns, changes != last[2], base)
         )
 
-    def on_health(self, key: str, doc: Any, t_ns: int) -> None:
+    def on_health(self, key: str, doc: object, t_ns: int) -> None:
         """A health document (parsed JSON) of health key ``key`` arrived at ``t_ns``."""
         if not isinstance(doc, dict):
             return

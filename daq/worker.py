@@ -36,7 +36,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -53,6 +53,9 @@ from daq.config import (
 from daq.device_recording import DeviceRecording
 from daq.errors import DaqError
 from daq.router_link import RouterLink
+
+if TYPE_CHECKING:
+    from daq.health import HealthSource
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +144,7 @@ class DaemonReport:
 class HealthWithReport:
     """A stream's health source with the daemon's report added (:class:`DaemonReport`)."""
 
-    def __init__(self, stream: Any, report: DaemonReport) -> None:
+    def __init__(self, stream: HealthSource, report: DaemonReport) -> None:
         self._stream = stream
         self.report = report
         self.health_key: str = stream.health_key

@@ -243,8 +243,7 @@ def read_recording_streams(path: str | Path, *, allow_partial: bool = False) -> 
     then its readable part is used and ``note`` says so (phases.json, report.json)."""
     from daq.columnar import StreamSchema, decode
     from daq.errors import DaqError
-    from daq.recording_holes import HOLES_TOPIC
-    from daq.recording_reader import read_recording
+    from daq.recording_reader import HOLES_TOPIC, read_recording
 
     holes: list[dict[str, Any]] = []
     try:
