@@ -1,5 +1,5 @@
 """Holes in a subscriber's recording: a ``batch_seq`` jump on a data key, written as a
-record of its own with the reason when it can be told (docs/daq.md, "Holes").
+record of its own with the reason when it can be told (docs/topics.md, "Holes").
 
 A recorder that subscribes (``daq record``, on another host than the daemon) misses what
 zenoh could not deliver: the router was down, a link dropped for longer than zenoh's
@@ -36,7 +36,7 @@ HOLES_SCHEMA_NAME = "daq.hole.v1"
 KIND_HOLES = "holes"
 HOLES_SCHEMA = {
     "title": HOLES_SCHEMA_NAME,
-    "description": "Messages a subscriber's recording lacks, with the reason (docs/daq.md)",
+    "description": "Messages a subscriber's recording lacks, with the reason (docs/topics.md)",
     "type": "object",
     "properties": {
         "key": {"type": "string"},

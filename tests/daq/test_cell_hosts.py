@@ -323,10 +323,10 @@ def test_cell_over_three_hosts_in_order_refusals_and_router_restart(cell: Cell) 
     # the subscriber's recording marks its holes: the router's restart, as many
     # messages as it lacks, near what the daemon counted unrouted
     holes = _holes(cell.dir / "app.mcap", running["keys"])
-    assert recorded["holes"] == sum(len(h) for h, _ in holes.values())
+    assert recorded["holes"] == sum(len(h) for h, _ in holes.values()) > 0, recorded
     for key, (marked, lacking) in holes.items():
-        assert lacking > 0 and sum(h["count"] for h in marked) == lacking, (key, marked)
-        assert {h["reason"] for h in marked} == {"router_down"}, marked
+        assert sum(h["count"] for h in marked) == lacking, (key, marked, lacking)
+        assert {h["reason"] for h in marked} <= {"router_down"}, marked
         unrouted = stopped["devices"][key.split("/")[-2]]["messages_unrouted"]
         assert abs(lacking - unrouted) <= 10, (key, lacking, unrouted)
     # ... which the twin's reader says (twin run --replay prints it as a warning)
