@@ -32,6 +32,8 @@ from typing import Any
 
 import zenoh
 
+from daq.bus import JSON_ENCODING
+
 log = logging.getLogger(__name__)
 
 #: the key ``daq router`` answers with its clock
@@ -65,7 +67,7 @@ def serve_clock(session: zenoh.Session, name: str) -> zenoh.Queryable[None]:
 
     def answer(query: zenoh.Query) -> None:
         doc = {"t_utc_ns": time.time_ns(), "reference": name}
-        query.reply(CLOCK_KEY, json.dumps(doc))
+        query.reply(CLOCK_KEY, json.dumps(doc), encoding=JSON_ENCODING)
 
     return session.declare_queryable(CLOCK_KEY, answer)
 

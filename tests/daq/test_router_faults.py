@@ -28,7 +28,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from daq.bus import open_session
 from daq.columnar import read_header
+from daq.host_clock import measure, serve_clock
 from daq.recording_holes import HOLES_TOPIC, KIND_HOLES
 from daq.recording_reader import read_recording
 from daq.replay import replay
@@ -205,3 +207,22 @@ def test_router_restart_holes_unrouted_and_a_clock_off(tmp_path: Path) -> None:
     dev_rec = read_recording(dev)
     assert not any(m.topic == HOLES_TOPIC for m in dev_rec.messages_iter())
     assert dev_rec.channels and HOLES_TOPIC not in {c.topic for c in dev_rec.channels.values()}
+
+
+def test_a_clock_is_measured_by_round_trips_to_the_reference() -> None:
+    """daq.host_clock on one session: the offset of a clock 250 ms ahead, within its
+    uncertainty (half the shortest round trip); no reference: no estimate."""
+    session = open_session(loopback_source(free_port()))
+    try:
+        assert measure(session, time.time_ns, 0.01, rounds=2) is None  # nobody answers
+        served = serve_clock(session, "test")
+        ahead = measure(session, lambda: time.time_ns() + 250_000_000, 0.01)
+        same = measure(session, time.time_ns, 0.01)
+        served.undeclare()
+    finally:
+        session.close()
+    assert ahead is not None and same is not None
+    assert abs(ahead.offset_ms - 250.0) <= ahead.uncertainty_ms + 1.0, ahead
+    assert not ahead.within_tolerance and ahead.reference == "test"
+    assert abs(same.offset_ms) <= same.uncertainty_ms + 1.0 and same.within_tolerance, same
+    assert ahead.rtt_ms > 0 and abs(ahead.rtt_ms - 2 * ahead.uncertainty_ms) < 0.01
