@@ -290,9 +290,9 @@ def test_cell_over_three_hosts_in_order_refusals_and_router_restart(cell: Cell) 
         assert _stop(echo) == 0
         stats = _line(echo, '{"keys"', 10.0)
         assert _stop(recorder) == 0
-        recorded = _line(recorder, '{"recorded"', 10.0)
+        rec_line = _line(recorder, '{"recorded"', 10.0)
         _stop(router)
-    assert stopped is not None and stats is not None and recorded is not None
+    assert stopped is not None and stats is not None and rec_line is not None
     keys = stats["keys"]
     data = {k: v for k, v in keys.items() if k.endswith("/samples")}
     assert set(data) == {k for k in running["keys"]}, (sorted(data), running["keys"])
@@ -323,7 +323,7 @@ def test_cell_over_three_hosts_in_order_refusals_and_router_restart(cell: Cell) 
     # the subscriber's recording marks its holes: the router's restart, as many
     # messages as it lacks, near what the daemon counted unrouted
     holes = _holes(cell.dir / "app.mcap", running["keys"])
-    assert recorded["holes"] == sum(len(h) for h, _ in holes.values()) > 0, recorded
+    assert rec_line["holes"] == sum(len(h) for h, _ in holes.values()) > 0, rec_line
     for key, (marked, lacking) in holes.items():
         assert sum(h["count"] for h in marked) == lacking, (key, marked, lacking)
         assert {h["reason"] for h in marked} <= {"router_down"}, marked
@@ -333,7 +333,7 @@ def test_cell_over_three_hosts_in_order_refusals_and_router_restart(cell: Cell) 
     from calibration.twin.streams import read_recording_streams
 
     note = read_recording_streams(cell.dir / "app.mcap").note
-    assert f"the recorder marked {recorded['holes']} hole(s)" in note, note
+    assert f"the recorder marked {rec_line['holes']} hole(s)" in note, note
     # the clock 0.5 s off: measured against the router's through TLS and its access
     # control, said once on stderr
     clock = stopped["host_clock"]
