@@ -14,9 +14,12 @@ socket the daemon listens on (a client-mode daemon's workers connect to its rout
 instead). zenoh routes the worker's data, schema replies and liveliness token through the
 daemon's session in Rust, so subscribers see the same keys as from a single process. The
 worker runs a :class:`~daq.pipeline.DeviceStream` and a :class:`~daq.health.HealthLoop`
-over it, as the daemon does for a device in a thread. It stops on SIGINT/SIGTERM or when
-its stdin closes (the daemon is gone): it flushes, closes the driver, publishes its last
-health document and prints it as one JSON line on stdout. The daemon writes a worker's
+over it, as the daemon does for a device in a thread; a daemon that is a client of
+routers then writes a JSON line each health period with what the worker cannot know
+(:class:`DaemonReport`: ``messages_unrouted``, ``host_clock``), added to the worker's
+health documents. It stops on SIGINT/SIGTERM or when its stdin closes (the daemon is
+gone): it flushes, closes the driver, publishes its last health document and prints it
+as one JSON line on stdout. The daemon writes a worker's
 messages and health documents to the device's :class:`~daq.device_recording.DeviceRecording`
 from its own subscription.
 
