@@ -138,7 +138,11 @@ def test_router_restart_holes_unrouted_and_a_clock_off(tmp_path: Path) -> None:
         time.sleep(1.5)  # the router down
         router = procs.daq("router2", "router", "--config", "router.json5")
         _first_line(router)
-        time.sleep(4.0)  # clients reconnect; health documents after the hole
+        # clients reconnect by themselves; the recorder writes each hole once the
+        # publisher's health after it came (bounded: a loaded host reconnects slowly)
+        t_end = time.monotonic() + 30.0
+        while procs.stderr("record").count("hole of") < len(keys) and time.monotonic() < t_end:
+            time.sleep(0.2)
         summary = _stop(daemon)[-1]
         time.sleep(0.5)
         recorded = _stop(rec)[-1]
@@ -184,10 +188,11 @@ def test_router_restart_holes_unrouted_and_a_clock_off(tmp_path: Path) -> None:
             assert h["reason"] == "router_down", h
             assert h["recorder_lost_router"] and h["publisher_unrouted"] > 0, h
             assert h["last_missing"] - h["first_missing"] + 1 == h["count"]
-        # what it lacks is what the daemon could not hand to a router (one key a device;
-        # within the router watch's 10 ms look either side: 5 messages a side at 500 Hz)
-        device = key.split("/")[-2]
-        assert abs(lacking - summary["devices"][device]["messages_unrouted"]) <= 10
+        # what it lacks is what the daemon could not hand to a router (one key a device),
+        # within the router watch's 10 ms look either side and the recorder reconnecting
+        # a few ms after the daemon (≈ 1 000 messages a second here): 2 %
+        unrouted = summary["devices"][key.split("/")[-2]]["messages_unrouted"]
+        assert abs(lacking - unrouted) <= max(10, 0.02 * unrouted), (key, lacking, unrouted)
     assert channels[HOLES_TOPIC].metadata["daq.kind"] == KIND_HOLES
 
     # daq info lists them; the daemon's own recording has none (nothing lost there)
