@@ -18,6 +18,8 @@ import atexit
 import collections
 import json
 import logging
+import math
+import os
 import queue
 import re
 import threading
@@ -41,8 +43,8 @@ from daq.columnar import (
     read_header,
 )
 from daq.config import ZenohConfig
+from daq.errors import ConfigError, SchemaError, TransportError
 from daq.errors import PublishError as PublishError  # its old path, kept for callers
-from daq.errors import SchemaError, TransportError
 from daq.tls import check_tls_files, zenoh_tls_entries
 
 log = logging.getLogger(__name__)
@@ -540,12 +542,33 @@ class Receiver:
             self._drainer.join(timeout=5.0)  # a schema fetch waits at most 2 s
 
 
+#: test hook (docs/deployment.md, "Faults"): seconds added to :func:`utc_offset_ns`, as
+#: if this host's clock were that far off (its stamps and daq.host_clock's reads shift)
+CLOCK_SHIFT_ENV = "DAQ_TEST_CLOCK_SHIFT_S"
+
+
 def utc_offset_ns() -> int:
-    """``time.time_ns() - time.monotonic_ns()`` now (median of a few reads)."""
+    """``time.time_ns() - time.monotonic_ns()`` now (median of a few reads), plus the
+    test hook's shift (``$DAQ_TEST_CLOCK_SHIFT_S`` seconds; unset: none)."""
     reads = []
     for _ in range(5):
         a = time.monotonic_ns()
         u = time.time_ns()
         b = time.monotonic_ns()
         reads.append(u - (a + b) // 2)
-    return int(np.median(reads))
+    return int(np.median(reads)) + clock_shift_ns()
+
+
+def clock_shift_ns() -> int:
+    """The test hook's shift in ns (0 when unset); a value that is not a finite number
+    of seconds is refused, naming the variable."""
+    raw = os.environ.get(CLOCK_SHIFT_ENV, "").strip()
+    if not raw:
+        return 0
+    try:
+        shift = float(raw)
+    except ValueError:
+        shift = math.nan
+    if not math.isfinite(shift):
+        raise ConfigError(f"${CLOCK_SHIFT_ENV}: expected seconds, got {raw!r}")
+    return round(shift * 1e9)

@@ -5,6 +5,7 @@ file is damaged).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -13,9 +14,17 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-from daq.columnar import ENCODING_NAME, StreamSchema, decode
+from daq.columnar import ENCODING_NAME, StreamSchema, decode, read_header
 from daq.errors import DaqError
-from daq.recording_reader import scan
+from daq.recording_holes import (
+    HOLES_SCHEMA,
+    HOLES_SCHEMA_NAME,
+    HOLES_TOPIC,
+    KIND_HOLES,
+    Hole,
+    HoleFinder,
+)
+from daq.recording_reader import read_recording, scan
 from daq.recording_recover import recover
 from daq.recording_writer import (
     HEALTH_SCHEMA,
@@ -29,6 +38,10 @@ from daq.recording_writer import (
 #: the logger keeps the name of the module this code came from (daq.recording), so a
 #: logging configuration that names it still applies
 log = logging.getLogger("daq.recording")
+
+#: what ``daq record`` logs when its session (a client of routers) loses its router
+RECORDER_LOST = "no router: nothing arrives; the messages missed are recorded as holes"
+RECORDER_BACK = "router reached again: recording resumes"
 
 
 def main_recover(args: Any) -> int:
@@ -62,6 +75,10 @@ def main_info(args: Any) -> int:
             for ch in rec.channels.values()
         ],
     }
+    if counts.get(HOLES_TOPIC):  # a subscriber's recording: what it lacks, and why
+        doc["holes"] = [
+            json.loads(m.data) for m in read_recording(args.file).messages_iter({HOLES_TOPIC})
+        ]
     print(json.dumps(doc, indent=1), flush=True)
     return 0 if rec.complete else 1
 
@@ -92,7 +109,8 @@ def main_record(args: Any, zc: Any) -> int:
     # with lost messages: daq.bus.Receiver)
     known = fetch_schemas(session, args.key)
     rate = float(getattr(args, "viewer_rate_hz", 30.0))
-    channels = _SubscribedChannels(rec, session, known, rate)
+    link, holes = _hole_finder(session, zc)
+    channels = _SubscribedChannels(rec, session, known, rate, holes)
     sub = session.declare_subscriber(args.key, zenoh.handlers.FifoChannel(65536))
     print(json.dumps({"recording": str(rec.path), "key": args.key}), flush=True)
     t_end = None if args.duration is None else time.monotonic() + args.duration
@@ -100,15 +118,32 @@ def main_record(args: Any, zc: Any) -> int:
         while not stop.is_set() and (t_end is None or time.monotonic() < t_end):
             sample = sub.try_recv()
             if sample is None:
+                channels.write_holes(holes.due(time.time_ns()))
                 time.sleep(0.0005)
                 continue
             channels.write(sample)
     finally:
         sub.undeclare()
         channels.flush()
+        channels.write_holes(holes.drain())
         rec.close()
+        if link is not None:
+            link.close()
         session.close()
+    said = {"recorded": str(rec.path), "holes": holes.holes}
+    print(json.dumps({**said, "messages_missing": holes.messages_missing}), flush=True)
     return 0
+
+
+def _hole_finder(session: Any, zc: Any) -> tuple[Any, HoleFinder]:
+    """The hole finder of ``daq record`` and, for a client of routers, the watch of its
+    router (a hole's reason may be this session's lost router; None: a peer)."""
+    if zc.mode != "client":
+        return None, HoleFinder()
+    from daq.router_link import RouterLink
+
+    link = RouterLink(session, said=(RECORDER_LOST, RECORDER_BACK))
+    return link, HoleFinder(lambda: link.changes)
 
 
 class _SubscribedChannels:
@@ -122,8 +157,12 @@ class _SubscribedChannels:
         session: Any,
         known: Mapping[str, StreamSchema],
         rate_hz: float,
+        holes: HoleFinder,
     ) -> None:
         self.rec = rec
+        self.holes = holes
+        self._holes_channel: int | None = None
+        self.columnar: set[str] = set()  # the data keys recorded (their batch_seq watched)
         self.session = session
         self.known = known
         self.rate_hz = rate_hz
@@ -142,12 +181,37 @@ class _SubscribedChannels:
             return
         payload = sample.payload.to_bytes()
         self.rec.write(cid, payload, now, now)
+        self._watch(key, payload, now)
         view = self.viewers.get(key)
         if view is not None and view[0].due(now):
             try:
                 view[0].add(decode(view[1], payload)[1], now)
             except DaqError as exc:  # a payload of another schema: the data is kept
                 log.warning("%s: no viewer message: %s", key, exc)
+
+    def _watch(self, key: str, payload: bytes, now: int) -> None:
+        """Hand a message to the hole finder: a data batch's ``batch_seq``, a health
+        document's counters."""
+        if key in self.columnar:
+            with contextlib.suppress(DaqError):  # not a batch: recorded, not watched
+                self.holes.on_batch(key, read_header(payload).batch_seq, now)
+            self.write_holes(self.holes.due(now))
+        elif key.endswith("/health"):
+            with contextlib.suppress(ValueError):
+                self.holes.on_health(key, json.loads(payload), now)
+
+    def write_holes(self, holes: list[Hole]) -> None:
+        """Each hole as a record of the holes channel (made at the first), and a line."""
+        for h in holes:
+            if self._holes_channel is None:
+                self._holes_channel = self.rec.add_json(
+                    HOLES_TOPIC, HOLES_SCHEMA_NAME, HOLES_SCHEMA, {"daq.kind": KIND_HOLES}
+                )
+            self.rec.write(self._holes_channel, h.to_json(), h.t_after_ns, h.t_after_ns)
+            log.warning(
+                "%s: hole of %d messages (batch_seq %d..%d, %.3f s): %s",
+                h.key, h.count, h.first_missing, h.last_missing, h.duration_s, h.reason,
+            )  # fmt: skip
 
     def _open(self, key: str, encoding: str) -> int:
         """The channel id of ``key`` (-1: not recorded)."""
@@ -164,6 +228,7 @@ class _SubscribedChannels:
             except Exception as exc:
                 log.warning("no schema for %s, not recorded: %s", key, exc)
                 return -1
+            self.columnar.add(key)
             return cid
         if encoding.startswith("application/json"):
             return self.rec.add_json(

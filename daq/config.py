@@ -178,6 +178,9 @@ class PublishConfig:
     #: SCHED_FIFO priority (1-99) of the daemon and its device workers; 0: normal
     #: scheduling (daq.scheduling; docs/daq.md "Real-time scheduling")
     realtime_priority: int = field(default=0, metadata=key_spec(range=Range(0), check=_at_most(99)))
+    #: a client of routers warns when its clock is further than this from the router's
+    #: (daq.host_clock; docs/deployment.md "Faults")
+    clock_tolerance_s: float = field(default=0.01, metadata=key_spec(range=POSITIVE))
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,7 @@ from daq.device_recording import DeviceRecording, recorder_meta
 from daq.errors import ConfigError, DaqError
 from daq.foxglove_channels import StreamViewer
 from daq.health import HealthLoop
+from daq.host_clock import HostClockWatch
 from daq.pipeline import DeviceStream, build_schemas
 from daq.recording_writer import (
     KIND_HEALTH,
@@ -49,7 +50,7 @@ from daq.recording_writer import (
 )
 from daq.router_link import RouterLink
 from daq.scheduling import set_realtime_of
-from daq.worker import DeviceWorker, worker_zenoh
+from daq.worker import DaemonReport, DeviceWorker, HealthWithReport, worker_zenoh
 
 if TYPE_CHECKING:  # the emulated cell loads only for a daemon that runs one
     from daq.emulated import EmulatedCell
@@ -99,11 +100,9 @@ class Daemon:
             self.session = open_session(zc)
             undo.callback(self.session.close)
             self.schemas = SchemaServer(self.session, f"cell/{cfg.cell.name}")
-            # a client of routers: what it records while none is reachable is counted
-            self.router_link = RouterLink(self.session) if cfg.zenoh.mode == "client" else None
-            if self.router_link is not None:
-                undo.callback(self.router_link.close)
+            self.router_link, self.clock_watch = self._watch_router(undo)
             undo.pop_all()
+        self.report = DaemonReport()  # added to the health of the devices in threads
         self.recorder: BackgroundRecorder | None = None
         # every enabled device, in a thread or a worker process (the same calls either way)
         self.devices: list[DeviceStream | DeviceWorker] = []
@@ -131,6 +130,21 @@ class Daemon:
         except BaseException:
             self.close()
             raise
+
+    def _watch_router(
+        self, undo: contextlib.ExitStack
+    ) -> tuple[RouterLink | None, HostClockWatch | None]:
+        """For a client of routers: what it records while none is reachable is counted
+        (``RouterLink``) and its clock is measured against the router's
+        (:mod:`daq.host_clock`), each closed by ``undo`` should the start fail; a peer:
+        neither."""
+        if self.cfg.zenoh.mode != "client":
+            return None, None
+        link = RouterLink(self.session)
+        undo.callback(link.close)
+        clock = HostClockWatch(self.session, self.host_now_ns, self.cfg.publish.clock_tolerance_s)
+        undo.callback(clock.close)
+        return link, clock
 
     def _zenoh_with_workers(
         self, driver_factory: DriverFactory
@@ -215,7 +229,7 @@ class Daemon:
             stop=self.stop,
         )
         self.devices.append(stream)
-        self.health.add(stream)
+        self.health.add(HealthWithReport(stream, self.report))
 
     def _record_twin(self, got: Received) -> None:
         """A batch of a twin key (zenoh's callback thread): recorded as it came, and its
@@ -251,8 +265,15 @@ class Daemon:
         return [k for d in self.devices for k in d.keys]
 
     def _restart_ended_workers(self) -> None:
+        clock = self.clock_watch.doc() if self.clock_watch is not None else None
+        self.report.host_clock = clock
         for w in self.workers:
             w.check()
+            w.send_report(clock)  # into its next health document
+
+    def host_now_ns(self) -> int:
+        """This host's UTC ns as the samples are stamped (monotonic + the start's offset)."""
+        return time.monotonic_ns() + self.utc_offset_ns
 
     def run(self, duration_s: float | None = None) -> list[dict[str, Any]]:
         """Acquire until stopped; returns the last health documents."""
@@ -289,6 +310,8 @@ class Daemon:
         self.schemas.close()
         if self.router_link is not None:
             self.router_link.close()
+        if self.clock_watch is not None:
+            self.clock_watch.close()
         self.session.close()
         self._remove_worker_dir()
 
@@ -332,6 +355,7 @@ def main_run(args: argparse.Namespace) -> int:
         print(json.dumps(_running_line(cfg, daemon, path, emulated)), flush=True)
         docs = daemon.run(args.duration)
         unrouted = {w.dev.name: w.unrouted for w in daemon.workers}
+        clock = daemon.clock_watch.doc() if daemon.clock_watch is not None else None
     finally:
         daemon.close()
         if emulated is not None:
@@ -347,6 +371,7 @@ def main_run(args: argparse.Namespace) -> int:
             }
             for d in docs
         },
+        "host_clock": clock,
     }
     print(json.dumps(summary), flush=True)
     if path is not None:

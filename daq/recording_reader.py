@@ -54,6 +54,9 @@ RECORD_KINDS: dict[int, str] = {
     0x0F: "data end",
 }
 CHUNK_COMPRESSIONS = ("", "zstd", "lz4")
+#: the topic of a subscriber's hole records (written by daq.recording_holes: what a
+#: ``daq record`` file lacks, and why); readers report them, replays skip them
+HOLES_TOPIC = "daq/holes"
 _CHUNK_FIXED = 8 + 8 + 8 + 4 + 4 + 8  # times, size, crc, compression length, records length
 _FOOTER_LEN = 20
 _RESYNC_WINDOW = 1 << 20

@@ -17,6 +17,7 @@ would fail to decode it (``not_republished`` in the result says why).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -32,6 +33,7 @@ from daq.bus import DATA_ENCODING, JSON_ENCODING, SchemaServer, device_key, open
 from daq.columnar import ENCODING_NAME, StreamSchema
 from daq.config import ZenohConfig
 from daq.errors import DaqError, RecordingError
+from daq.recording_holes import HOLES_TOPIC, KIND_HOLES
 from daq.recording_reader import RecordedMessage, Recording, read_recording
 from daq.recording_writer import KIND_FOXGLOVE
 
@@ -156,6 +158,10 @@ class _Publishers:
         self.wait_subscribers_s = wait_subscribers_s
         self.waited = wait_subscribers_s <= 0
         self.stop = stop
+        # the recording's hole records (a subscriber's recording: daq.recording_holes),
+        # reported, not republished; read in the first pass
+        self.holes: list[dict[str, Any]] = []
+        self.first_pass = True
 
     def open(self, m: RecordedMessage) -> _Topic | None:
         """The publisher of ``m``'s key, declared now; None: the key is not republished
@@ -163,7 +169,7 @@ class _Publishers:
         topic = m.topic
         meta = m.channel.metadata
         kind = meta.get("daq.kind", "")
-        wanted = kind != KIND_FOXGLOVE and (
+        wanted = kind not in (KIND_FOXGLOVE, KIND_HOLES) and (
             self.filters is None or any(zenoh.KeyExpr(topic).intersects(f) for f in self.filters)
         )
         if not wanted:
@@ -251,6 +257,7 @@ def replay(
             rec = read_recording(path)
             got = _one_pass(rec, pubs, pace, t_wall0, stop)
             truncated = truncated or rec.truncated
+            pubs.first_pass = False
             if passes == 0:
                 damaged = [d.as_dict() for d in rec.damaged if d.record != "footer"]
             passes += 1
@@ -267,6 +274,7 @@ def replay(
         "truncated": truncated,
         "damaged": damaged,
         "not_republished": dict(sorted(pubs.undecodable.items())),
+        "holes": pubs.holes,
         "elapsed_s": time.monotonic() - t_wall0,
         "topics": {
             k: {"messages": v.messages, "bytes": v.bytes} for k, v in sorted(pubs.out.items())
@@ -293,6 +301,9 @@ def _one_pass(
             stop.set()
             break
         topic = m.topic
+        if topic == HOLES_TOPIC and pubs.first_pass:
+            with contextlib.suppress(ValueError):
+                pubs.holes.append(json.loads(m.data))
         if topic in skipped:
             continue
         t = out.get(topic)

@@ -13,7 +13,8 @@ none: zenoh's warnings) and, with access control enabled, a message the rules de
 says so only at its TRACE level, beside a line for every message allowed; a thread keeps
 the denials and drops the rest). Prints one JSON line when
 up (``{"daq": "router", "listen": [...], "zid": ...}``) and one when stopped; SIGTERM and
-SIGINT stop it, exit 0.
+SIGINT stop it, exit 0. It answers queries on ``daq/clock`` with its UTC clock, the
+reference daemons measure their host's clock against (:mod:`daq.host_clock`).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import zenoh
 
 from daq.bus import zenoh_reason
 from daq.errors import ConfigError, TransportError
+from daq.host_clock import CLOCK_KEY, serve_clock
 from daq.tls import certificate_refusal, key_refusal
 from edges.inputs import read_input_bytes
 
@@ -162,12 +164,16 @@ def main_router(args: argparse.Namespace) -> int:
             why = zenoh_reason(exc)
             raise TransportError(f"{args.config}: cannot start the router: {why}") from None
         try:
+            zid = str(session.info.zid())
+            # the cell's clock reference: daemons measure their host's offset against it
+            serve_clock(session, f"router {zid}")
             up = {
                 "daq": "router",
                 "config": args.config,
                 "listen": _get(conf, "listen/endpoints") or [],
                 "access_control": acl,
-                "zid": str(session.info.zid()),
+                "zid": zid,
+                "clock_key": CLOCK_KEY,
             }
             print(json.dumps(up), flush=True)
             stop.wait()

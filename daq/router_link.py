@@ -23,8 +23,17 @@ class RouterLink:
     """``up``: the session had at least one router at the last look; ``changes``: how
     often that flipped (each logged)."""
 
-    def __init__(self, session: zenoh.Session, period_s: float = 0.01) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        period_s: float = 0.01,
+        said: tuple[str, str] = (
+            "no router: recording goes on, messages counted as unrouted",
+            "router reached again: publishing resumes",
+        ),
+    ) -> None:
         self._session = session
+        self._said = said  # the lines logged when the router is lost, and when reached
         self._period_s = period_s
         self.up = self._look()
         self.changes = 0
@@ -43,10 +52,7 @@ class RouterLink:
             up = self._look()
             if up != self.up:
                 self.changes += 1
-                if up:
-                    log.warning("router reached again: publishing resumes")
-                else:
-                    log.warning("no router: recording goes on, messages counted as unrouted")
+                log.warning(self._said[1] if up else self._said[0])
                 self.up = up
 
     def close(self) -> None:

@@ -14,9 +14,12 @@ socket the daemon listens on (a client-mode daemon's workers connect to its rout
 instead). zenoh routes the worker's data, schema replies and liveliness token through the
 daemon's session in Rust, so subscribers see the same keys as from a single process. The
 worker runs a :class:`~daq.pipeline.DeviceStream` and a :class:`~daq.health.HealthLoop`
-over it, as the daemon does for a device in a thread. It stops on SIGINT/SIGTERM or when
-its stdin closes (the daemon is gone): it flushes, closes the driver, publishes its last
-health document and prints it as one JSON line on stdout. The daemon writes a worker's
+over it, as the daemon does for a device in a thread; a daemon that is a client of
+routers then writes a JSON line each health period with what the worker cannot know
+(:class:`DaemonReport`: ``messages_unrouted``, ``host_clock``), added to the worker's
+health documents. It stops on SIGINT/SIGTERM or when its stdin closes (the daemon is
+gone): it flushes, closes the driver, publishes its last health document and prints it
+as one JSON line on stdout. The daemon writes a worker's
 messages and health documents to the device's :class:`~daq.device_recording.DeviceRecording`
 from its own subscription.
 
@@ -36,7 +39,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -53,6 +56,9 @@ from daq.config import (
 from daq.device_recording import DeviceRecording
 from daq.errors import DaqError
 from daq.router_link import RouterLink
+
+if TYPE_CHECKING:
+    from daq.health import HealthSource
 
 log = logging.getLogger(__name__)
 
@@ -106,10 +112,56 @@ def config_from_spec(spec: Mapping[str, Any]) -> tuple[DaqConfig, DeviceConfig, 
 # -- the worker process ---------------------------------------------------------------------
 
 
-def _stop_on_eof(stop: threading.Event) -> None:
+class DaemonReport:
+    """What the daemon adds to a device's health documents (docs/topics.md): the
+    device's messages it recorded while it had no router (``messages_unrouted``; a worker
+    cannot see the router: the daemon counts; None: the daemon is not a client of
+    routers) and its host's clock against the router's (``host_clock``,
+    :mod:`daq.host_clock`; None: not measured). A worker learns them on stdin, after
+    its spec, one JSON line at a time; the daemon's own streams take them directly."""
+
+    def __init__(self) -> None:
+        self.messages_unrouted: int | None = None
+        self.host_clock: dict[str, Any] | None = None
+
+    def read(self, line: str) -> None:
+        """One line from the daemon: ``{"messages_unrouted": N, "host_clock": {...}}``
+        (either key may be absent)."""
+        try:
+            doc = json.loads(line)
+            if "messages_unrouted" in doc:
+                self.messages_unrouted = int(doc["messages_unrouted"])
+            if isinstance(doc.get("host_clock"), dict):
+                self.host_clock = doc["host_clock"]
+        except (ValueError, TypeError, AttributeError):
+            log.warning("worker: ignored a line from the daemon: %.80s", line)
+
+    def add_to(self, doc: dict[str, Any]) -> dict[str, Any]:
+        if self.messages_unrouted is not None:
+            doc["messages_unrouted"] = self.messages_unrouted
+        if self.host_clock is not None:
+            doc["host_clock"] = self.host_clock
+        return doc
+
+
+class HealthWithReport:
+    """A stream's health source with the daemon's report added (:class:`DaemonReport`)."""
+
+    def __init__(self, stream: HealthSource, report: DaemonReport) -> None:
+        self._stream = stream
+        self.report = report
+        self.health_key: str = stream.health_key
+        self.recording: DeviceRecording | None = stream.recording
+
+    def health(self, period_s: float) -> dict[str, Any]:
+        return self.report.add_to(self._stream.health(period_s))
+
+
+def _read_parent(stop: threading.Event, report: DaemonReport) -> None:
     try:
-        while sys.stdin.readline():
-            pass
+        for line in sys.stdin:
+            if line.strip():
+                report.read(line)
     finally:
         stop.set()
 
@@ -125,7 +177,8 @@ def main() -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    threading.Thread(target=_stop_on_eof, args=(stop,), name="stdin", daemon=True).start()
+    report = DaemonReport()
+    threading.Thread(target=_read_parent, args=(stop, report), name="stdin", daemon=True).start()
     if cfg.publish.gil_switch_s > 0:
         sys.setswitchinterval(min(sys.getswitchinterval(), cfg.publish.gil_switch_s))
     keep_freed_heap()
@@ -138,7 +191,7 @@ def main() -> int:
     )
     health = HealthLoop(session, cfg.publish.health_period_s)
     try:
-        health.add(stream)
+        health.add(HealthWithReport(stream, report))
         stream.start()
         health.run(stop)
         stream.join(timeout=10.0)
@@ -178,6 +231,7 @@ class DeviceWorker:
         #: data messages recorded while the daemon had no router (``RouterLink``)
         self.unrouted = 0
         self._router_link = router_link
+        self._host_clock: dict[str, Any] | None = None  # the latest sent
         self.schemas = schemas
         self.recording = recording
         self.recorded = 0  # data messages written to the recorder
@@ -254,9 +308,26 @@ class DeviceWorker:
         self.start()
         return True
 
+    def send_report(self, host_clock: dict[str, Any] | None = None) -> None:
+        """Tell the worker the daemon's report of its device (:class:`DaemonReport`), for
+        its next health document; nothing when the daemon has no router to report on."""
+        if self._router_link is None or self.proc is None or self.proc.stdin is None:
+            return
+        if host_clock is not None:
+            self._host_clock = host_clock
+        with self._lock:
+            doc: dict[str, Any] = {"messages_unrouted": self.unrouted}
+        if self._host_clock is not None:
+            doc["host_clock"] = self._host_clock
+        line = json.dumps(doc)
+        with contextlib.suppress(OSError, ValueError):  # a worker that ended: check() sees it
+            self.proc.stdin.write(line + "\n")
+            self.proc.stdin.flush()
+
     def stop(self) -> None:
-        """Ask the worker to stop (its stdin closes)."""
+        """Ask the worker to stop (its stdin closes, after the daemon's last counts)."""
         if self.proc is not None and self.proc.stdin is not None:
+            self.send_report()
             stdin, self.proc.stdin = self.proc.stdin, None  # communicate() must not touch it
             with contextlib.suppress(OSError):
                 stdin.close()

@@ -32,6 +32,7 @@ REALTIME_MODULES = frozenset(
         "test_driver_encoders",
         "test_driver_grating",
         "test_driver_tracker",
+        "test_router_faults",
         "test_sim_cell",
         "test_twin_endpoint",
         "test_twin_live",

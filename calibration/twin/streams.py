@@ -27,7 +27,7 @@ from calibration.errors import StreamError
 from edges.channel_names import ENCODER, GRATING, counts_joint, joint_columns
 
 if TYPE_CHECKING:  # the reader (and mcap) load only when a recording is read
-    from daq.recording_reader import Recording
+    from daq.recording_reader import RecordedMessage, Recording
 
 KINDS = ("grating", "tracker", "encoders")
 
@@ -243,8 +243,9 @@ def read_recording_streams(path: str | Path, *, allow_partial: bool = False) -> 
     then its readable part is used and ``note`` says so (phases.json, report.json)."""
     from daq.columnar import StreamSchema, decode
     from daq.errors import DaqError
-    from daq.recording_reader import read_recording
+    from daq.recording_reader import HOLES_TOPIC, read_recording
 
+    side = _SideRecords(HOLES_TOPIC)
     try:
         rec = read_recording(path)
     except DaqError as exc:
@@ -254,6 +255,8 @@ def read_recording_streams(path: str | Path, *, allow_partial: bool = False) -> 
     m = None
     try:
         for m in rec.messages_iter():
+            if side.take(m):
+                continue
             if m.channel.message_encoding != "daq.columnar.v1" or m.schema is None:
                 continue
             b = builders.get(m.topic)
@@ -285,7 +288,91 @@ def read_recording_streams(path: str | Path, *, allow_partial: bool = False) -> 
         note = f"not closed ({rec.error}); every record read"
     else:
         note = ""
-    return pick_streams(builders, str(path), complete=rec.complete, note=note)
+    if side.holes:
+        note = "; ".join(x for x in (note, holes_note(side.holes)) if x)
+    streams = pick_streams(builders, str(path), complete=rec.complete, note=note)
+    check_host_clocks(streams, side.clocks)
+    return streams
+
+
+class _SideRecords:
+    """What a recording says beside the samples: a subscriber's hole records (on
+    ``holes_topic``) and each device's latest ``host_clock`` (by health key)."""
+
+    def __init__(self, holes_topic: str) -> None:
+        self.holes_topic = holes_topic
+        self.holes: list[dict[str, Any]] = []
+        self.clocks: dict[str, dict[str, float]] = {}
+
+    def take(self, m: RecordedMessage) -> bool:
+        """Keep what recorded message ``m`` says; True: it is one of these (not samples)."""
+        if m.topic == self.holes_topic:
+            self.holes.append(json.loads(m.data))
+            return True
+        if m.topic.endswith("/health") and m.channel.message_encoding == "json":
+            clock = host_clock_of(m.data)
+            if clock is not None:
+                self.clocks[m.topic] = clock
+            return True
+        return False
+
+
+#: host clocks (``host_clock`` of the devices' health) further apart than this, beyond
+#: their measurement uncertainty, and the twin refuses to pair the streams by time (ms)
+HOST_CLOCK_TOLERANCE_MS = 10.0
+
+
+def host_clock_of(data: bytes) -> dict[str, float] | None:
+    """``host_clock`` of a health document (its ``offset_ms`` and ``uncertainty_ms``;
+    None: not there, or not numbers)."""
+    try:
+        doc = json.loads(data)
+    except ValueError:
+        return None
+    clock = doc.get("host_clock") if isinstance(doc, dict) else None
+    if not isinstance(clock, dict):
+        return None
+    got = {k: clock.get(k) for k in ("offset_ms", "uncertainty_ms")}
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in got.values()):
+        return None
+    return {k: float(v) for k, v in got.items() if v is not None}
+
+
+def check_host_clocks(streams: CellStreams, clocks: dict[str, dict[str, float]]) -> None:
+    """Refuse (:class:`StreamError`, saying why) streams stamped by host clocks that
+    disagree: each device's latest ``host_clock`` in ``clocks`` (by health key; devices
+    of a daemon that measured none are not compared). Pairing the tracker's samples with
+    the gratings' by time would be off by the clocks' difference."""
+    said = []
+    for s in (streams.grating, streams.tracker, streams.encoders):
+        if s is not None:
+            clock = clocks.get(s.key.rsplit("/", 1)[0] + "/health")
+            if clock is not None:
+                said.append((s, clock["offset_ms"], clock["uncertainty_ms"]))
+    for i, (a, off_a, unc_a) in enumerate(said):
+        for b, off_b, unc_b in said[i + 1 :]:
+            if abs(off_a - off_b) - unc_a - unc_b > HOST_CLOCK_TOLERANCE_MS:
+                raise StreamError(
+                    f"{streams.source}: the {a.kind} ({a.device}) and the {b.kind} "
+                    f"({b.device}) were stamped by host clocks {abs(off_a - off_b):.1f} ms "
+                    f"apart (host_clock in their health: {off_a:+.1f} ± {unc_a:.1f} and "
+                    f"{off_b:+.1f} ± {unc_b:.1f} ms against the router's; tolerance "
+                    f"{HOST_CLOCK_TOLERANCE_MS:.0f} ms): pairing them by time would be off "
+                    "by as much; set the hosts' clocks (NTP/PTP) and record again"
+                )
+
+
+def holes_note(holes: list[dict[str, Any]]) -> str:
+    """One phrase for the hole records of a subscriber's recording (daq.recording_holes):
+    messages lacking per key, and why."""
+    per_key: dict[str, tuple[int, set[str]]] = {}
+    for h in holes:
+        n, why = per_key.get(str(h.get("key")), (0, set()))
+        per_key[str(h.get("key"))] = (n + int(h.get("count", 0)), why | {str(h.get("reason"))})
+    said = ", ".join(
+        f"{k}: {n} messages ({'/'.join(sorted(why))})" for k, (n, why) in sorted(per_key.items())
+    )
+    return f"the recorder marked {len(holes)} hole(s) ({said})"
 
 
 def lost_intervals(

@@ -220,6 +220,22 @@ def _recorded_seq(path: Path, keys: list[str]) -> dict[str, np.ndarray]:
     return {k: recorded_columns(path, k)["seq"].astype(np.int64) for k in keys}
 
 
+def _holes(path: Path, keys: list[str]) -> dict[str, tuple[list[dict], int]]:
+    """Per data key of a subscriber's recording: its hole records, and the messages it
+    lacks by its ``batch_seq``."""
+    from daq.columnar import read_header
+    from daq.recording_holes import HOLES_TOPIC
+    from daq.recording_reader import read_recording
+
+    holes = [json.loads(m.data) for m in read_recording(path).messages_iter({HOLES_TOPIC})]
+    out = {}
+    for key in keys:
+        seq = [read_header(m.data).batch_seq for m in read_recording(path).messages_iter({key})]
+        lacking = int(np.sum(np.diff(np.array(seq, dtype=np.int64)) - 1))
+        out[key] = ([h for h in holes if h["key"] == key], lacking)
+    return out
+
+
 def twin_docs(path: Path) -> int:
     """Messages of the twin's health key in a recording."""
     from daq.recording_reader import read_recording
@@ -239,11 +255,14 @@ def test_cell_over_three_hosts_in_order_refusals_and_router_restart(cell: Cell) 
     assert up is not None, _stderr(router)
     rec = cell.dir / "dev.mcap"
     env, daemon_cmd = doc_command("DAQ_ZENOH_MODE=client DAQ_ZENOH_CONNECT=tls/10.231.1.2")
-    daemon = cell.start("dev", *daemon_cmd, env=env)
+    # the device PC's clock 0.5 s ahead of the router's (the test hook: docs/deployment.md)
+    daemon = cell.start("dev", *daemon_cmd, env={**env, "DAQ_TEST_CLOCK_SHIFT_S": "0.5"})
     running = _line(daemon, '{"daq": "running"', 40.0)
     assert running is not None, _stop(daemon) or _stderr(daemon)[-3000:]
     _, echo_cmd = doc_command("daq echo 'cell/cell1/**' --config viewer.toml")
     echo = cell.start("app", *echo_cmd)
+    _, record_cmd = doc_command("daq record 'cell/cell1/**' --config viewer.toml")
+    recorder = cell.start("app", *record_cmd)
     try:
         time.sleep(3.0)  # the echo subscribed and receiving
         twin = _probe(cell, "twin", "twin", seconds=2.0)
@@ -270,8 +289,10 @@ def test_cell_over_three_hosts_in_order_refusals_and_router_restart(cell: Cell) 
         stopped = _line(daemon, '{"daq": "stopped"', 20.0)
         assert _stop(echo) == 0
         stats = _line(echo, '{"keys"', 10.0)
+        assert _stop(recorder) == 0
+        rec_line = _line(recorder, '{"recorded"', 10.0)
         _stop(router)
-    assert stopped is not None and stats is not None
+    assert stopped is not None and stats is not None and rec_line is not None
     keys = stats["keys"]
     data = {k: v for k, v in keys.items() if k.endswith("/samples")}
     assert set(data) == {k for k in running["keys"]}, (sorted(data), running["keys"])
@@ -299,6 +320,26 @@ def test_cell_over_three_hosts_in_order_refusals_and_router_restart(cell: Cell) 
         # what the subscriber lost is what the daemon could not hand to a router (within
         # the router watch's 10 ms look either side: 2 messages a side at 200 Hz)
         assert abs(st["lost_batches"] - summary["messages_unrouted"]) <= 10, (key, st, summary)
+    # the subscriber's recording marks its holes: the router's restart, as many
+    # messages as it lacks, near what the daemon counted unrouted
+    holes = _holes(cell.dir / "app.mcap", running["keys"])
+    assert rec_line["holes"] == sum(len(h) for h, _ in holes.values()) > 0, rec_line
+    for key, (marked, lacking) in holes.items():
+        assert sum(h["count"] for h in marked) == lacking, (key, marked, lacking)
+        assert {h["reason"] for h in marked} <= {"router_down"}, marked
+        unrouted = stopped["devices"][key.split("/")[-2]]["messages_unrouted"]
+        assert abs(lacking - unrouted) <= 10, (key, lacking, unrouted)
+    # ... which the twin's reader says (twin run --replay prints it as a warning)
+    from calibration.twin.streams import read_recording_streams
+
+    note = read_recording_streams(cell.dir / "app.mcap").note
+    assert f"the recorder marked {rec_line['holes']} hole(s)" in note, note
+    # the clock 0.5 s off: measured against the router's through TLS and its access
+    # control, said once on stderr
+    clock = stopped["host_clock"]
+    assert clock is not None and not clock["within_tolerance"], clock
+    assert abs(clock["offset_ms"] - 500.0) <= clock["uncertainty_ms"] + 5.0, clock
+    assert _stderr(daemon).count("ms ahead of the router's") == 1, _stderr(daemon)[-2000:]
     # the twin's own keys passed: the daemon recorded them (from the router)
     assert twin_docs(rec) > 0
     # the refusals were logged by the router, naming the identity and the key

@@ -1,0 +1,106 @@
+"""The hole finder of ``daq record`` (daq.recording_holes), the daemon's report to its
+workers (daq.worker.DaemonReport) and the clock test hook (daq.bus.clock_shift_ns): their
+logic without processes; tests/daq/test_router_faults.py runs them for real."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from daq.bus import CLOCK_SHIFT_ENV, clock_shift_ns, utc_offset_ns
+from daq.errors import ConfigError
+from daq.recording_holes import HoleFinder, hole_reason
+from daq.worker import DaemonReport
+
+KEY = "cell/c/robot/r/tracker/samples"
+HEALTH = "cell/c/robot/r/tracker/health"
+S = 1_000_000_000
+
+
+def _doc(unrouted: int | None = None, unsent: int = 0) -> dict:
+    doc: dict = {"device": "tracker", "messages_unsent": unsent}
+    if unrouted is not None:
+        doc["messages_unrouted"] = unrouted
+    return doc
+
+
+def test_a_router_outage_seen_from_both_ends_is_router_down_with_the_publishers_count():
+    changes = [0]
+    f = HoleFinder(lambda: changes[0], wait_s=3.0)
+    f.on_health(HEALTH, _doc(4), 1 * S)
+    for i in range(10):
+        f.on_batch(KEY, i, 2 * S + i)
+    changes[0] = 2  # the recorder lost its router and found it again
+    f.on_batch(KEY, 35, 5 * S)  # 25 messages never came
+    assert f.due(5 * S) == []  # waits for the publisher's documents after the hole
+    f.on_health(HEALTH, _doc(29), 5 * S + 1)
+    assert f.due(5 * S + 2) == []  # the first may be behind the daemon's count
+    f.on_health(HEALTH, _doc(30), 6 * S)
+    (hole,) = f.due(6 * S)
+    assert (hole.first_missing, hole.last_missing, hole.count) == (10, 34, 25)
+    assert hole.reason == "router_down" and hole.recorder_lost_router
+    assert hole.publisher_unrouted == 26 and hole.publisher_unsent == 0
+    assert hole.t_before_ns == 2 * S + 9 and hole.t_after_ns == 5 * S
+    assert json.loads(hole.to_json())["count"] == 25
+    assert (f.holes, f.messages_missing) == (1, 25)
+    assert f.due(7 * S) == []  # written once
+
+
+def test_reasons_from_each_end_alone_and_none():
+    assert hole_reason(False, 5, 0) == "publisher_link"
+    assert hole_reason(True, 0, 0) == "recorder_link"
+    assert hole_reason(True, None, None) == "recorder_link"
+    assert hole_reason(False, 0, 3) == "publish_failed"
+    assert hole_reason(False, None, None) == "unknown"
+
+
+def test_without_documents_a_hole_is_written_after_the_wait_and_at_the_end():
+    f = HoleFinder(None, wait_s=1.0)
+    f.on_batch(KEY, 0, 0)
+    f.on_batch(KEY, 3, S)
+    assert f.due(S + S // 2) == []
+    (hole,) = f.due(2 * S)
+    assert hole.count == 2 and hole.reason == "unknown" and hole.publisher_unrouted is None
+    f.on_batch(KEY, 9, 3 * S)
+    (last,) = f.drain()
+    assert (last.first_missing, last.last_missing) == (4, 8)
+
+
+def test_a_sequence_that_starts_again_or_repeats_is_no_hole():
+    f = HoleFinder(None)
+    for seq in (0, 1, 2, 0, 1, 1, 2):  # a publisher restarted; a repeat
+        f.on_batch(KEY, seq, seq)
+    assert f.drain() == []
+
+
+def test_a_count_not_said_before_the_hole_is_not_attributed():
+    f = HoleFinder(None, wait_s=10.0)
+    f.on_batch(KEY, 0, 0)
+    f.on_batch(KEY, 5, S)
+    f.on_health(HEALTH, _doc(100), 2 * S)  # a recorder that started mid-run
+    f.on_health(HEALTH, _doc(100), 3 * S)
+    (hole,) = f.due(3 * S)
+    assert hole.publisher_unrouted is None and hole.publisher_unsent is None
+    assert hole.reason == "unknown"
+
+
+def test_the_daemons_report_reaches_the_health_document():
+    r = DaemonReport()
+    assert r.add_to({"a": 1}) == {"a": 1}  # nothing said: nothing added
+    r.read('{"messages_unrouted": 7, "host_clock": {"offset_ms": 500.0}}\n')
+    r.read('{"messages_unrouted": 9}\n')  # the clock kept
+    r.read("not json\n")  # ignored, logged
+    assert r.add_to({}) == {"messages_unrouted": 9, "host_clock": {"offset_ms": 500.0}}
+
+
+def test_the_clock_hook_shifts_the_offset_and_refuses_what_is_not_seconds(monkeypatch):
+    monkeypatch.delenv(CLOCK_SHIFT_ENV, raising=False)
+    base = utc_offset_ns()
+    monkeypatch.setenv(CLOCK_SHIFT_ENV, "0.5")
+    assert clock_shift_ns() == 500_000_000
+    assert abs(utc_offset_ns() - base - 500_000_000) < 5_000_000
+    for bad in ("abc", "nan", "inf"):
+        monkeypatch.setenv(CLOCK_SHIFT_ENV, bad)
+        with pytest.raises(ConfigError, match=rf"\${CLOCK_SHIFT_ENV}: expected seconds"):
+            clock_shift_ns()
