@@ -11,7 +11,9 @@ samples lost (by sequence numbers: what a daemon acquired from its subscriber's 
 sample on and the subscriber did not receive, holes and tail alike), latency subscriber
 receive − mapped device latch time (p50 and p99: the median and the worst over the
 devices), CPU per process from /proc (each device's worker, each daemon's own process,
-the router, the subscribers) over the measured window, and the host's load.
+the router, the subscribers) over the measured window, and the host's load. Before the
+N cells, a one-cell run through the same router (``reference_1_cell``): on a shared host,
+the N-cell figures read against it, measured minutes apart in the same run.
 
     python -m benchmarks.bench_hosts --cells 4             # 4 cells x 3 devices, 15 s
     python -m benchmarks.bench_cells --cells 4 --seconds 30
@@ -279,8 +281,9 @@ def _summary(
     }
 
 
-def run_plant(cells: int, seconds: float) -> dict[str, Any]:
-    """The PKI (a CA, a daemon and a twin certificate per cell) and one plant run."""
+def run_plant(cells: int, seconds: float, reference: bool = False) -> dict[str, Any]:
+    """The PKI (a CA, a daemon and a twin certificate per cell) and one plant run; with
+    ``reference``, a one-cell run first, through the same router (same run, same host)."""
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         names = [identity(r, k) for k in range(2, cells + 1) for r in ("daemon", "twin")]
@@ -289,9 +292,14 @@ def run_plant(cells: int, seconds: float) -> dict[str, Any]:
              "DNS:localhost,IP:127.0.0.1", *names],
             check=True, capture_output=True, timeout=120,
         )  # fmt: skip
+        ref = None
+        if reference:
+            ref = {"load_avg_before": os.getloadavg(), **plant(work, 1, seconds)}
         load0 = os.getloadavg()
-        out = plant(work, cells, seconds)
-    return {"load_avg_before": load0, **out}
+        out = {"load_avg_before": load0, **plant(work, cells, seconds)}
+    if ref is not None:
+        out["reference_1_cell"] = {k: v for k, v in ref.items() if k != "per_cell"}
+    return out
 
 
 def run(quick: bool = True) -> list[dict[str, Any]]:
@@ -307,10 +315,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.bench_cells", description=__doc__)
     ap.add_argument("--cells", type=int, default=4, help="cells, 3 fake devices each (4)")
     ap.add_argument("--seconds", type=float, default=15.0, help="measured seconds (15)")
+    ap.add_argument("--no-reference", action="store_true", help="no one-cell reference run before")
     args = ap.parse_args(argv)
     if not 1 <= args.cells <= 50:
         ap.error("--cells: 1 to 50")
-    print(json.dumps(run_plant(args.cells, args.seconds), indent=1))
+    reference = args.cells > 1 and not args.no_reference
+    print(json.dumps(run_plant(args.cells, args.seconds, reference), indent=1))
     return 0
 
 
