@@ -227,7 +227,7 @@ def _summary(
     """The run's figures: loss, latency, CPU per process kind (cores)."""
     per_cell = {}
     p50s, p99s = [], []
-    lost = received = acquired = 0
+    lost = received = acquired = messages = 0
     for k in range(1, cells + 1):
         data = {key: v for key, v in stats[k]["keys"].items() if key.endswith("/samples")}
         foreign = [key for key in stats[k]["keys"] if not key.startswith(f"cell/cell{k}/")]
@@ -243,6 +243,7 @@ def _summary(
             cell_lost += max(0, done - int(v["first_seq"]) - v["samples"])
         lost += cell_lost
         received += sum(v["samples"] for v in data.values())
+        messages += sum(v["batches"] for v in data.values())
         acquired += sum(int(v.get("samples", 0)) for v in devices.values())
         per_cell[f"cell{k}"] = {
             "keys": len(data),
@@ -266,6 +267,9 @@ def _summary(
         "lost": lost,
         "samples_received": received,
         "samples_acquired": acquired,
+        # 1 at 1 kHz when the daemon keeps up (a read holds one sample); more when it
+        # runs behind and a read takes the backlog
+        "samples_per_message": received / messages if messages else None,
         "p50_ms_median": float(np.median(p50s)) if p50s else None,
         "p50_ms_worst": max(p50s, default=None),
         "p99_ms_median": float(np.median(p99s)) if p99s else None,
