@@ -15,14 +15,18 @@ import json
 import signal
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from daq.cells import cell_name
 from edges.command import progress
 from edges.options import integer, number, path_text
 from view.errors import ViewError
 from view.scene import MAGNIFICATIONS
+
+if TYPE_CHECKING:
+    import zenoh
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 
@@ -185,7 +189,9 @@ def _zenoh_client(endpoints: tuple[str, ...]) -> Any:
         raise ViewError(f"--connect {' '.join(endpoints)}: {reason}") from None
 
 
-def pick_cell(session: Any, cell: str | None, where: str, say: Any) -> str | None:
+def pick_cell(
+    session: zenoh.Session, cell: str | None, where: str, say: Callable[[str], None]
+) -> str | None:
     """The cell the live view follows: ``cell`` (``--cell``), else the only cell up on the
     bus (said on stderr); several up: a :class:`ViewError` naming them (the view would
     draw one robot from several cells' gratings); none up yet: None, every cell."""
