@@ -87,13 +87,13 @@ def plant(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Plant]:
         assert procs[0].stdout is not None
         assert json.loads(procs[0].stdout.readline())["daq"] == "router"
         daemons = {}
-        for cell in CELLS:
+        for cell in CELLS:  # both starting at once
             (work / f"{cell}.toml").write_text(_cell_toml(cell, port), encoding="utf-8")
-            d = daq_cli("run", "--config", f"{cell}.toml", cwd=work, env=env)
-            procs.append(d)
+            daemons[cell] = daq_cli("run", "--config", f"{cell}.toml", cwd=work, env=env)
+            procs.append(daemons[cell])
+        for d in daemons.values():
             assert d.stdout is not None
             assert json.loads(d.stdout.readline())["daq"] == "running", d.stderr
-            daemons[cell] = d
         twin = _client(port)
 
         def put_health(session: zenoh.Session) -> None:
