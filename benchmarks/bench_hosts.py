@@ -12,6 +12,9 @@ Loopback only: what the router adds in hops, TLS and access control, not a netwo
 
     python -m benchmarks.bench_hosts                      # 2 rounds of each, 15 s
     python -m benchmarks.bench_hosts --seconds 30 --rounds 3
+    python -m benchmarks.bench_hosts --cells 4            # 4 cells x 3 devices, one router
+
+``--cells N``: the plant of N cells through one router instead (benchmarks.bench_cells).
 """
 
 from __future__ import annotations
@@ -76,9 +79,10 @@ def one_round(work: Path, via_router: bool, seconds: float) -> dict[str, Any]:
             where = ["--config", "viewer.toml"]
         else:
             where = ["--connect", f"tcp/127.0.0.1:{port}"]
-        (work / "cell.toml").write_text(cell)
+        # a configured cell says "no recording" in its file (--no-record: the emulated one)
+        (work / "cell.toml").write_text(cell + "\n[recording]\nenabled = false\n")
         d = subprocess.Popen(
-            [PY, "-m", "daq.cli", "run", "--config", "cell.toml", "--no-record",
+            [PY, "-m", "daq.cli", "run", "--config", "cell.toml",
              "--duration", str(seconds + WARMUP_S)],
             cwd=work, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
@@ -163,7 +167,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.bench_hosts", description=__doc__)
     ap.add_argument("--seconds", type=float, default=15.0, help="measured seconds a round")
     ap.add_argument("--rounds", type=int, default=2, help="rounds of each mode")
+    ap.add_argument(
+        "--cells", type=int, help="N cells x 3 devices through one router (bench_cells)"
+    )
     args = ap.parse_args(argv)
+    if args.cells is not None:
+        from benchmarks.bench_cells import main as cells_main
+
+        return cells_main(["--cells", str(args.cells), "--seconds", str(args.seconds)])
     print(json.dumps(compare(args.seconds, args.rounds), indent=1))
     return 0
 

@@ -8,6 +8,7 @@ Commands (docs/daq.md)::
     daq recover FILE.mcap [-o OUT.mcap | --in-place]                 a damaged file's readable part
     daq info FILE.mcap                                               channels, counts, damage
     daq echo KEYEXPR [--stats [--stats-window S]] [--jsonl FILE] [--duration S]   look at a key
+    daq echo --cell NAME ...                                         one cell's keys (cell/NAME/**)
     daq schema KEY                                                   the JSON schema of a key
     daq router --config router.json5                                 a zenoh router (zenohd's file)
 
@@ -33,6 +34,7 @@ import os
 import re
 import sys
 
+from daq.cells import cell_name
 from daq.config import ENDPOINT_RE, RATE_HZ, resolve, sink_zenoh
 from daq.errors import DaqError
 from edges.command import run_command, take_debug_flag
@@ -217,7 +219,14 @@ def _recover_options(p: argparse.ArgumentParser) -> None:
 
 def _echo_options(p: argparse.ArgumentParser) -> None:
     """The options of ``daq echo``."""
-    p.add_argument("key", nargs="?", type=key_expr, default="cell/**")
+    # default cell/** (every cell), with --cell that cell's keys (daq.cells.echo_key)
+    p.add_argument("key", nargs="?", type=key_expr, default=None)
+    p.add_argument(
+        "--cell",
+        type=cell_name,
+        metavar="NAME",
+        help="that cell's keys only (cell/NAME/**; a KEYEXPR must lie within its keys)",
+    )
     p.add_argument("--config", type=path_text, help="take zenoh settings from this cell TOML")
     p.add_argument("--duration", type=POSITIVE_S, help="stop after S seconds")
     p.add_argument("--count", type=integer(1), help="stop after N batches")

@@ -351,6 +351,9 @@ def run_echo(
 
 
 def main_echo(args: Any, zc: ZenohConfig) -> int:
+    from daq.cells import echo_key
+
+    key = echo_key(args.key, getattr(args, "cell", None))  # refused before any output
     opened: list[IO[str]] = []
     jsonl: IO[str] | Callable[[], IO[str]] | None = None
     if args.jsonl == "-":
@@ -369,7 +372,7 @@ def main_echo(args: Any, zc: ZenohConfig) -> int:
         jsonl = jsonl_open
     try:
         run_echo(
-            args.key,
+            key,
             zc,
             duration_s=args.duration,
             count=args.count,

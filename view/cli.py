@@ -1,7 +1,7 @@
 """``twin view``: the twin in a web browser, on a recording or live.
 
 twin view --replay run.mcap [--model DIR/calibrated.toml] [--port N]
-twin view [--connect EP] [--model DIR/calibrated.toml] [--port N]
+twin view [--connect EP] [--cell NAME] [--model DIR/calibrated.toml] [--port N]
 
 Serves a local page (127.0.0.1, viser's own client; nothing from the internet) and prints
 one JSON line with its URL; stops on Ctrl-C / SIGTERM or after ``--duration``. See
@@ -15,13 +15,18 @@ import json
 import signal
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from daq.cells import cell_name
 from edges.command import progress
 from edges.options import integer, number, path_text
 from view.errors import ViewError
 from view.scene import MAGNIFICATIONS
+
+if TYPE_CHECKING:
+    import zenoh
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 
@@ -46,6 +51,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default=None,
         metavar="EP",
         help=f"live: zenoh endpoint of the daemon (and/or the twin) ({DEFAULT_CONNECT})",
+    )
+    p.add_argument(
+        "--cell",
+        type=cell_name,
+        metavar="NAME",
+        help="live: that cell's keys only (cell/NAME/**, twin/NAME/**); without it, the "
+        "only cell up, and a bus with several cells asks for one",
     )
     p.add_argument(
         "--model",
@@ -154,28 +166,68 @@ def _replay_source(args: argparse.Namespace, say: Any) -> tuple[Any, Any, str]:
     return source, model, f"replay {path.name}"
 
 
-def _live_source(args: argparse.Namespace, say: Any) -> tuple[Any, Any, str]:
+def _zenoh_client(endpoints: tuple[str, ...]) -> Any:
+    """A zenoh client of ``endpoints``; TLS to a router from the environment, as the live
+    twin's (docs/deployment.md: DAQ_ZENOH_TLS_CA, _CERTIFICATE, _PRIVATE_KEY)."""
     from daq.bus import open_session
-    from daq.config import ZenohConfig
+    from daq.config import ZenohConfig, env_overrides
+
+    env = env_overrides().get("zenoh", {})
+    zc = ZenohConfig(
+        mode="client",
+        listen=(),
+        connect=endpoints,
+        tls_ca=str(env.get("tls_ca", "")),
+        tls_certificate=str(env.get("tls_certificate", "")),
+        tls_private_key=str(env.get("tls_private_key", "")),
+    )
+    try:
+        # a client of the daemon: its session routes the cell's and the twin's keys
+        return open_session(zc)
+    except Exception as exc:  # zenoh refuses a malformed endpoint with its own error type
+        reason = str(exc).split(" at /", 1)[0]  # zenoh appends its Rust source location
+        raise ViewError(f"--connect {' '.join(endpoints)}: {reason}") from None
+
+
+def pick_cell(
+    session: zenoh.Session, cell: str | None, where: str, say: Callable[[str], None]
+) -> str | None:
+    """The cell the live view follows: ``cell`` (``--cell``), else the only cell up on the
+    bus (said on stderr); several up: a :class:`ViewError` naming them (the view would
+    draw one robot from several cells' gratings); none up yet: None, every cell."""
+    from daq.cells import cells_on_bus
+
+    if cell is not None:
+        return cell
+    up = cells_on_bus(session)
+    if len(up) > 1:
+        cells = ", ".join(up)
+        raise ViewError(f"--connect {where}: cells {cells} are up there: pick one with --cell")
+    if up:
+        say(f"cell {up[0]}: the only cell up (--cell picks another)")
+        return up[0]
+    say("no cell up yet: following every cell (cell/**, twin/**; --cell picks one)")
+    return None
+
+
+def _live_source(args: argparse.Namespace, say: Any) -> tuple[Any, Any, str]:
     from view.model import load_calibration, nominal_twin
     from view.sources import LiveSource
 
     model = load_calibration(args.model, args.robot) if args.model else None
     model = model or nominal_twin(args.robot or "kr500")
     endpoints = tuple(args.connect or [DEFAULT_CONNECT])
+    where = " ".join(endpoints)
     say(f"connecting to {', '.join(endpoints)}")
+    session = _zenoh_client(endpoints)
     try:
-        # a client of the daemon: its session routes the cell's and the twin's keys
-        session = open_session(ZenohConfig(mode="client", listen=(), connect=endpoints))
-    except Exception as exc:  # zenoh refuses a malformed endpoint with its own error type
-        reason = str(exc).split(" at /", 1)[0]  # zenoh appends its Rust source location
-        raise ViewError(f"--connect {' '.join(endpoints)}: {reason}") from None
-    try:
-        source = LiveSource(session, model, say=say)
+        cell = pick_cell(session, getattr(args, "cell", None), where, say)
+        source = LiveSource(session, model, say=say, cell=cell)
     except Exception:
         session.close()
         raise
-    return source, model, f"live {', '.join(endpoints)}"
+    title = f"live {', '.join(endpoints)}" + (f", cell {cell}" if cell else "")
+    return source, model, title
 
 
 def run_view(args: argparse.Namespace) -> int:
@@ -185,6 +237,8 @@ def run_view(args: argparse.Namespace) -> int:
     say = progress("twin view", args.quiet)
     if args.allow_partial and not args.replay:
         raise ViewError("--allow-partial goes with --replay (a recording)")
+    if args.cell is not None and args.replay:
+        raise ViewError("--cell goes with --connect (live): a recording holds its own cell")
     if args.model is not None and not Path(args.model).is_file():
         raise ViewError(f"--model {args.model}: no such file")
     source, model, title = (_replay_source if args.replay else _live_source)(args, say)
@@ -196,8 +250,10 @@ def run_view(args: argparse.Namespace) -> int:
         if args.replay:
             source.clock.play()
         mode = "replay" if args.replay else "live"
-        print(json.dumps({"view": url, "port": int(url.rsplit(":", 1)[1].strip("/")),
-                          "mode": mode}), flush=True)  # fmt: skip
+        up = {"view": url, "port": int(url.rsplit(":", 1)[1].strip("/")), "mode": mode}
+        if isinstance(source, LiveSource):
+            up["cell"] = source.cell  # the cell it follows (None: every cell)
+        print(json.dumps(up), flush=True)
         say(f"serving {url} ({model.source})")
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: view.stop())

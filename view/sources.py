@@ -9,8 +9,9 @@ latest sample wins and the ones between two frames are only counted.
   :mod:`daq.recording_reader` and :mod:`daq.columnar`) and answers for any time of a
   :class:`ReplayClock` (play, pause, speed, seek): a pure function of the time.
 * :class:`LiveSource` subscribes to the daemon's data keys (``cell/**``) and the live
-  twin's (``twin/**``, docs/topics.md) with :class:`daq.bus.Receiver`, keeping the latest
-  twin sample, the recent tracker and grating samples and the twin's health.
+  twin's (``twin/**``, docs/topics.md), or one cell's (``cell/<cell>/**``,
+  ``twin/<cell>/**``), with :class:`daq.bus.Receiver`, keeping the latest twin sample,
+  the recent tracker and grating samples and the twin's health.
 """
 
 from __future__ import annotations
@@ -297,16 +298,20 @@ class LiveSource:
         session: zenoh.Session,
         twin: TwinModel,
         *,
-        data_key: str = "cell/**",
-        twin_key: str = "twin/**",
+        cell: str | None = None,
         window_s: float = 60.0,
         rate_hz: float = 1000.0,
         phase_period_s: float = 2.0,
         say: Callable[[str], None] = lambda _t: None,
     ) -> None:
         from daq.bus import Receiver
+        from daq.cells import cell_data_key, cell_twin_key
 
         self.session = session  # the caller's: it closes it after this source
+        #: the cell followed (``cell/<cell>/**``, ``twin/<cell>/**``); None: every cell
+        self.cell = cell
+        data_key = cell_data_key(cell) if cell is not None else "cell/**"
+        twin_key = cell_twin_key(cell) if cell is not None else "twin/**"
         self.twin = twin
         self.say = say
         n = twin.n_joints

@@ -33,8 +33,8 @@ except the replay cases marked (session), which listen on a free loopback port.
 | run options: --duration -1/nan, --rate 0/nan, --record onto --config, --record '{x}' | 6 |
 | record: -o into a missing directory, onto --config, a directory, /proc, --duration | 7 |
 |   0/nan, bad key expression | |
-| echo: --jsonl into a missing directory, onto --config, /proc, a directory; --count | 9 |
-|   0/-1/x, --idle -1, bad key expression | |
+| echo: --jsonl into a missing directory, onto --config, /proc, a directory; --count | 12 |
+|   0/-1/x, --idle -1, bad key expression; --cell a/b and '*', a key outside --cell | |
 | schema: --timeout 0/inf, bad key expression | 3 |
 | zenoh endpoints: --listen garbage (replay), --connect without a protocol (echo) | 2 |
 | demo: --speed 0, --port 0/70000, --rate nan, --seed -1, --robot unknown, --out a file | 7 |
@@ -53,7 +53,7 @@ exit 141), a config with a byte-order mark or CRLF line ends (same as the plain 
 The timed cases (a device absent at start, echo/record to nobody) are in
 tests/test_bad_input_daq_live.py (``realtime``).
 
-Total: 122 refused inputs as processes, 14 accepted ones checked for their result, and
+Total: 125 refused inputs as processes, 14 accepted ones checked for their result, and
 the fuzz tests (reader, recover, config loader: random bytes, every truncation of a small
 recording, byte mutations, records without a CRC; 150 examples each, ``FUZZ_EXAMPLES``
 sets more). ``pytest -s`` prints the tally: tried, clear errors, tracebacks, hangs, silent
@@ -781,6 +781,10 @@ def test_echo_outputs_and_options(work):
     refused(work, daq("echo", "--count", "x", *z), ["--count", "integer"])
     refused(work, daq("echo", "--idle", "-1", *z), ["--idle"])
     refused(work, daq("echo", "a/**/**", *z), ["key expression"])
+    refused(work, daq("echo", "--cell", "a/b", *z), ["--cell", "'a/b'", "cell name"])
+    refused(work, daq("echo", "--cell", "*", *z), ["--cell", "cell name"])
+    # a key outside the cell's keys, with --cell: no subscription to nothing
+    refused(work, daq("echo", "cell/c2/**", "--cell", "c1", *z), ["cell/c2/**", "--cell c1"])
 
 
 def test_zenoh_endpoint_options(work):

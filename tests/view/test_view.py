@@ -248,6 +248,8 @@ def test_the_live_source_keeps_the_latest_twin_sample_and_the_twins_health():
         (["--replay", str(DATA), "--connect", "tcp/127.0.0.1:7447"], "--connect"),
         (["--connect", "nonsense"], "--connect"),
         (["--allow-partial"], "--allow-partial"),
+        (["--replay", str(DATA), "--cell", "cell1"], "--cell"),
+        (["--cell", "a/b"], "--cell"),
     ],
 )
 def test_bad_input_is_one_line_naming_it_and_exit_2(tmp_path, args, names):
