@@ -448,11 +448,17 @@ def _run_daemon_and_echo(
         args = [PY, "-m", "daq.cli", "run", "--duration", str(seconds + warmup_s)]
         if config_text is not None:
             cfg = Path(tmp) / "cell.toml"
-            cfg.write_text(config_text)
+            # a configured cell says "no recording" in its file (--no-record is the
+            # emulated cell's flag: refused beside --config)
+            off = (
+                "" if record or "[recording]" in config_text else "\n[recording]\nenabled = false\n"
+            )
+            cfg.write_text(config_text + off)
             args += ["--config", str(cfg)]
+            args += ["--record", str(Path(tmp) / "bench.mcap")] if record else []
         else:
             args += ["--listen", f"tcp/127.0.0.1:{port}"]
-        args += ["--record", str(Path(tmp) / "bench.mcap")] if record else ["--no-record"]
+            args += ["--record", str(Path(tmp) / "bench.mcap")] if record else ["--no-record"]
         procs: list[subprocess.Popen] = []
         ref: list[subprocess.Popen] = []
         try:
