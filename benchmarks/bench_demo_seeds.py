@@ -19,6 +19,10 @@ mapping, batch jitter, the motor encoders (the twin only summarizes them).
     python -m benchmarks.bench_demo_seeds [--seeds 1-20] [--effect gravity_deflection]
         [--cache DIR]
 
+Each seed's row: the effects added, the validation mean AP per stage, the joint fit's rounds
+(``calibration.twin.fit_rounds``), the gravity form test's p (the physical form is kept
+when p ≥ 0.01), why the loop stopped, and the wall times.
+
 ``--cache DIR`` keeps each seed's sampled streams in ``DIR/demo_<effect>_seed<k>.npz``
 (numpy arrays, no pickle) and reads them back on the next run, so that only the twin runs
 again: sampling the streams is most of a seed's time.
@@ -174,11 +178,18 @@ def outcome(
     added = [] if loop is None else list(loop.added)
     alone = len(added) == 1 and added[0].kind == "gravity_deflection"
     stages = [] if loop is None else [s.mean_ap("validate") for s in loop.stages]
+    forms = (
+        []
+        if loop is None
+        else [s.shape["gravity_form"] for s in loop.stages if "gravity_form" in s.shape]
+    )
     return {
         "seed": seed,
         "added": "; ".join(s.label for s in added) or "(none)",
         "gravity_alone_physical": alone and added[0].parameter == "physical",
         "validate_mean_mm": " -> ".join(f"{v:.4f}" for v in stages),
+        "joint_fit_rounds": len(run.calibration.rounds),
+        "form_p": " ".join(f"{f['p_value']:.2g}" for f in forms),
         "stopped": "" if loop is None else loop.stop.text,
         "streams_s": round(t1 - t0, 1),
         "twin_s": round(t2 - t1, 1),
