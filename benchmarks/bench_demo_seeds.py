@@ -17,13 +17,24 @@ Not modelled here (the live chain has them): device clock drift and the daemon's
 mapping, batch jitter, the motor encoders (the twin only summarizes them).
 
     python -m benchmarks.bench_demo_seeds [--seeds 1-20] [--effect gravity_deflection]
+        [--cache DIR]
+
+Each seed's row: the effects added, the validation mean AP per stage, the joint fit's rounds
+(``calibration.twin.fit_rounds``), the gravity form test's p (the physical form is kept
+when p ≥ 0.01), why the loop stopped, and the wall times.
+
+``--cache DIR`` keeps each seed's sampled streams in ``DIR/demo_<effect>_seed<k>.npz``
+(numpy arrays, no pickle) and reads them back on the next run, so that only the twin runs
+again: sampling the streams is most of a seed's time.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -113,11 +124,53 @@ def simulated_streams(seed: int, effect: str = "gravity_deflection") -> CellStre
     return CellStreams(grating, tracker, None, f"simulated demo, seed {seed}")
 
 
-def outcome(seed: int, effect: str = "gravity_deflection") -> dict[str, Any]:
+_STREAM_ARRAYS = ("t_ns", "values", "status", "seq", "epoch", "t_rx_ns", "mapped_ok", "t_device_us")
+
+
+def _save_streams(path: Path, streams: CellStreams) -> None:
+    arrays: dict[str, Any] = {}
+    head: dict[str, Any] = {"source": streams.source}
+    for name in ("grating", "tracker"):
+        s: Stream = getattr(streams, name)
+        head[name] = {"key": s.key, "kind": s.kind, "device": s.device,
+                      "channels": s.channels, "meta": s.meta}  # fmt: skip
+        arrays.update({f"{name}.{a}": getattr(s, a) for a in _STREAM_ARRAYS})
+    arrays["head"] = np.array(json.dumps(head))
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(path)
+
+
+def _load_streams(path: Path) -> CellStreams:
+    with np.load(path, allow_pickle=False) as z:
+        head = json.loads(str(z["head"]))
+        parts = [
+            Stream(**head[name], **{a: z[f"{name}.{a}"] for a in _STREAM_ARRAYS})
+            for name in ("grating", "tracker")
+        ]
+    return CellStreams(parts[0], parts[1], None, head["source"])
+
+
+def cached_streams(seed: int, effect: str, cache: Path | None) -> CellStreams:
+    """:func:`simulated_streams`, kept in (and read back from) ``cache`` when given."""
+    if cache is None:
+        return simulated_streams(seed, effect)
+    path = cache / f"demo_{effect}_seed{seed}.npz"
+    if path.exists():
+        return _load_streams(path)
+    streams = simulated_streams(seed, effect)
+    cache.mkdir(parents=True, exist_ok=True)
+    _save_streams(path, streams)
+    return streams
+
+
+def outcome(
+    seed: int, effect: str = "gravity_deflection", cache: Path | None = None
+) -> dict[str, Any]:
     """One seed: the effects ``twin run`` added, and whether that is the gravity deflection
     alone in its physical form."""
     t0 = time.perf_counter()
-    streams = simulated_streams(seed, effect)
+    streams = cached_streams(seed, effect, cache)
     t1 = time.perf_counter()
     run = run_twin(streams, "kr500")
     t2 = time.perf_counter()
@@ -125,11 +178,18 @@ def outcome(seed: int, effect: str = "gravity_deflection") -> dict[str, Any]:
     added = [] if loop is None else list(loop.added)
     alone = len(added) == 1 and added[0].kind == "gravity_deflection"
     stages = [] if loop is None else [s.mean_ap("validate") for s in loop.stages]
+    forms = (
+        []
+        if loop is None
+        else [s.shape["gravity_form"] for s in loop.stages if "gravity_form" in s.shape]
+    )
     return {
         "seed": seed,
         "added": "; ".join(s.label for s in added) or "(none)",
         "gravity_alone_physical": alone and added[0].parameter == "physical",
         "validate_mean_mm": " -> ".join(f"{v:.4f}" for v in stages),
+        "joint_fit_rounds": len(run.calibration.rounds),
+        "form_p": " ".join(f"{f['p_value']:.2g}" for f in forms),
         "stopped": "" if loop is None else loop.stop.text,
         "streams_s": round(t1 - t0, 1),
         "twin_s": round(t2 - t1, 1),
@@ -153,11 +213,12 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_demo_seeds", description=__doc__)
     p.add_argument("--seeds", default="1-20", help="seed range, e.g. 1-20 (default)")
     p.add_argument("--effect", default="gravity_deflection")
+    p.add_argument("--cache", type=Path, help="keep the sampled streams here (docstring)")
     args = p.parse_args(argv)
     hits = 0
     seeds = _seeds(args.seeds)
     for seed in seeds:
-        row = outcome(seed, args.effect)
+        row = outcome(seed, args.effect, args.cache)
         hits += bool(row["gravity_alone_physical"])
         print(" | ".join(f"{k}: {v}" for k, v in row.items()), flush=True)
     print(f"gravity deflection alone, physical form: {hits}/{len(seeds)}")

@@ -38,6 +38,13 @@ FloatArray = NDArray[np.float64]
 #: more with the loop's modelled gravity deflection taken out of the sweeps.
 MAX_ROUNDS = 3
 
+#: The share of a round's newly found deflection that the next round takes out, the rest
+#: staying at what this round took out: ½, the mean of the two. The rounds over-correct
+#: (a deflection taken out too large comes back too small, and so on: they alternate about
+#: the fixed point), and the mean of two alternating estimates is the fixed point's own;
+#: a fixed point of the damped rounds is one of the undamped ones.
+DEFLECTION_STEP = 0.5
+
 
 @dataclass(frozen=True, eq=False)
 class TwinRound:
@@ -102,8 +109,9 @@ class TwinCalibration:
                 "gravity deflection, the next round refits the maps with that deflection "
                 "taken out of the sweeps and runs the identification and the loop again, "
                 "once more while the loop still finds a harmonic of a gravity-loaded joint "
-                "or the deflection moved beyond twice its standard error "
-                f"(at most {MAX_ROUNDS} rounds)"
+                "or the deflection moved beyond twice its standard error, each further "
+                "round taking out the mean of what the round before took out and what its "
+                f"loop found (at most {MAX_ROUNDS} rounds)"
             ),
             "rounds": [r.summary() for r in self.rounds],
         }
@@ -134,8 +142,11 @@ def calibrate_twin(
     so it does while the deflection itself still moves between rounds by more than twice
     its standard error (a first round whose maps carried the load can give a gravity term
     that lends one joint another's deflection; at most :data:`MAX_ROUNDS` rounds);
-    otherwise a further round would only redraw the estimate's noise into the maps. The
-    last round is the twin.
+    otherwise a further round would only redraw the estimate's noise into the maps. From
+    round 3 on, a round takes out the mean of what the round before took out and what that
+    round's loop found (:data:`DEFLECTION_STEP`): taken out whole, the rounds over-correct
+    and alternate instead of settling (docs/twin-run.md, "The joint fit"). The last round
+    is the twin.
     """
 
     def one_round(deflection: dict[int, FloatArray] | None) -> TwinRound:
@@ -208,8 +219,14 @@ def _refitted_rounds(
         if moved:
             say(f"joint fit: the deflection of joint(s) {', '.join(map(str, moved))} moved "
                 "beyond its noise: once more")  # fmt: skip
-        deflection = refined[0]
+        deflection = _damped(deflection, refined[0])
     return tuple(rounds)
+
+
+def _damped(taken: dict[int, FloatArray], found: dict[int, FloatArray]) -> dict[int, FloatArray]:
+    """What the next round takes out of each joint's sweep ``(S, n)`` rad: ``taken`` (this
+    round's) moved by :data:`DEFLECTION_STEP` of the way to ``found`` (its loop's)."""
+    return {j: taken[j] + DEFLECTION_STEP * (found[j] - taken[j]) for j in found}
 
 
 def _deflection_moved(
