@@ -25,6 +25,12 @@ target sees the effects physically downstream of its link: the gravity deflectio
 1..J and a drifting length of joints 1..J; sag, tracker scale and noise apply to every
 target.
 
+The cell's drift (``[effects.drift]``, :mod:`sim_devices.drift`'s physics) moves the
+truth on the simulated clock from production's start (:func:`production_start_s`): a TCP
+target by all of it, a link target by its rigid part (base creep, tracker bump); the
+seed's draws are in the truth document. The ``production`` program
+(:func:`production_program`) shows the tracker the reflector only at its check poses.
+
 Clocks: :class:`SimClock` maps the host's ``time.monotonic()`` to wall seconds since the
 emulator started and to simulated robot-program seconds (``speed`` times faster); each
 device has its own :class:`DeviceClock` (drift in ppm, restarts).
