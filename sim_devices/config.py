@@ -68,11 +68,18 @@ class CellSection:
     # robot seconds the campaign holds at Home before it starts (the operator starting the
     # program once every device is recorded: a daemon connecting late loses no sweep)
     start_hold_s: float = 0.0
+    # program = "production": check poses visited in turn, one every check_every_s of
+    # simulated time, each dwelt at for check_dwell_s with the reflector in view
+    check_every_s: float = 120.0
+    check_poses: int = 12
+    check_dwell_s: float = 2.0
 
 
 PROGRAMS = {
     "campaign": "grating calibration (home returns, 2° sweeps; tracker target on the swept "
     "link) + 100 id + 150 validation poses (TCP target; [cell] plan: a plan's poses)",
+    "production": "looping production: a check pose (reflector in view) every "
+    "check_every_s, dwelling check_dwell_s, working between them (reflector out of view)",
     "random": "free trajectory through random reachable poses, looping",
     "hold": "stand still at Home",
 }
@@ -92,8 +99,9 @@ class EffectsSection:
     # effects the twin is not told about, shared with the campaign generator
     # ([effects.undeclared], sim_devices/effects.py; all off by default)
     undeclared: UndeclaredEffects = field(default_factory=UndeclaredEffects)
-    # the truth moving during a production run ([effects.drift], sim_devices/drift.py; all
-    # off by default): read by the campaign generator's --cell for its --checks file
+    # the truth moving during production ([effects.drift], sim_devices/drift.py; all off by
+    # default): the live cell on its simulated clock from start_s, and the campaign
+    # generator's --cell for its --checks file
     drift: CellDrift = field(default_factory=CellDrift)
 
 
@@ -175,6 +183,9 @@ RANGES: dict[str, Range] = {
     "cell.seed": SEED,
     "cell.speed": Range(0.0, 1000.0, lo_open=True, what="program seconds per wall second"),
     "cell.start_hold_s": Range(0.0, 1e6, what="robot seconds"),
+    "cell.check_every_s": Range(1.0, 1e6, what="simulated s between checks"),
+    "cell.check_poses": Range(1, 1000, what="check poses"),
+    "cell.check_dwell_s": Range(0.01, 3600.0, what="simulated s"),
     "cell.eccentricity_mm": Range(0.0, 1.0, what="mm; a strip's mounting eccentricity is µm"),
     "effects.stiffness_nmm_per_rad": Range(0.0, lo_open=True, empty=False, what="N·mm/rad"),
     "effects.backlash_deg": Range(0.0, 10.0, empty=False, what="deg, full gap"),
@@ -198,6 +209,10 @@ RANGES: dict[str, Range] = {
     "effects.drift.bump_mm": Range(0.0, 10.0, what="mm"),
     "effects.drift.bump_deg": Range(0.0, 5.0, what="deg"),
     "effects.drift.remount_mm": Range(0.0, 10.0, what="mm"),
+    "effects.drift.start_s": Range(
+        what="simulated s; < 0: the campaign program's end, 0 for the other programs"
+    ),
+    "effects.drift.span_s": Range(0.0, lo_open=True, what="simulated s of production"),
     "grating.unit_id": Range(1, 247, what="a Modbus unit id"),
     "grating.rate_hz": Range(1.0, 20000.0),
     "grating.buffer_samples": Range(1, 1_000_000),
@@ -293,6 +308,13 @@ def _check(cfg: CellConfig, source: str) -> None:
         fail("cell", "program", f"must be one of {', '.join(PROGRAMS)}, got {cfg.cell.program!r}")
     if cfg.cell.plan and cfg.cell.program != "campaign":
         fail("cell", "plan", f"only the 'campaign' program runs a plan, not {cfg.cell.program!r}")
+    if cfg.cell.check_dwell_s >= cfg.cell.check_every_s:
+        fail(
+            "cell",
+            "check_dwell_s",
+            f"{cfg.cell.check_dwell_s:g} s must be shorter than check_every_s "
+            f"({cfg.cell.check_every_s:g} s)",
+        )
     if not cfg.cell.robot.strip():
         fail("cell", "robot", "must name a preset or a robot description file")
     ids = cfg.encoders.node_ids

@@ -51,6 +51,10 @@ class CellDrift:
     bump_mm: float = 0.2
     bump_deg: float = 0.05
     remount_mm: float = 0.3
+    # the live cell (sim-cell) only; the campaign generator starts production 10 min after
+    # its campaign and draws the steps over its --check-hours
+    start_s: float = -1.0  # production's start, simulated s; < 0: the program's (see plant)
+    span_s: float = 28800.0  # production's length, simulated s: the steps fall in its middle 60 %
 
     @property
     def any_active(self) -> bool:
@@ -125,10 +129,49 @@ def drifted_tcp_mm(
     true ``model`` at joints ``(N, n)`` rad and times ``(N,)`` s."""
     q = np.atleast_2d(np.asarray(q_rad, dtype=float))
     t = np.broadcast_to(np.asarray(t_s, dtype=float), (len(q),))
-    u = np.maximum(t - draws.start_s, 0.0)
     p, jac = identification_jacobian(model, q)
+    return rigid_drift_mm(
+        settings, draws, model.base_mm, _grown(settings, draws, model, jac, t, p), t
+    )
+
+
+def drifted_points_mm(
+    settings: CellDrift,
+    draws: DriftDraws,
+    model: KinematicModel,
+    q_rad: ArrayLike,
+    t_s: ArrayLike,
+    points_mm: FloatArray,
+    *,
+    tcp: bool,
+) -> FloatArray:
+    """True points ``(N, 3)`` mm of the undrifted cell (its physical effects included) at
+    joints ``(N, n)`` rad and times ``(N,)`` s, as the drifting cell's tracker sees them:
+    a TCP target (``tcp``) gets all of the drift (the growth and the remount through the
+    true ``model``'s Jacobian, as :func:`drifted_tcp_mm`), a target on a link the rigid
+    part alone (base creep, tracker bump; its links' growth is left out)."""
+    q = np.atleast_2d(np.asarray(q_rad, dtype=float))
+    t = np.broadcast_to(np.asarray(t_s, dtype=float), (len(q),))
+    p = np.asarray(points_mm, dtype=float)
+    if tcp and (settings.thermal or "tool_remount" in draws.step_times_s):
+        p = _grown(settings, draws, model, identification_jacobian(model, q)[1], t, p)
+    return rigid_drift_mm(settings, draws, model.base_mm, p, t)
+
+
+def _grown(
+    settings: CellDrift,
+    draws: DriftDraws,
+    model: KinematicModel,
+    jac: FloatArray,
+    t: FloatArray,
+    p: FloatArray,
+) -> FloatArray:
+    """``p`` ``(N, 3)`` plus the thermal growth and the remounted tool, linear through the
+    identification Jacobian ``jac`` ``(N, 3, P)`` of the true model (exact: a point is
+    linear in every ``a``, ``d`` and tool coordinate)."""
     n = model.n_joints
     if settings.thermal:
+        u = np.maximum(t - draws.start_s, 0.0)
         warm = 1e-6 * settings.thermal_ppm * (1.0 - np.exp(-u / settings.thermal_time_constant_s))
         for j in range(n):
             for col, length in ((5 * j, model.a_mm[j]), (5 * j + 2, model.d_mm[j])):
@@ -138,14 +181,23 @@ def drifted_tcp_mm(
         offset = settings.remount_mm * draws.remount_direction
         moved = (t >= t_remount)[:, None]
         p = p + moved * np.einsum("mij,j->mi", jac[:, :, 5 * n + 6 :], offset)
+    return p
+
+
+def rigid_drift_mm(
+    settings: CellDrift, draws: DriftDraws, base_mm: FloatArray, p: FloatArray, t: FloatArray
+) -> FloatArray:
+    """Points ``p`` ``(N, 3)`` mm at times ``t`` ``(N,)`` s moved by the rigid drift: the
+    base's creep (a turn about the vertical through ``base_mm`` and a slide) and, from its
+    time on, the bumped tracker's frame."""
     if settings.creep:
-        hours = u / 3600.0
+        hours = np.maximum(t - draws.start_s, 0.0) / 3600.0
         angle = np.radians(1e-3 * settings.creep_mdeg_per_h * hours)
-        rel = p - model.base_mm
+        rel = p - base_mm
         c, s = np.cos(angle), np.sin(angle)
         turned = np.stack([c * rel[:, 0] - s * rel[:, 1], s * rel[:, 0] + c * rel[:, 1], rel[:, 2]])
         p = (
-            model.base_mm
+            base_mm
             + turned.T
             + (settings.creep_mm_per_h * hours)[:, None] * (draws.creep_direction)
         )

@@ -7,8 +7,10 @@ Units: rad, rad/s, rad/s², seconds of simulated time.
 
 Each move also names the tracker target that is mounted while it runs (motion and dwell):
 ``"tcp"`` (the tool's target) or ``"link:J"`` (the target fixed on link J, 1-based, for
-joint J's scale calibration). The target changes at a move's start; the campaign program
-makes every change a zero-motion move whose dwell is the operator moving the reflector.
+joint J's scale calibration), or ``"none"`` (:data:`HIDDEN`: the reflector out of the
+tracker's view, e.g. the production program's work between its checks: the tracker reports
+a broken beam). The target changes at a move's start; the campaign program makes every
+change a zero-motion move whose dwell is the operator moving the reflector.
 """
 
 from __future__ import annotations
@@ -29,7 +31,11 @@ class Move:
     speed: float = 1.0
     dwell_s: float = 0.0
     label: str = ""
-    target: str = "tcp"  # tracker target mounted during this move: "tcp" or "link:J"
+    target: str = "tcp"  # tracker target during this move: "tcp", "link:J" or HIDDEN
+
+
+#: The move's tracker target: none in view (the tracker's beam is broken meanwhile).
+HIDDEN = "none"
 
 
 def parse_target(target: str) -> int | None:
@@ -87,7 +93,8 @@ class Trajectory:
                 raise ValueError(f"move {k}: target must have {n} joints")
             if not 0.0 < mv.speed <= 1.0:
                 raise ValueError(f"move {k}: speed must be in (0, 1], got {mv.speed}")
-            parse_target(mv.target)
+            if mv.target != HIDDEN:
+                parse_target(mv.target)
             d = target - q
             dist = np.abs(d)
             v = vmax * mv.speed

@@ -25,6 +25,12 @@ target sees the effects physically downstream of its link: the gravity deflectio
 1..J and a drifting length of joints 1..J; sag, tracker scale and noise apply to every
 target.
 
+The cell's drift (``[effects.drift]``, :mod:`sim_devices.drift`'s physics) moves the
+truth on the simulated clock from production's start (:func:`production_start_s`): a TCP
+target by all of it, a link target by its rigid part (base creep, tracker bump); the
+seed's draws are in the truth document. The ``production`` program
+(:func:`production_program`) shows the tracker the reflector only at its check poses.
+
 Clocks: :class:`SimClock` maps the host's ``time.monotonic()`` to wall seconds since the
 emulator started and to simulated robot-program seconds (``speed`` times faster); each
 device has its own :class:`DeviceClock` (drift in ppm, restarts).
@@ -42,7 +48,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration.model.description import RobotDescription, load_robot
 from calibration.model.kinematics import KinematicModel, tcp_positions
-from sim_devices.config import CellConfig, read_plan
+from sim_devices.config import CellConfig, CellSection, read_plan
+from sim_devices.drift import DriftDraws, draw_drift, drifted_points_mm
 from sim_devices.effects import (
     grating_reading_rad,
     true_point_mm,
@@ -50,7 +57,7 @@ from sim_devices.effects import (
     with_derived_stiffness,
 )
 from sim_devices.gears import GearTrain
-from sim_devices.motion import Move, Trajectory, parse_target
+from sim_devices.motion import HIDDEN, Move, Trajectory, parse_target
 from sim_devices.truth import TrackerModel, TrueCell
 
 FloatArray = NDArray[np.float64]
@@ -144,11 +151,28 @@ class Plant:
             self.link_joint = int(target[4:]) - 1
             if not 0 <= self.link_joint < n:
                 raise ValueError(f"tracker target {target}: robot has {n} joints")
-        for k in range(len(trajectory.labels)):
-            j = parse_target(trajectory.target_of(k))
-            if j is not None and not 0 <= j < n:
+        #: per program move: -1 the TCP target, -2 none in view (HIDDEN), else the
+        #: 0-based joint whose link carries the target
+        self._target_table = np.array(
+            [_target_index(trajectory.target_of(k)) for k in range(len(trajectory.labels))],
+            dtype=np.intp,
+        )
+        for k, j in enumerate(self._target_table.tolist()):
+            if not j < n:
                 raise ValueError(f"program move {k}: target link:{j + 1}, robot has {n} joints")
         self._blocks: dict[int, FloatArray] = {}
+        #: the truth's drift ([effects.drift]) and the seed's draws for it; None: none
+        self.drift = config.effects.drift
+        self.drift_draws: DriftDraws | None = None
+        if self.drift.any_active:
+            start = production_start_s(config.cell, trajectory, self.drift.start_s)
+            self.drift_draws = draw_drift(
+                self.drift,
+                n,
+                start,
+                start + self.drift.span_s,
+                np.random.default_rng([config.cell.seed, 28]),
+            )
 
     @classmethod
     def from_config(cls, config: CellConfig, clock: SimClock | None = None) -> Plant:
@@ -161,7 +185,12 @@ class Plant:
         rng = np.random.default_rng(config.cell.seed + 1)
         planned = read_plan(config, nominal, "cell config")
         trajectory = build_program(
-            config.cell.program, nominal, rng, planned, start_hold_s=config.cell.start_hold_s
+            config.cell.program,
+            nominal,
+            rng,
+            planned,
+            start_hold_s=config.cell.start_hold_s,
+            cell=config.cell,
         )
         return cls(cell, trajectory, config, clock or SimClock(config.cell.speed))
 
@@ -236,25 +265,26 @@ class Plant:
 
     def tcp_target(self, wall_s: ArrayLike | None, n: int) -> NDArray[np.bool_]:
         """Per sample ``(n,)``: the tracker's target is the TCP reflector (not a link's)."""
-        tcp: NDArray[np.bool_] = self._links(wall_s, n) < 0
+        tcp: NDArray[np.bool_] = self._links(wall_s, n) == -1
         return tcp
 
+    def hidden_target(self, wall_s: ArrayLike | None, n: int) -> NDArray[np.bool_]:
+        """Per sample ``(n,)``: no target in the tracker's view (a move of the program
+        with target ``"none"``: the production program's work between its checks)."""
+        hidden: NDArray[np.bool_] = self._links(wall_s, n) == -2
+        return hidden
+
     def _links(self, wall_s: ArrayLike | None, n: int) -> NDArray[np.intp]:
-        """Per sample: -1 for the TCP target, else the 0-based joint carrying the target."""
+        """Per sample: -1 for the TCP target, -2 for none in view, else the 0-based joint
+        carrying the target."""
         if self.link_joint is not None:
             return np.full(n, self.link_joint, dtype=np.intp)
         if not self.follow_program:
             return np.full(n, -1, dtype=np.intp)
         wall = self.clock.wall_s() if wall_s is None else wall_s
         seg = self.trajectory.segments_at(np.broadcast_to(self.clock.sim_s(wall), (n,)))
-        table = np.array(
-            [
-                -1 if (j := parse_target(self.trajectory.target_of(k))) is None else j
-                for k in range(len(self.trajectory.labels))
-            ],
-            dtype=np.intp,
-        )
-        return table[seg]
+        out: NDArray[np.intp] = self._target_table[seg]
+        return out
 
     def link_target_mm(self, joint: int, q_out_rad: FloatArray, sim_s: ArrayLike) -> FloatArray:
         """True position ``(N, 3)`` of the target on link ``joint`` (0-based), with the
@@ -266,7 +296,10 @@ class Plant:
         """True target positions ``(N, 3)`` in the tracker frame for joint outputs.
 
         Which target (TCP or a link's) follows the program at the samples' wall times
-        ``wall_s`` (``(N,)`` or scalar), or at the clock's current time when not given.
+        ``wall_s`` (``(N,)`` or scalar), or at the clock's current time when not given
+        (none in view: the TCP's point, which the tracker does not report). The cell's
+        drift (``[effects.drift]``) moves them last, on the simulated clock: the tracker
+        frame moves with a bump, so it is the outermost transform.
         """
         q = np.atleast_2d(q_out_rad)
         und = self.undeclared
@@ -291,6 +324,20 @@ class Plant:
             base = self.truth_model.base_mm
             reach_m = np.linalg.norm((pts - base)[:, :2], axis=1) / 1000.0
             pts[:, 2] -= self.config.effects.sag_mm_per_m2 * reach_m**2
+        if self.drift_draws is not None:
+            wall = self.clock.wall_s() if wall_s is None else wall_s
+            sim = np.broadcast_to(self.clock.sim_s(wall), (len(q),))
+            for sel, at_tcp in ((tcp, True), (~tcp, False)):
+                if sel.any():
+                    pts[sel] = drifted_points_mm(
+                        self.drift,
+                        self.drift_draws,
+                        self.truth_model,
+                        q[sel],
+                        sim[sel],
+                        pts[sel],
+                        tcp=at_tcp,
+                    )
         return pts
 
     def grating_counts(
@@ -318,6 +365,11 @@ class Plant:
             doc["plant"]["deflection_stiffness_nmm_per_rad"] = [
                 float(v) if np.isfinite(v) else 0.0 for v in k
             ]
+        if self.drift_draws is not None:  # what moved and when (the twin is never told)
+            doc["drift"] = {
+                "settings": self.drift.document(),
+                "draws": self.drift_draws.document(),
+            }
         doc["program"] = self.trajectory.schedule()
         doc["config"] = self.config.to_document()
         return doc
@@ -429,10 +481,12 @@ def build_program(
     planned: tuple[FloatArray, FloatArray] | None = None,
     *,
     start_hold_s: float = 0.0,
+    cell: CellSection | None = None,
 ) -> Trajectory:
-    """A built-in program by name (``campaign``, ``random``, ``hold``); ``planned``: the
-    campaign's identify and validate poses (rad), a plan's (:func:`campaign_moves`);
-    ``start_hold_s``: the campaign first holds at Home this long (robot seconds)."""
+    """A built-in program by name (``campaign``, ``production``, ``random``, ``hold``);
+    ``planned``: the campaign's identify and validate poses (rad), a plan's
+    (:func:`campaign_moves`); ``start_hold_s``: the campaign first holds at Home this long
+    (robot seconds); ``production`` takes its check poses, period and dwell from ``cell``."""
     vmax = np.radians(DEFAULT_VMAX_DEG_S[: desc.n_joints])
     amax = np.radians(DEFAULT_AMAX_DEG_S2[: desc.n_joints])
     home = np.radians(desc.home)
@@ -441,6 +495,8 @@ def build_program(
         if start_hold_s > 0.0 and moves:  # the first target mounted already
             moves.insert(0, Move(tuple(home), 0.3, start_hold_s, "start hold", moves[0].target))
         return Trajectory.build(home, moves, vmax, amax)
+    if name == "production":
+        return production_program(desc, rng, cell or CellSection(), vmax, amax)
     if name == "random":
         poses = _random_poses(desc, 50, rng)
         moves = [Move(tuple(q), 0.5, 0.2, f"free {k}") for k, q in enumerate(poses)]
@@ -449,3 +505,55 @@ def build_program(
     if name == "hold":
         return Trajectory.build(home, [Move(tuple(home), 1.0, 1.0, "hold")], vmax, amax)
     raise ValueError(f"unknown program {name!r}")
+
+
+def production_program(
+    desc: RobotDescription,
+    rng: np.random.Generator,
+    cell: CellSection,
+    vmax: FloatArray,
+    amax: FloatArray,
+) -> Trajectory:
+    """Production with periodic checks, looping: ``cell.check_poses`` random reachable
+    check poses in turn (the campaign's pose sampler), one every ``cell.check_every_s`` of
+    simulated time. A cycle: to the check pose, then ``cell.check_dwell_s`` there with the
+    reflector in view (the TCP target: the check), then to a random work pose, working
+    there until the next cycle (the last cycle works at Home, where the loop starts). The
+    reflector is out of view (:data:`HIDDEN`) whenever the robot moves or works: every
+    valid point is one of a check's dwell (the tracker locks on once the robot stands),
+    however the streams' clocks are aligned. A cycle is never shorter than its two moves
+    and the check's dwell (~10-20 s on the KR500); the truth's schedule has every time."""
+    home = np.radians(desc.home)
+    checks = _random_poses(desc, cell.check_poses, rng)
+    work = np.vstack([_random_poses(desc, cell.check_poses - 1, rng), home[None, :]])
+
+    def moves(fill_s: FloatArray) -> list[Move]:
+        out: list[Move] = []
+        for k, (q_check, q_work) in enumerate(zip(checks, work, strict=True)):
+            out.append(Move(tuple(q_check), 0.5, 0.0, f"to check {k}", HIDDEN))
+            out.append(Move(tuple(q_check), 0.5, cell.check_dwell_s, f"check {k}", "tcp"))
+            out.append(Move(tuple(q_work), 0.5, float(fill_s[k]), f"work {k}", HIDDEN))
+        return out
+
+    # the moves' durations do not depend on the dwells: build once to time them
+    timed = Trajectory.build(home, moves(np.zeros(len(checks))), vmax, amax)
+    busy = timed.move_s[0::3] + cell.check_dwell_s + timed.move_s[2::3]
+    fill = np.maximum(cell.check_every_s - busy, 0.0)
+    return Trajectory.build(home, moves(fill), vmax, amax, repeat=True)
+
+
+def production_start_s(cell: CellSection, trajectory: Trajectory, start_s: float) -> float:
+    """When production (the truth's drift) starts, simulated s: ``start_s`` when given
+    (>= 0), else the end of the campaign program (the campaign calibrates the undrifted
+    cell) or 0 for the other programs."""
+    if start_s >= 0.0:
+        return start_s
+    return float(trajectory.end_s) if cell.program == "campaign" else 0.0
+
+
+def _target_index(target: str) -> int:
+    """-1 for the TCP target, -2 for none in view, else the 0-based joint of ``link:J``."""
+    if target == HIDDEN:
+        return -2
+    j = parse_target(target)
+    return -1 if j is None else j

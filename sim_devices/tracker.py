@@ -153,7 +153,10 @@ class TrackerInstrument:
             hidden[tcp] = true_view_codes(self.plant.cell, self.geometry, state.q_out_rad[tcp]) != 0
             status[hidden] = 1
             pts[hidden] = np.nan
-        broken = self.beam_broken(np.asarray(wall_s))
+        # the reflector out of view (a program move without a target) or the beam broken
+        broken = self.beam_broken(np.asarray(wall_s)) | self.plant.hidden_target(
+            np.asarray(wall_s), len(pts)
+        )
         status[broken] = 1  # 1: obstructed
         pts[broken] = np.nan
         return pts, status

@@ -39,6 +39,7 @@ REALTIME_MODULES = frozenset(
         "test_sim_cell",
         "test_twin_endpoint",
         "test_twin_live",
+        "test_twin_live_drift",
         "test_twin_live_tracking",
         "test_view",
     }

@@ -319,10 +319,18 @@ def test_pose_campaign_writes_a_drifting_check_file_from_flags_and_cell_toml(tmp
     assert "thermal = true" in truth and "creep = true" in truth and "tracker_bump" in truth
 
 
-def test_drift_needs_a_check_file_and_the_live_cell_refuses_it(tmp_path):
-    (tmp_path / "cell.toml").write_text("[effects.drift]\ncreep = true\n")
+def test_drift_needs_a_check_file_and_the_live_cell_drifts_from_its_config(tmp_path):
+    (tmp_path / "cell.toml").write_text("[effects.drift]\ncreep = true\nspan_s = -1\n")
     proc = _sim(tmp_path, "sim_devices.pose_campaign", "--out", "c.csv", "--drift", "thermal")
     assert proc.returncode == 2 and "--checks" in proc.stderr
     assert not (tmp_path / "c.csv").exists()
-    live = _sim(tmp_path, "sim_devices.cli", "serve", "--config", "cell.toml", "--duration", "1")
-    assert live.returncode == 2 and "[effects.drift]" in live.stderr, live.stderr
+    # the live cell takes [effects.drift] (tests/sim_devices/test_sim_live_drift.py), its
+    # keys checked like every other
+    live = _sim(tmp_path, "sim_devices.cli", "truth", "--config", "cell.toml", "--out", "t.toml")
+    assert live.returncode == 2 and "[effects.drift]: key 'span_s'" in live.stderr, live.stderr
+    assert not (tmp_path / "t.toml").exists()
+    (tmp_path / "cell.toml").write_text('[effects.drift]\ncreep = true\nsteps = ["tracker_bump"]\n')
+    live = _sim(tmp_path, "sim_devices.cli", "truth", "--config", "cell.toml", "--out", "t.toml")
+    assert live.returncode == 0, live.stderr
+    truth = (tmp_path / "t.toml").read_text()
+    assert "[drift.draws.step_times_s]" in truth and "tracker_bump = " in truth

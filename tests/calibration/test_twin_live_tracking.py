@@ -8,7 +8,8 @@ row per used dwell (errors of the order of the model's own, no step on the cell 
 calibrated on), and the published TCP is the tracked geometry's, no longer the
 calibrated one's. With ``--no-tracking`` nothing of it: no tracking key, the published
 TCP the calibrated model's at the published joints. The drifting cell, step and all, is
-tests/calibration/test_live_tracking.py (in process).
+tests/calibration/test_live_tracking.py (in process) and
+tests/calibration/test_twin_live_drift.py (the live cell drifting, real processes).
 """
 
 from __future__ import annotations

@@ -197,3 +197,15 @@ def test_the_twins_tracking_becomes_a_plottable_channel(tmp_path):
     assert last["parameters"] == {"base.x_mm": 1002.0, "joint2.length_scale": 1.00002}
     assert last["tracking"]["state"] == 2 and last["tracking"]["alarms"] == 1
     assert np.isclose(last["tracking"]["error_mm"], 0.03)
+
+
+def test_the_shipped_layout_plots_the_tracking_channel_by_its_fields():
+    from daq.foxglove_channels import TRACKING_FIELDS
+
+    layout = json.loads((Path(__file__).parents[2] / "docs" / "foxglove-layout.json").read_text())
+    panel = layout["configById"]["Plot!tracking"]
+    prefix = '"twin/emulated/robot/robot1/tracking/values".tracking.'
+    fields = [p["value"].removeprefix(prefix) for p in panel["paths"]]
+    assert all(p["value"].startswith(prefix) for p in panel["paths"])
+    assert "error_mm" in fields and set(fields) <= set(TRACKING_FIELDS), fields
+    assert "Plot!tracking" in json.dumps(layout["layout"])  # placed, not only configured
