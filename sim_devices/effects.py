@@ -16,6 +16,10 @@ One physical implementation of each, shared by the pose campaign generator
   linear or approaching a final value exponentially.
 * **thermal lag**: a link length (its own joint and parameter) growing as
   ``A·(1 − e^(−t/τ))`` from the campaign's start (the arm warming up).
+* **thermal expansion** with a temperature: every link length grows
+  ``κ·L·(T(t) − T_ref)``, T the arm's temperature warming up with the hall's air-handling
+  cycle on top (:func:`arm_temperature_c`); the campaign writes it as ``temp_c`` with a
+  sensor's noise (the only effect the twin is given a measurement of).
 * **tracker scale error**: distance-proportional (about the tracker, the origin of the
   world frame), constant and/or drifting with time (air temperature).
 * **lost motion** downstream of the ring: joint j stands ``±w_j`` off depending on the
@@ -52,6 +56,8 @@ EFFECT_NAMES: dict[str, str] = {
     "grating_cyclic": "cyclic error of one joint's grating reading (harmonic of its angle)",
     "thermal_drift": "a link length growing with campaign time",
     "thermal_lag": "a link length growing as A·(1 − exp(−t/τ)) from the campaign start",
+    "thermal_expansion": "every link length growing ∝ (T − T_ref) with the arm's temperature, "
+    "which warms up with an air-handling cycle on top (written as temp_c)",
     "tracker_scale": "distance-proportional tracker scale error (constant and/or drifting)",
     "lost_motion": "direction-dependent lost motion after the grating ring",
 }
@@ -90,6 +96,15 @@ class UndeclaredEffects:
     lag_parameter: str = "a"  # "a" or "d" of that joint
     lag_mm: float = 0.15  # final growth A
     lag_time_constant_s: float = 900.0  # τ
+    thermal_expansion: bool = False
+    expansion_ppm_per_k: float = 11.5  # steel
+    temp_ref_c: float = 20.0  # the true geometry's temperature (ISO 1)
+    temp_start_c: float = 21.0  # the arm at the campaign's start
+    temp_rise_k: float = 3.0  # warm-up, approached as 1 − e^(−t/τ)
+    temp_time_constant_s: float = 1800.0
+    temp_cycle_k: float = 0.5  # the air handling's cycle: amplitude
+    temp_cycle_period_s: float = 1200.0
+    temp_sensor_noise_k: float = 0.05  # 1 σ of the temp_c reading
     tracker_scale: bool = False
     tracker_scale_ppm: float = 20.0
     tracker_scale_drift_ppm_per_h: float = 0.0
@@ -244,6 +259,27 @@ def length_lag_mm(settings: UndeclaredEffects, t_s: ArrayLike) -> FloatArray:
     return settings.lag_mm * (1.0 - np.exp(-t / settings.lag_time_constant_s))
 
 
+def arm_temperature_c(settings: UndeclaredEffects, t_s: ArrayLike) -> FloatArray:
+    """The arm's true temperature ``(N,)`` °C at campaign times ``t_s``: a warm-up
+    ``T0 + ΔT·(1 − e^(−t/τ))`` and the hall's air-handling cycle ``A·sin(2πt/P)`` (a
+    temperature no polynomial or lag in time follows)."""
+    t = np.asarray(t_s, dtype=float)
+    warm = settings.temp_rise_k * -np.expm1(-t / settings.temp_time_constant_s)
+    cycle = settings.temp_cycle_k * np.sin(2.0 * np.pi * t / settings.temp_cycle_period_s)
+    out: FloatArray = settings.temp_start_c + warm + cycle
+    return out
+
+
+def expansion_ppm(settings: UndeclaredEffects, t_s: ArrayLike) -> FloatArray:
+    """Growth ``(N,)`` ppm of every link length at times ``t_s``: ``κ·(T − T_ref)``."""
+    t = np.asarray(t_s, dtype=float)
+    if not settings.thermal_expansion:
+        return np.zeros_like(t)
+    rise = arm_temperature_c(settings, t) - settings.temp_ref_c
+    out: FloatArray = settings.expansion_ppm_per_k * rise
+    return out
+
+
 _PARAMETER_OFFSET = {"a": 0, "d": 2}  # position in a joint's 5 parameters (a, α, d, θ, β)
 
 
@@ -275,8 +311,8 @@ def true_point_mm(
     with an optional process force ``(N, 3)`` N on the tool.
 
     Links 1..link+1 stand at the ring angles plus :func:`link_rotation_rad`; a changing
-    length upstream of the point adds along its own direction (a point is linear in every
-    a and d, so this is exact).
+    length upstream of the point adds along its own direction, the thermal expansion of
+    every length along their sum (a point is linear in every a and d, so this is exact).
     """
     body = physical_arm(arm)
     q = np.atleast_2d(np.asarray(q_ring_rad, dtype=float))
@@ -285,6 +321,13 @@ def true_point_mm(
     q_sub = q_link[:, : link + 1]
     pts = tcp_positions(sub, q_sub)
     x = sub.parameter_vector()
+    if settings.thermal_expansion:
+        lengths = np.zeros_like(x, dtype=bool)
+        lengths[0 : 5 * (link + 1) : 5] = lengths[2 : 5 * (link + 1) : 5] = True
+        grown = x.copy()
+        grown[lengths] *= 1.0 + 1e-6
+        per_ppm = tcp_positions(sub.with_parameters(grown), q_sub) - pts
+        pts = pts + expansion_ppm(settings, np.broadcast_to(t_s, (len(q),)))[:, None] * per_ppm
     for index, growth in length_changes(settings, np.broadcast_to(t_s, (len(q),))):
         if index >= 5 * (link + 1):  # downstream of the point's link
             continue

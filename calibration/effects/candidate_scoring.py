@@ -37,16 +37,21 @@ from calibration.effects.effect_base import EffectSpec
 FloatArray = NDArray[np.float64]
 
 #: Physical priority of effect kinds (lower first) when the data cannot tell them apart.
+#: A term driven by a measured temperature comes before one driven by the clock: the
+#: temperature is the cause a drift in time stands in for.
 PRIORITY: dict[str, int] = {
     "gravity_deflection": 0,
     "gravity_compliance": 0,
-    "length_drift": 1,
-    "lost_motion": 1,
-    "instrument_scale": 1,
-    "instrument_scale_drift": 1,
-    "joint_harmonic": 2,
+    "thermal_expansion": 1,
+    "length_temperature": 1,
+    "instrument_scale_temperature": 1,
+    "length_drift": 2,
+    "lost_motion": 2,
+    "instrument_scale": 2,
+    "instrument_scale_drift": 2,
+    "joint_harmonic": 3,
 }
-GENERIC_PRIORITY = 3
+GENERIC_PRIORITY = 4
 #: Two candidates whose principal cosines are all at least this cannot be told apart.
 INDISTINGUISHABLE_COSINE = 0.95
 

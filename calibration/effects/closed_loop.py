@@ -229,13 +229,14 @@ class ClosedLoopResult:
 def campaign_effect_data(
     description: RobotDescription, campaign: Campaign, *, sweep_referenced: bool = False
 ) -> EffectData:
-    """Effect data of a whole campaign: directions from its pose sequence (from Home).
+    """Effect data of a whole campaign: directions from its pose sequence (from Home),
+    the temperatures of its ``temp_c`` column when it has one.
 
     ``sweep_referenced``: the joint readings come from scale maps fitted on sweeps with
     the other joints at Home, which absorbed each swept link's deflection there.
     """
     home = np.radians(description.home)
-    data = EffectData.from_sequence(campaign.q_rad, campaign.t_s, home)
+    data = EffectData.from_sequence(campaign.q_rad, campaign.t_s, home, temp_c=campaign.temp_c)
     return replace(data, sweep_reference=home) if sweep_referenced else data
 
 

@@ -23,6 +23,10 @@ from calibration.effects.effect_base import (
 from calibration.effects.effect_gravity import counterbalance_terms
 from calibration.effects.effect_harmonics import HarmonicOfJoint
 from calibration.effects.effect_kinds import KINDS, check_kinds
+from calibration.effects.effect_thermal import (
+    MIN_TEMPERATURE_RANGE_K,
+    reference_temperature_c,
+)
 
 
 # -- candidates, terms, descriptions ----------------------------------------------------------
@@ -75,7 +79,9 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
 
     ``kinds`` restricts the kinds offered (default: all but ``gravity_compliance``, the
     mass-model form of the gravity term, which is offered only when named). Time terms
-    need ``t_s``, lost motion the approach directions, ``gravity_compliance`` a mass model.
+    need ``t_s``, temperature terms a ``temp_c`` varying by at least
+    :data:`~calibration.effects.effect_thermal.MIN_TEMPERATURE_RANGE_K`, lost motion the
+    approach directions, ``gravity_compliance`` a mass model.
     Harmonics come at every order :func:`harmonic_orders` resolves; each joint's orders of
     one kind are one scan (:func:`scan_key`).
     """
@@ -83,11 +89,16 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
     check_kinds(allowed)
     n = ctx.description.n_joints
     has_t = ctx.data.t_s is not None and float(np.ptp(ctx.data.t_s)) > 0
+    temp = ctx.data.temp_c
+    has_temp = temp is not None and float(np.ptp(temp)) >= MIN_TEMPERATURE_RANGE_K
+    t_ref = reference_temperature_c(temp) if temp is not None and has_temp else None
     out: list[EffectSpec] = []
 
     def offer(spec: EffectSpec) -> None:
         kind = KINDS[spec.kind]
         if spec.kind not in allowed or (kind.needs_time and not has_t):
+            return
+        if kind.needs_temperature and not has_temp:
             return
         if kind.needs_direction and ctx.data.direction is None:
             return
@@ -109,8 +120,15 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
         for parameter, length in (("d", joint.d_mm), ("a", joint.a_mm)):
             if abs(length) >= DRIFT_MIN_LENGTH_MM:
                 offer(EffectSpec("length_drift", joint=j, parameter=parameter))
+    for group in link_groups(n):
+        offer(EffectSpec("thermal_expansion", joints=group, t_ref_c=t_ref))
+    for j, joint in enumerate(ctx.description.joints, start=1):
+        for parameter, length in (("d", joint.d_mm), ("a", joint.a_mm)):
+            if abs(length) >= DRIFT_MIN_LENGTH_MM:
+                offer(EffectSpec("length_temperature", joint=j, parameter=parameter, t_ref_c=t_ref))
     offer(EffectSpec("instrument_scale"))
     offer(EffectSpec("instrument_scale_drift"))
+    offer(EffectSpec("instrument_scale_temperature", t_ref_c=t_ref))
     for kind in ("cartesian_harmonic", "link_harmonic"):
         for j in range(1, n + 1):
             for k in orders[j - 1]:
@@ -119,6 +137,16 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
         offer(EffectSpec("cartesian_time", joint=frame, order=1))
     offer(EffectSpec("cartesian_time", joint=0, order=2))
     return out
+
+
+def link_groups(n_joints: int) -> tuple[tuple[int, ...], ...]:
+    """The link groups of a thermal expansion: the whole arm, and for more than 3 joints
+    the arm (joints 1–3: the long castings) and the wrist (4..n) apart, which warm
+    differently (their own motors, less mass)."""
+    whole = tuple(range(1, n_joints + 1))
+    if n_joints <= 3:
+        return (whole,)
+    return (whole, (1, 2, 3), tuple(range(4, n_joints + 1)))
 
 
 def scan_key(spec: EffectSpec) -> tuple[str, int] | None:
