@@ -277,6 +277,7 @@ class Plant:
                 or und.thermal_drift
                 or und.thermal_lag
                 or und.thermal_expansion
+                or und.link_bending
             ):
                 wall = self.clock.wall_s() if wall_s is None else wall_s
                 sim = np.broadcast_to(self.clock.sim_s(wall), (len(q),))[tcp]

@@ -29,6 +29,12 @@ predictor (:func:`calibration.identify.identification.predicted_points`, through
 * ``length_drift``: a link length (``a`` or ``d`` of joint j) changing with time,
   linearly (``a_rate_mm_per_h``) or as a first-order lag (``a_final_mm``,
   ``time_constant_s``).
+* ``link_bending``: link j turning about its own x and y axes under the bending moment of
+  everything outboard (``bending_ratio``, the gravity term's weighted moments frozen);
+  offered once a physical gravity term is in.
+* ``thermal_expansion``, ``length_temperature``, ``instrument_scale_temperature``: link
+  lengths and the tracker's scale following a measured temperature (``temp_c``), linear in
+  ``T − T_ref`` (:mod:`calibration.effects.effect_thermal`).
 * ``instrument_scale``: distance-proportional scale error of the tracker (``scale_ppm``).
 * ``instrument_scale_drift``: that scale drifting with time (``rate_ppm_per_h``).
 

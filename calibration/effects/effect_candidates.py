@@ -89,16 +89,11 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
     check_kinds(allowed)
     n = ctx.description.n_joints
     has_t = ctx.data.t_s is not None and float(np.ptp(ctx.data.t_s)) > 0
-    temp = ctx.data.temp_c
-    has_temp = temp is not None and float(np.ptp(temp)) >= MIN_TEMPERATURE_RANGE_K
-    t_ref = reference_temperature_c(temp) if temp is not None and has_temp else None
     out: list[EffectSpec] = []
 
     def offer(spec: EffectSpec) -> None:
         kind = KINDS[spec.kind]
         if spec.kind not in allowed or (kind.needs_time and not has_t):
-            return
-        if kind.needs_temperature and not has_temp:
             return
         if kind.needs_direction and ctx.data.direction is None:
             return
@@ -120,15 +115,10 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
         for parameter, length in (("d", joint.d_mm), ("a", joint.a_mm)):
             if abs(length) >= DRIFT_MIN_LENGTH_MM:
                 offer(EffectSpec("length_drift", joint=j, parameter=parameter))
-    for group in link_groups(n):
-        offer(EffectSpec("thermal_expansion", joints=group, t_ref_c=t_ref))
-    for j, joint in enumerate(ctx.description.joints, start=1):
-        for parameter, length in (("d", joint.d_mm), ("a", joint.a_mm)):
-            if abs(length) >= DRIFT_MIN_LENGTH_MM:
-                offer(EffectSpec("length_temperature", joint=j, parameter=parameter, t_ref_c=t_ref))
     offer(EffectSpec("instrument_scale"))
     offer(EffectSpec("instrument_scale_drift"))
-    offer(EffectSpec("instrument_scale_temperature", t_ref_c=t_ref))
+    for spec in temperature_candidates(ctx):
+        offer(spec)
     for kind in ("cartesian_harmonic", "link_harmonic"):
         for j in range(1, n + 1):
             for k in orders[j - 1]:
@@ -137,6 +127,27 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
         offer(EffectSpec("cartesian_time", joint=frame, order=1))
     offer(EffectSpec("cartesian_time", joint=0, order=2))
     return out
+
+
+def temperature_candidates(ctx: EffectContext) -> list[EffectSpec]:
+    """The terms driven by the measured temperature, each with the median temperature
+    as its reference: none without a ``temp_c`` varying by at least
+    :data:`~calibration.effects.effect_thermal.MIN_TEMPERATURE_RANGE_K`."""
+    temp = ctx.data.temp_c
+    if temp is None or float(np.ptp(temp)) < MIN_TEMPERATURE_RANGE_K:
+        return []
+    t_ref = reference_temperature_c(temp)
+    out = [
+        EffectSpec("thermal_expansion", joints=g, t_ref_c=t_ref)
+        for g in link_groups(ctx.description.n_joints)
+    ]
+    for j, joint in enumerate(ctx.description.joints, start=1):
+        for parameter, length in (("d", joint.d_mm), ("a", joint.a_mm)):
+            if abs(length) >= DRIFT_MIN_LENGTH_MM:
+                out.append(
+                    EffectSpec("length_temperature", joint=j, parameter=parameter, t_ref_c=t_ref)
+                )
+    return [*out, EffectSpec("instrument_scale_temperature", t_ref_c=t_ref)]
 
 
 def link_groups(n_joints: int) -> tuple[tuple[int, ...], ...]:

@@ -16,6 +16,7 @@ from calibration.effects.effect_base import (
     FloatArray,
     ModelAtPoses,
 )
+from calibration.effects.effect_bending import LinkBending
 from calibration.effects.effect_gravity import GravityCompliance, GravityDeflection
 from calibration.effects.effect_harmonics import CartesianHarmonic, JointHarmonic, LinkHarmonic
 from calibration.effects.effect_lost_motion import LostMotion
@@ -38,6 +39,7 @@ KINDS.update(
         for k in (
             GravityDeflection(),
             GravityCompliance(),
+            LinkBending(),
             JointHarmonic(),
             LostMotion(),
             LengthDrift(),
