@@ -202,6 +202,14 @@ RANGES: dict[str, Range] = {
     "effects.undeclared.lag_joint": Range(1, 64, what="a joint number"),
     "effects.undeclared.lag_time_constant_s": POSITIVE,
     "effects.undeclared.lost_motion_deg": Range(0.0, 10.0, what="deg, half width"),
+    "effects.undeclared.bending_links": Range(1, 64, what="a joint number"),
+    "effects.undeclared.bending_rms_deg": POSITIVE,
+    "effects.undeclared.bending_stiffness_nmm_per_rad": Range(
+        0.0, lo_open=True, inf=True, what="N·mm/rad, inf: rigid"
+    ),
+    "effects.undeclared.temp_time_constant_s": POSITIVE,
+    "effects.undeclared.temp_cycle_period_s": POSITIVE,
+    "effects.undeclared.temp_sensor_noise_k": NON_NEGATIVE,
     "effects.drift.thermal_ppm": Range(0.0, 1000.0, what="ppm of each link length"),
     "effects.drift.thermal_time_constant_s": POSITIVE,
     "effects.drift.creep_mm_per_h": Range(0.0, 10.0, what="mm/h"),

@@ -10,12 +10,20 @@ One physical implementation of each, shared by the pose campaign generator
   emulator's own masses), an extra rotation ``tau_i / K_i`` about joint axis i *after*
   the ring the grating reads. (Gear torsion sits before the ring: the gratings see it;
   :mod:`sim_devices.gears`.)
+* **link bending** under gravity: link j (and its output bearing) turns about its own x
+  and y axes through its frame origin by ``M⊥_j / K_b,j``, ``M⊥_j`` the part of the
+  emulator's own weight moment at that origin across the joint axis
+  (:meth:`sim_devices.physical_arm.PhysicalArm.weight_moments_nmm`).
 * **cyclic grating error** left after the scale calibration: joint j's reading is
   ``q + A·sin(k·q + phi)`` (k = 2: ovality of the ring).
 * **thermal drift** of a link length (``a`` or ``d`` of one joint) with campaign time,
   linear or approaching a final value exponentially.
 * **thermal lag**: a link length (its own joint and parameter) growing as
   ``A·(1 − e^(−t/τ))`` from the campaign's start (the arm warming up).
+* **thermal expansion** with a temperature: every link length grows
+  ``κ·L·(T(t) − T_ref)``, T the arm's temperature warming up with the hall's air-handling
+  cycle on top (:func:`arm_temperature_c`); the campaign writes it as ``temp_c`` with a
+  sensor's noise (the only effect the twin is given a measurement of).
 * **tracker scale error**: distance-proportional (about the tracker, the origin of the
   world frame), constant and/or drifting with time (air temperature).
 * **lost motion** downstream of the ring: joint j stands ``±w_j`` off depending on the
@@ -49,9 +57,13 @@ FloatArray = NDArray[np.float64]
 #: Effect names (the ``--effect`` choices of the campaign generator) -> what they are.
 EFFECT_NAMES: dict[str, str] = {
     "gravity_deflection": "link/bearing compliance after the grating ring under gravity",
+    "link_bending": "links 1-3 turning about their own x and y axes under the bending "
+    "moment of everything outboard",
     "grating_cyclic": "cyclic error of one joint's grating reading (harmonic of its angle)",
     "thermal_drift": "a link length growing with campaign time",
     "thermal_lag": "a link length growing as A·(1 − exp(−t/τ)) from the campaign start",
+    "thermal_expansion": "every link length growing ∝ (T − T_ref) with the arm's temperature, "
+    "which warms up with an air-handling cycle on top (written as temp_c)",
     "tracker_scale": "distance-proportional tracker scale error (constant and/or drifting)",
     "lost_motion": "direction-dependent lost motion after the grating ring",
 }
@@ -75,6 +87,10 @@ class UndeclaredEffects:
     gravity_deflection: bool = False
     deflection_stiffness_nmm_per_rad: tuple[float, ...] = ()
     deflection_rms_deg: float = 0.005
+    link_bending: bool = False
+    bending_links: tuple[int, ...] = (1, 2, 3)  # 1-based: the column and the long arms
+    bending_rms_deg: float = 0.002  # each bending link's RMS turn over the joint ranges
+    bending_stiffness_nmm_per_rad: tuple[float, ...] = ()  # empty: from bending_rms_deg
     grating_cyclic: bool = False
     cyclic_joint: int = 1  # 1-based
     cyclic_order: int = 2
@@ -90,6 +106,15 @@ class UndeclaredEffects:
     lag_parameter: str = "a"  # "a" or "d" of that joint
     lag_mm: float = 0.15  # final growth A
     lag_time_constant_s: float = 900.0  # τ
+    thermal_expansion: bool = False
+    expansion_ppm_per_k: float = 11.5  # steel
+    temp_ref_c: float = 20.0  # the true geometry's temperature (ISO 1)
+    temp_start_c: float = 21.0  # the arm at the campaign's start
+    temp_rise_k: float = 3.0  # warm-up, approached as 1 − e^(−t/τ)
+    temp_time_constant_s: float = 1800.0
+    temp_cycle_k: float = 0.5  # the air handling's cycle: amplitude
+    temp_cycle_period_s: float = 1200.0
+    temp_sensor_noise_k: float = 0.05  # 1 σ of the temp_c reading
     tracker_scale: bool = False
     tracker_scale_ppm: float = 20.0
     tracker_scale_drift_ppm_per_h: float = 0.0
@@ -167,8 +192,75 @@ def force_rotation_rad(
     return torque / force_stiffness_nmm_per_rad(settings, body)
 
 
+def _bending_moments_nmm(body: PhysicalArm, q_rad: FloatArray) -> FloatArray:
+    """``M⊥`` ``(N, n, 3)`` N·mm, base frame: each link's weight moment across its axis."""
+    rot, _ = body.link_frames(q_rad)
+    moment = body.weight_moments_nmm(q_rad)
+    z = rot[:, :, :, 2]
+    across: FloatArray = moment - np.sum(moment * z, axis=2)[:, :, None] * z
+    return across
+
+
+def bending_stiffness_nmm_per_rad(settings: UndeclaredEffects, arm: ArmLike) -> FloatArray:
+    """Per-link bending stiffness ``(n,)`` N·mm/rad (inf: rigid): given, or each bending
+    link's RMS ``|M⊥|`` over the joint ranges over ``bending_rms_deg`` (a link built
+    for its load, as the joints are); links under 1 % of the largest RMS are rigid."""
+    body = physical_arm(arm)
+    n = body.n_joints
+    if settings.bending_stiffness_nmm_per_rad:
+        return np.resize(np.asarray(settings.bending_stiffness_nmm_per_rad, float), n)
+    across = _bending_moments_nmm(body, body.range_poses())
+    rms = np.sqrt(np.mean(np.sum(across**2, axis=2), axis=0))
+    k = np.full(n, np.inf)
+    links = [j - 1 for j in settings.bending_links if 1 <= j <= n]
+    k[links] = rms[links] / np.radians(settings.bending_rms_deg)
+    k[rms < 0.01 * max(float(rms[links].max(initial=0.0)), 1e-300)] = np.inf
+    return k
+
+
+def bending_rotation_rad(
+    settings: UndeclaredEffects, arm: ArmLike, q_ring_rad: ArrayLike
+) -> FloatArray:
+    """Rotation vector ``(N, n, 3)`` rad (robot base frame) of each link about its own x
+    and y axes through its frame origin: ``M⊥ / K_b`` at the ring angles (0: off)."""
+    body = physical_arm(arm)
+    q = np.atleast_2d(np.asarray(q_ring_rad, dtype=float))
+    if not settings.link_bending:
+        return np.zeros((len(q), body.n_joints, 3))
+    k = bending_stiffness_nmm_per_rad(settings, body)
+    out: FloatArray = _bending_moments_nmm(body, q) / k[None, :, None]
+    return out
+
+
+def _bent(
+    body: PhysicalArm, pts: FloatArray, q_link: FloatArray, phi: FloatArray, last: int
+) -> FloatArray:
+    """Points ``(N, 3)`` (tracker frame) fixed in link ``last`` (0-based) with links
+    0..last turned by ``phi`` ``(N, n, 3)`` about their origins: outer links first, each
+    an exact rotation (Rodrigues) of everything outboard of it."""
+    rot_base = body.model.base_rotation()
+    _, org = body.link_frames(q_link)
+    out = pts.copy()
+    for j in range(last, -1, -1):
+        v = phi[:, j] @ rot_base.T  # tracker frame
+        angle = np.linalg.norm(v, axis=1)
+        if not np.any(angle > 0.0):
+            continue
+        axis = v / np.where(angle > 0.0, angle, 1.0)[:, None]
+        origin = org[:, j] @ rot_base.T + body.model.base_mm
+        r = out - origin
+        c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+        dot = np.sum(axis * r, axis=1)[:, None]
+        out = origin + r * c + np.cross(axis, r) * s + axis * dot * (1.0 - c)
+    return out
+
+
 def with_derived_stiffness(settings: UndeclaredEffects, arm: ArmLike) -> UndeclaredEffects:
-    """``settings`` with the deflection stiffness derived once (not per evaluation)."""
+    """``settings`` with the deflection and bending stiffnesses derived once (not per
+    evaluation)."""
+    if settings.link_bending and not settings.bending_stiffness_nmm_per_rad:
+        k = bending_stiffness_nmm_per_rad(settings, arm)
+        settings = replace(settings, bending_stiffness_nmm_per_rad=tuple(float(v) for v in k))
     if not settings.gravity_deflection or settings.deflection_stiffness_nmm_per_rad:
         return settings
     k = deflection_stiffness_nmm_per_rad(settings, arm)
@@ -184,6 +276,14 @@ def effects_document(settings: UndeclaredEffects, arm: ArmLike) -> dict[str, Any
     if settings.gravity_deflection:
         k = deflection_stiffness_nmm_per_rad(settings, arm)
         doc["derived_stiffness_nmm_per_rad"] = [float(v) if np.isfinite(v) else 0.0 for v in k]
+    doc["bending_stiffness_nmm_per_rad"] = [
+        v if np.isfinite(v) else 0.0 for v in doc["bending_stiffness_nmm_per_rad"]
+    ]
+    if settings.link_bending:
+        k = bending_stiffness_nmm_per_rad(settings, arm)
+        doc["derived_bending_stiffness_nmm_per_rad"] = [
+            float(v) if np.isfinite(v) else 0.0 for v in k
+        ]
     return doc
 
 
@@ -244,6 +344,27 @@ def length_lag_mm(settings: UndeclaredEffects, t_s: ArrayLike) -> FloatArray:
     return settings.lag_mm * (1.0 - np.exp(-t / settings.lag_time_constant_s))
 
 
+def arm_temperature_c(settings: UndeclaredEffects, t_s: ArrayLike) -> FloatArray:
+    """The arm's true temperature ``(N,)`` °C at campaign times ``t_s``: a warm-up
+    ``T0 + ΔT·(1 − e^(−t/τ))`` and the hall's air-handling cycle ``A·sin(2πt/P)`` (a
+    temperature no polynomial or lag in time follows)."""
+    t = np.asarray(t_s, dtype=float)
+    warm = settings.temp_rise_k * -np.expm1(-t / settings.temp_time_constant_s)
+    cycle = settings.temp_cycle_k * np.sin(2.0 * np.pi * t / settings.temp_cycle_period_s)
+    out: FloatArray = settings.temp_start_c + warm + cycle
+    return out
+
+
+def expansion_ppm(settings: UndeclaredEffects, t_s: ArrayLike) -> FloatArray:
+    """Growth ``(N,)`` ppm of every link length at times ``t_s``: ``κ·(T − T_ref)``."""
+    t = np.asarray(t_s, dtype=float)
+    if not settings.thermal_expansion:
+        return np.zeros_like(t)
+    rise = arm_temperature_c(settings, t) - settings.temp_ref_c
+    out: FloatArray = settings.expansion_ppm_per_k * rise
+    return out
+
+
 _PARAMETER_OFFSET = {"a": 0, "d": 2}  # position in a joint's 5 parameters (a, α, d, θ, β)
 
 
@@ -274,9 +395,10 @@ def true_point_mm(
     frame (0-based; ``point_mm`` ``(3,)``) at ring angles ``(N, n)`` and times ``(N,)``,
     with an optional process force ``(N, 3)`` N on the tool.
 
-    Links 1..link+1 stand at the ring angles plus :func:`link_rotation_rad`; a changing
-    length upstream of the point adds along its own direction (a point is linear in every
-    a and d, so this is exact).
+    Links 1..link+1 stand at the ring angles plus :func:`link_rotation_rad`, each bent
+    about its own x and y axes by :func:`bending_rotation_rad` (at the ring angles); a changing
+    length upstream of the point adds along its own direction, the thermal expansion of
+    every length along their sum (a point is linear in every a and d, so this is exact).
     """
     body = physical_arm(arm)
     q = np.atleast_2d(np.asarray(q_ring_rad, dtype=float))
@@ -285,6 +407,13 @@ def true_point_mm(
     q_sub = q_link[:, : link + 1]
     pts = tcp_positions(sub, q_sub)
     x = sub.parameter_vector()
+    if settings.thermal_expansion:
+        lengths = np.zeros_like(x, dtype=bool)
+        lengths[0 : 5 * (link + 1) : 5] = lengths[2 : 5 * (link + 1) : 5] = True
+        grown = x.copy()
+        grown[lengths] *= 1.0 + 1e-6
+        per_ppm = tcp_positions(sub.with_parameters(grown), q_sub) - pts
+        pts = pts + expansion_ppm(settings, np.broadcast_to(t_s, (len(q),)))[:, None] * per_ppm
     for index, growth in length_changes(settings, np.broadcast_to(t_s, (len(q),))):
         if index >= 5 * (link + 1):  # downstream of the point's link
             continue
@@ -292,6 +421,8 @@ def true_point_mm(
         bumped[index] += 1.0
         axis = tcp_positions(sub.with_parameters(bumped), q_sub) - pts  # per mm of growth
         pts = pts + growth[:, None] * axis
+    if settings.link_bending:
+        pts = _bent(body, pts, q_link, bending_rotation_rad(settings, body, q), link)
     return pts
 
 

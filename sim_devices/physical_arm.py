@@ -129,6 +129,15 @@ class PhysicalArm:
     def weight_torques_nmm(self, q_rad: ArrayLike) -> FloatArray:
         """Torque ``(N, n)`` N·mm of the outboard links' and payload's weights about each
         joint axis, at joint angles ``(N, n)`` rad."""
+        rot, _ = self.link_frames(q_rad)
+        moment = self.weight_moments_nmm(q_rad)
+        torque: FloatArray = np.einsum("pjk,pjk->pj", rot[:, :, :, 2], moment)
+        return torque
+
+    def weight_moments_nmm(self, q_rad: ArrayLike) -> FloatArray:
+        """Moment ``(N, n, 3)`` N·mm (robot base frame) of the weights of link j and
+        everything outboard about frame j's origin, at joint angles ``(N, n)`` rad: along
+        z_j the joint's torque, across it what bends the link."""
         rot, org = self.link_frames(q_rad)
         ms = self.masses
         com = org + np.einsum("pikl,il->pik", rot, ms.com_mm)  # (N, n, 3) base frame
@@ -141,9 +150,8 @@ class PhysicalArm:
         wc = np.cumsum((weight[:, None] * com)[:, ::-1], axis=1)[:, ::-1] + w_pay * payload[:, None]
         lever = wc - f_out[:, None] * org  # Σ F_i (c_i − o_j), (N, n, 3)
         ez = np.array([0.0, 0.0, 1.0])
-        moment = np.cross(lever, ez)  # Σ (c_i − o_j) × (F_i·ez)
-        torque: FloatArray = np.einsum("pjk,pjk->pj", rot[:, :, :, 2], moment)
-        return torque
+        moment: FloatArray = np.cross(lever, ez)  # Σ (c_i − o_j) × (F_i·ez)
+        return moment
 
     def counterbalance_torques_nmm(self, q_rad: ArrayLike) -> FloatArray:
         """The spring's torque ``(N, n)`` N·mm (non-zero on its joint only)."""

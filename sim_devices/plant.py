@@ -308,7 +308,13 @@ class Plant:
         pts = np.empty((len(q), 3))
         if tcp.any():
             qt = q[tcp]
-            if und.gravity_deflection or und.thermal_drift or und.thermal_lag:
+            if (
+                und.gravity_deflection
+                or und.thermal_drift
+                or und.thermal_lag
+                or und.thermal_expansion
+                or und.link_bending
+            ):
                 wall = self.clock.wall_s() if wall_s is None else wall_s
                 sim = np.broadcast_to(self.clock.sim_s(wall), (len(q),))[tcp]
                 pts[tcp] = true_tcp_mm(und, self.arm, qt, sim)

@@ -40,6 +40,7 @@ from sim_devices.effects import (
     EFFECT_NAMES,
     UndeclaredEffects,
     approach_direction,
+    arm_temperature_c,
     effects_document,
     grating_reading_rad,
     tracker_reading_mm,
@@ -255,6 +256,10 @@ def measure_campaign(
             0.5 * settings.encoder_backlash_deg * direction
             + rng.normal(0.0, settings.encoder_noise_deg, q_true.shape)
         )
+    temp_c = None
+    if eff.thermal_expansion:  # drawn last: every other draw as without the effect
+        noise = rng.normal(0.0, eff.temp_sensor_noise_k, m)
+        temp_c = arm_temperature_c(eff, t_s) + noise
     sets = ("identify",) * n_identify + ("validate",) * n_validate
     campaign = Campaign(
         source="<emulated>",
@@ -264,6 +269,7 @@ def measure_campaign(
         q_deg=np.degrees(grating),
         xyz_mm=measured,
         encoder_deg=None if encoder is None else np.degrees(encoder),
+        temp_c=temp_c,
     )
     return CampaignData(
         campaign=campaign,

@@ -37,16 +37,24 @@ from calibration.effects.effect_base import EffectSpec
 FloatArray = NDArray[np.float64]
 
 #: Physical priority of effect kinds (lower first) when the data cannot tell them apart.
+#: A link's bending comes after the joint's own gravity deflection (it is offered only with
+#: that term in the model, from its moments). A term driven by a measured temperature
+#: comes before one driven by the clock: the temperature is the cause a drift in time
+#: stands in for.
 PRIORITY: dict[str, int] = {
     "gravity_deflection": 0,
     "gravity_compliance": 0,
-    "length_drift": 1,
-    "lost_motion": 1,
-    "instrument_scale": 1,
-    "instrument_scale_drift": 1,
-    "joint_harmonic": 2,
+    "link_bending": 1,
+    "thermal_expansion": 2,
+    "length_temperature": 2,
+    "instrument_scale_temperature": 2,
+    "length_drift": 3,
+    "lost_motion": 3,
+    "instrument_scale": 3,
+    "instrument_scale_drift": 3,
+    "joint_harmonic": 4,
 }
-GENERIC_PRIORITY = 3
+GENERIC_PRIORITY = 5
 #: Two candidates whose principal cosines are all at least this cannot be told apart.
 INDISTINGUISHABLE_COSINE = 0.95
 

@@ -65,6 +65,7 @@ from calibration.effects.effect_base import (
     Evidence,
     ModelAtPoses,
 )
+from calibration.effects.effect_bending import bending_candidates
 from calibration.effects.effect_candidates import candidate_effects, scan_key
 from calibration.effects.effect_kinds import (
     KINDS,
@@ -229,13 +230,14 @@ class ClosedLoopResult:
 def campaign_effect_data(
     description: RobotDescription, campaign: Campaign, *, sweep_referenced: bool = False
 ) -> EffectData:
-    """Effect data of a whole campaign: directions from its pose sequence (from Home).
+    """Effect data of a whole campaign: directions from its pose sequence (from Home),
+    the temperatures of its ``temp_c`` column when it has one.
 
     ``sweep_referenced``: the joint readings come from scale maps fitted on sweeps with
     the other joints at Home, which absorbed each swept link's deflection there.
     """
     home = np.radians(description.home)
-    data = EffectData.from_sequence(campaign.q_rad, campaign.t_s, home)
+    data = EffectData.from_sequence(campaign.q_rad, campaign.t_s, home, temp_c=campaign.temp_c)
     return replace(data, sweep_reference=home) if sweep_referenced else data
 
 
@@ -372,7 +374,8 @@ def run_closed_loop(
         penalty = math.log(3 * problem.m)
     stages, result = _first_stages(problem, geometric)
     tell(f"closed loop: {len(library)} candidate effects")
-    search = _Search(problem, library, penalty, span, settings, tell)
+    bending = allowed is None or "link_bending" in allowed
+    search = _Search(problem, library, penalty, span, settings, tell, bending)
     last_round, rejected, stop = search.run(stages, result)
     tell(f"closed loop: stopped: {stop.text}")
     return ClosedLoopResult(
@@ -399,6 +402,19 @@ class _Search:
     span: tuple[float, ...]
     settings: LoopSettings
     tell: Callable[[str], None]
+    bending: bool = True  # offer a link's bending once a physical gravity term is in
+
+    def offered(
+        self, specs: tuple[EffectSpec, ...], values: FloatArray, set_aside: set[EffectSpec]
+    ) -> list[EffectSpec]:
+        """The round's candidates: the library's not in the model or set aside, and the
+        bending of the links from the model's gravity term (:func:`bending_candidates`)."""
+        offered = [s for s in self.library if s not in specs and s not in set_aside]
+        offered = [s for s in offered if not _same_slot(s, specs)]
+        if self.bending:
+            parts = split_values(specs, values)
+            offered += bending_candidates(self.problem.ctx, specs, parts, set_aside)
+        return offered
 
     def stop(
         self,
@@ -424,8 +440,7 @@ class _Search:
         rejected: list[Rejected] = []
         set_aside: set[EffectSpec] = set()
         while True:
-            offered = [s for s in self.library if s not in specs and s not in set_aside]
-            offered = [s for s in offered if not _same_slot(s, specs)]
+            offered = self.offered(specs, result.effect_values, set_aside)
             if not offered:
                 return [], rejected, self.stop("no_candidate_left", None, rejected, ())
             scored = _score_round(

@@ -29,6 +29,12 @@ predictor (:func:`calibration.identify.identification.predicted_points`, through
 * ``length_drift``: a link length (``a`` or ``d`` of joint j) changing with time,
   linearly (``a_rate_mm_per_h``) or as a first-order lag (``a_final_mm``,
   ``time_constant_s``).
+* ``link_bending``: link j turning about its own x and y axes under the bending moment of
+  everything outboard (``bending_ratio``, the gravity term's weighted moments frozen);
+  offered once a physical gravity term is in.
+* ``thermal_expansion``, ``length_temperature``, ``instrument_scale_temperature``: link
+  lengths and the tracker's scale following a measured temperature (``temp_c``), linear in
+  ``T − T_ref`` (:mod:`calibration.effects.effect_thermal`).
 * ``instrument_scale``: distance-proportional scale error of the tracker (``scale_ppm``).
 * ``instrument_scale_drift``: that scale drifting with time (``rate_ppm_per_h``).
 
@@ -111,6 +117,10 @@ class EffectData:
     #: swept link's deflection in its sweep configuration, so the gravity term models the
     #: deflection relative to it (:class:`GravityDeflection`).
     sweep_reference: FloatArray | None = None
+    #: The temperature ``(m,)`` °C read at each pose (campaign.csv's optional ``temp_c``;
+    #: None: not measured). Temperature-driven terms are 0 without it: the twin predicts at
+    #: their reference temperature.
+    temp_c: FloatArray | None = None
 
     def __len__(self) -> int:
         return len(self.q_rad)
@@ -122,11 +132,13 @@ class EffectData:
         t_s: ArrayLike | None = None,
         start_rad: ArrayLike | None = None,
         min_move_rad: float = MIN_MOVE_RAD,
+        temp_c: ArrayLike | None = None,
     ) -> EffectData:
         """Data of a pose sequence: each joint's approach direction is the sign of its move
         from the previous pose in time order (the first from ``start_rad``, e.g. Home).
         A move smaller than ``min_move_rad`` (a joint standing still, read with noise) keeps
-        the direction it had; before any move it is 0."""
+        the direction it had; before any move it is 0. ``temp_c`` ``(m,)`` °C: the
+        temperature at each pose, if measured."""
         q = np.atleast_2d(np.asarray(q_rad, dtype=float))
         t = None if t_s is None else np.asarray(t_s, dtype=float)
         order = np.arange(len(q)) if t is None else np.argsort(t, kind="stable")
@@ -139,7 +151,8 @@ class EffectData:
         held = np.take_along_axis(sign, last, axis=0)
         direction = np.empty_like(q)
         direction[order] = held
-        return cls(q, t, direction)
+        temp = None if temp_c is None else np.asarray(temp_c, dtype=float)
+        return cls(q, t, direction, temp_c=temp)
 
     def subset(self, mask: ArrayLike) -> EffectData:
         m = np.asarray(mask)
@@ -148,6 +161,7 @@ class EffectData:
             None if self.t_s is None else self.t_s[m],
             None if self.direction is None else self.direction[m],
             self.sweep_reference,
+            None if self.temp_c is None else self.temp_c[m],
         )
 
 
@@ -189,6 +203,14 @@ class EffectContext:
         if len(span_s) == 2:
             t = np.clip(t, span_s[0], span_s[1])
         return (t - t0_s) / HOUR_S
+
+    def temperature_rise_k(self, sel: slice, t_ref_c: float) -> FloatArray:
+        """``T − T_ref`` ``(r,)`` K at the poses ``sel``: 0 where no temperature was
+        measured (a temperature-driven term then predicts at its reference temperature)."""
+        q = self.data.q_rad[sel]
+        if self.data.temp_c is None:
+            return np.zeros(len(q))
+        return self.data.temp_c[sel] - t_ref_c
 
 
 @dataclass(frozen=True, eq=False)
@@ -266,7 +288,8 @@ class EffectSpec:
     moments); ``shape`` holds nonlinear shape parameters, fixed while the term's linear
     parameters are fitted and profiled by the closed loop (a lag's time constant in s, the
     physical gravity form's compliance ratios); ``span_s`` is the campaign's time span
-    ``(t_min, t_max)``: a polynomial in time is held at its ends outside it.
+    ``(t_min, t_max)``: a polynomial in time is held at its ends outside it; ``t_ref_c``
+    the reference temperature of a temperature-driven term.
     """
 
     kind: str
@@ -277,6 +300,9 @@ class EffectSpec:
     names: tuple[str, ...] = ()
     shape: tuple[float, ...] = ()
     span_s: tuple[float, ...] = ()
+    #: The reference temperature (°C) of a temperature-driven term: the geometry is the
+    #: one at this temperature (None for every other kind).
+    t_ref_c: float | None = None
 
     @property
     def label(self) -> str:
@@ -319,6 +345,7 @@ class EffectKind(ABC):
     generic: bool = False  # part of the generic search, not the physical library
     needs_time: bool = False
     needs_direction: bool = False
+    needs_temperature: bool = False  # offered only with a varying temp_c column
     description: str = ""
 
     def slot(self, spec: EffectSpec) -> tuple[str | int, ...]:

@@ -23,6 +23,10 @@ from calibration.effects.effect_base import (
 from calibration.effects.effect_gravity import counterbalance_terms
 from calibration.effects.effect_harmonics import HarmonicOfJoint
 from calibration.effects.effect_kinds import KINDS, check_kinds
+from calibration.effects.effect_thermal import (
+    MIN_TEMPERATURE_RANGE_K,
+    reference_temperature_c,
+)
 
 
 # -- candidates, terms, descriptions ----------------------------------------------------------
@@ -75,7 +79,9 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
 
     ``kinds`` restricts the kinds offered (default: all but ``gravity_compliance``, the
     mass-model form of the gravity term, which is offered only when named). Time terms
-    need ``t_s``, lost motion the approach directions, ``gravity_compliance`` a mass model.
+    need ``t_s``, temperature terms a ``temp_c`` varying by at least
+    :data:`~calibration.effects.effect_thermal.MIN_TEMPERATURE_RANGE_K`, lost motion the
+    approach directions, ``gravity_compliance`` a mass model.
     Harmonics come at every order :func:`harmonic_orders` resolves; each joint's orders of
     one kind are one scan (:func:`scan_key`).
     """
@@ -111,6 +117,8 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
                 offer(EffectSpec("length_drift", joint=j, parameter=parameter))
     offer(EffectSpec("instrument_scale"))
     offer(EffectSpec("instrument_scale_drift"))
+    for spec in temperature_candidates(ctx):
+        offer(spec)
     for kind in ("cartesian_harmonic", "link_harmonic"):
         for j in range(1, n + 1):
             for k in orders[j - 1]:
@@ -119,6 +127,37 @@ def candidate_effects(ctx: EffectContext, kinds: Collection[str] | None = None) 
         offer(EffectSpec("cartesian_time", joint=frame, order=1))
     offer(EffectSpec("cartesian_time", joint=0, order=2))
     return out
+
+
+def temperature_candidates(ctx: EffectContext) -> list[EffectSpec]:
+    """The terms driven by the measured temperature, each with the median temperature
+    as its reference: none without a ``temp_c`` varying by at least
+    :data:`~calibration.effects.effect_thermal.MIN_TEMPERATURE_RANGE_K`."""
+    temp = ctx.data.temp_c
+    if temp is None or float(np.ptp(temp)) < MIN_TEMPERATURE_RANGE_K:
+        return []
+    t_ref = reference_temperature_c(temp)
+    out = [
+        EffectSpec("thermal_expansion", joints=g, t_ref_c=t_ref)
+        for g in link_groups(ctx.description.n_joints)
+    ]
+    for j, joint in enumerate(ctx.description.joints, start=1):
+        for parameter, length in (("d", joint.d_mm), ("a", joint.a_mm)):
+            if abs(length) >= DRIFT_MIN_LENGTH_MM:
+                out.append(
+                    EffectSpec("length_temperature", joint=j, parameter=parameter, t_ref_c=t_ref)
+                )
+    return [*out, EffectSpec("instrument_scale_temperature", t_ref_c=t_ref)]
+
+
+def link_groups(n_joints: int) -> tuple[tuple[int, ...], ...]:
+    """The link groups of a thermal expansion: the whole arm, and for more than 3 joints
+    the arm (joints 1–3: the long castings) and the wrist (4..n) apart, which warm
+    differently (their own motors, less mass)."""
+    whole = tuple(range(1, n_joints + 1))
+    if n_joints <= 3:
+        return (whole,)
+    return (whole, (1, 2, 3), tuple(range(4, n_joints + 1)))
 
 
 def scan_key(spec: EffectSpec) -> tuple[str, int] | None:

@@ -16,9 +16,15 @@ from calibration.effects.effect_base import (
     FloatArray,
     ModelAtPoses,
 )
+from calibration.effects.effect_bending import LinkBending
 from calibration.effects.effect_gravity import GravityCompliance, GravityDeflection
 from calibration.effects.effect_harmonics import CartesianHarmonic, JointHarmonic, LinkHarmonic
 from calibration.effects.effect_lost_motion import LostMotion
+from calibration.effects.effect_thermal import (
+    InstrumentScaleTemperature,
+    LengthTemperature,
+    ThermalExpansion,
+)
 from calibration.effects.effect_time import CartesianTime, LengthDrift
 from calibration.effects.effect_tracker import InstrumentScale, InstrumentScaleDrift
 from calibration.errors import EffectLibraryError
@@ -33,11 +39,15 @@ KINDS.update(
         for k in (
             GravityDeflection(),
             GravityCompliance(),
+            LinkBending(),
             JointHarmonic(),
             LostMotion(),
             LengthDrift(),
+            ThermalExpansion(),
+            LengthTemperature(),
             InstrumentScale(),
             InstrumentScaleDrift(),
+            InstrumentScaleTemperature(),
             CartesianHarmonic(),
             LinkHarmonic(),
             CartesianTime(),
@@ -81,7 +91,7 @@ def effect_terms(
 
 
 def _tag(spec: EffectSpec) -> str:
-    if spec.kind == "gravity_compliance":
+    if spec.kind in ("gravity_compliance", "thermal_expansion"):
         return "joints " + ",".join(str(j) for j in spec.joints)
     if spec.kind == "gravity_deflection":
         return spec.parameter or "linear"

@@ -1,7 +1,8 @@
 """Measurement files of the identification: campaign.csv, joints.csv, points.csv.
 
 ``campaign.csv``: ``pose,set,t_s,q1_deg..qN_deg,x_mm,y_mm,z_mm`` and optionally
-``e1_deg..eN_deg`` (motor-encoder angles). ``set`` is ``identify`` or ``validate``; ``t_s``
+``e1_deg..eN_deg`` (motor-encoder angles) and ``temp_c`` (a temperature at each pose, °C:
+of the arm or the air, what drives thermal terms). ``set`` is ``identify`` or ``validate``; ``t_s``
 is seconds since the start of the campaign; q are the grating joint angles (degrees); x, y, z
 the tracker TCP target in the tracker frame (mm). Other columns are ignored.
 
@@ -65,6 +66,7 @@ class Campaign:
     xyz_mm: FloatArray  # (m, 3) tracker points
     encoder_deg: FloatArray | None = None  # (m, n) motor-encoder joint angles
     skipped: tuple[SkippedRow, ...] = ()
+    temp_c: FloatArray | None = None  # (m,) °C, the optional temp_c column
 
     def __len__(self) -> int:
         return len(self.pose)
@@ -90,6 +92,7 @@ class Campaign:
             q_deg=self.q_deg[m],
             xyz_mm=self.xyz_mm[m],
             encoder_deg=None if self.encoder_deg is None else self.encoder_deg[m],
+            temp_c=None if self.temp_c is None else self.temp_c[m],
         )
 
 
@@ -111,9 +114,22 @@ def joint_columns(n_joints: int, prefix: str = "q") -> list[str]:
     return [f"{prefix}{i + 1}_deg" for i in range(n_joints)]
 
 
-def campaign_columns(n_joints: int, *, encoders: bool = False) -> list[str]:
+def campaign_columns(
+    n_joints: int, *, encoders: bool = False, temperature: bool = False
+) -> list[str]:
     cols = ["pose", "set", "t_s", *joint_columns(n_joints), "x_mm", "y_mm", "z_mm"]
-    return cols + (joint_columns(n_joints, "e") if encoders else [])
+    return (
+        cols
+        + (joint_columns(n_joints, "e") if encoders else [])
+        + ([TEMPERATURE_COLUMN] if temperature else [])
+    )
+
+
+#: The optional temperature column (°C) of campaign.csv.
+TEMPERATURE_COLUMN = "temp_c"
+#: A ``temp_c`` value outside this range (°C) is refused: a cell's arm or air is not
+#: there, and 200 °C and more reads as kelvin (20 °C is 293.15 K).
+TEMPERATURE_RANGE_C = (-50.0, 100.0)
 
 
 # -- reading ----------------------------------------------------------------------------
@@ -180,6 +196,17 @@ def _number(fields: dict[str, str], column: str) -> float:
         raise _RowError(column, f"{text!r} is not a number") from None
     if not math.isfinite(value):
         raise _RowError(column, f"{text!r} is not a finite number")
+    return value
+
+
+def _temperature(fields: dict[str, str]) -> float:
+    value = _number(fields, TEMPERATURE_COLUMN)
+    lo, hi = TEMPERATURE_RANGE_C
+    if not lo <= value <= hi:
+        kelvin = " (kelvin? the column is in °C)" if value >= 200.0 else ""
+        raise _RowError(
+            TEMPERATURE_COLUMN, f"{value:g} is not a temperature in °C in [{lo:g}, {hi:g}]{kelvin}"
+        )
     return value
 
 
@@ -251,6 +278,7 @@ def read_campaign(
     _check_columns(source, header, campaign_columns(n_joints), n_joints)
     ecols = joint_columns(n_joints, "e")
     encoders = column_group(source, header, ecols, "encoder columns")
+    has_temp = TEMPERATURE_COLUMN in header
 
     def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
         set_name = f["set"].strip()
@@ -260,7 +288,8 @@ def read_campaign(
         q = _joint_angles(f, qcols, limits_deg)
         xyz = [_number(f, c) for c in ("x_mm", "y_mm", "z_mm")]
         enc = [_number(f, c) for c in ecols] if encoders else []
-        return set_name, t, q, xyz, enc
+        temp = _temperature(f) if has_temp else math.nan
+        return set_name, t, q, xyz, enc, temp
 
     poses, values, skipped = _parse_rows(source, header, rows, parse, skip_bad)
     return Campaign(
@@ -276,6 +305,7 @@ def read_campaign(
             else None
         ),
         skipped=tuple(skipped),
+        temp_c=np.array([v[5] for v in values], dtype=float) if has_temp else None,
     )
 
 
@@ -518,18 +548,20 @@ def _fmt(v: float, digits: int) -> str:
 
 
 def write_campaign(path: str | Path, campaign: Campaign) -> None:
-    """Write a campaign.csv (degrees to 1e-9, mm to 1 nm, seconds to 1 ms)."""
+    """Write a campaign.csv (degrees to 1e-9, mm to 1 nm, seconds to 1 ms, °C to 1e-4)."""
     n = campaign.q_deg.shape[1]
     encoders = campaign.encoder_deg is not None
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh, lineterminator="\n")
-        w.writerow(campaign_columns(n, encoders=encoders))
+        w.writerow(campaign_columns(n, encoders=encoders, temperature=campaign.temp_c is not None))
         for i, pose in enumerate(campaign.pose):
             row = [pose, campaign.set[i], _fmt(campaign.t_s[i], 3)]
             row += [_fmt(v, 9) for v in campaign.q_deg[i]]
             row += [_fmt(v, 6) for v in campaign.xyz_mm[i]]
             if campaign.encoder_deg is not None:
                 row += [_fmt(v, 9) for v in campaign.encoder_deg[i]]
+            if campaign.temp_c is not None:
+                row.append(_fmt(campaign.temp_c[i], 4))
             w.writerow(row)
 
 
