@@ -41,6 +41,7 @@ REALTIME_MODULES = frozenset(
         "test_twin_hosts",
         "test_twin_live",
         "test_twin_live_tracking",
+        "test_twin_live_clocks",
         "test_view",
     }
 )

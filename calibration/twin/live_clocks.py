@@ -9,19 +9,25 @@ keeps each device's latest ``host_clock`` and judges the pair by the rule a repl
 refuses with (:func:`~calibration.twin.streams.host_clocks_apart`, 10 ms beyond the
 uncertainties). While they disagree the twin feeds the tracker's samples to nobody (no
 update is learned from them) and counts them; it keeps publishing its state (the
-gratings' alone). Devices whose health has no ``host_clock`` (loopback, ``zenohd``) are
+gratings' alone). So it does too until both devices' health has come once (a period,
+1 s by default; at most :data:`HEALTH_WAIT_S`): a pair is learned from only once its
+clocks are known. Devices whose health has no ``host_clock`` (loopback, ``zenohd``) are
 not compared, as in a replay.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import time
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from calibration.twin.streams import HOST_CLOCK_TOLERANCE_MS, host_clock_of, host_clocks_apart
 
 #: the kinds of stream whose clocks are compared (the pair a tracking update is made of)
 PAIRED_KINDS = ("grating", "tracker")
+#: the longest the tracker's samples wait for the devices' first health documents (s):
+#: beyond, devices that publish none are paired unchecked
+HEALTH_WAIT_S = 3.0
 
 
 class PairedClocks:
@@ -30,11 +36,17 @@ class PairedClocks:
 
     :meth:`take` is called with each health document (any thread); :meth:`check` judges
     the pair and returns a line to say when the verdict changed; ``apart`` is the verdict
-    (False while either clock is unknown)."""
+    (False while either clock is unknown); :meth:`admits` says whether tracker samples may
+    be learned from now. ``clock``: monotonic seconds (tests give their own)."""
 
-    def __init__(self, health_keys: Mapping[str, str]) -> None:
+    def __init__(
+        self, health_keys: Mapping[str, str], clock: Callable[[], float] = time.monotonic
+    ) -> None:
         self.keys = {k: v for k, v in health_keys.items() if k in PAIRED_KINDS}
         self._kind_of = {v: k for k, v in self.keys.items()}
+        self._clock = clock
+        self._since = clock()
+        self.heard: frozenset[str] = frozenset()  # kinds whose health has come
         self.latest: dict[str, dict[str, float]] = {}
         self.apart = False
         self.times_apart = 0  # times the pair went apart
@@ -43,9 +55,21 @@ class PairedClocks:
     def take(self, key: str, data: bytes) -> None:
         """A health document ``data`` of ``key``: keep its ``host_clock`` (if any)."""
         kind = self._kind_of.get(key)
+        if kind is not None and kind not in self.heard:
+            self.heard = self.heard | {kind}  # one assignment: read by another thread
         clock = host_clock_of(data) if kind is not None else None
         if kind is not None and clock is not None:
             self.latest = {**self.latest, kind: clock}  # one assignment: read by another thread
+
+    def admits(self, n: int) -> bool:
+        """Whether ``n`` tracker samples may be learned from: not while the clocks are
+        apart, nor before both devices' health came (at most :data:`HEALTH_WAIT_S`);
+        those not admitted are counted."""
+        known = self.heard >= set(self.keys) or self._clock() - self._since >= HEALTH_WAIT_S
+        if known and not self.apart:
+            return True
+        self.tracker_samples_dropped += n
+        return False
 
     def _device(self, kind: str) -> str:
         return self.keys[kind].rsplit("/", 2)[-2]

@@ -422,9 +422,9 @@ class LiveTwin:
                 recv.append(np.full(len(t_map[-1]), got.t_recv_ns, dtype=np.int64))
             elif b.kind == "encoders":
                 out.encoders(cols["t_mapped_ns"], np.column_stack([cols[c] for c in b.channels]))
-            elif b.kind == "tracker" and out.tracker is not None and self.clocks.apart:
-                self.clocks.tracker_samples_dropped += len(cols["t_mapped_ns"])
             elif b.kind == "tracker" and out.tracker is not None:
+                if not self.clocks.admits(len(cols["t_mapped_ns"])):  # clocks apart/unknown
+                    continue
                 xyz = np.column_stack([cols[c] for c in b.channels]).astype(float)
                 out.tracker.add_tracker(cols["t_mapped_ns"], xyz, b.status_of(cols))
         if not counts:

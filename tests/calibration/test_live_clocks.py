@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 
-from calibration.twin.live_clocks import PairedClocks
+from calibration.twin.live_clocks import HEALTH_WAIT_S, PairedClocks
 from calibration.twin.streams import HOST_CLOCK_TOLERANCE_MS, host_clocks_apart
 
 G = "cell/cell1/robot/robot1/grating/health"
@@ -64,3 +64,23 @@ def test_health_without_a_clock_or_of_another_device_is_not_compared() -> None:
     clocks.take("cell/cell1/robot/robot1/other/health", _health(900.0, 0.1))
     assert clocks.check() is None and not clocks.apart
     assert set(clocks.doc()["devices"]) == {"grating"}
+
+
+def test_tracker_samples_are_learned_only_from_clocks_known_to_agree() -> None:
+    now = [0.0]
+    clocks = PairedClocks({"grating": G, "tracker": T}, clock=lambda: now[0])
+    assert not clocks.admits(5)  # no health yet: the clocks are not known
+    clocks.take(G, _health(0.2, 0.1))
+    assert not clocks.admits(5)  # the tracker's not yet
+    clocks.take(T, json.dumps({"device": "tracker"}).encode())  # health without a clock
+    assert clocks.check() is None and clocks.admits(5)  # both heard: not compared, as a replay
+    clocks.take(T, _health(500.0, 0.3))
+    assert clocks.check() is not None and not clocks.admits(7)
+    assert clocks.doc()["tracker_samples_dropped"] == 17
+    clocks.take(T, _health(0.5, 0.3))
+    assert clocks.check() is not None and clocks.admits(1)
+    # devices that publish no health are paired unchecked after HEALTH_WAIT_S
+    quiet = PairedClocks({"grating": G, "tracker": T}, clock=lambda: now[0])
+    assert not quiet.admits(1)
+    now[0] = HEALTH_WAIT_S
+    assert quiet.admits(1)
