@@ -4,7 +4,9 @@ Collection subscribes to the daemon's data keys (default ``cell/**``; schemas by
 accumulates the grating, tracker and encoder streams and prints progress (samples, dwells,
 sweeps, Home returns, poses found so far). The campaign is over when poses have been found
 and the gratings have been still for ``--idle-s``, when no data came for ``--idle-s`` (the
-source stopped), or after ``--collect-s``. The same
+source stopped), or after ``--collect-s``. Streams stamped by host
+clocks that disagree (the devices' ``host_clock`` in their health) are refused as a replay
+refuses them (:func:`~calibration.twin.streams.check_host_clocks`). The same
 pipeline as a replay then runs on the collected streams
 (:func:`~calibration.twin.twin_run.run_twin`), and the twin it gives is published as it is in
 memory (:meth:`CalibratedTwin.from_twin_run`).
@@ -49,7 +51,13 @@ from numpy.typing import NDArray
 from calibration.errors import LiveTwinError
 from calibration.twin.live_clocks import PairedClocks
 from calibration.twin.phase_detection import PhaseOptions, find_dwells, find_phases
-from calibration.twin.streams import CellStreams, StreamBuilder, pick_streams
+from calibration.twin.streams import (
+    CellStreams,
+    StreamBuilder,
+    check_host_clocks,
+    host_clock_of,
+    pick_streams,
+)
 from calibration.twin.twin_keys import (
     TRACKING_STATES,
     TWIN_PREFIX,
@@ -61,6 +69,8 @@ from calibration.twin.twin_keys import (
 from calibration.twin.twin_predictor import AngleReader, TwinPredictor, rotation_quaternions
 
 if TYPE_CHECKING:
+    import zenoh
+
     from calibration.model.description import RobotDescription
     from calibration.scales.scale_files import ScaleCalibration
     from calibration.twin.live_tracking import LiveTracker, LiveTrackUpdate
@@ -200,13 +210,22 @@ class LiveTwin:
         self.args = settings
         self.say = say
         self.session = open_session(settings.zenoh_config())
-        self.receiver = Receiver(self.session, settings.key)
+        self.receiver = Receiver(self.session, settings.key, on_other=self._other)
         self.builders: dict[str, StreamBuilder] = {}
+        self.collected_clocks: dict[str, dict[str, float]] = {}  # by health key
         self.clocks = PairedClocks({})
         self._health_subs: list[Any] = []
         self.closed = False
 
     # -- collection ------------------------------------------------------------------
+    def _other(self, sample: zenoh.Sample) -> None:
+        """A JSON sample on the collected keys (zenoh's thread): a device's health, whose
+        ``host_clock`` is kept by key for the check after the collection."""
+        key = str(sample.key_expr)
+        clock = host_clock_of(sample.payload.to_bytes()) if key.endswith("/health") else None
+        if clock is not None:  # one assignment: the collecting thread reads it
+            self.collected_clocks = {**self.collected_clocks, key: clock}
+
     def _builder(self, got: Received) -> StreamBuilder:
         """The stream of ``got``'s key (made from its schema on its first batch)."""
         b = self.builders.get(got.key)
@@ -261,7 +280,9 @@ class LiveTwin:
                     if still_s >= args.idle_s:
                         say(f"the robot has been still for {still_s:.1f} s: campaign over")
                         break
-        return pick_streams(self.builders, "live zenoh")
+        streams = pick_streams(self.builders, "live zenoh")
+        check_host_clocks(streams, self.collected_clocks)  # as a replay: refused, saying why
+        return streams
 
     # -- publication -----------------------------------------------------------------
     def _wait_for_grating(self) -> StreamBuilder:

@@ -98,3 +98,43 @@ def test_clocks_apart_no_tracking_update_is_learned_and_the_health_says_why(tmp_
     assert clocks["devices"]["tracker"]["offset_ms"] == 500.0, clocks
     assert clocks["tracker_samples_dropped"] > 1000, clocks
     assert health[-1]["tracking"]["on"] is True and "updates" not in health[-1]["tracking"]
+
+
+@pytest.mark.timeout(120)
+def test_a_live_collection_of_clocks_apart_is_refused_as_a_replay_is(tmp_path):
+    """``twin run`` collecting live (no ``--from``) reads the devices' ``host_clock`` from
+    their health on the collected keys and refuses to calibrate on streams whose clocks
+    disagree, as ``twin run --replay`` refuses the recording: one line, exit 2, nothing
+    written."""
+    recording = _with_clocks(tmp_path / "apart.mcap", {"tracker": 500.0, "grating": 0.2})
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    err = tmp_path / "twin.err"
+    twin = subprocess.Popen(
+        [PY, "-m", "calibration.cli", "run", "--robot", "kr500", "--out", str(tmp_path / "out"),
+         "--mode", "peer", "--listen", ep, "--connect", "none", "--idle-s", "3",
+         "--no-report", "--publish-s", "5"],
+        stdout=subprocess.DEVNULL,
+        stderr=open(err, "w"),  # noqa: SIM115 - the process holds it
+        env=env,
+    )  # fmt: skip
+    try:
+        time.sleep(1.0)
+        feed = subprocess.run(
+            [PY, "-m", "daq.cli", "replay", str(recording), "--speed", "10", "--listen",
+             "none", "--connect", ep, "--wait-subscribers", "20"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env=env,
+        )  # fmt: skip
+        assert feed.returncode == 0, feed.stderr[-2000:]
+        twin.wait(40)
+    finally:
+        _stop(twin)
+    said = err.read_text()
+    assert twin.returncode == 2, said[-3000:]
+    last = said.strip().splitlines()[-1]
+    assert last.startswith("twin run: error: live zenoh: the grating (grating) and the "), last
+    assert "tracker (tracker) were stamped by host clocks 499.8 ms apart" in last, last
+    assert "Traceback" not in said and not (tmp_path / "out").exists()
