@@ -38,9 +38,11 @@ REALTIME_MODULES = frozenset(
         "test_router_cells",
         "test_sim_cell",
         "test_twin_endpoint",
+        "test_twin_hosts",
         "test_twin_live",
         "test_twin_live_drift",
         "test_twin_live_tracking",
+        "test_twin_live_clocks",
         "test_view",
     }
 )

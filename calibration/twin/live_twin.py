@@ -4,7 +4,9 @@ Collection subscribes to the daemon's data keys (default ``cell/**``; schemas by
 accumulates the grating, tracker and encoder streams and prints progress (samples, dwells,
 sweeps, Home returns, poses found so far). The campaign is over when poses have been found
 and the gratings have been still for ``--idle-s``, when no data came for ``--idle-s`` (the
-source stopped), or after ``--collect-s``. The same
+source stopped), or after ``--collect-s``. Streams stamped by host
+clocks that disagree (the devices' ``host_clock`` in their health) are refused as a replay
+refuses them (:func:`~calibration.twin.streams.check_host_clocks`). The same
 pipeline as a replay then runs on the collected streams
 (:func:`~calibration.twin.twin_run.run_twin`), and the twin it gives is published as it is in
 memory (:meth:`CalibratedTwin.from_twin_run`).
@@ -26,6 +28,11 @@ robot: the tracker stream is subscribed too, each production dwell with the refl
 the TCP updates the tracked model (:mod:`calibration.twin.live_tracking`), the state is
 published from the tracked geometry from then on, and each update is a row on
 ``twin/<cell>/robot/<robot>/tracking`` (docs/tracking.md, "Live").
+
+The twin reads the ``host_clock`` of the grating's and the tracker's devices from their
+health (:mod:`calibration.twin.live_clocks`): while those hosts' clocks disagree beyond
+the replay's 10 ms it says so, learns no tracking update from the pair, and its health's
+``clocks`` says why (docs/deployment.md, "Clocks").
 """
 
 from __future__ import annotations
@@ -42,8 +49,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.errors import LiveTwinError
+from calibration.twin.live_clocks import PairedClocks
 from calibration.twin.phase_detection import PhaseOptions, find_dwells, find_phases
-from calibration.twin.streams import CellStreams, StreamBuilder, pick_streams
+from calibration.twin.streams import (
+    CellStreams,
+    StreamBuilder,
+    check_host_clocks,
+    host_clock_of,
+    pick_streams,
+)
 from calibration.twin.twin_keys import (
     TRACKING_STATES,
     TWIN_PREFIX,
@@ -55,6 +69,8 @@ from calibration.twin.twin_keys import (
 from calibration.twin.twin_predictor import AngleReader, TwinPredictor, rotation_quaternions
 
 if TYPE_CHECKING:
+    import zenoh
+
     from calibration.model.description import RobotDescription
     from calibration.scales.scale_files import ScaleCalibration
     from calibration.twin.live_tracking import LiveTracker, LiveTrackUpdate
@@ -194,11 +210,22 @@ class LiveTwin:
         self.args = settings
         self.say = say
         self.session = open_session(settings.zenoh_config())
-        self.receiver = Receiver(self.session, settings.key)
+        self.receiver = Receiver(self.session, settings.key, on_other=self._other)
         self.builders: dict[str, StreamBuilder] = {}
+        self.collected_clocks: dict[str, dict[str, float]] = {}  # by health key
+        self.clocks = PairedClocks({})
+        self._health_subs: list[Any] = []
         self.closed = False
 
     # -- collection ------------------------------------------------------------------
+    def _other(self, sample: zenoh.Sample) -> None:
+        """A JSON sample on the collected keys (zenoh's thread): a device's health, whose
+        ``host_clock`` is kept by key for the check after the collection."""
+        key = str(sample.key_expr)
+        clock = host_clock_of(sample.payload.to_bytes()) if key.endswith("/health") else None
+        if clock is not None:  # one assignment: the collecting thread reads it
+            self.collected_clocks = {**self.collected_clocks, key: clock}
+
     def _builder(self, got: Received) -> StreamBuilder:
         """The stream of ``got``'s key (made from its schema on its first batch)."""
         b = self.builders.get(got.key)
@@ -253,7 +280,9 @@ class LiveTwin:
                     if still_s >= args.idle_s:
                         say(f"the robot has been still for {still_s:.1f} s: campaign over")
                         break
-        return pick_streams(self.builders, "live zenoh")
+        streams = pick_streams(self.builders, "live zenoh")
+        check_host_clocks(streams, self.collected_clocks)  # as a replay: refused, saying why
+        return streams
 
     # -- publication -----------------------------------------------------------------
     def _wait_for_grating(self) -> StreamBuilder:
@@ -284,15 +313,38 @@ class LiveTwin:
 
         kinds = ("encoders", "tracker") if tracking else ("encoders",)
         keys = [grating.key]
+        trackers = []
         for key, schema in sorted(fetch_schemas(self.session, self.args.key).items()):
-            if key != grating.key and stream_kind(c.name for c in schema.columns) in kinds:
+            kind = stream_kind(c.name for c in schema.columns)
+            if key != grating.key and kind in kinds:
                 keys.append(key)
+                trackers += [key] if kind == "tracker" else []
         for key, b in sorted(self.builders.items()):
             if b.kind in kinds and key not in keys:
                 keys.append(key)
+                trackers += [key] if b.kind == "tracker" else []
         narrow = Receiver(self.session, keys)
         old, self.receiver = self.receiver, narrow
         old.close()
+        self._watch_clocks(grating.key, trackers[0] if trackers else None)
+
+    def _watch_clocks(self, grating: str, tracker: str | None) -> None:
+        """Follow the ``host_clock`` in the health of the grating's device and of the
+        tracker's (data keys; None: not tracking)."""
+        import zenoh
+
+        paired = {"grating": grating} | ({"tracker": tracker} if tracker else {})
+        self.clocks = clocks = PairedClocks(
+            {kind: key.rsplit("/", 1)[0] + "/health" for kind, key in paired.items()}
+        )
+
+        def take(sample: zenoh.Sample) -> None:  # zenoh's callback thread
+            clocks.take(str(sample.key_expr), sample.payload.to_bytes())
+
+        self._health_subs = [
+            self.session.declare_subscriber(key, zenoh.handlers.Callback(take))
+            for key in clocks.keys.values()
+        ]
 
     def publish(self, twin: CalibratedTwin) -> int:
         """Publish ``twin`` as the gratings drive it until ``publish_s`` (or forever)."""
@@ -304,7 +356,7 @@ class LiveTwin:
         self._narrow_to(grating, setup is not None)
         cell = str(grating.meta.get("cell", "cell"))
         robot = str(grating.meta.get("robot", "robot"))
-        out = TwinPublication(self.session, twin, args, cell, robot, setup)
+        out = TwinPublication(self.session, twin, args, cell, robot, setup, self.clocks)
         say(f"publishing the live twin on {out.keys['state']} (health: {out.keys['health']})")
         if setup is not None:
             say(
@@ -319,6 +371,9 @@ class LiveTwin:
         while not (args.publish_s and time.monotonic() - started >= args.publish_s):
             batch = self._drain()
             now_m = time.monotonic()
+            clocks_said = self.clocks.check()
+            if clocks_said is not None:
+                say(clocks_said)
             gratings = self._gratings_of(batch, out)
             if gratings is not None:
                 out.state(*gratings)
@@ -389,6 +444,8 @@ class LiveTwin:
             elif b.kind == "encoders":
                 out.encoders(cols["t_mapped_ns"], np.column_stack([cols[c] for c in b.channels]))
             elif b.kind == "tracker" and out.tracker is not None:
+                if not self.clocks.admits(len(cols["t_mapped_ns"])):  # clocks apart/unknown
+                    continue
                 xyz = np.column_stack([cols[c] for c in b.channels]).astype(float)
                 out.tracker.add_tracker(cols["t_mapped_ns"], xyz, b.status_of(cols))
         if not counts:
@@ -399,6 +456,8 @@ class LiveTwin:
         if self.closed:
             return
         self.closed = True
+        for sub in self._health_subs:
+            sub.undeclare()
         self.receiver.close()
         self.session.close()
 
@@ -421,6 +480,7 @@ class TwinPublication:
         cell: str,
         robot: str,
         tracking: TrackingSetup | None = None,
+        clocks: PairedClocks | None = None,
     ) -> None:
         from daq.bus import JSON_ENCODING, ChannelPublisher, SchemaServer
 
@@ -428,6 +488,7 @@ class TwinPublication:
         n = desc.n_joints
         self.twin = twin
         self.cell, self.robot = cell, robot
+        self.clocks = clocks if clocks is not None else PairedClocks({})
         self.keys = twin_keys(cell, robot)
         self.gear = np.array(desc.gear_ratios, dtype=float)
         radius = settings.effects_radius_deg
@@ -584,6 +645,7 @@ class TwinPublication:
             "clock_settled": settled,
             "model": self.twin.name,
             "tracking": self._tracking_health(),
+            "clocks": self.clocks.doc(),
             "effects": self.predictor.describe(),
             "scale_maps": {
                 "linearised_radius_deg": reader.radius_deg,

@@ -338,6 +338,15 @@ def host_clock_of(data: bytes) -> dict[str, float] | None:
     return {k: float(v) for k, v in got.items() if v is not None}
 
 
+def host_clocks_apart(a: tuple[float, float], b: tuple[float, float]) -> bool:
+    """Whether two hosts' clocks, each ``(offset_ms, uncertainty_ms)`` against the same
+    reference (``host_clock`` of their health), are further apart than
+    :data:`HOST_CLOCK_TOLERANCE_MS` beyond both uncertainties: samples they stamped must
+    not be paired by time (the replay refuses them, the live twin learns no tracking
+    update from them)."""
+    return abs(a[0] - b[0]) - a[1] - b[1] > HOST_CLOCK_TOLERANCE_MS
+
+
 def check_host_clocks(streams: CellStreams, clocks: dict[str, dict[str, float]]) -> None:
     """Refuse (:class:`StreamError`, saying why) streams stamped by host clocks that
     disagree: each device's latest ``host_clock`` in ``clocks`` (by health key; devices
@@ -351,7 +360,7 @@ def check_host_clocks(streams: CellStreams, clocks: dict[str, dict[str, float]])
                 said.append((s, clock["offset_ms"], clock["uncertainty_ms"]))
     for i, (a, off_a, unc_a) in enumerate(said):
         for b, off_b, unc_b in said[i + 1 :]:
-            if abs(off_a - off_b) - unc_a - unc_b > HOST_CLOCK_TOLERANCE_MS:
+            if host_clocks_apart((off_a, unc_a), (off_b, unc_b)):
                 raise StreamError(
                     f"{streams.source}: the {a.kind} ({a.device}) and the {b.kind} "
                     f"({b.device}) were stamped by host clocks {abs(off_a - off_b):.1f} ms "

@@ -34,7 +34,8 @@ DOC = ROOT / "docs/deployment.md"
 
 def doc_command(prefix: str) -> tuple[dict[str, str], list[str]]:
     """The command line of docs/deployment.md that starts with ``prefix``: its leading
-    ``VAR=value`` words and the rest, ``daq`` run as ``python -m daq.cli``."""
+    ``VAR=value`` words and the rest, ``daq`` run as ``python -m daq.cli`` (``twin`` as
+    ``python -m calibration.cli``)."""
     lines = [x for x in DOC.read_text(encoding="utf-8").splitlines() if x.startswith(prefix)]
     assert len(lines) == 1, (prefix, lines)
     words = shlex.split(lines[0].split("  #")[0])
@@ -44,6 +45,8 @@ def doc_command(prefix: str) -> tuple[dict[str, str], list[str]]:
         env[k] = v
     if words[0] == "daq":
         words = [PY, "-m", "daq.cli", *words[1:]]
+    elif words[0] == "twin":
+        words = [PY, "-m", "calibration.cli", *words[1:]]
     elif words[0].startswith("scripts/"):
         words[0] = str(ROOT / words[0])
     return env, words
