@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks import format_table
-from calibration import learned_residual
+from calibration.effects import learned_residual
 from calibration.effects.learned_residual import fit_learned_residual
 
 Row = dict[str, Any]
