@@ -251,7 +251,7 @@ def test_clean_data_keep_no_learned_stage(seed):
 
 @pytest.mark.slow
 def test_twenty_seeds_the_effect_is_learned():
-    """``pytest -m slow tests/test_learned_residual.py``: the fast test over 20 seeds.
+    """``pytest -m slow tests/calibration/test_learned_residual.py``: the fast test over 20 seeds.
 
     With every candidate offered the loop first adds generic harmonics of joint 4 that take
     a part of the shape, and the stage recovers less of what is left: 0.56 at worst over 20
