@@ -21,7 +21,7 @@ one-thread limit lifted (what the shipped code protects against):
 Columns: ``seconds`` wall (best of the repeats), ``cpu_s`` the process's CPU time of that
 run (all threads): on a loaded shared host the wall time is mostly waiting for a core.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.bench_learned_residual [--quick]
+    OMP_NUM_THREADS=1 python -m benchmarks.bench_learned_residual [--quick] [--no-sklearn]
 
 (OMP_NUM_THREADS=1 only for the rest of the process: the rows set the BLAS threads
 themselves.)
@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks import format_table
-from calibration import learned_residual
+from calibration.effects import learned_residual
 from calibration.effects.learned_residual import fit_learned_residual
 
 Row = dict[str, Any]
@@ -132,7 +132,9 @@ def _ours(q: Any, y: Any, qx: Any, yx: Any, threads: int, quick: bool, note: str
     ]  # fmt: skip
 
 
-def run(quick: bool = False) -> list[Row]:
+def run(quick: bool = False, sklearn: bool = True) -> list[Row]:
+    """Our rows at 1 and 2 BLAS threads, the limit lifted, then scikit-learn's (not with
+    ``quick`` or without ``sklearn``)."""
     n_train, n_predict = (200, 1000) if quick else (1000, 10_000)
     q, y, qx, yx = dataset(n_train, n_predict)
     rows: list[Row] = []
@@ -145,7 +147,7 @@ def run(quick: bool = False) -> list[Row]:
         rows += _ours(q, y, qx, yx, 2, quick, "limit lifted")
     finally:
         learned_residual.one_blas_thread = shipped  # type: ignore[assignment]
-    if not quick:
+    if not quick and sklearn:
         cpu = {
             t: {"fit_cpu": rows[2 * i]["cpu_s"], "predict_cpu": rows[2 * i + 1]["cpu_s"]}
             for i, t in enumerate((1, 2))
@@ -157,8 +159,11 @@ def run(quick: bool = False) -> list[Row]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_learned_residual")
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument(
+        "--no-sklearn", action="store_true", help="ours only (scikit-learn's fit takes minutes)"
+    )
     args = parser.parse_args(argv)
-    print(format_table(run(args.quick)))
+    print(format_table(run(args.quick, sklearn=not args.no_sklearn)))
     return 0
 
 
