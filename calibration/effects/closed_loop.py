@@ -21,9 +21,10 @@ it from a significant candidate of a more physical kind (its columns lie within 
 one's, principal angles after the model is projected out): then the physical priority
 decides (a gravity term before a harmonic on a joint gravity loads). All parameters
 (geometry and every effect so far) are then re-identified together by the LM of
-:mod:`calibration.identify.identification`; a gravity term found in its linear form is refitted in
-its physical form (shared moments, compliance ratios), kept when the linear form is not
-significantly better. A step that makes the validation error worse is undone and its
+:mod:`calibration.identify.identification`. The gravity term is scored in both its forms, each
+on its own parameter count (:mod:`calibration.effects.gravity_form`): the physical one
+(shared moments, compliance ratios profiled) and the linear one; added, it is kept in the
+physical form unless the linear form is significant itself and significantly better. A step that makes the validation error worse is undone and its
 candidate set aside. The search repeats until no candidate is significant, the maximum
 number of effects is in, or too many candidates were set aside; the result says which
 (:class:`StopReason`) and names the best candidate left. Candidate

@@ -21,6 +21,7 @@ from benchmarks.bench_attribution import (
     CASES,
     MASS_VARIANTS,
     ROBOTS,
+    effects_of,
     emulated,
     family_validation_mm,
     matrix,
@@ -87,6 +88,33 @@ def test_the_physical_form_recovers_the_emulators_compliance_ratios():
         if j in (2, 3, 5) and j != ref:
             truth = k[ref - 1] / k[j - 1]
             assert abs(r - truth) < 4 * se + 0.15 * truth, (j, r, truth, se)
+
+
+def test_a_campaign_too_small_for_the_linear_gravity_form_adds_the_physical_one():
+    """40 identification poses: the linear gravity form (34 parameters on the KR500) does
+    not pay its ln(3m) penalty on every arm, its physical form (14 columns + 4 ratios) does;
+    scored on its own count, it is added, and the twin reaches the emulator's own model
+    family fitted to the same poses."""
+    linear_significant = []
+    for seed in (1, 3):
+        data = emulated_campaign(
+            "kr500", seed, CampaignSettings(effects=effects_of("gravity"), n_identify=40)
+        )
+        res = run_closed_loop(twin_description(data.cell.nominal, "none"), data.campaign)
+        assert [(s.kind, s.parameter) for s in res.added] == [("gravity_deflection", "physical")], [
+            s.label for s in res.added
+        ]
+        stage = res.final
+        forms = {
+            s.spec.parameter: s for s in stage.round_scores if s.spec.kind == "gravity_deflection"
+        }
+        assert forms["physical"].significant and stage.added == forms["physical"]
+        assert forms["physical"].n_parameters < forms["linear"].n_parameters
+        linear_significant.append(forms["linear"].significant)
+        assert stage.shape["gravity_form"]["kept"] == "physical"
+        assert res.geometric.mean_ap("validate") > 3 * stage.mean_ap("validate")
+        assert stage.mean_ap("validate") <= 1.3 * family_validation_mm(data)
+    assert not all(linear_significant)  # the case the linear form alone could not reach
 
 
 @pytest.mark.parametrize("robot", ROBOTS)
