@@ -21,16 +21,16 @@ it from a significant candidate of a more physical kind (its columns lie within 
 one's, principal angles after the model is projected out): then the physical priority
 decides (a gravity term before a harmonic on a joint gravity loads). All parameters
 (geometry and every effect so far) are then re-identified together by the LM of
-:mod:`calibration.identify.identification`. The gravity term is scored in both its forms, each
-on its own parameter count (:mod:`calibration.effects.gravity_form`): the physical one
+:mod:`calibration.identify.identification`. The gravity term is scored in both its forms,
+each on its own parameter count (:mod:`calibration.effects.gravity_form`): the physical one
 (shared moments, compliance ratios profiled) and the linear one; added, it is kept in the
-physical form unless the linear form is significant itself and significantly better. A step that makes the validation error worse is undone and its
-candidate set aside. The search repeats until no candidate is significant, the maximum
-number of effects is in, or too many candidates were set aside; the result says which
-(:class:`StopReason`) and names the best candidate left. Candidate
-columns a combination of the current model's are dropped first (a constant tracker scale,
-for one, is exactly a scaling of every length and the base position: it is reported as not
-identifiable rather than scored).
+physical form unless the linear form is significant itself and significantly better. A step
+that makes the validation error worse is undone and its candidate set aside. The search
+repeats until no candidate is significant, the maximum number of effects is in, or too many
+candidates were set aside; the result says which (:class:`StopReason`) and names the best
+candidate left. Candidate columns a combination of the current model's are dropped first (a
+constant tracker scale, for one, is exactly a scaling of every length and the base position:
+it is reported as not identifiable rather than scored).
 
 Refits inside the scoring are linear least squares on the model linearized at the current
 solution (effects are sub-mm, the linearization error is far below the noise); only the
