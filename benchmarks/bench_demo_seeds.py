@@ -189,7 +189,7 @@ def outcome(
         "gravity_alone_physical": alone and added[0].parameter == "physical",
         "validate_mean_mm": " -> ".join(f"{v:.4f}" for v in stages),
         "joint_fit_rounds": len(run.calibration.rounds),
-        "form_p": " ".join(f"{f['p_value']:.2g}" for f in forms),
+        "form_p": " ".join("-" if f["p_value"] is None else f"{f['p_value']:.2g}" for f in forms),
         "stopped": "" if loop is None else loop.stop.text,
         "streams_s": round(t1 - t0, 1),
         "twin_s": round(t2 - t1, 1),
@@ -205,13 +205,17 @@ def run(quick: bool) -> list[dict[str, Any]]:
 
 
 def _seeds(text: str) -> list[int]:
-    lo, _, hi = text.partition("-")
-    return list(range(int(lo), int(hi or lo) + 1))
+    """Seeds from ``1-20`` or ``13,18,10`` (ranges and single seeds, comma-separated)."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out += range(int(lo), int(hi or lo) + 1)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_demo_seeds", description=__doc__)
-    p.add_argument("--seeds", default="1-20", help="seed range, e.g. 1-20 (default)")
+    p.add_argument("--seeds", default="1-20", help="seeds, e.g. 1-20 (default) or 13,18,10-12")
     p.add_argument("--effect", default="gravity_deflection")
     p.add_argument("--cache", type=Path, help="keep the sampled streams here (docstring)")
     args = p.parse_args(argv)

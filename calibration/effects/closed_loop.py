@@ -21,15 +21,16 @@ it from a significant candidate of a more physical kind (its columns lie within 
 one's, principal angles after the model is projected out): then the physical priority
 decides (a gravity term before a harmonic on a joint gravity loads). All parameters
 (geometry and every effect so far) are then re-identified together by the LM of
-:mod:`calibration.identify.identification`; a gravity term found in its linear form is refitted in
-its physical form (shared moments, compliance ratios), kept when the linear form is not
-significantly better. A step that makes the validation error worse is undone and its
-candidate set aside. The search repeats until no candidate is significant, the maximum
-number of effects is in, or too many candidates were set aside; the result says which
-(:class:`StopReason`) and names the best candidate left. Candidate
-columns a combination of the current model's are dropped first (a constant tracker scale,
-for one, is exactly a scaling of every length and the base position: it is reported as not
-identifiable rather than scored).
+:mod:`calibration.identify.identification`. The gravity term is scored in both its forms,
+each on its own parameter count (:mod:`calibration.effects.gravity_form`): the physical one
+(shared moments, compliance ratios profiled) and the linear one; added, it is kept in the
+physical form unless the linear form is significant itself and significantly better. A step
+that makes the validation error worse is undone and its candidate set aside. The search
+repeats until no candidate is significant, the maximum number of effects is in, or too many
+candidates were set aside; the result says which (:class:`StopReason`) and names the best
+candidate left. Candidate columns a combination of the current model's are dropped first (a
+constant tracker scale, for one, is exactly a scaling of every length and the base position:
+it is reported as not identifiable rather than scored).
 
 Refits inside the scoring are linear least squares on the model linearized at the current
 solution (effects are sub-mm, the linearization error is far below the noise); only the
@@ -77,10 +78,15 @@ from calibration.effects.effect_kinds import (
     to_descriptions,
 )
 from calibration.effects.effect_shapes import (
+    PhysicalGravityFit,
     TimeConstantProfile,
     profile_time_constant,
 )
-from calibration.effects.gravity_form import form_decision, physical_gravity
+from calibration.effects.gravity_form import (
+    gravity_step,
+    physical_gravity,
+    physical_parameter_count,
+)
 from calibration.effects.loop_stop import Rejected, ScoredRound, StopReason, stop_reason
 from calibration.errors import IdentificationError
 from calibration.identify.campaign_files import Campaign
@@ -443,8 +449,9 @@ class _Search:
             offered = self.offered(specs, result.effect_values, set_aside)
             if not offered:
                 return [], rejected, self.stop("no_candidate_left", None, rejected, ())
+            physical = not any(_is_physical(s) for s in set_aside)
             scored = _score_round(
-                problem, result, specs, offered, settings, self.penalty, self.span
+                problem, result, specs, offered, settings, self.penalty, self.span, physical
             )
             scores = scored.scores
             if len(specs) >= settings.max_effects:
@@ -460,7 +467,7 @@ class _Search:
                 return scores, rejected, stop
             chosen, reason = choose(scored.lin, scores, scored.columns)
             step = _guarded(
-                _try_step(problem, result, specs, chosen.spec, scored.lin, scored.columns, tell),
+                _try_step(problem, result, specs, chosen.spec, scored, tell),
                 problem,
                 stages[-1],
                 settings,
@@ -547,6 +554,7 @@ def _effect_stage(
         shape["time_constant"] = scored.profiles[chosen.spec].as_dict()
     shape.update(step.form)
     added_spec = step.specs[-1]
+    own = [s for s in scored.scores if s.spec == added_spec]  # a gravity form's own score
     stage = Stage(
         "effect",
         f"+ {added_spec.label}",
@@ -555,7 +563,7 @@ def _effect_stage(
         effect_values=step.result.effect_values,
         result=step.result,
         errors_mm=step.errors_mm,
-        added=replace(chosen, spec=added_spec),
+        added=own[0] if own else replace(chosen, spec=added_spec),
         round_scores=tuple(scored.scores),
         reason=reason,
         competitors=competitors(scored.lin, chosen, scored.scores, scored.columns),
@@ -593,9 +601,12 @@ def _score_round(
     settings: LoopSettings,
     penalty: float,
     span: tuple[float, ...],
+    physical: bool = True,
 ) -> ScoredRound:
     """Score every offered candidate against the model ``result`` with ``specs``; a drift
-    is offered as a lag when the data says so."""
+    is offered as a lag when the data says so; the gravity term's linear form also in its
+    physical form (``physical``: unless that was set aside), scored on its own parameters
+    (the compliance ratios but the reference joint's charged like a lag's τ)."""
     lin, sw, kin = problem.linearized(result, specs, settings)
     columns: dict[EffectSpec, FloatArray] = {}
     profiles: dict[EffectSpec, TimeConstantProfile] = {}
@@ -611,6 +622,15 @@ def _score_round(
             else:
                 profiles[spec] = profile
         columns[spec] = problem.columns(spec, sw, kin)
+    fits: dict[EffectSpec, PhysicalGravityFit] = {}
+    linear = [s for s in columns if s.kind == "gravity_deflection" and s.parameter == "linear"]
+    form = None
+    if linear and physical:
+        form = physical_gravity(problem.ctx, problem.m, linear[0], lin, columns[linear[0]])
+    if form is not None:
+        phys_spec, fits[phys_spec] = form
+        columns[phys_spec] = problem.columns(phys_spec, sw, kin)
+        extra[phys_spec] = physical_parameter_count(phys_spec) - len(phys_spec.names)
     scanned = _scan_orders(lin, columns)
     n = len(columns)
     scores = [
@@ -622,7 +642,7 @@ def _score_round(
         for spec, cols in columns.items()
     ]  # fmt: skip
     scores.sort(key=lambda c: (not c.significant, c.n_parameters == 0, -c.score))
-    return ScoredRound(lin, scores, columns, profiles)
+    return ScoredRound(lin, scores, columns, profiles, fits)
 
 
 def _scan_orders(
@@ -665,37 +685,34 @@ def _try_step(
     result: IdentificationResult,
     specs: tuple[EffectSpec, ...],
     spec: EffectSpec,
-    lin: LinearizedModel,
-    columns: dict[EffectSpec, FloatArray],
+    scored: ScoredRound,
     tell: Callable[[str], None],
 ) -> tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str:
-    """Re-identify with ``spec`` added (a gravity term in the form the data supports);
-    a string says why the step failed."""
+    """Re-identify with ``spec`` added (a gravity term in the form the data supports,
+    :func:`~calibration.effects.gravity_form.gravity_step`); a string says why the step
+    failed."""
+    if spec.kind == "gravity_deflection":
+        forms = [s for s in scored.scores if s.spec.kind == spec.kind]
+        linear = [s for s in forms if s.spec.parameter == "linear"]
+        physical = [
+            (s.spec, scored.gravity_fits[s.spec]) for s in forms if s.spec in scored.gravity_fits
+        ]
+        if linear:
+            return gravity_step(
+                problem.ctx, specs, result.effect_values, linear[0].spec,
+                physical[0] if physical else None, linear[0].significant,
+                problem.identify, tell,
+            )  # fmt: skip
     new_specs = (*specs, spec)
     start = np.concatenate([result.effect_values, np.zeros(len(spec.parameter_names()))])
     try:
-        linear = problem.identify(new_specs, start)
+        return new_specs, problem.identify(new_specs, start), {}
     except IdentificationError as exc:
         return f"re-identification failed: {exc}"
-    if spec.kind != "gravity_deflection" or spec.parameter == "physical":
-        return new_specs, linear, {}
-    physical = physical_gravity(problem.ctx, problem.m, spec, lin, columns[spec])
-    if physical is None:
-        return new_specs, linear, {}
-    phys_spec, fit = physical
-    phys_specs = (*specs, phys_spec)
-    own = len(phys_spec.names) - len(fit.moments)
-    start = np.concatenate([result.effect_values, fit.moments, np.zeros(own)])
-    try:
-        phys = problem.identify(phys_specs, start)
-    except IdentificationError as exc:
-        tell(f"closed loop: physical gravity form not kept: {exc}")
-        return new_specs, linear, {"gravity_form": {"kept": "linear", "reason": str(exc)}}
-    info = form_decision(problem.ctx, problem.m, linear, phys, spec, phys_spec, fit)
-    tell(f"closed loop: gravity deflection, {info['gravity_form']['reason']}")
-    if info["gravity_form"]["kept"] == "physical":
-        return phys_specs, phys, info
-    return new_specs, linear, info
+
+
+def _is_physical(spec: EffectSpec) -> bool:
+    return spec.kind == "gravity_deflection" and spec.parameter == "physical"
 
 
 def _evidence(

@@ -1,9 +1,12 @@
 """The gravity term's physical form: shared compliance-weighted moments and compliance
 ratios fitted from the linear candidate's columns (:func:`physical_gravity`), kept unless
-the linear form is significantly better (:func:`form_decision`, an F-test)."""
+the linear form is significantly better (:func:`form_decision`, an F-test) and significant
+on its own parameter count in the round; the re-identification of a chosen gravity term in
+the form the data supports (:func:`gravity_step`)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -14,9 +17,12 @@ from calibration.effects.candidate_scoring import LinearizedModel
 from calibration.effects.effect_base import EffectContext, EffectSpec
 from calibration.effects.effect_gravity import counterbalance_term, joint_moment
 from calibration.effects.effect_shapes import PhysicalGravityFit, fit_physical_gravity
+from calibration.errors import IdentificationError
 from calibration.identify.identification import IdentificationResult
 
 FloatArray = NDArray[np.float64]
+#: Re-identify with these effects from these start values (the closed loop's LM).
+Identify = Callable[[tuple[EffectSpec, ...], FloatArray], IdentificationResult]
 
 #: Significance of the linear gravity form's extra freedom over the physical form.
 PHYSICAL_FORM_ALPHA = 0.01
@@ -69,24 +75,58 @@ def form_decision(
     spec: EffectSpec,
     phys_spec: EffectSpec,
     fit: PhysicalGravityFit,
+    *,
+    linear_eligible: bool = True,
 ) -> dict[str, Any]:
-    """Keep the physical form unless the linear one is significantly better (F-test)."""
+    """Keep the physical form unless the linear one is significantly better (F-test) and,
+    ``linear_eligible``, significant on its own parameter count in the round."""
     sse_lin = weighted_sse(linear)
     sse_phys = weighted_sse(phys)
     k_lin = len(spec.names)
-    k_phys = len(phys_spec.names) + len(phys_spec.joints) - 1  # moments, own terms, ratios
+    k_phys = physical_parameter_count(phys_spec)
     dof = 3 * m - int(np.count_nonzero(linear.free))
     d1 = max(k_lin - k_phys, 1)
     f_stat = ((sse_phys - sse_lin) / d1) / max(sse_lin / max(dof, 1), 1e-300)
     p = float(f_distribution.sf(max(f_stat, 0.0), d1, max(dof, 1)))
-    kept = "physical" if p >= PHYSICAL_FORM_ALPHA else "linear"
-    reason = (
-        f"physical form kept ({k_phys} parameters against {k_lin}; the linear form's extra "
-        f"freedom: F = {f_stat:.2f}, p = {p:.2g})"
-        if kept == "physical"
-        else f"linear form kept: the joints do not share the same moments (F = {f_stat:.2f}, "
-        f"p = {p:.2g} < {PHYSICAL_FORM_ALPHA})"
-    )
+    rejects = p < PHYSICAL_FORM_ALPHA
+    kept = "linear" if rejects and linear_eligible else "physical"
+    test = f"F = {f_stat:.2f}, p = {p:.2g}"
+    if kept == "linear":
+        reason = (
+            f"linear form kept: the joints do not share the same moments ({test} < "
+            f"{PHYSICAL_FORM_ALPHA})"
+        )
+    elif rejects:
+        reason = (
+            f"physical form kept ({k_phys} parameters against {k_lin}): the linear form's "
+            f"extra freedom is significant ({test}) but the linear form is not significant "
+            f"on its own {k_lin} parameters on these poses"
+        )
+    else:
+        reason = (
+            f"physical form kept ({k_phys} parameters against {k_lin}; the linear form's "
+            f"extra freedom: {test})"
+        )
+    return _form_info(ctx, kept, reason, phys_spec, fit, float(f_stat), p)
+
+
+def physical_parameter_count(phys_spec: EffectSpec) -> int:
+    """The physical form's parameters: moments, counterbalance terms and the compliance
+    ratios but the reference joint's."""
+    return len(phys_spec.names) + len(phys_spec.joints) - 1
+
+
+def _form_info(
+    ctx: EffectContext,
+    kept: str,
+    reason: str,
+    phys_spec: EffectSpec,
+    fit: PhysicalGravityFit,
+    f_stat: float | None,
+    p: float | None,
+) -> dict[str, Any]:
+    """The gravity form decision as the report keeps it (``f_stat``, ``p``: the linear
+    form's extra freedom; None when the linear form could not be identified)."""
     stated = ctx.description.base is not None and (ctx.description.base.gravity is not None)
     return {
         "gravity_form": {
@@ -96,7 +136,7 @@ def form_decision(
             "gravity_source": "the description's [base] gravity"
             if stated
             else "−z of the robot base frame (floor mounting, the default)",
-            "f_statistic": float(f_stat),
+            "f_statistic": f_stat,
             "p_value": p,
             "reference_joint": fit.reference,
             "joints": list(fit.joints),
@@ -107,6 +147,62 @@ def form_decision(
             "weighted_moment_se_urad": [float(w) for w in fit.moment_se],
         }
     }
+
+
+def gravity_step(
+    ctx: EffectContext,
+    specs: tuple[EffectSpec, ...],
+    values: FloatArray,
+    linear_spec: EffectSpec,
+    physical: tuple[EffectSpec, PhysicalGravityFit] | None,
+    linear_eligible: bool,
+    identify: Identify,
+    tell: Callable[[str], None],
+) -> tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str:
+    """Re-identify the model ``specs`` (effect values ``values``) with the gravity term
+    added in the form the data supports; a string says why the step failed.
+
+    Both forms are identified (the linear one for the F-test): the physical form
+    (``physical``, None when it could not be fitted or was set aside) is kept unless the
+    linear form is ``linear_eligible`` (significant on its own parameter count in the
+    round) and significantly better (:func:`form_decision`). A form that fails to identify
+    leaves the other, the linear one only when eligible.
+    """
+    m = len(ctx.data)
+    failed: list[str] = []
+    linear: IdentificationResult | None = None
+    try:
+        start = np.zeros(len(linear_spec.parameter_names()))
+        linear = identify((*specs, linear_spec), np.concatenate([values, start]))
+    except IdentificationError as exc:
+        failed.append(f"linear form: {exc}")
+    phys: IdentificationResult | None = None
+    if physical is not None:
+        phys_spec, fit = physical
+        own = np.zeros(len(phys_spec.names) - len(fit.moments))
+        try:
+            phys = identify((*specs, phys_spec), np.concatenate([values, fit.moments, own]))
+        except IdentificationError as exc:
+            failed.append(f"physical form: {exc}")
+            tell(f"closed loop: physical gravity form not kept: {exc}")
+    if phys is None or physical is None:
+        if linear is None or not linear_eligible:
+            return "re-identification failed: " + "; ".join(failed or ["no gravity form"])
+        info = {} if not failed else {"gravity_form": {"kept": "linear", "reason": failed[-1]}}
+        return (*specs, linear_spec), linear, info
+    phys_spec, fit = physical
+    if linear is None:
+        reason = f"physical form kept (the linear form could not be identified: {failed[0]})"
+        info = _form_info(ctx, "physical", reason, phys_spec, fit, None, None)
+    else:
+        info = form_decision(
+            ctx, m, linear, phys, linear_spec, phys_spec, fit, linear_eligible=linear_eligible
+        )
+    tell(f"closed loop: gravity deflection, {info['gravity_form']['reason']}")
+    if info["gravity_form"]["kept"] == "physical":
+        return (*specs, phys_spec), phys, info
+    assert linear is not None
+    return (*specs, linear_spec), linear, info
 
 
 def weighted_sse(result: IdentificationResult) -> float:

@@ -4,7 +4,7 @@ a round's scores (:class:`ScoredRound`) and the candidates set aside (:class:`Re
 from __future__ import annotations
 
 from collections.abc import Collection
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from calibration.effects.candidate_scoring import CandidateScore, LinearizedModel, choose
 from calibration.effects.effect_base import EffectSpec
-from calibration.effects.effect_shapes import TimeConstantProfile
+from calibration.effects.effect_shapes import PhysicalGravityFit, TimeConstantProfile
 
 FloatArray = NDArray[np.float64]
 
@@ -21,12 +21,14 @@ FloatArray = NDArray[np.float64]
 class ScoredRound:
     """One round of the search: the model linearized at its solution, and every offered
     candidate's weighted columns ``(3m, k)`` and score (significant first, then best CV
-    score first); a drift's time-constant profile."""
+    score first); a drift's time-constant profile; the gravity term's physical form fitted
+    from the linear form's columns (its spec → the fit of its compliance ratios)."""
 
     lin: LinearizedModel
     scores: list[CandidateScore]
     columns: dict[EffectSpec, FloatArray]
     profiles: dict[EffectSpec, TimeConstantProfile]
+    gravity_fits: dict[EffectSpec, PhysicalGravityFit] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
