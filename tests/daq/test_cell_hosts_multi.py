@@ -96,8 +96,9 @@ def test_each_cell_reaches_its_own_subscriber_in_order_and_no_cell_injects(plant
     view_env, view_cmd = doc_command(
         "DAQ_ZENOH_TLS_CA=pki/ca.pem DAQ_ZENOH_TLS_CERTIFICATE=pki/viewer"
     )
-    assert view_cmd[:2] == ["twin", "view"], view_cmd
-    view_cmd = [PY, "-m", "calibration.cli", *view_cmd[1:], "--port", "0", "--quiet"]
+    # doc_command runs the doc's `twin` as `python -m calibration.cli`
+    assert view_cmd[:4] == [PY, "-m", "calibration.cli", "view"], view_cmd
+    view_cmd = [*view_cmd, "--port", "0", "--quiet"]
     at = view_cmd.index("--cell")
     try:
         for cell, e in echoes.items():
