@@ -45,6 +45,11 @@ def narrow_kr500() -> str:
 
 
 @pytest.mark.timeout(300)
+# ~60 s of real time, the longest of the real-time tests: `make soak` runs it (`pytest -m
+# slow tests/daq/test_demo_planned.py`); `make test` keeps the plan's pieces (the cell
+# running it, tests/sim_devices/test_sim_plan.py; the demo's options,
+# tests/daq/test_demo_plan_options.py) within its 15 minutes
+@pytest.mark.slow
 def test_a_planned_campaign_is_recorded_and_calibrated_with_every_pose_measured(tmp_path):
     robot = tmp_path / "narrow_kr500.toml"
     robot.write_text(narrow_kr500(), encoding="utf-8")

@@ -23,7 +23,7 @@ SIM_CELL = str(Path(sys.executable).parent / "sim-cell")
 @pytest.fixture(scope="module")
 def plan_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("plan") / "plan"
-    argv = ["plan", "--robot", "kr500", "--poses", "6", "--validate", "4"]
+    argv = ["plan", "--robot", "kr500", "--poses", "6", "--validate", "4", "--no-sweeps"]
     assert twin_main([*argv, "--candidates", "300", "--out", str(out)]) == 0
     return out
 
