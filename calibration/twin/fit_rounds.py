@@ -225,8 +225,13 @@ def _refitted_rounds(
 
 def _damped(taken: dict[int, FloatArray], found: dict[int, FloatArray]) -> dict[int, FloatArray]:
     """What the next round takes out of each joint's sweep ``(S, n)`` rad: ``taken`` (this
-    round's) moved by :data:`DEFLECTION_STEP` of the way to ``found`` (its loop's)."""
-    return {j: taken[j] + DEFLECTION_STEP * (found[j] - taken[j]) for j in found}
+    round's) moved by :data:`DEFLECTION_STEP` of the way to ``found`` (its loop's); a joint
+    this round took nothing out of starts from zero."""
+    out: dict[int, FloatArray] = {}
+    for j, f in found.items():
+        t = taken.get(j, np.zeros_like(f))
+        out[j] = t + DEFLECTION_STEP * (f - t)
+    return out
 
 
 def _deflection_moved(
