@@ -13,7 +13,8 @@ clock) with the router's ``t_ref`` gives
 (the answer was made somewhere in the round trip). Of ``ROUNDS`` round trips the shortest
 is kept. The offset goes into each device's health document (``host_clock``), and one
 line is logged when it leaves ``tolerance_s`` (beyond its uncertainty) and one when it
-is back. The daemon measures the clock its samples are stamped with (monotonic + the UTC
+is back (within it by more than its uncertainty: an estimate whose round trip was long
+changes neither). The daemon measures the clock its samples are stamped with (monotonic + the UTC
 offset taken at start), so a clock stepped after the start is seen too.
 
 Test hook: ``DAQ_TEST_CLOCK_SHIFT_S`` (seconds, :func:`daq.bus.utc_offset_ns`) shifts a
@@ -113,6 +114,17 @@ def measure(
     )
 
 
+def clock_verdict(got: ClockOffset, tolerance_s: float) -> str | None:
+    """``"beyond"`` the tolerance by more than the estimate's uncertainty, ``"within"`` it
+    by more than that, or None: the estimate cannot tell (its round trip was too long)."""
+    tol_ms = tolerance_s * 1e3
+    if abs(got.offset_ms) - got.uncertainty_ms > tol_ms:
+        return "beyond"
+    if abs(got.offset_ms) + got.uncertainty_ms <= tol_ms:
+        return "within"
+    return None
+
+
 class HostClockWatch:
     """Estimates this host's clock offset every ``period_s`` in a thread of its own;
     ``latest``: the newest estimate (None: none yet, or no reference answers)."""
@@ -130,6 +142,7 @@ class HostClockWatch:
         self.period_s = period_s
         self.latest: ClockOffset | None = None
         self.warnings = 0  # times the offset left the tolerance
+        self._beyond = False  # the verdict of the last conclusive estimate
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="host-clock", daemon=True)
         self._thread.start()
@@ -147,8 +160,11 @@ class HostClockWatch:
             self._stop.wait(self.period_s)
 
     def _say(self, got: ClockOffset) -> None:
-        was = self.latest.within_tolerance if self.latest is not None else True
-        if was and not got.within_tolerance:
+        # only a conclusive estimate changes the verdict: one whose round trip was long (a
+        # link dropping, a router restarting) can tell neither "beyond" nor "within"
+        verdict = clock_verdict(got, self.tolerance_s)
+        if verdict == "beyond" and not self._beyond:
+            self._beyond = True
             self.warnings += 1
             side = "ahead of" if got.offset_ms > 0 else "behind"
             log.warning(
@@ -156,7 +172,8 @@ class HostClockWatch:
                 "its samples' times are off by as much; set the clocks (NTP/PTP)",
                 abs(got.offset_ms), side, got.uncertainty_ms, self.tolerance_s * 1e3,
             )  # fmt: skip
-        elif not was and got.within_tolerance:
+        elif verdict == "within" and self._beyond:
+            self._beyond = False
             log.warning(
                 "this host's clock is within %.0f ms of the router's again (%.1f ms)",
                 self.tolerance_s * 1e3, got.offset_ms,

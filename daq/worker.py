@@ -311,7 +311,8 @@ class DeviceWorker:
     def send_report(self, host_clock: dict[str, Any] | None = None) -> None:
         """Tell the worker the daemon's report of its device (:class:`DaemonReport`), for
         its next health document; nothing when the daemon has no router to report on."""
-        if self._router_link is None or self.proc is None or self.proc.stdin is None:
+        stdin = self.proc.stdin if self.proc is not None else None
+        if self._router_link is None or stdin is None:  # (stop() may clear it meanwhile)
             return
         if host_clock is not None:
             self._host_clock = host_clock
@@ -321,8 +322,8 @@ class DeviceWorker:
             doc["host_clock"] = self._host_clock
         line = json.dumps(doc)
         with contextlib.suppress(OSError, ValueError):  # a worker that ended: check() sees it
-            self.proc.stdin.write(line + "\n")
-            self.proc.stdin.flush()
+            stdin.write(line + "\n")
+            stdin.flush()
 
     def stop(self) -> None:
         """Ask the worker to stop (its stdin closes, after the daemon's last counts)."""

@@ -104,3 +104,19 @@ def test_the_clock_hook_shifts_the_offset_and_refuses_what_is_not_seconds(monkey
         monkeypatch.setenv(CLOCK_SHIFT_ENV, bad)
         with pytest.raises(ConfigError, match=rf"\${CLOCK_SHIFT_ENV}: expected seconds"):
             clock_shift_ns()
+
+
+def test_a_clock_estimate_changes_the_verdict_only_when_it_is_conclusive():
+    """The router restarting or a link dropping makes a round trip long: such an estimate
+    (0.5 s off ± 0.47 s) can tell neither beyond nor within a 10 ms tolerance, and must
+    not say "within again" (a namespace run logged exactly that once)."""
+    from daq.host_clock import ClockOffset, clock_verdict
+
+    def est(offset_ms: float, unc_ms: float) -> ClockOffset:
+        return ClockOffset(offset_ms, unc_ms, 2 * unc_ms, "router", 0, True)
+
+    assert clock_verdict(est(500.0, 0.3), 0.01) == "beyond"
+    assert clock_verdict(est(-500.0, 0.3), 0.01) == "beyond"
+    assert clock_verdict(est(2.0, 0.3), 0.01) == "within"
+    assert clock_verdict(est(32.2, 470.0), 0.01) is None
+    assert clock_verdict(est(8.0, 5.0), 0.01) is None
