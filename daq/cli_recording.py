@@ -34,6 +34,7 @@ from daq.recording_writer import (
     McapRecorder,
     check_stream_output,
 )
+from daq.stop_signals import on_stop_signals
 
 #: the logger keeps the name of the module this code came from (daq.recording), so a
 #: logging configuration that names it still applies
@@ -85,7 +86,6 @@ def main_info(args: Any) -> int:
 
 def main_record(args: Any, zc: Any) -> int:
     """``daq record``: subscribe to a key expression and write every sample to MCAP."""
-    import signal
 
     import zenoh
 
@@ -96,8 +96,7 @@ def main_record(args: Any, zc: Any) -> int:
     config_path = getattr(args, "config", None) or os.environ.get("DAQ_CONFIG")
     check_stream_output(args.output, "-o/--output", [config_path])
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    on_stop_signals(stop.set)  # not stop.set() in the handler: daq/stop_signals.py
     session = open_session(zc)
     try:
         require_peer(session, zc)  # nobody there: said within seconds, no file written

@@ -22,7 +22,6 @@ import contextlib
 import json
 import logging
 import shutil
-import signal
 import sys
 import tempfile
 import threading
@@ -50,6 +49,7 @@ from daq.recording_writer import (
 )
 from daq.router_link import RouterLink
 from daq.scheduling import set_realtime_of
+from daq.stop_signals import on_stop_signals
 from daq.worker import DaemonReport, DeviceWorker, HealthWithReport, worker_zenoh
 
 if TYPE_CHECKING:  # the emulated cell loads only for a daemon that runs one
@@ -345,12 +345,11 @@ def main_run(args: argparse.Namespace) -> int:
             emulated.close()
         raise
 
-    def on_signal(signum: int, _frame: Any) -> None:
+    def on_signal() -> None:  # in a thread, not the handler: daq/stop_signals.py
         stopping.set()
         daemon.stop.set()
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
+    on_stop_signals(on_signal)
     try:
         print(json.dumps(_running_line(cfg, daemon, path, emulated)), flush=True)
         docs = daemon.run(args.duration)

@@ -21,7 +21,6 @@ import contextlib
 import json
 import logging
 import math
-import signal
 import sys
 import threading
 import time
@@ -36,6 +35,7 @@ from daq.errors import DaqError, RecordingError
 from daq.recording_holes import HOLES_TOPIC, KIND_HOLES
 from daq.recording_reader import RecordedMessage, Recording, read_recording
 from daq.recording_writer import KIND_FOXGLOVE
+from daq.stop_signals import on_stop_signals
 
 log = logging.getLogger(__name__)
 
@@ -359,8 +359,7 @@ def _nothing_sent(
 
 def main_replay(args: Any, zc: ZenohConfig) -> int:
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    on_stop_signals(stop.set)  # not stop.set() in the handler: daq/stop_signals.py
     found = survey(args.file)  # not a recording, or damaged: refused before anything is said
     problems = found.problems()
     if found.recording.messages == 0:

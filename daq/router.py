@@ -25,7 +25,6 @@ import fcntl
 import json
 import os
 import re
-import signal
 import sys
 import threading
 from collections.abc import Callable
@@ -36,6 +35,7 @@ import zenoh
 from daq.bus import zenoh_reason
 from daq.errors import ConfigError, TransportError
 from daq.host_clock import CLOCK_KEY, serve_clock
+from daq.stop_signals import on_stop_signals
 from daq.tls import certificate_refusal, key_refusal
 from edges.inputs import read_input_bytes
 
@@ -156,8 +156,7 @@ def main_router(args: argparse.Namespace) -> int:
     try:
         zenoh.init_log_from_env_or(ACL_LOG_FILTER if acl else LOG_FILTER)
         stop = threading.Event()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+        on_stop_signals(stop.set)  # not stop.set() in the handler: daq/stop_signals.py
         try:
             session = zenoh.open(conf)
         except Exception as exc:
