@@ -41,6 +41,7 @@ def _stop(p: subprocess.Popen[bytes]) -> None:
             p.wait(5)
 
 
+@pytest.mark.slow  # ~30 s in all: `make soak`; the rule in process: test_live_clocks.py
 @pytest.mark.timeout(90)
 def test_clocks_apart_no_tracking_update_is_learned_and_the_health_says_why(tmp_path):
     recording = _with_clocks(tmp_path / "apart.mcap", {"tracker": 500.0, "grating": 0.2})
@@ -100,6 +101,7 @@ def test_clocks_apart_no_tracking_update_is_learned_and_the_health_says_why(tmp_
     assert health[-1]["tracking"]["on"] is True and "updates" not in health[-1]["tracking"]
 
 
+@pytest.mark.slow  # ~30 s in all: `make soak`; the rule in process: test_live_clocks.py
 @pytest.mark.timeout(120)
 def test_a_live_collection_of_clocks_apart_is_refused_as_a_replay_is(tmp_path):
     """``twin run`` collecting live (no ``--from``) reads the devices' ``host_clock`` from

@@ -186,6 +186,10 @@ def _columns(rows: list[dict], suffix: str, *names: str) -> list[np.ndarray]:
     return [np.concatenate([np.asarray(c[n]) for c in cols]) for n in names]
 
 
+# ~50 s of real time: `make soak` runs it (`pytest -m slow tests/calibration/
+# test_twin_live_drift.py`), to keep `make test` within 15 min; the same tracking on
+# in-process streams of the drift is tests/calibration/test_live_tracking.py, in `make test`
+@pytest.mark.slow
 @pytest.mark.timeout(150)
 def test_the_live_twin_follows_the_drifting_live_cell(tmp_path):
     rows, truth, t0_mono_ns, err = _live(tmp_path)
