@@ -11,79 +11,25 @@ test_twin_live_tracking.py, where the dwells make ≥ 20 tracking updates.
 
 from __future__ import annotations
 
-import json
 import os
-import shutil
-import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
 from daq.testing import free_port
 from tests.calibration.test_twin_clocks import _with_clocks
+from tests.calibration.test_twin_live_tracking import _live, _stop
 
-DATA = Path(__file__).parents[1] / "data"
-CALIBRATED = DATA / "twin_calibrated_small"
-POSES_FROM_S = 41  # the recording's pose phase (tests/calibration/test_twin_live_tracking.py)
 PY = sys.executable
-
-
-def _stop(p: subprocess.Popen[bytes]) -> None:
-    if p.poll() is None:
-        p.send_signal(signal.SIGINT)
-        try:
-            p.wait(10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(5)
 
 
 @pytest.mark.slow  # ~30 s in all: `make soak`; the rule in process: test_live_clocks.py
 @pytest.mark.timeout(90)
 def test_clocks_apart_no_tracking_update_is_learned_and_the_health_says_why(tmp_path):
     recording = _with_clocks(tmp_path / "apart.mcap", {"tracker": 500.0, "grating": 0.2})
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    shutil.copytree(CALIBRATED, tmp_path / "cal")
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    err = tmp_path / "twin.err"
-    procs: list[subprocess.Popen[bytes]] = []
-    try:
-        twin = subprocess.Popen(
-            [PY, "-m", "calibration.cli", "run", "--from", str(tmp_path / "cal"), "--out",
-             str(tmp_path / "out"), "--mode", "peer", "--listen", ep, "--connect", "none",
-             "--publish-s", "25", "--wait-s", "20"],
-            stdout=subprocess.DEVNULL,
-            stderr=open(err, "w"),  # noqa: SIM115 - the process holds it
-            env=env,
-        )  # fmt: skip
-        procs.append(twin)
-        echo = subprocess.Popen(
-            [PY, "-m", "daq.cli", "echo", "twin/**", "--connect", ep, "--listen", "none",
-             "--jsonl", str(tmp_path / "twin.jsonl"), "--duration", "14"],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            env=env,
-        )  # fmt: skip
-        procs.append(echo)
-        time.sleep(1.0)
-        feed = subprocess.run(
-            [PY, "-m", "daq.cli", "replay", str(recording), "--start", str(POSES_FROM_S),
-             "--speed", "1.5", "--listen", "none", "--connect", ep, "--wait-subscribers", "10"],
-            capture_output=True,
-            text=True,
-            timeout=60,
-            env=env,
-        )  # fmt: skip
-        assert feed.returncode == 0, feed.stderr[-2000:]
-        echo.wait(30)
-    finally:
-        for p in reversed(procs):
-            _stop(p)
-    said = err.read_text()
-    rows = [json.loads(x) for x in (tmp_path / "twin.jsonl").read_text().splitlines() if x]
+    rows, said = _live(tmp_path, recording=recording)
     state = [r for r in rows if r["key"].endswith("/state")]
     health = [r["json"] for r in rows if r["key"].endswith("/health")]
     assert len(state) > 10 and health, said[-3000:]  # the twin publishes from the gratings

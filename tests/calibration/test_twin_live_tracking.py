@@ -47,8 +47,9 @@ def _stop(p: subprocess.Popen) -> None:
             p.wait(5)
 
 
-def _live(tmp_path: Path, *extra: str) -> tuple[list[dict], str]:
-    """Run the twin on the replayed pose phase; the echoed twin rows and its stderr."""
+def _live(tmp_path: Path, *extra: str, recording: Path = RECORDING) -> tuple[list[dict], str]:
+    """Run the twin on the replayed pose phase of ``recording``; the echoed twin rows and
+    its stderr."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     run_dir = tmp_path / "cal"
     shutil.copytree(CALIBRATED, run_dir)
@@ -75,7 +76,7 @@ def _live(tmp_path: Path, *extra: str) -> tuple[list[dict], str]:
         procs.append(echo)
         time.sleep(1.0)
         feed = subprocess.run(
-            [PY, "-m", "daq.cli", "replay", str(RECORDING), "--start", str(POSES_FROM_S),
+            [PY, "-m", "daq.cli", "replay", str(recording), "--start", str(POSES_FROM_S),
              "--speed", "1.5", "--listen", "none", "--connect", ep, "--wait-subscribers", "10"],
             capture_output=True,
             text=True,
