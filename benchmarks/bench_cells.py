@@ -34,6 +34,7 @@ import numpy as np
 import zenoh
 
 from benchmarks.bench_daq import PY, _cell_config, _cpu_s, _free_port
+from benchmarks.bench_hosts import client_zenoh, stop_all
 from daq.testing import child_pids
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -98,14 +99,6 @@ def identity(role: str, k: int) -> str:
     return role if k == 1 else f"{role}-cell{k}"
 
 
-def _client_zenoh(port: int, who: str) -> str:
-    return (
-        f'[zenoh]\nmode = "client"\nconnect = ["tls/127.0.0.1:{port}"]\n'
-        f'tls_ca = "pki/ca.pem"\ntls_certificate = "pki/{who}.pem"\n'
-        f'tls_private_key = "pki/{who}.key"\n'
-    )
-
-
 def _cpu(pid: int) -> float:
     try:
         return _cpu_s(pid)
@@ -132,17 +125,6 @@ def _pids(cells: dict[int, subprocess.Popen[str]]) -> dict[str, int]:
     return out
 
 
-def _stop_all(procs: list[subprocess.Popen[str]]) -> None:
-    for p in procs:
-        if p.poll() is None:
-            p.terminate()
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-
-
 def plant(work: Path, cells: int, seconds: float) -> dict[str, Any]:
     """One run of ``cells`` cells through one router: ``seconds`` measured after a
     warm-up. Long as the plant's start, the measured window and the summary in order."""
@@ -164,7 +146,7 @@ def plant(work: Path, cells: int, seconds: float) -> dict[str, Any]:
             cell = _cell_config(0, devices=DEVICES, rate_hz=RATE_HZ, batch=500, age_s=0.0)
             cell = cell.replace('name = "bench"', f'name = "cell{k}"')
             cell = cell.replace('[zenoh]\nlisten = ["tcp/127.0.0.1:0"]\n', "")
-            cell += "\n" + _client_zenoh(rport, identity("daemon", k))
+            cell += "\n" + client_zenoh(rport, identity("daemon", k))
             cell += "\n[recording]\nenabled = false\n"
             (work / f"cell{k}.toml").write_text(cell, encoding="utf-8")
             d = subprocess.Popen(  # stopped by SIGTERM after the measured window
@@ -178,7 +160,7 @@ def plant(work: Path, cells: int, seconds: float) -> dict[str, Any]:
             line = d.stdout.readline()
             if not line:
                 raise RuntimeError(f"cell{k}'s daemon: {d.communicate()[1][-2000:]}")
-            (work / f"sub{k}.toml").write_text(_client_zenoh(rport, identity("twin", k)))
+            (work / f"sub{k}.toml").write_text(client_zenoh(rport, identity("twin", k)))
             e = subprocess.Popen(
                 [PY, "-m", "daq.cli", "echo", "--cell", f"cell{k}", "--config", f"sub{k}.toml",
                  "--stats", "--ready", "--idle", "3", "--duration", str(seconds + 600)],
@@ -211,7 +193,7 @@ def plant(work: Path, cells: int, seconds: float) -> dict[str, Any]:
                 raise RuntimeError(f"cell{k}'s subscriber: {err[-2000:]}")
             stats[k] = json.loads(out.strip().splitlines()[-1])
     finally:
-        _stop_all(procs)
+        stop_all(procs)
     cpu = {name: (c1[name] - c0[name]) / (t1 - t0) for name in watched}
     return _summary(cells, seconds, cpu, stats, stopped, (h1[0] - h0[0]) / (h1[1] - h0[1]))
 

@@ -35,12 +35,25 @@ ROOT = Path(__file__).resolve().parent.parent
 WARMUP_S = 3.0
 
 
-def _client_zenoh(port: int, who: str) -> str:
+def client_zenoh(port: int, who: str) -> str:
+    """cell.toml's [zenoh] of a TLS client of the router on 127.0.0.1:``port``, as ``who``."""
     return (
         f'[zenoh]\nmode = "client"\nconnect = ["tls/127.0.0.1:{port}"]\n'
         f'tls_ca = "pki/ca.pem"\ntls_certificate = "pki/{who}.pem"\n'
         f'tls_private_key = "pki/{who}.key"\n'
     )
+
+
+def stop_all(procs: list[subprocess.Popen[str]]) -> None:
+    """Terminate the processes still running (killed after 10 s)."""
+    for p in procs:
+        if p.poll() is None:
+            p.terminate()
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
 
 
 def _worst(stats: dict[str, Any]) -> dict[str, float]:
@@ -74,8 +87,8 @@ def one_round(work: Path, via_router: bool, seconds: float) -> dict[str, Any]:
             assert router.stdout is not None
             json.loads(router.stdout.readline())  # up
             old = f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n'
-            cell = cell.replace(old, _client_zenoh(rport, "daemon"))
-            (work / "viewer.toml").write_text(_client_zenoh(rport, "viewer"))
+            cell = cell.replace(old, client_zenoh(rport, "daemon"))
+            (work / "viewer.toml").write_text(client_zenoh(rport, "viewer"))
             where = ["--config", "viewer.toml"]
         else:
             where = ["--connect", f"tcp/127.0.0.1:{port}"]
@@ -107,14 +120,7 @@ def one_round(work: Path, via_router: bool, seconds: float) -> dict[str, Any]:
             raise RuntimeError(f"daq echo failed: {err[-2000:]}")
         stats = json.loads(out.strip().splitlines()[-1])
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.terminate()
-                try:
-                    p.wait(10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+        stop_all(procs)
     return {
         "mode": "router" if via_router else "direct",
         **_worst(stats),
