@@ -31,6 +31,7 @@ import pytest
 from calibration.model.description import load_robot
 from calibration.twin.twin_predictor import TwinPredictor
 from daq.testing import free_port
+from tests.daq.netns import json_line
 
 DATA = Path(__file__).parents[1] / "data"
 CALIBRATED = DATA / "twin_calibrated_small"
@@ -86,29 +87,6 @@ def _stop(p: subprocess.Popen) -> None:
             p.wait(5)
 
 
-def _running_line(p: subprocess.Popen, timeout_s: float) -> dict | None:
-    """The daemon's ``{"daq": "running", ...}`` line on stdout, within ``timeout_s``."""
-    import selectors
-
-    sel = selectors.DefaultSelector()
-    sel.register(p.stdout, selectors.EVENT_READ)
-    deadline = time.monotonic() + timeout_s
-    try:
-        while time.monotonic() < deadline:
-            if not sel.select(timeout=1.0):
-                if p.poll() is not None:
-                    return None
-                continue
-            line = p.stdout.readline()
-            if not line:
-                return None
-            if line.startswith('{"daq": "running"'):
-                return json.loads(line)
-    finally:
-        sel.close()
-    return None
-
-
 def _listening(ep: str, timeout_s: float) -> bool:
     """Whether something accepts connections on zenoh endpoint ``ep`` within ``timeout_s``."""
     import socket
@@ -148,7 +126,7 @@ def _live(tmp_path: Path) -> tuple[list[dict], dict, int, str]:
             env=env,
         )  # fmt: skip
         procs.append(daemon)
-        up = _running_line(daemon, 60)
+        up = json_line(daemon, '{"daq": "running"', 60)
         assert up, (tmp_path / "daq.err").read_text()[-3000:]
         twin = subprocess.Popen(
             [PY, "-m", "calibration.cli", "run", "--from", str(run_dir), "--out",
