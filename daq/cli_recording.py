@@ -34,7 +34,7 @@ from daq.recording_writer import (
     McapRecorder,
     check_stream_output,
 )
-from daq.stop_signals import on_stop_signals
+from edges.stop_signals import on_stop_signals
 
 #: the logger keeps the name of the module this code came from (daq.recording), so a
 #: logging configuration that names it still applies
@@ -96,7 +96,7 @@ def main_record(args: Any, zc: Any) -> int:
     config_path = getattr(args, "config", None) or os.environ.get("DAQ_CONFIG")
     check_stream_output(args.output, "-o/--output", [config_path])
     stop = threading.Event()
-    on_stop_signals(stop.set)  # not stop.set() in the handler: daq/stop_signals.py
+    on_stop_signals(stop.set)  # not stop.set() in the handler: edges/stop_signals.py
     session = open_session(zc)
     try:
         require_peer(session, zc)  # nobody there: said within seconds, no file written

@@ -49,8 +49,8 @@ from daq.recording_writer import (
 )
 from daq.router_link import RouterLink
 from daq.scheduling import set_realtime_of
-from daq.stop_signals import on_stop_signals
 from daq.worker import DaemonReport, DeviceWorker, HealthWithReport, worker_zenoh
+from edges.stop_signals import on_stop_signals
 
 if TYPE_CHECKING:  # the emulated cell loads only for a daemon that runs one
     from daq.emulated import EmulatedCell
@@ -345,7 +345,7 @@ def main_run(args: argparse.Namespace) -> int:
             emulated.close()
         raise
 
-    def on_signal() -> None:  # in a thread, not the handler: daq/stop_signals.py
+    def on_signal() -> None:  # in a thread, not the handler: edges/stop_signals.py
         stopping.set()
         daemon.stop.set()
 

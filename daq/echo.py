@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from daq.bus import Receiver, open_session, require_peer
 from daq.config import ZenohConfig
-from daq.stop_signals import on_stop_signals
+from edges.stop_signals import on_stop_signals
 
 LATENCY_KEEP = 2_000_000  # latency values kept per key for the percentiles (bounded memory)
 
@@ -312,7 +312,7 @@ def run_echo(
     run that cannot connect leaves no file behind)."""
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
-        on_stop_signals(stop.set)  # not stop.set() in the handler: daq/stop_signals.py
+        on_stop_signals(stop.set)  # not stop.set() in the handler: edges/stop_signals.py
     # the lines of a function are opened with the session
     echo = _Echo(None if callable(jsonl) else jsonl, quiet=quiet, count=count, stop=stop)
     session = open_session(zc)

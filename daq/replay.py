@@ -35,7 +35,7 @@ from daq.errors import DaqError, RecordingError
 from daq.recording_holes import HOLES_TOPIC, KIND_HOLES
 from daq.recording_reader import RecordedMessage, Recording, read_recording
 from daq.recording_writer import KIND_FOXGLOVE
-from daq.stop_signals import on_stop_signals
+from edges.stop_signals import on_stop_signals
 
 log = logging.getLogger(__name__)
 
@@ -359,7 +359,7 @@ def _nothing_sent(
 
 def main_replay(args: Any, zc: ZenohConfig) -> int:
     stop = threading.Event()
-    on_stop_signals(stop.set)  # not stop.set() in the handler: daq/stop_signals.py
+    on_stop_signals(stop.set)  # not stop.set() in the handler: edges/stop_signals.py
     found = survey(args.file)  # not a recording, or damaged: refused before anything is said
     problems = found.problems()
     if found.recording.messages == 0:

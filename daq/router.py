@@ -35,9 +35,9 @@ import zenoh
 from daq.bus import zenoh_reason
 from daq.errors import ConfigError, TransportError
 from daq.host_clock import CLOCK_KEY, serve_clock
-from daq.stop_signals import on_stop_signals
 from daq.tls import certificate_refusal, key_refusal
 from edges.inputs import read_input_bytes
+from edges.stop_signals import on_stop_signals
 
 #: TLS keys of a zenoh configuration that name a file: (key, is a certificate)
 TLS_FILE_KEYS: tuple[tuple[str, bool], ...] = (
@@ -156,7 +156,7 @@ def main_router(args: argparse.Namespace) -> int:
     try:
         zenoh.init_log_from_env_or(ACL_LOG_FILTER if acl else LOG_FILTER)
         stop = threading.Event()
-        on_stop_signals(stop.set)  # not stop.set() in the handler: daq/stop_signals.py
+        on_stop_signals(stop.set)  # not stop.set() in the handler: edges/stop_signals.py
         try:
             session = zenoh.open(conf)
         except Exception as exc:

@@ -55,7 +55,7 @@ from daq.config import (
 from daq.device_recording import DeviceRecording
 from daq.errors import DaqError
 from daq.router_link import RouterLink
-from daq.stop_signals import on_stop_signals
+from edges.stop_signals import on_stop_signals
 
 if TYPE_CHECKING:
     from daq.health import HealthSource
@@ -175,7 +175,7 @@ def main() -> int:
     spec = json.loads(sys.stdin.readline())
     cfg, dev, utc_offset = config_from_spec(spec)
     stop = threading.Event()
-    on_stop_signals(stop.set)  # not stop.set() in the handler: daq/stop_signals.py
+    on_stop_signals(stop.set)  # not stop.set() in the handler: edges/stop_signals.py
     report = DaemonReport()
     threading.Thread(target=_read_parent, args=(stop, report), name="stdin", daemon=True).start()
     if cfg.publish.gil_switch_s > 0:

@@ -35,6 +35,7 @@ from calibration.errors import CalibrationError
 from edges.command import one_line, os_error_text, run_command, take_debug_flag
 from edges.options import OptionParser
 from edges.outputs import OutputSet
+from edges.stop_signals import on_stop_signals
 from sim_devices.config import CellConfig, load_cell, number_option
 from sim_devices.errors import SimError
 from sim_devices.plant import Plant, SimClock
@@ -199,7 +200,7 @@ def _child(config: CellConfig, run_dir: Path, t0: float, conn: Any) -> None:
     ``("bug", text)`` when they could not start (a port in use, a pty refused: the user's
     to fix; anything else a bug), then the device statistics when stopped."""
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    on_stop_signals(stop.set, (signal.SIGTERM,))  # not in the handler: edges/stop_signals.py
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides
     cell: Cell | None = None
     try:
@@ -318,12 +319,7 @@ def _serve(
     """Run the device processes until ``duration`` (0: a signal); ``on_started`` runs once
     all of them listen, before they are announced."""
     stop = threading.Event()
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    on_stop_signals(stop.set)  # not stop.set() in the handler: edges/stop_signals.py
     t0 = time.monotonic()
     children: list[tuple[str, Any, Any]] = []  # kind, process, its end of the pipe
     summary: dict[str, Any] = {"kind": "summary"}

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import time
 from collections.abc import Callable
@@ -22,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 from daq.cells import cell_name
 from edges.command import progress
 from edges.options import integer, number, path_text
+from edges.stop_signals import on_stop_signals
 from view.errors import ViewError
 from view.scene import MAGNIFICATIONS
 
@@ -255,8 +255,7 @@ def run_view(args: argparse.Namespace) -> int:
             up["cell"] = source.cell  # the cell it follows (None: every cell)
         print(json.dumps(up), flush=True)
         say(f"serving {url} ({model.source})")
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: view.stop())
+        on_stop_signals(view.stop)  # not in the handler: edges/stop_signals.py
         started = time.monotonic()
         stats = view.run(args.duration)
         elapsed = max(time.monotonic() - started, 1e-9)

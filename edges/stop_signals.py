@@ -8,10 +8,15 @@ between health rounds; gdb showed the handler blocked on the event's lock for 17
 Here the Python handler does nothing: the interpreter writes the signal's number to a
 socket (``signal.set_wakeup_fd``) and a thread of its own runs the actions, taking
 locks as any thread may.
+
+A forked child (``sim-cell``'s device processes) starts clean: no actions, a lock of its
+own, no wakeup socket (the parent's would carry the child's signals to the parent's
+watcher), its signals ignored until it calls :func:`on_stop_signals` itself.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -22,6 +27,21 @@ from types import FrameType
 _lock = threading.Lock()
 _actions: list[tuple[frozenset[int], Callable[[], object]]] = []
 _watching_pid: int | None = None  # the process whose watcher runs (a fork must start its own)
+
+
+def _after_fork_in_child() -> None:
+    """The child forgets the parent's watcher: it has no thread, and its socket is the
+    parent's."""
+    global _lock, _watching_pid
+    _lock = threading.Lock()  # the parent's watcher may have held it at the fork
+    _actions.clear()
+    if _watching_pid is not None:
+        _watching_pid = None
+        with contextlib.suppress(ValueError):  # only the main thread may (fork from another)
+            signal.set_wakeup_fd(-1)
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def on_stop_signals(
