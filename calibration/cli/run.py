@@ -147,7 +147,7 @@ def _add_live_options(live: argparse._ArgumentGroup) -> None:
         "--publish-s",
         type=number(0.0),
         default=0.0,
-        help="publish the live twin for this long, then stop (0: until Ctrl-C)",
+        help="publish the live twin for this long, then stop (0: until Ctrl-C or SIGTERM)",
     )
 
 

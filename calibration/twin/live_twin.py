@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -67,6 +68,7 @@ from calibration.twin.twin_keys import (
     twin_keys,
 )
 from calibration.twin.twin_predictor import AngleReader, TwinPredictor, rotation_quaternions
+from edges.stop_signals import on_stop_signals
 
 if TYPE_CHECKING:
     import zenoh
@@ -368,7 +370,11 @@ class LiveTwin:
         # one computes (Python's default is 5 ms; the daemon uses the same)
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
         started = time.monotonic()
-        while not (args.publish_s and time.monotonic() - started >= args.publish_s):
+        stop = threading.Event()
+        on_stop_signals(stop.set)  # SIGTERM (systemd) as SIGINT: the summary, a clean close
+        while not stop.is_set() and not (
+            args.publish_s and time.monotonic() - started >= args.publish_s
+        ):
             batch = self._drain()
             now_m = time.monotonic()
             clocks_said = self.clocks.check()
