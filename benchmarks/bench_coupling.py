@@ -20,6 +20,8 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -76,36 +78,60 @@ def _seeds(text: str) -> list[int]:
     return list(range(int(lo), int(hi or lo) + 1))
 
 
+def sweep(
+    robot: str, rho: float, seeds: list[int], say: Callable[[str], None] = print
+) -> dict[str, Any]:
+    """The loop on each seed's campaign (one line each through ``say``); a row: how many
+    seeds named the coupling, the worst final over gravity-stage truth error, the loop's
+    total time (s)."""
+    desc = load_robot(robot)
+    named, worst, total = 0, 0.0, 0.0
+    for seed in seeds:
+        data = emulated_campaign(robot, seed, coupling_settings(rho))
+        started = time.perf_counter()
+        result = run_closed_loop(desc, data.campaign)
+        elapsed = time.perf_counter() - started
+        total += elapsed
+        errors = truth_errors_mm(data, result)
+        named += "joint_coupling" in [s.kind for s in result.added]
+        if len(errors) > 1:
+            worst = max(worst, errors[-1] / errors[1])
+        kappa, implied = implied_coefficient(result)
+        added = "; ".join(s.label for s in result.added) or "nothing"
+        trail = " → ".join(f"{e:.4f}" for e in errors)
+        say(
+            f"{robot} rho {rho} seed {seed}: {added} | truth mm {trail} | "
+            f"kappa {kappa:.3f} implied rho {implied:.2f} | {elapsed:.1f} s"
+        )
+    return {
+        "benchmark": f"joint coupling, {robot}, rho {rho}",
+        "n": len(seeds),
+        "named": named,
+        "worst_final_over_gravity": worst,
+        "ours_s": total,
+    }
+
+
+def run(quick: bool) -> list[dict[str, Any]]:
+    """The runner's rows: quick, KR500 seed 1 with the coupling; else seeds 1-10 of both
+    robots with and without it."""
+    if quick:
+        return [sweep("kr500", 0.5, [1], say=lambda _line: None)]
+    seeds = list(range(1, 11))
+    return [sweep(r, rho, seeds) for r in ("kr500", "hp20d") for rho in (0.5, 0.0)]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_coupling")
     parser.add_argument("--robot", default="kr500")
     parser.add_argument("--seeds", default="1-10", help="a seed or a range, e.g. 1-10")
     parser.add_argument("--rho", type=float, default=0.5, help="coupling coefficient, 0: off")
     args = parser.parse_args(argv)
-    desc = load_robot(args.robot)
-    named, worst = 0, 0.0
     seeds = _seeds(args.seeds)
-    for seed in seeds:
-        data = emulated_campaign(args.robot, seed, coupling_settings(args.rho))
-        started = time.perf_counter()
-        result = run_closed_loop(desc, data.campaign)
-        elapsed = time.perf_counter() - started
-        errors = truth_errors_mm(data, result)
-        kinds = [s.kind for s in result.added]
-        named += "joint_coupling" in kinds
-        if len(errors) > 1:
-            worst = max(worst, errors[-1] / errors[1])
-        kappa, rho = implied_coefficient(result)
-        added = "; ".join(s.label for s in result.added) or "nothing"
-        trail = " → ".join(f"{e:.4f}" for e in errors)
-        print(
-            f"{args.robot} rho {args.rho} seed {seed}: {added} | truth mm {trail} | "
-            f"kappa {kappa:.3f} implied rho {rho:.2f} | {elapsed:.1f} s",
-            flush=True,
-        )
+    row = sweep(args.robot, args.rho, seeds, say=lambda line: print(line, flush=True))
     print(
-        f"coupling named in {named} of {len(seeds)}; worst final / gravity-stage truth "
-        f"error {worst:.3f}"
+        f"coupling named in {row['named']} of {len(seeds)}; worst final / gravity-stage "
+        f"truth error {row['worst_final_over_gravity']:.3f}"
     )
     return 0
 

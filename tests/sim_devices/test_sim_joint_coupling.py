@@ -26,7 +26,7 @@ DESC = load_robot("kr500")
 Q = sample_reachable_poses(DESC, 20, np.random.default_rng(8))
 
 
-def test_off_by_default_and_the_campaign_unchanged():
+def test_off_by_default_and_the_campaign_unchanged() -> None:
     """The default settings have no coupling; a campaign with the gravity deflection is
     the same to the bit whether the coupling's other settings are touched or not."""
     assert not UndeclaredEffects().joint_coupling
@@ -40,7 +40,7 @@ def test_off_by_default_and_the_campaign_unchanged():
     assert np.array_equal(a.campaign.xyz_mm, b.campaign.xyz_mm)
 
 
-def test_cross_term_is_symmetric_and_positive_definite():
+def test_cross_term_is_symmetric_and_positive_definite() -> None:
     """Joint 2 turns by c23·τ3 more, joint 3 by c23·τ2, nothing else moves; c23 =
     ρ/√(K2·K3), so the 2×2 compliance block is positive definite for |ρ| < 1."""
     arm = TrueCell.create(DESC, 3).arm
@@ -68,14 +68,14 @@ def test_cross_term_is_symmetric_and_positive_definite():
         )
 
 
-def test_a_rigid_joint_has_no_coupling():
+def test_a_rigid_joint_has_no_coupling() -> None:
     arm = PhysicalArm.of_description(DESC)
     stiff = (np.inf, 1e11, np.inf, 1e9, 1e9, np.inf)
     eff = UndeclaredEffects.named("joint_coupling", deflection_stiffness_nmm_per_rad=stiff)
     assert coupling_compliance_rad_per_nmm(eff, arm) == 0.0
 
 
-def test_cell_toml_key_and_its_checks():
+def test_cell_toml_key_and_its_checks() -> None:
     """``joint_coupling = true`` in ``[effects.undeclared]`` with the gravity deflection;
     alone, with |ρ| ≥ 1 or with a joint the robot lacks it is refused naming the key."""
     head = '[cell]\nprogram = "hold"\n[effects.undeclared]\n'
