@@ -381,9 +381,8 @@ def run_closed_loop(
         penalty = math.log(3 * problem.m)
     stages, result = _first_stages(problem, geometric)
     tell(f"closed loop: {len(library)} candidate effects")
-    bending = allowed is None or "link_bending" in allowed
-    coupling = allowed is None or "joint_coupling" in allowed
-    search = _Search(problem, library, penalty, span, settings, tell, bending, coupling)
+    refine = [allowed is None or k in allowed for k in ("link_bending", "joint_coupling")]
+    search = _Search(problem, library, penalty, span, settings, tell, *refine)
     last_round, rejected, stop = search.run(stages, result)
     tell(f"closed loop: stopped: {stop.text}")
     return ClosedLoopResult(
