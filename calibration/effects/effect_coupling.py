@@ -178,8 +178,8 @@ class JointCoupling(EffectKind):
         return Evidence(
             x=np.degrees(turn),
             x_label=f"modelled turn of joint {b} under joint {a}'s differential torque (deg)",
-            y_label=f"joint {b} angle error (deg)",
-            coordinate_mm=kin.joint_axis(b) * DEG,
+            y_label=f"joint {b} / −joint {a} angle error (deg)",
+            coordinate_mm=(kin.joint_axis(b) - kin.joint_axis(a)) * DEG,
         )
 
 
