@@ -70,10 +70,11 @@ COUPLED_JOINTS = (2, 3)
 def torque_proxy_rad(
     spec: EffectSpec, gravity: FloatArray, model: KinematicModel, q_rad: FloatArray
 ) -> FloatArray:
-    """``T_j = c_ref·τ_j`` ``(r, n)`` rad at poses ``q_rad`` ``(r, n)``: each joint's
-    gravity torque times the gravity term's reference compliance, from the frozen
-    weighted moments ``spec.shape`` (µrad) of ``spec.names`` (a counterbalance's terms:
-    its joint's own deflection over that joint's compliance ratio)."""
+    """``T_j = c·τ_j`` ``(r, n)`` rad at poses ``q_rad`` ``(r, n)``: each joint's gravity
+    torque times one compliance ``c`` (the physical form's reference joint's, or the
+    linear form's joint a's), from the frozen weighted moments ``spec.shape`` (µrad) of
+    ``spec.names`` (a counterbalance's terms: its joint's own deflection over that
+    joint's compliance ratio)."""
     n = model.n_joints
     y = raw_regressor(model, q_rad, gravity)  # (r, n, 3n)
     raw = moment_names(n)
@@ -89,9 +90,10 @@ def torque_proxy_rad(
 
 
 class JointCoupling(EffectKind):
-    """Joints a and b (``spec.joints``) turning under each other's gravity torque by
-    ``κ·T_b`` and ``κ·T_a``: ``spec.names`` the gravity term's base moments (and
-    counterbalance terms), ``spec.shape`` their weighted values (µrad) when offered."""
+    """Joints a and b (``spec.joints``) sharing compliance: beside a gravity term, joint b
+    turns by ``κ·(T_a − T_b)`` and joint a by ``−κ·(T_a − T_b)`` (the cross term's
+    differential part); ``spec.names`` the gravity term's moments (and counterbalance
+    terms), ``spec.shape`` their weighted values (µrad) when offered."""
 
     kind = "joint_coupling"
     description = (
