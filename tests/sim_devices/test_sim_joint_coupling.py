@@ -45,6 +45,11 @@ def test_cross_term_is_symmetric_and_positive_definite() -> None:
     ρ/√(K2·K3), so the 2×2 compliance block is positive definite for |ρ| < 1."""
     arm = TrueCell.create(DESC, 3).arm
     plain = UndeclaredEffects.named("gravity_deflection")
+    k_plain = deflection_stiffness_nmm_per_rad(plain, arm)
+    # without the coupling the deflection is the diagonal one, to the bit
+    np.testing.assert_array_equal(
+        link_rotation_rad(plain, arm, Q), arm.joint_torques_nmm(Q) / k_plain
+    )
     for rho in (0.5, -0.8):
         coupled = UndeclaredEffects.named("joint_coupling", coupling_coefficient=rho)
         assert coupled.gravity_deflection  # the coupling is a part of the deflection
