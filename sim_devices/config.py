@@ -195,6 +195,10 @@ RANGES: dict[str, Range] = {
         0.0, lo_open=True, inf=True, what="N·mm/rad, inf: rigid"
     ),
     "effects.undeclared.deflection_rms_deg": POSITIVE,
+    "effects.undeclared.coupling_joints": Range(1, 64, what="a joint number"),
+    "effects.undeclared.coupling_coefficient": Range(
+        -0.99, 0.99, what="ρ = c23/√(c22·c33); |ρ| < 1: a positive-definite compliance"
+    ),
     "effects.undeclared.cyclic_joint": Range(1, 64, what="a joint number"),
     "effects.undeclared.cyclic_order": Range(1, 1000),
     "effects.undeclared.drift_joint": Range(1, 64, what="a joint number"),
@@ -348,6 +352,10 @@ def _check(cfg: CellConfig, source: str) -> None:
     for key in ("drift_parameter", "lag_parameter"):
         if getattr(und, key) not in ("a", "d"):
             fail("effects.undeclared", key, f"must be 'a' or 'd', got {getattr(und, key)!r}")
+    if und.joint_coupling and not und.gravity_deflection:
+        fail("effects.undeclared", "joint_coupling", "needs gravity_deflection = true")
+    if len(und.coupling_joints) != 2 or len(set(und.coupling_joints)) != 2:
+        fail("effects.undeclared", "coupling_joints", "must be two different joints")
     if und.tracker_scale and und.tracker_scale_drift_ppm_per_h != 0.0:
         fail(
             "effects.undeclared",
@@ -376,6 +384,8 @@ def check_for_robot(cfg: CellConfig, n_joints: int, source: str) -> None:
     if t.startswith("link") and int(t[4:]) > n_joints:
         fail("tracker", "target", f"{t}: the robot has {n_joints} joints")
     und = cfg.effects.undeclared
+    if max(und.coupling_joints) > n_joints:
+        fail("effects.undeclared", "coupling_joints", f"the robot has {n_joints} joints")
     for key in ("cyclic_joint", "drift_joint", "lag_joint"):
         if getattr(und, key) > n_joints:
             fail(

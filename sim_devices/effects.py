@@ -10,6 +10,13 @@ One physical implementation of each, shared by the pose campaign generator
   emulator's own masses), an extra rotation ``tau_i / K_i`` about joint axis i *after*
   the ring the grating reads. (Gear torsion sits before the ring: the gratings see it;
   :mod:`sim_devices.gears`.)
+* **joint coupling** of two joints' compliance after the ring (joints 2 and 3 by
+  default: a shared gearbox housing or parallelogram linkage, or the casting both sit
+  in): the gravity deflection's compliance matrix gets a symmetric cross term,
+  ``δq_a += c_ab·τ_b``, ``δq_b += c_ab·τ_a``, ``c_ab = ρ/√(K_a·K_b)``, the coupling
+  coefficient ``|ρ| < 1`` keeping the matrix positive definite
+  (:func:`coupling_compliance_rad_per_nmm`); a part of the gravity deflection, which it
+  switches on.
 * **link bending** under gravity: link j (and its output bearing) turns about its own x
   and y axes through its frame origin by ``M⊥_j / K_b,j``, ``M⊥_j`` the part of the
   emulator's own weight moment at that origin across the joint axis
@@ -57,6 +64,8 @@ FloatArray = NDArray[np.float64]
 #: Effect names (the ``--effect`` choices of the campaign generator) -> what they are.
 EFFECT_NAMES: dict[str, str] = {
     "gravity_deflection": "link/bearing compliance after the grating ring under gravity",
+    "joint_coupling": "joints 2 and 3 sharing compliance after the ring: a symmetric cross "
+    "term of the gravity deflection's compliance matrix (switches gravity_deflection on)",
     "link_bending": "links 1-3 turning about their own x and y axes under the bending "
     "moment of everything outboard",
     "grating_cyclic": "cyclic error of one joint's grating reading (harmonic of its angle)",
@@ -87,6 +96,9 @@ class UndeclaredEffects:
     gravity_deflection: bool = False
     deflection_stiffness_nmm_per_rad: tuple[float, ...] = ()
     deflection_rms_deg: float = 0.005
+    joint_coupling: bool = False  # a cross compliance of two joints (needs the deflection)
+    coupling_joints: tuple[int, ...] = (2, 3)  # 1-based: the pair (shoulder and elbow)
+    coupling_coefficient: float = 0.5  # ρ = c_ab/√(c_aa·c_bb), |ρ| < 1
     link_bending: bool = False
     bending_links: tuple[int, ...] = (1, 2, 3)  # 1-based: the column and the long arms
     bending_rms_deg: float = 0.002  # each bending link's RMS turn over the joint ranges
@@ -128,6 +140,8 @@ class UndeclaredEffects:
         if unknown:
             raise ValueError(f"unknown effect {unknown[0]!r} (valid: {', '.join(EFFECT_NAMES)})")
         switched: dict[str, Any] = {n: True for n in names}
+        if "joint_coupling" in names:  # a cross term of the deflection's compliance matrix
+            switched["gravity_deflection"] = True
         return replace(cls(), **switched, **overrides)
 
     @property
@@ -159,6 +173,38 @@ def deflection_stiffness_nmm_per_rad(settings: UndeclaredEffects, arm: ArmLike) 
     k[rms < 0.01 * max(float(rms.max()), 1e-300)] = np.inf
     stiffness: FloatArray = k
     return stiffness
+
+
+def coupling_compliance_rad_per_nmm(settings: UndeclaredEffects, arm: ArmLike) -> float:
+    """The cross compliance ``c_ab = ρ/√(K_a·K_b)`` rad/(N·mm) of the coupled joints
+    (``coupling_joints``), ``K`` the gravity deflection's stiffnesses; 0 when the coupling
+    is off or either joint is rigid. ``|ρ| < 1`` keeps the compliance matrix positive
+    definite (a ValueError otherwise)."""
+    if not settings.joint_coupling:
+        return 0.0
+    rho = settings.coupling_coefficient
+    if not abs(rho) < 1.0:
+        raise ValueError(f"coupling_coefficient must be in (-1, 1), got {rho}")
+    k = deflection_stiffness_nmm_per_rad(settings, arm)
+    a, b = (j - 1 for j in settings.coupling_joints)
+    if not (np.isfinite(k[a]) and np.isfinite(k[b])):
+        return 0.0
+    return float(rho / np.sqrt(k[a] * k[b]))
+
+
+def coupling_rotation_rad(
+    settings: UndeclaredEffects, arm: ArmLike, tau_nmm: FloatArray
+) -> FloatArray:
+    """The coupled joints' extra turn ``(N, n)`` rad under the joint torques ``tau_nmm``
+    ``(N, n)`` N·mm: ``c_ab·τ_b`` on joint a, ``c_ab·τ_a`` on joint b (Maxwell's
+    reciprocity: one cross compliance both ways)."""
+    out = np.zeros_like(tau_nmm)
+    c = coupling_compliance_rad_per_nmm(settings, arm)
+    if c != 0.0:
+        a, b = (j - 1 for j in settings.coupling_joints)
+        out[:, a] = c * tau_nmm[:, b]
+        out[:, b] = c * tau_nmm[:, a]
+    return out
 
 
 #: Joint stiffness proportions of a KUKA KR60 (method.md §4; N·mm/rad as the source
@@ -276,6 +322,10 @@ def effects_document(settings: UndeclaredEffects, arm: ArmLike) -> dict[str, Any
     if settings.gravity_deflection:
         k = deflection_stiffness_nmm_per_rad(settings, arm)
         doc["derived_stiffness_nmm_per_rad"] = [float(v) if np.isfinite(v) else 0.0 for v in k]
+    if settings.joint_coupling:
+        doc["derived_coupling_compliance_rad_per_nmm"] = coupling_compliance_rad_per_nmm(
+            settings, arm
+        )
     doc["bending_stiffness_nmm_per_rad"] = [
         v if np.isfinite(v) else 0.0 for v in doc["bending_stiffness_nmm_per_rad"]
     ]
@@ -296,7 +346,8 @@ def link_rotation_rad(
 ) -> FloatArray:
     """Rotation ``(N, n)`` rad of each link about its joint axis beyond the grating ring.
 
-    Gravity deflection (``tau / K`` at the ring angles, the arm's static load) plus lost
+    Gravity deflection (``tau / K`` at the ring angles, the arm's static load; with the
+    joint coupling, the compliance matrix's cross term too) plus lost
     motion (``w_j · direction_j``, direction ``(N, n)`` in {-1, 0, 1}: last motion), plus
     a process force ``(N, 3)`` N at the TCP (:func:`force_rotation_rad`).
     """
@@ -304,7 +355,10 @@ def link_rotation_rad(
     out = np.zeros_like(q)
     if settings.gravity_deflection:
         body = physical_arm(arm)
-        out += body.joint_torques_nmm(q) / deflection_stiffness_nmm_per_rad(settings, body)
+        tau = body.joint_torques_nmm(q)
+        out += tau / deflection_stiffness_nmm_per_rad(settings, body)
+        if settings.joint_coupling:
+            out += coupling_rotation_rad(settings, body, tau)
     if settings.lost_motion and direction is not None:
         w = np.radians(np.resize(np.asarray(settings.lost_motion_deg, float), q.shape[1]))
         out += w * np.asarray(direction, dtype=float)

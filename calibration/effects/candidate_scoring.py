@@ -38,13 +38,16 @@ FloatArray = NDArray[np.float64]
 
 #: Physical priority of effect kinds (lower first) when the data cannot tell them apart.
 #: A link's bending comes after the joint's own gravity deflection (it is offered only with
-#: that term in the model, from its moments). A term driven by a measured temperature
+#: that term in the model, from its moments), and so does the joints' shared compliance
+#: (``joint_coupling``, offered the same way: the gravity term's own compliance matrix
+#: completed). A term driven by a measured temperature
 #: comes before one driven by the clock: the temperature is the cause a drift in time
 #: stands in for.
 PRIORITY: dict[str, int] = {
     "gravity_deflection": 0,
     "gravity_compliance": 0,
     "link_bending": 1,
+    "joint_coupling": 1,
     "thermal_expansion": 2,
     "length_temperature": 2,
     "instrument_scale_temperature": 2,

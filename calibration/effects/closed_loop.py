@@ -68,6 +68,7 @@ from calibration.effects.effect_base import (
 )
 from calibration.effects.effect_bending import bending_candidates
 from calibration.effects.effect_candidates import candidate_effects, scan_key
+from calibration.effects.effect_coupling import coupling_candidates
 from calibration.effects.effect_kinds import (
     KINDS,
     check_kinds,
@@ -380,8 +381,8 @@ def run_closed_loop(
         penalty = math.log(3 * problem.m)
     stages, result = _first_stages(problem, geometric)
     tell(f"closed loop: {len(library)} candidate effects")
-    bending = allowed is None or "link_bending" in allowed
-    search = _Search(problem, library, penalty, span, settings, tell, bending)
+    refine = [allowed is None or k in allowed for k in ("link_bending", "joint_coupling")]
+    search = _Search(problem, library, penalty, span, settings, tell, *refine)
     last_round, rejected, stop = search.run(stages, result)
     tell(f"closed loop: stopped: {stop.text}")
     return ClosedLoopResult(
@@ -409,17 +410,21 @@ class _Search:
     settings: LoopSettings
     tell: Callable[[str], None]
     bending: bool = True  # offer a link's bending once a physical gravity term is in
+    coupling: bool = True  # and the shoulder joints' shared compliance
 
     def offered(
         self, specs: tuple[EffectSpec, ...], values: FloatArray, set_aside: set[EffectSpec]
     ) -> list[EffectSpec]:
         """The round's candidates: the library's not in the model or set aside, and the
-        bending of the links from the model's gravity term (:func:`bending_candidates`)."""
+        bending of the links and the shoulder's coupling from the model's gravity term
+        (:func:`bending_candidates`, :func:`coupling_candidates`)."""
         offered = [s for s in self.library if s not in specs and s not in set_aside]
         offered = [s for s in offered if not _same_slot(s, specs)]
+        parts = split_values(specs, values)
         if self.bending:
-            parts = split_values(specs, values)
             offered += bending_candidates(self.problem.ctx, specs, parts, set_aside)
+        if self.coupling:
+            offered += coupling_candidates(self.problem.ctx, specs, parts, set_aside)
         return offered
 
     def stop(

@@ -32,6 +32,9 @@ predictor (:func:`calibration.identify.identification.predicted_points`, through
 * ``link_bending``: link j turning about its own x and y axes under the bending moment of
   everything outboard (``bending_ratio``, the gravity term's weighted moments frozen);
   offered once a physical gravity term is in.
+* ``joint_coupling``: joints 2 and 3 sharing compliance, each turning under the other's
+  gravity torque (``coupling_ratio``, the gravity term's weighted moments frozen); offered
+  once a gravity term is in (:mod:`calibration.effects.effect_coupling`).
 * ``thermal_expansion``, ``length_temperature``, ``instrument_scale_temperature``: link
   lengths and the tracker's scale following a measured temperature (``temp_c``), linear in
   ``T − T_ref`` (:mod:`calibration.effects.effect_thermal`).

@@ -17,6 +17,7 @@ from calibration.effects.effect_base import (
     ModelAtPoses,
 )
 from calibration.effects.effect_bending import LinkBending
+from calibration.effects.effect_coupling import JointCoupling
 from calibration.effects.effect_gravity import GravityCompliance, GravityDeflection
 from calibration.effects.effect_harmonics import CartesianHarmonic, JointHarmonic, LinkHarmonic
 from calibration.effects.effect_lost_motion import LostMotion
@@ -40,6 +41,7 @@ KINDS.update(
             GravityDeflection(),
             GravityCompliance(),
             LinkBending(),
+            JointCoupling(),
             JointHarmonic(),
             LostMotion(),
             LengthDrift(),
@@ -91,7 +93,7 @@ def effect_terms(
 
 
 def _tag(spec: EffectSpec) -> str:
-    if spec.kind in ("gravity_compliance", "thermal_expansion"):
+    if spec.kind in ("gravity_compliance", "thermal_expansion", "joint_coupling"):
         return "joints " + ",".join(str(j) for j in spec.joints)
     if spec.kind == "gravity_deflection":
         return spec.parameter or "linear"

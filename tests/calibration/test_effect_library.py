@@ -59,6 +59,12 @@ SPECS = [
     PHYSICAL_CB,
     EffectSpec("gravity_compliance", joints=(2, 3, 5)),
     EffectSpec("link_bending", joint=2, names=("link2.mx", "link3.my"), shape=(120.0, -40.0)),
+    EffectSpec(
+        "joint_coupling",
+        joints=(2, 3),
+        names=("link2.mx", "link3.my", "joint2.counterbalance.cos2"),
+        shape=(120.0, -40.0, 8.0),
+    ),
     EffectSpec("joint_harmonic", joint=1, order=2),
     EffectSpec("lost_motion", joint=3),
     EffectSpec("length_drift", joint=2, parameter="a"),
