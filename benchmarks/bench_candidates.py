@@ -63,6 +63,19 @@ def run_seed(robot: str, case: str, seed: int) -> str:
     return f"{robot} {case} seed {seed}: {added} | truth mm {trail} |{first} | {elapsed:.1f} s"
 
 
+def run(quick: bool = False) -> list[dict[str, object]]:
+    """The runner's rows (``python -m benchmarks``): the bending case on the KR500, seed 1
+    (quick) or seeds 1-3, a row per seed with its line."""
+    seeds = [1] if quick else [1, 2, 3]
+    return [
+        {
+            "benchmark": f"closed loop, bending case, kr500 seed {s}",
+            "result": run_seed("kr500", "bending", s),
+        }
+        for s in seeds
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_candidates")
     parser.add_argument("--case", choices=list(CASES), default="thermal")

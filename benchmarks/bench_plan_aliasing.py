@@ -102,6 +102,11 @@ def run_seed(seed: int) -> dict[str, float]:
     }
 
 
+def run(quick: bool = False) -> list[dict[str, float]]:
+    """The runner's rows (``python -m benchmarks``): seed 1 (quick) or seeds 1-3."""
+    return [run_seed(s) for s in range(1, 2 if quick else 4)]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.bench_plan_aliasing", description=__doc__

@@ -54,6 +54,13 @@ def test_discovery_finds_the_kinematics_module():
     assert all(n.split(".")[-1].startswith("bench_") for n in benchmarks.module_names())
 
 
+def test_every_benchmark_module_has_the_runners_entry_point():
+    """``python -m benchmarks`` loads every ``bench_*`` module through ``run(quick)``: one
+    without it is a FAILED line there (two were, until 2026-11-27)."""
+    for name in benchmarks.module_names():
+        assert callable(getattr(importlib.import_module(name), "run", None)), name
+
+
 @pytest.fixture
 def fake_modules(monkeypatch):
     """Two stand-in benchmark modules: one good, one that raises."""
