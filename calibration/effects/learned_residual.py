@@ -413,7 +413,7 @@ def validation_extra_sd(model: LearnedResidual, q_rad: ArrayLike, residual_mm: A
     Why: the hyperparameters see in-sample residuals of the traced model's fit (geometry
     and the effects the loop chose among many candidates on the same poses), which are
     smaller than its errors elsewhere; the validation poses are outside that fit. On the
-    UR10 with 100 poses the identification residuals' RMS was 0.64–0.78× the validation
+    UR10 with 100 poses the identification residuals' RMS was 0.64–1.01× the validation
     poses' (docs/closed-loop.md). The mean is not touched."""
     pred = model.predict(q_rad)
     e = np.asarray(residual_mm, dtype=float) - pred.mean_mm
