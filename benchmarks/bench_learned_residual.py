@@ -18,10 +18,15 @@ one-thread limit lifted (what the shipped code protects against):
   ours for the fit and its wall time over ours for the predict, same thread setting.
   Skipped (a note) when scikit-learn is not installed (a test extra of the project).
 
+``--hyper-poses N[,M...]`` adds a row per N at 1 thread: the fit with its hyperparameters on
+N poses instead of the shipped :data:`~calibration.effects.learned_residual.HYPER_POSES`,
+``ratio_vs_ours`` its CPU time over the shipped fit's in the same run.
+
 Columns: ``seconds`` wall (best of the repeats), ``cpu_s`` the process's CPU time of that
 run (all threads): on a loaded shared host the wall time is mostly waiting for a core.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.bench_learned_residual [--quick] [--no-sklearn]
+    OMP_NUM_THREADS=1 python -m benchmarks.bench_learned_residual [--quick] [--no-sklearn] \
+        [--hyper-poses 600,1000]
 
 (OMP_NUM_THREADS=1 only for the rest of the process: the rows set the BLAS threads
 themselves.)
@@ -132,9 +137,26 @@ def _ours(q: Any, y: Any, qx: Any, yx: Any, threads: int, quick: bool, note: str
     ]  # fmt: skip
 
 
-def run(quick: bool = False, sklearn: bool = True) -> list[Row]:
-    """Our rows at 1 and 2 BLAS threads, the limit lifted, then scikit-learn's (not with
-    ``quick`` or without ``sklearn``)."""
+def _hyper_rows(
+    q: Any, y: Any, qx: Any, yx: Any, sizes: tuple[int, ...], shipped_cpu: float
+) -> list[Row]:
+    """The fit at 1 thread with the hyperparameters on each of ``sizes`` poses."""
+    rows: list[Row] = []
+    shipped = learned_residual.HYPER_POSES
+    for n in sizes:
+        learned_residual.HYPER_POSES = n
+        try:
+            row = _ours(q, y, qx, yx, 1, False, f"hyperparameters on {n} poses")[0]
+        finally:
+            learned_residual.HYPER_POSES = shipped
+        rows.append({**row, "ratio_vs_ours": round(row["cpu_s"] / shipped_cpu, 2)})
+    return rows
+
+
+def run(quick: bool = False, sklearn: bool = True, hyper_poses: tuple[int, ...] = ()) -> list[Row]:
+    """Our rows at 1 and 2 BLAS threads, the limit lifted, the fit with its hyperparameters
+    on other numbers of poses (``hyper_poses``), then scikit-learn's (not with ``quick`` or
+    without ``sklearn``)."""
     n_train, n_predict = (200, 1000) if quick else (1000, 10_000)
     q, y, qx, yx = dataset(n_train, n_predict)
     rows: list[Row] = []
@@ -147,6 +169,7 @@ def run(quick: bool = False, sklearn: bool = True) -> list[Row]:
         rows += _ours(q, y, qx, yx, 2, quick, "limit lifted")
     finally:
         learned_residual.one_blas_thread = shipped  # type: ignore[assignment]
+    rows += _hyper_rows(q, y, qx, yx, hyper_poses, rows[0]["cpu_s"])
     if not quick and sklearn:
         cpu = {
             t: {"fit_cpu": rows[2 * i]["cpu_s"], "predict_cpu": rows[2 * i + 1]["cpu_s"]}
@@ -162,8 +185,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--no-sklearn", action="store_true", help="ours only (scikit-learn's fit takes minutes)"
     )
+    parser.add_argument(
+        "--hyper-poses", default="", help="comma-separated N: the fit with hyperparameters on N"
+    )
     args = parser.parse_args(argv)
-    print(format_table(run(args.quick, sklearn=not args.no_sklearn)))
+    sizes = tuple(int(v) for v in args.hyper_poses.split(",") if v.strip())
+    print(format_table(run(args.quick, sklearn=not args.no_sklearn, hyper_poses=sizes)))
     return 0
 
 

@@ -143,8 +143,10 @@ class EffectDescription:
 class LearnedResidualDescription:
     """The learned residual stage's Gaussian process (:mod:`calibration.effects.learned_residual`):
     its hyperparameters and training points, joint angles ``q_deg`` ``(N, n)`` and the
-    traced model's residuals ``residual_mm`` ``(N, 3)`` (tracker − traced model). Compared
-    by identity (it is the key of the factored model's cache)."""
+    traced model's residuals ``residual_mm`` ``(N, 3)`` (tracker − traced model), and
+    ``extra_sd_mm``, added in quadrature to every predictive standard deviation (from the
+    validation poses; 0 when a file has none). Compared by identity (it is the key of the
+    factored model's cache)."""
 
     kernel: str
     length_scales_rad: tuple[float, ...]
@@ -153,6 +155,7 @@ class LearnedResidualDescription:
     reach: float
     q_deg: tuple[tuple[float, ...], ...] = field(repr=False)
     residual_mm: tuple[tuple[float, ...], ...] = field(repr=False)
+    extra_sd_mm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -329,6 +332,7 @@ def _parse(doc: dict[str, Any], source: str) -> RobotDescription:
 
 
 _POSITIVE = Range(0.0, lo_open=True, what="positive")
+_NOT_NEGATIVE = Range(0.0, what="not negative")
 
 
 def _rows(t: TomlTable, key: str, width: int) -> tuple[tuple[float, ...], ...]:
@@ -348,7 +352,7 @@ def _parse_residual(t: TomlTable, n_joints: int) -> ResidualDescription:
         return ResidualDescription(traced_sd_mm=traced)
     g = t.table("learned")
     keys = ("kernel", "length_scales_rad", "signal_sd_mm", "noise_sd_mm", "reach")
-    g.check_keys({*keys, "q_deg", "residual_mm"})
+    g.check_keys({*keys, "q_deg", "residual_mm", "extra_sd_mm"})
     kernel = g.string("kernel")
     if kernel != "periodic_ard_se":
         raise g.fail("kernel", f"unknown kernel {kernel!r} (known: periodic_ard_se)")
@@ -363,6 +367,7 @@ def _parse_residual(t: TomlTable, n_joints: int) -> ResidualDescription:
         reach=g.number("reach", rng=_POSITIVE),
         q_deg=q,
         residual_mm=r,
+        extra_sd_mm=g.number("extra_sd_mm", rng=_NOT_NEGATIVE, default=0.0),
     )
     return ResidualDescription(traced_sd_mm=traced, learned=learned)
 
@@ -412,6 +417,7 @@ def _to_document(desc: RobotDescription) -> dict[str, Any]:
                 "signal_sd_mm": g.signal_sd_mm,
                 "noise_sd_mm": g.noise_sd_mm,
                 "reach": g.reach,
+                "extra_sd_mm": g.extra_sd_mm,
                 "q_deg": [list(row) for row in g.q_deg],
                 "residual_mm": [list(row) for row in g.residual_mm],
             }
