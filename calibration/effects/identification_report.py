@@ -225,6 +225,9 @@ def learned_residual_document(stage: LearnedStage) -> dict[str, Any]:
             "signal_sd_mm": h.signal_sd_mm,
             "noise_sd_mm": h.noise_sd_mm,
         },
+        # the sd's widening by the validation poses (0: their z RMS was at most 1 already)
+        "extra_sd_mm": stage.extra_sd_mm,
+        "validate_z_rms_before_extra_sd": _opt(stage.validate_z_rms),
         "elapsed_s": stage.fit_s,  # a timing: twin run strips it (bit-identical files)
     }
 

@@ -315,6 +315,19 @@ def _learned_markdown(sec: Mapping[str, Any]) -> list[str]:
         f"Kernel: length scales {lengths} rad (joints 1–{len(k['length_scales_rad'])}), "
         f"signal {_f(k['signal_sd_mm'])} mm, noise {_f(k['noise_sd_mm'])} mm. "
         "It names no cause: whatever it models is still unexplained physics.",
+    ]
+    z = sec.get("validate_z_rms_before_extra_sd")
+    if z is not None:
+        extra = float(sec.get("extra_sd_mm", 0.0))
+        lines.append(
+            f"Its sd on the validation poses: z RMS {z:.2f} with the fitted noise; "
+            + (
+                f"widened by {_f(extra)} mm in quadrature to z RMS 1."
+                if extra > 0
+                else "not widened (never narrowed)."
+            )
+        )
+    lines += [
         "",
         f"Criterion: {sec['criterion']}.",
         "",

@@ -389,3 +389,20 @@ def test_tracking_holds_the_learned_stage_with_the_effects():
     expected = predict_tcp(desc, q, t) - tcp_positions(KinematicModel.from_description(desc), q)
     assert np.abs(expected).max() > 1e-6  # the stage moves these poses
     np.testing.assert_array_equal(effect_offsets(desc, q, t), expected)
+
+
+def test_the_report_states_the_sds_widening_by_the_validation_poses():
+    """report.json and report.md say the validation z RMS with the fitted noise and the
+    extra sd it asked for (0: not widened, never narrowed)."""
+    from calibration.effects.identification_report import learned_residual_document
+    from calibration.effects.report_rendering import _learned_markdown
+
+    _, cal = emulated(1, True, FAST_KINDS)
+    assert cal.learned is not None
+    doc = learned_residual_document(cal.learned)
+    assert doc["extra_sd_mm"] == cal.learned.extra_sd_mm >= 0.0
+    z = doc["validate_z_rms_before_extra_sd"]
+    assert z is not None and z == pytest.approx(cal.learned.validate_z_rms)
+    text = "\n".join(_learned_markdown(doc))
+    assert f"z RMS {z:.2f} with the fitted noise" in text
+    assert ("widened by" in text) == (cal.learned.extra_sd_mm > 0)
