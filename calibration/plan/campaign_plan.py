@@ -347,28 +347,10 @@ def observability(
     geo = jac[:, :, analysis.free]
     names = [n for n, f in zip(analysis.parameter_names, analysis.free, strict=True) if f]
     ctx = EffectContext(description, EffectData(q_rad))
-    specs = loop_effects(ctx, settings.effects)
     kin = ModelAtPoses(model, q_rad, tcp, jac)
-    physical = [sp for sp in specs if sp.kind == "gravity_deflection"]
-    gravity = physical_form_columns(ctx, kin, physical[0]) if physical else None
-    fitted = [
-        sp
-        for sp in specs
-        if loop_can_add(
-            len(sp.parameter_names()) if sp.kind != "gravity_deflection" or gravity is None
-            else gravity[0].shape[2],
-            settings.n_identify, geo.shape[2],
-        )
-    ]  # fmt: skip
-    left = [sp for sp in specs if sp not in fitted]
-    plain_fitted = [sp for sp in fitted if sp.kind != "gravity_deflection"]
-    effects = regressor_matrix(plain_fitted, ctx, slice(0, len(q_rad)), kin)
-    names += [f"{sp.label}: {p}" for sp in plain_fitted for p in sp.parameter_names()]
-    kinds = [sp.kind for sp in plain_fitted for _ in sp.parameter_names()]
-    if gravity is not None and physical[0] in fitted:
-        effects = np.concatenate([effects, gravity[0]], axis=2)
-        names += [f"gravity deflection (physical form, linearised): {p}" for p in gravity[1]]
-        kinds += ["gravity_deflection"] * len(gravity[1])
+    specs = loop_effects(ctx, settings.effects)
+    effects, effect_names, kinds, left = _fitted_effects(ctx, kin, specs, settings, geo.shape[2])
+    names += effect_names
     full = np.concatenate([geo, effects], axis=2)
     scale = _column_rms(full)
     scaled = full / scale
@@ -395,6 +377,38 @@ def observability(
         plain / sigma, plain, basis, scale, tuple(names), prior,
         out_plain / sigma, out_plain, tuple(sp.label for sp in left),
     )  # fmt: skip
+
+
+def _fitted_effects(
+    ctx: EffectContext,
+    kin: ModelAtPoses,
+    specs: list[EffectSpec],
+    settings: PlanSettings,
+    n_geometry: int,
+) -> tuple[FloatArray, list[str], list[str], list[EffectSpec]]:
+    """The columns ``(N, 3, k)`` of the effects ``specs`` the loop can add from
+    ``settings.n_identify`` poses beside ``n_geometry`` parameters (the gravity term in
+    its physical form, :func:`physical_form_columns`), their names and kinds (one per
+    column); the specs left out (the gravity term in its linear form)."""
+    linear = [sp for sp in specs if sp.kind == "gravity_deflection"]
+    gravity = physical_form_columns(ctx, kin, linear[0]) if linear else None
+
+    def count(sp: EffectSpec) -> int:
+        if sp.kind == "gravity_deflection" and gravity is not None:
+            return len(gravity[1])
+        return len(sp.parameter_names())
+
+    fitted = [sp for sp in specs if loop_can_add(count(sp), settings.n_identify, n_geometry)]
+    left = [sp for sp in specs if sp not in fitted]
+    plain = [sp for sp in fitted if sp.kind != "gravity_deflection"]
+    columns = regressor_matrix(plain, ctx, slice(0, len(kin.q_rad)), kin)
+    names = [f"{sp.label}: {p}" for sp in plain for p in sp.parameter_names()]
+    kinds = [sp.kind for sp in plain for _ in sp.parameter_names()]
+    if gravity is not None and linear[0] in fitted:
+        columns = np.concatenate([columns, gravity[0]], axis=2)
+        names += [f"gravity deflection (physical form, linearised): {p}" for p in gravity[1]]
+        kinds += ["gravity_deflection"] * len(gravity[1])
+    return columns, names, kinds, left
 
 
 def _column_rms(blocks: FloatArray) -> FloatArray:
