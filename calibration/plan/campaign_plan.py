@@ -498,7 +498,9 @@ def physical_form_columns(
     counterbalance terms of the ``linear`` candidate (c, fitted freely as the loop does),
     and one column per loaded joint but the reference, the joint turned in proportion to
     its gravity torque by the description's masses (``ρ_j``; the reference joint, whose
-    column moves the TCP most, has ρ = 1)."""
+    column moves the TCP most, has ρ = 1). A description without masses has no torque to
+    turn a joint by: those columns are zero and drop out with the directions no
+    candidate observes."""
     base = ctx.base_moments
     own = tuple(n for n in linear.names if counterbalance_term(n) is not None)
     joints = base.loaded_joints
