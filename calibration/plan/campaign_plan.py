@@ -363,7 +363,13 @@ def observability(
         reflector_in_base(model, geometry, q_rad)[0] - geometry.station_mm, axis=1
     )
     sigma = tracker_sigma_mm(settings, dist)[:, None, None]
-    sd = prior_sd(names, len(geo[0, 0]), kinds) * scale  # in scaled units
+    # in scaled units. An effect's value goes through ``scale`` too, so for a fitted
+    # effect it acts in its parameter's own unit (µrad, °, ppm), not as a TCP effect in
+    # mm: gravity moments and the tracker's scale all but fixed, a cyclic error's terms
+    # 0.03° (0.006–0.5 mm at the TCP), a joint's compliance column free. The plans
+    # measured in docs/planning.md are made so; the priors read as TCP mm measured worse
+    # there (docs/planning.md, "What is left")
+    sd = prior_sd(names, len(geo[0, 0]), kinds) * scale
     prior = basis.T @ (basis / sd[:, None] ** 2)
     out = regressor_matrix(left, ctx, slice(0, len(q_rad)), kin)
     # a left-out effect as large as its prior says at the TCP, spread over its columns
@@ -435,7 +441,8 @@ def loop_can_add(n_parameters: int, m: int, n_model: int) -> bool:
 #: What a user knows of the parameters before measuring (1 σ): a nominal description
 #: is this far from a real arm (lengths, angles), the base guess and the tool this far
 #: from the truth; an effect this large at the TCP (mm: a gravity deflection of a
-#: tenth of a mm, a cyclic error of 30 µm, a tracker scale error of 20 ppm at 3 m).
+#: tenth of a mm, a cyclic error of 30 µm, a tracker scale error of 20 ppm at 3 m) when
+#: it is left out; a fitted effect's value acts in its own unit (:func:`observability`).
 PRIOR_LENGTH_MM = 0.5
 PRIOR_ANGLE_DEG = 0.05
 PRIOR_BASE_MM = 50.0
@@ -515,7 +522,11 @@ def physical_form_columns(
     turned = np.stack([theta[:, :, j - 1] * tau[:, None, j - 1] for j in joints], axis=2)
     reference = int(np.argmax(np.sqrt(np.mean(turned**2, axis=(0, 1)))))
     ratios = [k for k in range(len(joints)) if k != reference]
-    names = spec.parameter_names() + tuple(f"joint{joints[k]}.compliance_ratio" for k in ratios)
+    # a joint's column is its compliance (rad per N·mm) times the torque: ρ_j up to the
+    # reference's compliance, which no plan knows
+    names = spec.parameter_names() + tuple(
+        f"joint{joints[k]}.compliance_rad_per_nmm" for k in ratios
+    )
     return np.concatenate([shared, turned[:, :, ratios]], axis=2), names
 
 

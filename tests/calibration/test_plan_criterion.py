@@ -141,7 +141,7 @@ def test_plan_fits_gravity_in_the_physical_form_from_50_poses() -> None:
     geometry = resolve(CellGeometrySpec(), robot)
     obs50 = observability(robot, geometry, q, PlanSettings(n_identify=50))
     assert obs50.left_out == ()
-    assert sum("compliance_ratio" in n for n in obs50.names) == 4  # joints 3..6 against 2
+    assert sum("compliance_rad_per_nmm" in n for n in obs50.names) == 4  # joints 3..6 against 2
     obs20 = observability(robot, geometry, q, PlanSettings(n_identify=20))
     assert obs20.left_out and "linear form" in obs20.left_out[0]  # its bias, not fitted
     assert not any("gravity" in n for n in obs20.names)
