@@ -9,13 +9,14 @@
 2. **Identification set** (:func:`select_identification`): what the campaign must pin
    down is the identifiable geometry (:func:`calibration.identify.identifiability.analyze_model`)
    plus the closed loop's usual effects, with the loop's own regressors
-   (:mod:`calibration.effects.effect_kinds`: the gravity deflection in its linear form, each
-   joint's cyclic error, the tracker's scale; :func:`loop_effects`). Each candidate's
-   3-row block of that Jacobian is column-scaled, reduced to the directions the
-   candidates can observe at all, and weighted by the tracker's σ at its distance.
-   The effects the loop cannot add from ``n_identify`` poses (:func:`loop_can_add`: the
-   linear gravity term's 30-odd parameters from 50) are not fitted but left out, scaled
-   to their prior. Start: D-optimal greedy selection (the O1 index,
+   (:mod:`calibration.effects.effect_kinds`: the gravity deflection in the physical form
+   the loop ends with, linearised (:func:`physical_form_columns`), each joint's cyclic
+   error, the tracker's scale; :func:`loop_effects`). Each candidate's 3-row block of
+   that Jacobian is column-scaled, reduced to the directions the candidates can observe
+   at all, and weighted by the tracker's σ at its distance. The effects the loop cannot
+   add from ``n_identify`` poses (:func:`loop_can_add`: the physical gravity form's 18
+   parameters from fewer than 46 poses) are not fitted but left out (the gravity term
+   then in its linear form), scaled to their prior. Start: D-optimal greedy selection (the O1 index,
    :func:`calibration.identify.pose_selection.select_poses`); then **I-optimal** exchange
    passes: swap a chosen pose for the candidate that most lowers the expected mean squared
    prediction error over the region (:mod:`calibration.plan.plan_criterion`: the fit's
@@ -44,6 +45,7 @@ from numpy.typing import NDArray
 
 from calibration.effects.effect_base import EffectContext, EffectData, EffectSpec, ModelAtPoses
 from calibration.effects.effect_candidates import gravity_candidate
+from calibration.effects.effect_gravity import counterbalance_term
 from calibration.effects.effect_kinds import regressor_matrix
 from calibration.errors import PlanError
 from calibration.identify.identifiability import analyze_model
@@ -345,16 +347,10 @@ def observability(
     geo = jac[:, :, analysis.free]
     names = [n for n, f in zip(analysis.parameter_names, analysis.free, strict=True) if f]
     ctx = EffectContext(description, EffectData(q_rad))
-    specs = loop_effects(ctx, settings.effects)
-    fitted = [
-        sp
-        for sp in specs
-        if loop_can_add(len(sp.parameter_names()), settings.n_identify, geo.shape[2])
-    ]
-    left = [sp for sp in specs if sp not in fitted]
     kin = ModelAtPoses(model, q_rad, tcp, jac)
-    effects = regressor_matrix(fitted, ctx, slice(0, len(q_rad)), kin)
-    names += [f"{sp.label}: {p}" for sp in fitted for p in sp.parameter_names()]
+    specs = loop_effects(ctx, settings.effects)
+    effects, effect_names, kinds, left = _fitted_effects(ctx, kin, specs, settings, geo.shape[2])
+    names += effect_names
     full = np.concatenate([geo, effects], axis=2)
     scale = _column_rms(full)
     scaled = full / scale
@@ -367,7 +363,13 @@ def observability(
         reflector_in_base(model, geometry, q_rad)[0] - geometry.station_mm, axis=1
     )
     sigma = tracker_sigma_mm(settings, dist)[:, None, None]
-    sd = prior_sd(names, len(geo[0, 0]), fitted) * scale  # in scaled units
+    # in scaled units. An effect's value goes through ``scale`` too, so for a fitted
+    # effect it acts in its parameter's own unit (µrad, °, ppm), not as a TCP effect in
+    # mm: gravity moments and the tracker's scale all but fixed, a cyclic error's terms
+    # 0.03° (0.006–0.5 mm at the TCP), a joint's compliance column free. The plans
+    # measured in docs/planning.md are made so; the priors read as TCP mm measured worse
+    # there (docs/planning.md, "What is left")
+    sd = prior_sd(names, len(geo[0, 0]), kinds) * scale
     prior = basis.T @ (basis / sd[:, None] ** 2)
     out = regressor_matrix(left, ctx, slice(0, len(q_rad)), kin)
     # a left-out effect as large as its prior says at the TCP, spread over its columns
@@ -381,6 +383,38 @@ def observability(
         plain / sigma, plain, basis, scale, tuple(names), prior,
         out_plain / sigma, out_plain, tuple(sp.label for sp in left),
     )  # fmt: skip
+
+
+def _fitted_effects(
+    ctx: EffectContext,
+    kin: ModelAtPoses,
+    specs: list[EffectSpec],
+    settings: PlanSettings,
+    n_geometry: int,
+) -> tuple[FloatArray, list[str], list[str], list[EffectSpec]]:
+    """The columns ``(N, 3, k)`` of the effects ``specs`` the loop can add from
+    ``settings.n_identify`` poses beside ``n_geometry`` parameters (the gravity term in
+    its physical form, :func:`physical_form_columns`), their names and kinds (one per
+    column); the specs left out (the gravity term in its linear form)."""
+    linear = [sp for sp in specs if sp.kind == "gravity_deflection"]
+    gravity = physical_form_columns(ctx, kin, linear[0]) if linear else None
+
+    def count(sp: EffectSpec) -> int:
+        if sp.kind == "gravity_deflection" and gravity is not None:
+            return len(gravity[1])
+        return len(sp.parameter_names())
+
+    fitted = [sp for sp in specs if loop_can_add(count(sp), settings.n_identify, n_geometry)]
+    left = [sp for sp in specs if sp not in fitted]
+    plain = [sp for sp in fitted if sp.kind != "gravity_deflection"]
+    columns = regressor_matrix(plain, ctx, slice(0, len(kin.q_rad)), kin)
+    names = [f"{sp.label}: {p}" for sp in plain for p in sp.parameter_names()]
+    kinds = [sp.kind for sp in plain for _ in sp.parameter_names()]
+    if gravity is not None and linear[0] in fitted:
+        columns = np.concatenate([columns, gravity[0]], axis=2)
+        names += [f"gravity deflection (physical form, linearised): {p}" for p in gravity[1]]
+        kinds += ["gravity_deflection"] * len(gravity[1])
+    return columns, names, kinds, left
 
 
 def _column_rms(blocks: FloatArray) -> FloatArray:
@@ -397,17 +431,18 @@ def loop_can_add(n_parameters: int, m: int, n_model: int) -> bool:
     cross-validated gain (the held-out SSE drop in units of the current residual
     variance) beats ``ln(3m)`` per parameter (:mod:`calibration.effects.closed_loop`); that
     gain hardly exceeds the residual's degrees of freedom, ``3m − n_model −
-    n_parameters``, which it approaches when the effect dominates the residual. 30-odd
-    gravity terms beside 27 geometric ones need about 85 poses: from 50 the loop mostly
-    leaves them out (the cross-validation's inflation lets them in on some arms), and
-    a plan must keep the fit's aliasing of them small."""
+    n_parameters``, which it approaches when the effect dominates the residual. The
+    gravity term counts in its physical form (18 parameters on the kr500, the loop scores
+    it on its own count): beside 27 geometric ones it can be added from 46 poses (its
+    linear form's 34 would need ~85)."""
     return n_parameters * float(np.log(3 * m)) < 3 * m - n_model - n_parameters
 
 
 #: What a user knows of the parameters before measuring (1 σ): a nominal description
 #: is this far from a real arm (lengths, angles), the base guess and the tool this far
 #: from the truth; an effect this large at the TCP (mm: a gravity deflection of a
-#: tenth of a mm, a cyclic error of 30 µm, a tracker scale error of 20 ppm at 3 m).
+#: tenth of a mm, a cyclic error of 30 µm, a tracker scale error of 20 ppm at 3 m) when
+#: it is left out; a fitted effect's value acts in its own unit (:func:`observability`).
 PRIOR_LENGTH_MM = 0.5
 PRIOR_ANGLE_DEG = 0.05
 PRIOR_BASE_MM = 50.0
@@ -416,9 +451,10 @@ PRIOR_TOOL_MM = 1.0
 PRIOR_EFFECT_MM = {"gravity_deflection": 0.1, "joint_harmonic": 0.03, "instrument_scale": 0.06}
 
 
-def prior_sd(names: list[str], n_geometry: int, specs: list[EffectSpec]) -> FloatArray:
+def prior_sd(names: list[str], n_geometry: int, kinds: list[str]) -> FloatArray:
     """The prior 1 σ ``(p,)`` of the parameters ``names`` (geometry first, in mm or rad;
-    then the effects' parameters, as the TCP effect of a scaled column, mm)."""
+    then the effects' parameters, of the effect kinds ``kinds``, one per parameter, as the
+    TCP effect of a scaled column, mm)."""
     sd = []
     for name in names[:n_geometry]:
         if name.startswith("base."):
@@ -428,7 +464,7 @@ def prior_sd(names: list[str], n_geometry: int, specs: list[EffectSpec]) -> Floa
         else:
             sd.append(np.radians(PRIOR_ANGLE_DEG) if name.endswith("_rad") else PRIOR_LENGTH_MM)
     out = np.array(sd, dtype=float)
-    effect = [PRIOR_EFFECT_MM[sp.kind] for sp in specs for _ in sp.parameter_names()]
+    effect = [PRIOR_EFFECT_MM[kind] for kind in kinds]
     return np.concatenate([out, np.array(effect, dtype=float)])
 
 
@@ -456,6 +492,42 @@ def loop_effects(ctx: EffectContext, which: tuple[str, ...]) -> list[EffectSpec]
     if "scale" in which:
         specs.append(EffectSpec("instrument_scale"))
     return specs
+
+
+def physical_form_columns(
+    ctx: EffectContext, kin: ModelAtPoses, linear: EffectSpec
+) -> tuple[FloatArray, tuple[str, ...]]:
+    """The gravity term's physical form (what the closed loop fits once gravity is in,
+    :mod:`calibration.effects.gravity_form`), linearised for the design: its columns
+    ``(N, 3, b + c + J − 1)`` and their names. The form ``Δθ_j = ρ_j·Σ_k Ŷ_jk·w_k`` is
+    bilinear; at a guess of equal compliance ratios (ρ = 1: the planner knows no
+    stiffness) its derivatives are the shared moments' columns ``Σ_j Ŷ_jk`` (b), the
+    counterbalance terms of the ``linear`` candidate (c, fitted freely as the loop does),
+    and one column per loaded joint but the reference, the joint turned in proportion to
+    its gravity torque by the description's masses (``ρ_j``; the reference joint, whose
+    column moves the TCP most, has ρ = 1). A description without masses has no torque to
+    turn a joint by: those columns are zero and drop out with the directions no
+    candidate observes."""
+    base = ctx.base_moments
+    own = tuple(n for n in linear.names if counterbalance_term(n) is not None)
+    joints = base.loaded_joints
+    spec = EffectSpec(
+        "gravity_deflection", parameter="physical", joints=joints, names=base.names + own,
+        shape=(1.0,) * len(joints),
+    )  # fmt: skip
+    shared = regressor_matrix([spec], ctx, slice(0, len(kin.q_rad)), kin)
+    n = kin.model.n_joints
+    theta = kin.jacobian[:, :, 3 : 5 * n : 5]  # ∂TCP/∂θ_j (N, 3, n)
+    tau = ctx.torques_nmm  # (N, n)
+    turned = np.stack([theta[:, :, j - 1] * tau[:, None, j - 1] for j in joints], axis=2)
+    reference = int(np.argmax(np.sqrt(np.mean(turned**2, axis=(0, 1)))))
+    ratios = [k for k in range(len(joints)) if k != reference]
+    # a joint's column is its compliance (rad per N·mm) times the torque: ρ_j up to the
+    # reference's compliance, which no plan knows
+    names = spec.parameter_names() + tuple(
+        f"joint{joints[k]}.compliance_rad_per_nmm" for k in ratios
+    )
+    return np.concatenate([shared, turned[:, :, ratios]], axis=2), names
 
 
 def design_problem(obs: Observability) -> DesignProblem:

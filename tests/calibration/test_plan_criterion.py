@@ -1,13 +1,26 @@
 """The planner's criterion (:mod:`calibration.plan.plan_criterion`): its rank-3 updates
-against the criterion computed from scratch, and the exchange lowering it."""
+against the criterion computed from scratch, and the exchange lowering it; the model it
+designs for (the gravity term in the physical form the closed loop ends with)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
+from calibration.effects.effect_base import EffectContext, EffectData, ModelAtPoses
+from calibration.effects.effect_candidates import gravity_candidate
+from calibration.effects.effect_kinds import regressor_matrix
 from calibration.identify.pose_selection import select_poses
-from calibration.plan.campaign_plan import loop_can_add
+from calibration.model.cell_geometry import CellGeometrySpec, resolve
+from calibration.model.description import RobotDescription, load_robot
+from calibration.model.kinematics import KinematicModel, identification_jacobian
+from calibration.plan.campaign_plan import (
+    PlanSettings,
+    loop_can_add,
+    observability,
+    physical_form_columns,
+)
 from calibration.plan.plan_criterion import (
     DesignProblem,
     _info,
@@ -15,6 +28,8 @@ from calibration.plan.plan_criterion import (
     criterion_value,
     exchange,
 )
+
+FloatArray = NDArray[np.float64]
 
 
 def _problem(seed: int, n: int = 300, r: int = 12, q: int = 5) -> DesignProblem:
@@ -88,3 +103,45 @@ def test_loop_can_add_follows_the_penalty_and_the_degrees_of_freedom() -> None:
     assert not loop_can_add(34, 50, 27) and not loop_can_add(34, 80, 27)
     assert loop_can_add(34, 90, 27) and loop_can_add(34, 150, 27)
     assert loop_can_add(2, 50, 27)  # a cyclic error's two terms
+    # its physical form (18) beside them: from 46 poses on, so a 50-pose plan designs for it
+    assert not loop_can_add(18, 44, 27) and loop_can_add(18, 46, 27) and loop_can_add(18, 50, 27)
+
+
+def _kr500_poses(n: int, seed: int) -> tuple[RobotDescription, FloatArray]:
+    robot = load_robot("kr500")
+    lo = np.radians([j.lower_deg for j in robot.joints])
+    hi = np.radians([j.upper_deg for j in robot.joints])
+    return robot, np.random.default_rng(seed).uniform(lo, hi, size=(n, len(lo)))
+
+
+def test_physical_form_columns_lie_in_the_linear_forms_span() -> None:
+    # the physical form p_jk = ρ_j·w_k is the linear form constrained: its derivatives
+    # (shared moments, counterbalance terms, a joint turned by its gravity torque) are
+    # combinations of the linear form's columns, fewer of them
+    robot, q = _kr500_poses(200, 3)
+    model = KinematicModel.from_description(robot)
+    tcp, jac = identification_jacobian(model, q)
+    kin = ModelAtPoses(model, q, tcp, jac)
+    ctx = EffectContext(robot, EffectData(q))
+    linear = gravity_candidate(ctx)
+    assert linear is not None
+    lin = regressor_matrix([linear], ctx, slice(0, len(q)), kin).reshape(3 * len(q), -1)
+    cols, names = physical_form_columns(ctx, kin, linear)
+    phys = cols.reshape(3 * len(q), -1)
+    assert phys.shape[1] == len(names) == 18 < lin.shape[1] == 34
+    coef, *_ = np.linalg.lstsq(lin, phys, rcond=None)
+    left = np.linalg.norm(phys - lin @ coef, axis=0) / np.linalg.norm(phys, axis=0)
+    assert np.all(left < 1e-8)
+    unit = phys / np.linalg.norm(phys, axis=0)  # the columns' units differ (µrad, N·mm)
+    assert np.linalg.matrix_rank(unit, tol=1e-6) == 18
+
+
+def test_plan_fits_gravity_in_the_physical_form_from_50_poses() -> None:
+    robot, q = _kr500_poses(300, 4)
+    geometry = resolve(CellGeometrySpec(), robot)
+    obs50 = observability(robot, geometry, q, PlanSettings(n_identify=50))
+    assert obs50.left_out == ()
+    assert sum("compliance_rad_per_nmm" in n for n in obs50.names) == 4  # joints 3..6 against 2
+    obs20 = observability(robot, geometry, q, PlanSettings(n_identify=20))
+    assert obs20.left_out and "linear form" in obs20.left_out[0]  # its bias, not fitted
+    assert not any("gravity" in n for n in obs20.names)
