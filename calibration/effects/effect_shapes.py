@@ -29,7 +29,7 @@ from itertools import pairwise
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 from scipy.stats import chi2
 
 from calibration.effects.candidate_scoring import LinearizedModel
@@ -223,13 +223,28 @@ def fit_physical_gravity(
         if split is None or attempt == len(joints) - 1:
             break
         groups, owner, rho, w = _limit_groups(split, groups, owner, rho, w, loads)
+    return _result(lin, form, sol, joints, groups, owner, shift)
+
+
+def _result(
+    lin: LinearizedModel,
+    form: _PhysicalForm,
+    sol: OptimizeResult,
+    joints: tuple[int, ...],
+    groups: list[list[int]],
+    owner: NDArray[np.intp],
+    shift: FloatArray,
+) -> PhysicalGravityFit:
+    """The fit ``sol`` of ``form`` (``groups`` of positions in ``joints``, each moment's
+    ``owner``) with its standard errors; a group that owns no moment moves nothing (its
+    ratios went to 0 against the others) and is left out."""
+    rho, w = form.unpack(sol.x)
     sse = float(sol.fun @ sol.fun)
-    dof = max(len(y) - lin.jacobian.shape[1] - len(sol.x), 1)
+    dof = max(len(form.y) - lin.jacobian.shape[1] - len(sol.x), 1)
     jac = form.jacobian(sol.x)
     cov = (sse / dof) * np.linalg.pinv(jac.T @ jac)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     ratio_se, moment_se = form.unpack(se, held=0.0)  # an undetermined moment is held at 0
-    # a group that owns no moment moves nothing (its ratios went to 0 against the others)
     live = [g for gi, g in enumerate(groups) if gi == 0 or np.any(owner == gi)]
     renumber = {groups.index(g): n for n, g in enumerate(live)}
     kept = sorted(i for g in live for i in g)
