@@ -153,11 +153,23 @@ class LinearizedModel:
     rhs: FloatArray  # (p,) Jᵀr
     fold_gram: tuple[FloatArray, ...]  # per fold, its rows' JᵀJ
     fold_rhs: tuple[FloatArray, ...]  # per fold, its rows' Jᵀr
+    #: leave one pose out (exact, by the hat matrix) instead of the folds
+    leave_one_out: bool = False
 
     @classmethod
     def build(
-        cls, residual: FloatArray, jacobian: FloatArray, n_poses: int, n_folds: int, seed: int
+        cls,
+        residual: FloatArray,
+        jacobian: FloatArray,
+        n_poses: int,
+        n_folds: int,
+        seed: int,
+        *,
+        leave_one_out: bool = False,
     ) -> LinearizedModel:
+        """The model at its solution; ``leave_one_out``: cross-validated by leaving one
+        pose out at a time (:func:`pose_press`), else by ``n_folds`` folds of poses drawn
+        with ``seed``."""
         j = scaled(jacobian)
         basis, _ = np.linalg.qr(j)
         fit0 = residual - basis @ (basis.T @ residual)
@@ -168,21 +180,29 @@ class LinearizedModel:
         gram, rhs = j.T @ j, j.T @ residual
         fold_gram = tuple(j[f].T @ j[f] for f in folds)
         fold_rhs = tuple(j[f].T @ residual[f] for f in folds)
-        cv0 = 0.0
-        for f, fg, fr in zip(folds, fold_gram, fold_rhs, strict=True):
-            coef, *_ = np.linalg.lstsq(gram - fg, rhs - fr, rcond=None)
-            e = residual[f] - j[f] @ coef
-            cv0 += float(e @ e)
+        if leave_one_out:
+            cv0 = pose_press(basis, fit0)
+        else:
+            cv0 = 0.0
+            for f, fg, fr in zip(folds, fold_gram, fold_rhs, strict=True):
+                coef, *_ = np.linalg.lstsq(gram - fg, rhs - fr, rcond=None)
+                e = residual[f] - j[f] @ coef
+                cv0 += float(e @ e)
         return cls(
-            residual, j, basis, fit0, sigma2, folds, cv0, gram, rhs, fold_gram, fold_rhs
+            residual, j, basis, fit0, sigma2, folds, cv0, gram, rhs, fold_gram, fold_rhs,
+            leave_one_out,
         )  # fmt: skip
 
     def cv_sse_with(self, cols: FloatArray) -> float:
-        """Held-out sum of squared errors of the model plus ``cols`` ``(3m, k)``, each fold
-        refitted without its test rows. The training normal equations are the full ones
-        minus the test rows', so a fold costs ``O(N_test·q²)`` whatever the number of poses;
-        the model's own blocks are computed once, only the candidate's cross blocks are new;
-        a ``(q, q)`` least-squares solve keeps nearly dependent columns harmless."""
+        """Held-out sum of squared errors of the model plus ``cols`` ``(3m, k)``: each pose
+        predicted by the model refitted without it (``leave_one_out``, :func:`pose_press`),
+        else each fold refitted without its test rows. The training normal equations are the
+        full ones minus the test rows', so a fold costs ``O(N_test·q²)`` whatever the number
+        of poses; the model's own blocks are computed once, only the candidate's cross blocks
+        are new; a ``(q, q)`` least-squares solve keeps nearly dependent columns harmless."""
+        if self.leave_one_out:
+            qc = _orthonormal(self.perp(cols))
+            return pose_press(np.hstack([self.basis, qc]), self.fit0 - qc @ (qc.T @ self.fit0))
         j, r = self.jacobian, self.residual
         jc, cc, cr = j.T @ cols, cols.T @ cols, cols.T @ r
         gram = np.block([[self.gram, jc], [jc.T, cc]])
@@ -211,6 +231,39 @@ class LinearizedModel:
         coef, *_ = np.linalg.lstsq(perp, self.fit0, rcond=None)
         e = self.fit0 - perp @ coef
         return float(e @ e)
+
+
+#: A pose's own share of a direction (an eigenvalue of its 3×3 block of the hat matrix)
+#: above ``1 − LEVERAGE_FLOOR``: the direction is determined by that pose alone.
+LEVERAGE_FLOOR = 1e-9
+
+
+def pose_press(basis: FloatArray, fit: FloatArray) -> float:
+    """The exact leave-one-pose-out prediction error (PRESS, Allen 1974) of a linear model:
+    ``Σ_i ‖(I − H_ii)⁻¹·e_i‖²`` over the poses i (rows ``3i .. 3i + 2``), ``H_ii`` the
+    pose's ``(3, 3)`` block of the hat matrix ``Q·Qᵀ`` (``basis`` ``Q`` ``(3m, q)``
+    orthonormal, the model's span) and ``e_i`` its residual (``fit`` ``(3m,)``, the
+    model's span projected out). The same as refitting without each pose in turn, at the
+    cost of one fit: ``O(m·q)``. A direction a pose alone determines (``1 − λ`` below
+    :data:`LEVERAGE_FLOOR`) cannot be predicted without it and carries no residual: it
+    counts 0."""
+    q = basis.reshape(-1, 3, basis.shape[1])
+    e = fit.reshape(-1, 3)
+    lam, vec = np.linalg.eigh(np.einsum("iak,ibk->iab", q, q))  # H_ii = V·diag(λ)·Vᵀ
+    keep = 1.0 - lam > LEVERAGE_FLOOR
+    along = np.einsum("iab,ia->ib", vec, e)  # e_i in the eigenvectors
+    scaled_e = np.where(keep, along / np.where(keep, 1.0 - lam, 1.0), 0.0)
+    return float(np.sum(scaled_e * scaled_e))
+
+
+def _orthonormal(a: FloatArray) -> FloatArray:
+    """An orthonormal basis of the columns of ``a`` ``(N, k)`` (rank-deficient ones
+    dropped, as :func:`residual_basis` does)."""
+    if a.size == 0:
+        return a
+    u, sv, _ = np.linalg.svd(a, full_matrices=False)
+    out: FloatArray = u[:, sv > 1e-8 * max(float(sv.max(initial=0.0)), 1e-300)]
+    return out
 
 
 def score_candidate(

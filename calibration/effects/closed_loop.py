@@ -5,10 +5,11 @@ noise cannot explain. Each candidate of :mod:`calibration.effects.effect_candida
 library, then the generic search) is scored on the identification poses
 (:mod:`calibration.effects.candidate_scoring`):
 
-* **cross-validation**: the poses are split into K folds (5); the current model plus the
-  candidate is refitted on K − 1 folds and predicts the held-out one. The score is the drop
-  of the held-out sum of squared errors, in units of the noise variance σ̂², minus a
-  penalty of ``ln(3m)`` per added parameter (BIC-like, m poses);
+* **cross-validation**: each pose is left out in turn, the current model plus the
+  candidate refitted without it predicts it (exact, by the hat matrix: the PRESS; K folds
+  with ``LoopSettings(leave_one_out=False)``). The score is the drop of the held-out sum
+  of squared errors, in units of the noise variance σ̂², minus a penalty of ``ln(3m)`` per
+  added parameter (BIC-like, m poses);
 * **significance**: the partial F-test of the candidate's parameters on all identification
   poses, Bonferroni-corrected over the candidates of the round (``p·N < α``, α = 1e-3).
   A harmonic's orders are scanned (1..K, K from the joint's coverage and the number of
@@ -104,8 +105,9 @@ from calibration.model.kinematics import KinematicModel
 FloatArray = NDArray[np.float64]
 
 CRITERION = (
-    "a candidate is added when its 5-fold cross-validated error reduction on the "
-    "identification poses, in units of the noise variance, exceeds ln(3m) per parameter, "
+    "a candidate is added when its cross-validated error reduction on the "
+    "identification poses (each pose left out in turn: the exact PRESS), in units of the "
+    "noise variance, exceeds ln(3m) per parameter, "
     "and the partial F-test of its parameters, Bonferroni-corrected over the candidates of "
     "the round (a harmonic's best order Šidák-corrected for the orders scanned first), is "
     "significant (p·N < α); the best such candidate by penalized CV score "
@@ -119,7 +121,8 @@ CRITERION = (
 class LoopSettings:
     """How the loop searches (see the module docstring for the criterion)."""
 
-    folds: int = 5
+    folds: int = 5  # K-fold cross-validation's folds (``leave_one_out`` False)
+    leave_one_out: bool = True  # cross-validate by leaving one pose out (exact PRESS)
     alpha: float = 1e-3  # family-wise false-positive probability per round
     penalty_per_parameter: float | None = None  # σ² per parameter; None: ln(3m)
     max_effects: int = 6
@@ -321,7 +324,12 @@ class _Problem:
         jac = np.concatenate([kin.jacobian, effects], axis=2)[:, :, result.free]
         jac = jac * sw[:, None, None]
         lin = LinearizedModel.build(
-            residual, jac.reshape(-1, jac.shape[-1]), self.m, settings.folds, settings.fold_seed
+            residual,
+            jac.reshape(-1, jac.shape[-1]),
+            self.m,
+            settings.folds,
+            settings.fold_seed,
+            leave_one_out=settings.leave_one_out,
         )
         return lin, sw, kin
 

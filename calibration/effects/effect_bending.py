@@ -42,7 +42,7 @@ from calibration.effects.effect_base import (
     param_number,
     param_vector,
 )
-from calibration.effects.effect_gravity import counterbalance_term
+from calibration.effects.effect_gravity import counterbalance_term, group_moment
 from calibration.errors import EffectLibraryError
 from calibration.model.description import EffectValue
 from calibration.model.gravity_regressor import link_rotations, moment_names
@@ -167,7 +167,8 @@ def bending_candidates(
     if not gravity:
         return []
     spec, v = gravity[0]
-    keep = [i for i, m in enumerate(spec.names) if counterbalance_term(m) is None]
+    # the shared moments alone: a limit-form group's are weighted by its own reference
+    keep = [i for i, m in enumerate(spec.names) if not (counterbalance_term(m) or group_moment(m))]
     names = tuple(spec.names[i] for i in keep)
     w = tuple(float(v[i]) for i in keep)
     taken = {s.joint for s in (*specs, *exclude) if s.kind == "link_bending"}

@@ -118,6 +118,42 @@ def counterbalance_term(name: str) -> tuple[int, str, int] | None:
     return int(parts[0][5:]), f, int(k)
 
 
+def group_moment(name: str) -> tuple[tuple[int, ...], str] | None:
+    """A moment of a group of the physical form's limit (:func:`group_moment_name`):
+    ``"joints4+5+6.link5.mx"`` -> ((4, 5, 6), ``"link5.mx"``), ``"joint6.link6.mx"`` ->
+    ((6,), ``"link6.mx"``); None for a shared moment (``"link5.mx"``), a counterbalance
+    term or another name."""
+    head, _, moment = name.partition(".")
+    if counterbalance_term(name) is not None or "." not in moment:
+        return None
+    digits = head[6:].split("+") if head.startswith("joints") else [head[5:]]
+    if not head.startswith("joint") or not all(d.isdigit() for d in digits):
+        return None
+    return tuple(int(d) for d in digits), moment
+
+
+def group_moment_name(group: tuple[int, ...], moment: str) -> str:
+    """The name of ``moment`` owned by the limit form's ``group`` of joints (a joint's own
+    free block, named as the linear form's term, for a group of one)."""
+    if len(group) == 1:
+        return f"joint{group[0]}.{moment}"
+    return "joints" + "+".join(str(j) for j in group) + f".{moment}"
+
+
+def gravity_groups(spec: EffectSpec) -> tuple[tuple[int, ...], ...]:
+    """The physical form's groups of joints sharing moments: first the joints sharing the
+    plain-named moments (absent when every joint is in a named group), then each named
+    group of the limit form (:class:`~calibration.effects.effect_shapes.PhysicalGravityFit`)."""
+    named: list[tuple[int, ...]] = []
+    for name in spec.names:
+        gm = group_moment(name)
+        if gm is not None and gm[0] not in named:
+            named.append(gm[0])
+    apart = {j for g in named for j in g}
+    shared = tuple(j for j in spec.joints if j not in apart)
+    return ((shared,) if shared else ()) + tuple(named)
+
+
 def joint_moment(name: str, kind: str, n_joints: int) -> tuple[int, str]:
     """``"joint3.link4.mx"`` -> (3, ``"link4.mx"``); errors name the term."""
     cb = counterbalance_term(name)
@@ -135,6 +171,15 @@ def joint_moment(name: str, kind: str, n_joints: int) -> tuple[int, str]:
     if not 1 <= j <= n_joints:
         raise EffectLibraryError(f"effect {kind!r}: term {name!r}: joint must be 1..{n_joints}")
     return j, moment
+
+
+def _moment_ok(name: str, n_joints: int) -> bool:
+    """A physical form's moment name: a base moment, or one of a group's
+    (:func:`group_moment`) with its joints in 1..n_joints."""
+    gm = group_moment(name)
+    if gm is None:
+        return name in moment_names(n_joints)
+    return gm[1] in moment_names(n_joints) and all(1 <= j <= n_joints for j in gm[0])
 
 
 def _strings(params: Mapping[str, Any], key: str, kind: str) -> tuple[str, ...]:
@@ -184,15 +229,24 @@ class GravityDeflection(EffectKind):
         raw = moment_names(n)
         out = np.zeros((len(q), n, len(spec.names)))
         ratio = dict(zip(spec.joints, spec.shape, strict=False))
+        # the joints of the limit form's named groups: they share no plain-named moment
+        apart = {j for name in spec.names for j in (group_moment(name) or ((), ""))[0]}
+        apart = apart if spec.parameter == "physical" else set()
         for p, name in enumerate(spec.names):
             cb = counterbalance_term(name)
+            gm = group_moment(name) if spec.parameter == "physical" else None
             if cb is not None:
                 j, f, k = cb
                 out[:, j - 1, p] = (np.cos if f == "cos" else np.sin)(k * q[:, j - 1])
+            elif gm is not None:  # a group's own moment loads its joints alone
+                m = raw.index(gm[1])
+                for j in gm[0]:
+                    out[:, j - 1, p] = ratio.get(j, 1.0) * y[:, j - 1, m]
             elif spec.parameter == "physical":
                 m = raw.index(name)
                 for j, rho in ratio.items():
-                    out[:, j - 1, p] = rho * y[:, j - 1, m]
+                    if j not in apart:  # a shared moment loads no joint of another group
+                        out[:, j - 1, p] = rho * y[:, j - 1, m]
             else:
                 j, moment = joint_moment(name, "gravity_deflection", n)
                 out[:, j - 1, p] = y[:, j - 1, raw.index(moment)]
@@ -257,7 +311,12 @@ class GravityDeflection(EffectKind):
     def label(self, spec: EffectSpec) -> str:
         joints = ", ".join(str(j) for j in spec.joints)
         form = spec.parameter or "linear"
-        return f"gravity deflection (joints {joints}; {form} form)"
+        groups = gravity_groups(spec) if form == "physical" else ()
+        limit = "".join(
+            f", joint{'s' if len(g) > 1 else ''} {'+'.join(str(j) for j in g)} apart"
+            for g in groups[1:]
+        )
+        return f"gravity deflection (joints {joints}; {form} form{limit})"
 
     def to_parameters(
         self, spec: EffectSpec, values: FloatArray, n_joints: int
@@ -299,7 +358,7 @@ class GravityDeflection(EffectKind):
         keys = {"form", "joints", "compliance_ratio", "moments", "weighted_moment_urad"}
         check_keys(params, keys | {"counterbalance", "counterbalance_urad"}, self.kind)
         moments = _strings(params, "moments", self.kind)
-        bad = [m for m in moments if m not in moment_names(n_joints)]
+        bad = [m for m in moments if not _moment_ok(m, n_joints)]
         if bad:
             raise EffectLibraryError(f"effect {self.kind!r}: unknown moment {bad[0]!r}")
         cb: tuple[str, ...] = ()

@@ -25,10 +25,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 from scipy.stats import chi2
 
 from calibration.effects.candidate_scoring import LinearizedModel
@@ -135,6 +136,13 @@ def _golden(
     return t, f(t)
 
 
+#: Compliance ratios more than this factor apart are not bounded by the data: the fit is
+#: running off to the limit form (:func:`fit_physical_gravity`). A real arm's joint
+#: compliances differ by a factor of tens; 10³ is far past any, far short of a run-off
+#: (10⁶–10⁸ when the fit stops).
+LIMIT_RATIO_GAP = 1e3
+
+
 @dataclass(frozen=True, eq=False)
 class PhysicalGravityFit:
     """The physical gravity form fitted on the linearized model.
@@ -142,6 +150,17 @@ class PhysicalGravityFit:
     ``ratios`` ``(J,)`` are the compliance ratios of ``joints`` (1 at ``reference``),
     ``moments`` ``(b,)`` the compliance-weighted base moments in the columns' units
     (µrad), with their standard errors; ``sse`` the weighted residual sum of squares.
+
+    The **limit form** (``groups`` of more than one): joints whose ratios the data do not
+    bound (they ran off by more than :data:`LIMIT_RATIO_GAP` against the others) form
+    groups of their own. Each group shares the moments it owns (``moment_group[k]``: the
+    index into ``groups`` of base moment k's owner, the group of the largest compliance
+    among the joints it loads), its ratios relative to its own reference (the joint of
+    ratio 1, the one whose deflection moves the TCP most); a moment loads no joint of
+    another group (in the limit, ``ρ·w → 0`` there). A group of one joint is that joint's
+    own free block, as a lag whose τ runs off is a linear drift. ``groups[0]`` holds
+    ``reference``; empty ``groups``: one group (the physical form). A group whose ratios
+    went to 0 against the others owns no moment and is left out of ``joints``.
     """
 
     joints: tuple[int, ...]
@@ -152,6 +171,8 @@ class PhysicalGravityFit:
     moment_se: FloatArray
     sse: float
     success: bool
+    groups: tuple[tuple[int, ...], ...] = ()
+    moment_group: tuple[int, ...] = ()
 
 
 def fit_physical_gravity(
@@ -163,16 +184,17 @@ def fit_physical_gravity(
 
     The residual convention is the identification's (model − tracker), so the effect
     explains ``−residual``. The reference joint (ρ = 1) is the one whose linear-form
-    deflection moves the TCP most.
+    deflection moves the TCP most. When ratios run off (the data do not bound a joint's
+    ratio: its moments go to 0 while it goes to ∞), the fit is split into the limit form
+    (:class:`PhysicalGravityFit`) and refitted, until no group's ratios run off.
     """
     joints = tuple(sorted(blocks))
     y = -lin.fit0
     perp = {j: lin.perp(blocks[j]) for j in joints}
     p, acting = _linear_form(blocks, perp, y)
-    shift = [float(np.linalg.norm(perp[j] @ p[i])) for i, j in enumerate(joints)]
+    shift = np.array([float(np.linalg.norm(perp[j] @ p[i])) for i, j in enumerate(joints)])
     ref = int(np.argmax(shift))
     rho, w = _rank_one(p, acting, joints, ref)
-    free = [i for i in range(len(joints)) if i != ref]
     # a moment with no column left once the model is projected out (one whose effect the
     # geometry takes up entirely) is not determined: it starts and stays at 0, else it would
     # be held at an arbitrary value
@@ -180,19 +202,122 @@ def fit_physical_gravity(
     seen = sum(np.linalg.norm(perp[j], axis=0) for j in joints)
     undetermined = seen <= 1e-6 * raw  # the relative tolerance of the loop's rank test
     w[undetermined] = 0.0
-    form = _PhysicalForm(perp, joints, free, np.flatnonzero(~undetermined), y)
-    x0 = np.concatenate([rho[free], w[form.keep]])
-    sol = least_squares(form.residual, x0, jac=form.jacobian, method="lm", xtol=1e-12, ftol=1e-12)
-    rho_hat, w_hat = form.unpack(sol.x)
+    loads = np.array([[k in acting[j] for k in range(len(w))] for j in joints])  # (J, b)
+    groups = [list(range(len(joints)))]  # positions in ``joints``, reference first
+    groups[0].sort(key=lambda i: (i != ref, -shift[i]))
+    owner = np.zeros(len(w), dtype=np.intp)
+    for attempt in range(len(joints)):  # each split adds a group: at most J − 1 of them
+        form = _PhysicalForm(
+            {j: perp[j] * (owner == _group_of(groups, i))[None, :] for i, j in enumerate(joints)},
+            joints,
+            [i for g in groups for i in g[1:]],
+            np.flatnonzero(~undetermined),
+            y,
+        )
+        x0 = np.concatenate([rho[form.free], w[form.keep]])
+        sol = least_squares(
+            form.residual, x0, jac=form.jacobian, method="lm", xtol=1e-12, ftol=1e-12
+        )
+        rho, w = form.unpack(sol.x)
+        split = _split_runaway(groups, rho, shift)
+        if split is None or attempt == len(joints) - 1:
+            break
+        groups, owner, rho, w = _limit_groups(split, groups, owner, rho, w, loads)
+    return _result(lin, form, sol, joints, groups, owner, shift)
+
+
+def _result(
+    lin: LinearizedModel,
+    form: _PhysicalForm,
+    sol: OptimizeResult,
+    joints: tuple[int, ...],
+    groups: list[list[int]],
+    owner: NDArray[np.intp],
+    shift: FloatArray,
+) -> PhysicalGravityFit:
+    """The fit ``sol`` of ``form`` (``groups`` of positions in ``joints``, each moment's
+    ``owner``) with its standard errors; a group that owns no moment moves nothing (its
+    ratios went to 0 against the others) and is left out."""
+    rho, w = form.unpack(sol.x)
     sse = float(sol.fun @ sol.fun)
-    dof = max(len(y) - lin.jacobian.shape[1] - len(sol.x), 1)
+    dof = max(len(form.y) - lin.jacobian.shape[1] - len(sol.x), 1)
     jac = form.jacobian(sol.x)
     cov = (sse / dof) * np.linalg.pinv(jac.T @ jac)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     ratio_se, moment_se = form.unpack(se, held=0.0)  # an undetermined moment is held at 0
+    live = [g for gi, g in enumerate(groups) if gi == 0 or np.any(owner == gi)]
+    renumber = {groups.index(g): n for n, g in enumerate(live)}
+    kept = sorted(i for g in live for i in g)
     return PhysicalGravityFit(
-        joints, joints[ref], rho_hat, ratio_se, w_hat, moment_se, sse, bool(sol.success)
+        tuple(joints[i] for i in kept),
+        joints[groups[0][0]],
+        rho[kept],
+        ratio_se[kept],
+        w,
+        moment_se,
+        sse,
+        bool(sol.success) and _split_runaway(groups, rho, shift) is None,
+        tuple(tuple(joints[i] for i in sorted(g)) for g in live) if len(live) > 1 else (),
+        tuple(renumber.get(int(o), 0) for o in owner) if len(live) > 1 else (),
     )
+
+
+def _group_of(groups: list[list[int]], i: int) -> int:
+    return next(gi for gi, g in enumerate(groups) if i in g)
+
+
+def _split_runaway(
+    groups: list[list[int]], rho: FloatArray, shift: FloatArray
+) -> list[list[list[int]]] | None:
+    """Each group's joints split where their ratios (sorted) jump by more than
+    :data:`LIMIT_RATIO_GAP`, each part its reference (largest ``shift``) first; None when
+    no group's ratios run off."""
+    out, split = [], False
+    for g in groups:
+        size = np.log10(np.maximum(np.abs(rho[g]), 1e-300))
+        order = np.argsort(size)
+        parts: list[list[int]] = [[g[order[0]]]]
+        for a, b in pairwise(order):
+            if size[b] - size[a] > np.log10(LIMIT_RATIO_GAP):
+                parts.append([])
+                split = True
+            parts[-1].append(g[b])
+        out.append([sorted(part, key=lambda i: -shift[i]) for part in parts])
+    return out if split else None
+
+
+def _limit_groups(
+    split: list[list[list[int]]],
+    groups: list[list[int]],
+    owner: NDArray[np.intp],
+    rho: FloatArray,
+    w: FloatArray,
+    loads: NDArray[np.bool_],
+) -> tuple[list[list[int]], NDArray[np.intp], FloatArray, FloatArray]:
+    """The limit form of ``groups`` split into ``split`` (per group, its parts by rising
+    ratio): a moment a split group owned goes to the part of the largest ratio among the
+    joints it loads; ratios become relative to each part's reference, the moments scale
+    the other way, so every product ``ρ_j·w_k`` a part keeps is unchanged (the start of
+    the refit). The part holding the overall reference stays first."""
+    new_groups: list[list[int]] = []
+    new_owner = owner.copy()
+    rho, w = rho.copy(), w.copy()
+    for gi, parts in enumerate(split):
+        first = len(new_groups)
+        for k in np.flatnonzero(owner == gi):
+            loaded = [pi for pi, part in enumerate(parts) if loads[part, k].any()]
+            new_owner[k] = first + (max(loaded) if loaded else len(parts) - 1)
+        for pi, part in enumerate(parts):
+            scale = rho[part[0]] if abs(rho[part[0]]) > 1e-300 else 1.0
+            rho[part] = rho[part] / scale
+            w[new_owner == first + pi] *= scale
+        new_groups.extend(parts)
+    head = _group_of(new_groups, groups[0][0])
+    if head:
+        new_groups.insert(0, new_groups.pop(head))
+        remap = np.array([0 if g == head else g + (g < head) for g in range(len(new_groups))])
+        new_owner = remap[new_owner]
+    return new_groups, new_owner, rho, w
 
 
 def _linear_form(
@@ -221,7 +346,7 @@ class _PhysicalForm:
 
     perp: dict[int, FloatArray]  # joint -> (3m, b) columns, the model projected out
     joints: tuple[int, ...]
-    free: list[int]  # positions in ``joints``
+    free: list[int]  # positions in ``joints`` (the others: group references, ρ = 1)
     keep: NDArray[np.intp]  # the determined moments
     y: FloatArray  # (3m,)
 

@@ -15,7 +15,12 @@ from scipy.stats import f as f_distribution
 
 from calibration.effects.candidate_scoring import LinearizedModel
 from calibration.effects.effect_base import EffectContext, EffectSpec
-from calibration.effects.effect_gravity import counterbalance_term, joint_moment
+from calibration.effects.effect_gravity import (
+    counterbalance_term,
+    gravity_groups,
+    group_moment_name,
+    joint_moment,
+)
 from calibration.effects.effect_shapes import PhysicalGravityFit, fit_physical_gravity
 from calibration.errors import IdentificationError
 from calibration.identify.identification import IdentificationResult
@@ -57,6 +62,11 @@ def physical_gravity(
     fit = fit_physical_gravity(lin, blocks)
     if not fit.success or not np.all(np.isfinite(fit.ratios)):
         return None
+    if fit.groups:  # the limit form: a moment a named group owns loads its joints alone
+        names = tuple(
+            n if g == 0 else group_moment_name(fit.groups[g], n)
+            for n, g in zip(names, fit.moment_group, strict=True)
+        )
     phys = EffectSpec(
         "gravity_deflection",
         parameter="physical",
@@ -112,8 +122,8 @@ def form_decision(
 
 def physical_parameter_count(phys_spec: EffectSpec) -> int:
     """The physical form's parameters: moments, counterbalance terms and the compliance
-    ratios but the reference joint's."""
-    return len(phys_spec.names) + len(phys_spec.joints) - 1
+    ratios but each group's reference joint's (one group but in the limit form)."""
+    return len(phys_spec.names) + len(phys_spec.joints) - max(len(gravity_groups(phys_spec)), 1)
 
 
 def _form_info(
@@ -128,6 +138,13 @@ def _form_info(
     """The gravity form decision as the report keeps it (``f_stat``, ``p``: the linear
     form's extra freedom; None when the linear form could not be identified)."""
     stated = ctx.description.base is not None and (ctx.description.base.gravity is not None)
+    if fit.groups:
+        apart = "; ".join("+".join(str(j) for j in g) for g in fit.groups[1:])
+        reason += (
+            f"; limit form: these poses do not bound the compliance ratios between joint "
+            f"groups {'+'.join(str(j) for j in fit.groups[0])} and {apart}, so each group "
+            "shares its own moments"
+        )
     return {
         "gravity_form": {
             "kept": kept,
@@ -145,6 +162,7 @@ def _form_info(
             "moments": list(phys_spec.names[: len(fit.moments)]),
             "weighted_moment_urad": [float(w) for w in fit.moments],
             "weighted_moment_se_urad": [float(w) for w in fit.moment_se],
+            "groups": [list(g) for g in fit.groups] or [list(fit.joints)],
         }
     }
 

@@ -361,6 +361,9 @@ def closed_loop_document(loop: ClosedLoopResult, n_joints: int) -> dict[str, Any
         "criterion": CRITERION,
         "alpha": loop.settings.alpha,
         "folds": loop.settings.folds,
+        "cross_validation": "leave one pose out"
+        if loop.settings.leave_one_out
+        else f"{loop.settings.folds} folds",
         "penalty_per_parameter_sigma2": loop.penalty_per_parameter,
         "n_candidates": loop.n_candidates,
         "candidate_kinds": list(loop.kinds),

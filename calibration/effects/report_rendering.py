@@ -143,7 +143,8 @@ def _closed_loop_markdown(loop: Mapping[str, Any]) -> list[str]:
     lines = [
         "## Closed loop: what the geometric model lacked",
         "",
-        f"Criterion: {loop['criterion']} (α = {loop['alpha']:g}, {loop['folds']} folds, "
+        f"Criterion: {loop['criterion']} (α = {loop['alpha']:g}, "
+        f"{loop.get('cross_validation', str(loop['folds']) + ' folds')}, "
         f"penalty {loop['penalty_per_parameter_sigma2']:.1f} σ² per parameter, "
         f"{loop['n_candidates']} candidates, {loop['elapsed_s']:.2f} s).",
         "",
