@@ -56,7 +56,7 @@ from calibration.effects.effect_base import (
     param_number,
     param_vector,
 )
-from calibration.effects.effect_gravity import counterbalance_term
+from calibration.effects.effect_gravity import counterbalance_term, group_moment
 from calibration.errors import EffectLibraryError
 from calibration.model.description import EffectValue
 from calibration.model.gravity_regressor import moment_names, raw_regressor
@@ -217,16 +217,25 @@ def coupling_weights(
     over their joint's ratio), or a linear one's block of ``joint`` (that joint's own
     compliance); None when the term gives none."""
     if spec.parameter == "physical":
-        ratio = dict(zip(spec.joints, spec.shape, strict=True))
-        w = []
-        for name, value in zip(spec.names, values, strict=True):
-            cb = counterbalance_term(name)
-            w.append(float(value) if cb is None else float(value) / ratio.get(cb[0], 1.0))
-        if not all(np.isfinite(w)):
+        # a limit form's group (its own moments, its own reference compliance) holding a
+        # coupled joint leaves no common compliance to couple by; other groups' moments do
+        # not load the pair (docs/closed-loop.md, "Limit form")
+        grouped = [group_moment(m) for m in spec.names]
+        if any(g is not None and set(g[0]) & set(COUPLED_JOINTS) for g in grouped):
             return None
-        return spec.names, tuple(w)
-    names: list[str] = []
-    weights: list[float] = []
+        ratio = dict(zip(spec.joints, spec.shape, strict=True))
+        names: list[str] = []
+        weights: list[float] = []
+        for name, value, g in zip(spec.names, values, grouped, strict=True):
+            if g is not None:
+                continue
+            cb = counterbalance_term(name)
+            names.append(name)
+            weights.append(float(value) if cb is None else float(value) / ratio.get(cb[0], 1.0))
+        if not names or not all(np.isfinite(weights)):
+            return None
+        return tuple(names), tuple(weights)
+    names, weights = [], []
     for term, value in zip(spec.names, values, strict=True):
         head, _, moment = term.partition(".")
         if head == f"joint{joint}":

@@ -24,15 +24,18 @@ from sim_devices.pose_campaign import sample_reachable_poses
 ACTING = {2: (0, 1, 2, 3), 3: (1, 2, 3), 4: (2, 3), 5: (3,)}
 
 
-def _problem(p: dict[int, list[float]], seed: int = 0) -> tuple[LinearizedModel, dict]:
+def _problem(
+    p: dict[int, list[float]], seed: int = 0, seen: dict[int, float] | None = None
+) -> tuple[LinearizedModel, dict]:
     """A linearized model (5 columns) and joint blocks whose true deflections are ``p``
-    (per joint, per moment), with noise of 0.01 on 180 rows."""
+    (per joint, per moment), with noise of 0.01 on 180 rows; ``seen``: a joint's columns
+    scaled (how much its deflection moves the TCP; 1 by default)."""
     rng = np.random.default_rng(seed)
     rows = 180
     blocks = {}
     for j, ks in ACTING.items():
         block = np.zeros((rows, 4))
-        block[:, list(ks)] = rng.normal(size=(rows, len(ks)))
+        block[:, list(ks)] = rng.normal(size=(rows, len(ks))) * (seen or {}).get(j, 1.0)
         blocks[j] = block
     jac = rng.normal(size=(rows, 5))
     signal = sum(blocks[j] @ np.asarray(p[j]) for j in ACTING)
@@ -47,8 +50,13 @@ LIMIT = {2: [3.0, 2.0, 0.0, 0.0], 3: [0.0, 1.0, 0.0, 0.0], 4: [0.0, 0.0, 1.5, 1.
          5: [0.0, 0.0, 0.0, 0.6]}  # fmt: skip
 
 
+#: joints 4 and 5 hardly seen (a wrist through few poses): their deflection moves the
+#: TCP by a tenth of joint 2's per unit
+WRIST_SEEN = {4: 0.1, 5: 0.1}
+
+
 def test_ratios_that_run_off_converge_to_the_limit_form(monkeypatch):
-    lin, blocks = _problem(LIMIT)
+    lin, blocks = _problem(LIMIT, seen=WRIST_SEEN)
     fit = fit_physical_gravity(lin, blocks)
     assert fit.success
     assert fit.groups == ((2, 3), (4, 5)) and fit.moment_group == (0, 0, 1, 1)
@@ -65,6 +73,15 @@ def test_ratios_that_run_off_converge_to_the_limit_form(monkeypatch):
     monkeypatch.setattr(effect_shapes, "LIMIT_RATIO_GAP", np.inf)
     plain = fit_physical_gravity(lin, blocks)
     assert plain.groups == () and (not plain.success or np.max(np.abs(plain.ratios)) > 1e3)
+
+
+def test_a_well_seen_joint_whose_ratio_runs_off_is_no_limit():
+    """The same deflections with joints 4 and 5 seen as well as joint 2: their ratios
+    running off say the one-ratio form does not fit them (as joints 2 and 3 coupled do),
+    not that the data leave them unbounded: no limit form, the fit not converged (the
+    loop then keeps the linear form)."""
+    fit = fit_physical_gravity(*_problem(LIMIT))
+    assert fit.groups == () and not fit.success
 
 
 def test_bounded_ratios_keep_the_physical_form():
