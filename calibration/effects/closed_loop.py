@@ -67,7 +67,7 @@ from calibration.effects.effect_base import (
     ModelAtPoses,
 )
 from calibration.effects.effect_bending import bending_candidates
-from calibration.effects.effect_candidates import candidate_effects, scan_key
+from calibration.effects.effect_candidates import candidate_effects, resolved_beside, scan_key
 from calibration.effects.effect_kinds import (
     KINDS,
     check_kinds,
@@ -417,6 +417,8 @@ class _Search:
         bending of the links from the model's gravity term (:func:`bending_candidates`)."""
         offered = [s for s in self.library if s not in specs and s not in set_aside]
         offered = [s for s in offered if not _same_slot(s, specs)]
+        q = self.problem.ctx.data.q_rad  # a joint's second order: only if resolved from the first
+        offered = [s for s in offered if resolved_beside(s, specs, q)]
         if self.bending:
             parts = split_values(specs, values)
             offered += bending_candidates(self.problem.ctx, specs, parts, set_aside)

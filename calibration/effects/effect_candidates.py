@@ -47,6 +47,39 @@ def harmonic_orders(q_rad: ArrayLike) -> tuple[int, ...]:
     return tuple(range(1, min(MAX_HARMONIC_ORDER, max(MIN_HARMONIC_ORDER, resolved)) + 1))
 
 
+def order_resolution(q_rad: ArrayLike) -> float:
+    """The smallest difference of two harmonic orders a joint read at ``q_rad`` ``(m,)`` rad
+    tells apart: ``2π / coverage`` (at least 1), the Rayleigh criterion — orders k and k'
+    drift by one full cycle against each other over the coverage only when
+    ``|k − k'|·coverage ≥ 2π``. Closer orders are one harmonic under a slow envelope;
+    fitted together they take large amplitudes of opposite sign that cancel on the
+    covered angles and not beyond them (infinite for a joint that does not move)."""
+    q = np.asarray(q_rad, dtype=float)
+    coverage = float(np.ptp(q)) if q.size else 0.0
+    if coverage <= MIN_MOVE_RAD:
+        return math.inf
+    return max(1.0, 2.0 * math.pi / coverage)
+
+
+def resolved_beside(spec: EffectSpec, specs: Collection[EffectSpec], q_rad: ArrayLike) -> bool:
+    """Whether a harmonic candidate ``spec`` is told apart from every harmonic of the same
+    joint in ``specs`` (any harmonic kind, another order): the orders differ by at least
+    :func:`order_resolution` of that joint's readings ``q_rad`` ``(m, n)`` rad in the
+    identification poses. Other candidates always are. The same order of another kind (a
+    link's wobble beside its reading's error) differs in direction, not in frequency."""
+    if scan_key(spec) is None:
+        return True
+    others = [
+        s.order
+        for s in specs
+        if scan_key(s) is not None and s.joint == spec.joint and s.order != spec.order
+    ]
+    if not others:
+        return True
+    resolution = order_resolution(np.asarray(q_rad, dtype=float)[:, spec.joint - 1])
+    return all(abs(spec.order - k) >= resolution - 1e-9 for k in others)
+
+
 def loaded_joints(ctx: EffectContext) -> tuple[int, ...]:
     """Joints (1-based) whose RMS gravity torque over the poses is at least
     :data:`LOADED_JOINT_FRACTION` of the largest (none without a mass model)."""
