@@ -28,6 +28,10 @@ from calibration.effects.effect_thermal import (
     reference_temperature_c,
 )
 
+#: Two harmonic orders of one joint are told apart when they drift this many cycles against
+#: each other over the joint's coverage (:func:`order_resolution`).
+ORDER_BEATS = 1.0
+
 
 # -- candidates, terms, descriptions ----------------------------------------------------------
 def harmonic_orders(q_rad: ArrayLike) -> tuple[int, ...]:
@@ -58,7 +62,7 @@ def order_resolution(q_rad: ArrayLike) -> float:
     coverage = float(np.ptp(q)) if q.size else 0.0
     if coverage <= MIN_MOVE_RAD:
         return math.inf
-    return max(1.0, 2.0 * math.pi / coverage)
+    return max(1.0, ORDER_BEATS * 2.0 * math.pi / coverage)
 
 
 def resolved_beside(spec: EffectSpec, specs: Collection[EffectSpec], q_rad: ArrayLike) -> bool:
