@@ -13,6 +13,8 @@ library, then the generic search) is scored on the identification poses
   poses, Bonferroni-corrected over the candidates of the round (``p·N < α``, α = 1e-3).
   A harmonic's orders are scanned (1..K, K from the joint's coverage and the number of
   poses): the best order is the scan's candidate, its p Šidák-corrected for the K orders.
+  Beside an order of a joint in the model, only the orders the coverage resolves from it
+  are scanned (:func:`~calibration.effects.effect_candidates.resolved_beside`).
 
 A candidate is significant when both hold. A drift candidate is also tried as a
 first-order lag, its time constant profiled (:mod:`calibration.effects.effect_shapes`). Of the
@@ -413,11 +415,12 @@ class _Search:
     def offered(
         self, specs: tuple[EffectSpec, ...], values: FloatArray, set_aside: set[EffectSpec]
     ) -> list[EffectSpec]:
-        """The round's candidates: the library's not in the model or set aside, and the
-        bending of the links from the model's gravity term (:func:`bending_candidates`)."""
+        """The round's candidates: the library's not in the model or set aside (a joint's
+        harmonic only at orders resolved from its orders in the model), and the bending of
+        the links from the model's gravity term (:func:`bending_candidates`)."""
         offered = [s for s in self.library if s not in specs and s not in set_aside]
         offered = [s for s in offered if not _same_slot(s, specs)]
-        q = self.problem.ctx.data.q_rad  # a joint's second order: only if resolved from the first
+        q = self.problem.ctx.data.q_rad
         offered = [s for s in offered if resolved_beside(s, specs, q)]
         if self.bending:
             parts = split_values(specs, values)
