@@ -53,16 +53,21 @@ def harmonic_orders(q_rad: ArrayLike) -> tuple[int, ...]:
 
 def order_resolution(q_rad: ArrayLike) -> float:
     """The smallest difference of two harmonic orders a joint read at ``q_rad`` ``(m,)`` rad
-    tells apart: ``2π / coverage`` (at least 1), the Rayleigh criterion — orders k and k'
-    drift by one full cycle against each other over the coverage only when
-    ``|k − k'|·coverage ≥ 2π``. Closer orders are one harmonic under a slow envelope;
-    fitted together they take large amplitudes of opposite sign that cancel on the
-    covered angles and not beyond them (infinite for a joint that does not move)."""
+    tells apart: ``2π / coverage`` to the nearest whole order (at least 1), the Rayleigh
+    criterion — orders k and k' drift by one full cycle against each other over the
+    coverage only when ``|k − k'|·coverage ≥ 2π``. Closer orders are one harmonic under a
+    slow envelope; fitted together they take large amplitudes of opposite sign that cancel
+    on the covered angles and not beyond them (infinite for a joint that does not move).
+
+    The coverage is the range of the central 98 % of the readings (1st to 99th
+    percentile): one isolated pose among 100 or more (a parked pose among random ones)
+    does not resolve a pair that the others leave unresolved, and a joint read all round resolves every
+    order (its coverage a little short of 2π)."""
     q = np.asarray(q_rad, dtype=float)
-    coverage = float(np.ptp(q)) if q.size else 0.0
+    coverage = float(np.subtract(*np.percentile(q, [99.0, 1.0]))) if q.size else 0.0
     if coverage <= MIN_MOVE_RAD:
         return math.inf
-    return max(1.0, ORDER_BEATS * 2.0 * math.pi / coverage)
+    return float(max(1, math.floor(ORDER_BEATS * 2.0 * math.pi / coverage + 0.5)))
 
 
 def resolved_beside(spec: EffectSpec, specs: Collection[EffectSpec], q_rad: ArrayLike) -> bool:
@@ -81,7 +86,7 @@ def resolved_beside(spec: EffectSpec, specs: Collection[EffectSpec], q_rad: Arra
     if not others:
         return True
     resolution = order_resolution(np.asarray(q_rad, dtype=float)[:, spec.joint - 1])
-    return all(abs(spec.order - k) >= resolution - 1e-9 for k in others)
+    return all(abs(spec.order - k) >= resolution for k in others)
 
 
 def loaded_joints(ctx: EffectContext) -> tuple[int, ...]:

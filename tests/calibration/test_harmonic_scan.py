@@ -101,9 +101,16 @@ def test_the_scan_pays_for_its_orders():
 
 def test_a_second_order_must_be_resolved_over_the_joints_coverage():
     """Two orders of one joint are told apart only when they drift a full cycle against
-    each other over the covered angles (|k − k'|·coverage ≥ 2π): over 60° that is 6."""
+    each other over the covered angles (|k − k'|·coverage ≥ 2π; the coverage the central
+    98 % of the readings; to the nearest order): over 60° that is 6."""
     assert order_resolution(np.linspace(-math.pi, math.pi, 50)) == 1.0
-    assert order_resolution(np.radians(np.linspace(-180.0, -120.0, 50))) == pytest.approx(6.0)
+    part = np.radians(np.linspace(-180.0, -120.0, 50))
+    assert order_resolution(part) == 6.0  # 360° / (0.98 · 60°) to the nearest order
+    rng = np.random.default_rng(1)
+    assert order_resolution(rng.uniform(-math.pi, math.pi, 300)) == 1.0  # read all round
+    # one parked pose far from 100 or more others does not stretch the coverage
+    many = np.radians(np.linspace(-180.0, -120.0, 120))
+    assert order_resolution(np.append(many, math.radians(-90.0))) == 6.0
     assert order_resolution(np.full(10, 0.2)) == math.inf
     q = np.zeros((50, 3))
     q[:, 1] = np.radians(np.linspace(-180.0, -120.0, 50))  # joint 2 covers 60°
