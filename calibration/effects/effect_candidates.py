@@ -61,8 +61,8 @@ def order_resolution(q_rad: ArrayLike) -> float:
 
     The coverage is the range of the central 98 % of the readings (1st to 99th
     percentile): one isolated pose among 100 or more (a parked pose among random ones)
-    does not resolve a pair that the others leave unresolved, and a joint read all round resolves every
-    order (its coverage a little short of 2π)."""
+    does not resolve a pair that the others leave unresolved, and a joint read all round
+    resolves every order (its coverage a little short of 2π)."""
     q = np.asarray(q_rad, dtype=float)
     coverage = float(np.subtract(*np.percentile(q, [99.0, 1.0]))) if q.size else 0.0
     if coverage <= MIN_MOVE_RAD:
