@@ -11,7 +11,8 @@ Per split:
   loop) without its learned stage — geometry and named effects;
 * ``twin``: the same with the learned residual stage (when it was accepted);
 
-each scored on the held-out poses (mean and max of the 3-D error, mm), and the twin's
+each scored on the held-out poses (mean and max of the 3-D error, mm; the file row of
+each maximum, 1 = the first data row, in the per-split lines), and the twin's
 held-out z-scores ``(measured − predicted)/sd_mm`` per axis (RMS; 1 is honest; per split
 also over the poses beyond the stage's reach alone, ``z_rms_beyond``). A row per
 robot and N gives the mean over splits of ``twin/geo`` (issue 29's targets: ≤ 0.55 at 1000,
@@ -71,6 +72,10 @@ def one_split(data: RealData, n_identify: int, seed: int) -> Row:
         "traced_max": float(e_traced.max()),
         "twin_mean": float(e_twin.mean()),
         "twin_max": float(e_twin.max()),
+        # the held-out pose of each maximum: its row in the file, 1 = the first data row
+        "geo_max_row": int(held[np.argmax(e_geo)]) + 1,
+        "traced_max_row": int(held[np.argmax(e_traced)]) + 1,
+        "twin_max_row": int(held[np.argmax(e_twin)]) + 1,
         "z_rms": float(np.sqrt(np.mean(z**2))),
         "beyond_reach": int(twin.beyond_reach.sum()),
         "z_rms_beyond": float(np.sqrt(np.mean(z[twin.beyond_reach] ** 2)))

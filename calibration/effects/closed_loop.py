@@ -14,6 +14,8 @@ library, then the generic search) is scored on the identification poses
   poses, Bonferroni-corrected over the candidates of the round (``p·N < α``, α = 1e-3).
   A harmonic's orders are scanned (1..K, K from the joint's coverage and the number of
   poses): the best order is the scan's candidate, its p Šidák-corrected for the K orders.
+  Beside an order of a joint in the model, only the orders the coverage resolves from it
+  are scanned (:func:`~calibration.effects.effect_candidates.resolved_beside`).
 
 A candidate is significant when both hold. A drift candidate is also tried as a
 first-order lag, its time constant profiled (:mod:`calibration.effects.effect_shapes`). Of the
@@ -68,7 +70,7 @@ from calibration.effects.effect_base import (
     ModelAtPoses,
 )
 from calibration.effects.effect_bending import bending_candidates
-from calibration.effects.effect_candidates import candidate_effects, scan_key
+from calibration.effects.effect_candidates import candidate_effects, resolved_beside, scan_key
 from calibration.effects.effect_coupling import coupling_candidates
 from calibration.effects.effect_kinds import (
     KINDS,
@@ -423,11 +425,14 @@ class _Search:
     def offered(
         self, specs: tuple[EffectSpec, ...], values: FloatArray, set_aside: set[EffectSpec]
     ) -> list[EffectSpec]:
-        """The round's candidates: the library's not in the model or set aside, and the
-        bending of the links and the shoulder's coupling from the model's gravity term
+        """The round's candidates: the library's not in the model or set aside (a joint's
+        harmonic only at orders resolved from its orders in the model), and the bending of
+        the links and the shoulder's coupling from the model's gravity term
         (:func:`bending_candidates`, :func:`coupling_candidates`)."""
         offered = [s for s in self.library if s not in specs and s not in set_aside]
         offered = [s for s in offered if not _same_slot(s, specs)]
+        q = self.problem.ctx.data.q_rad
+        offered = [s for s in offered if resolved_beside(s, specs, q)]
         parts = split_values(specs, values)
         if self.bending:
             offered += bending_candidates(self.problem.ctx, specs, parts, set_aside)

@@ -28,6 +28,10 @@ from calibration.effects.effect_thermal import (
     reference_temperature_c,
 )
 
+#: Two harmonic orders of one joint are told apart when they drift this many cycles against
+#: each other over the joint's coverage (:func:`order_resolution`).
+ORDER_BEATS = 1.0
+
 
 # -- candidates, terms, descriptions ----------------------------------------------------------
 def harmonic_orders(q_rad: ArrayLike) -> tuple[int, ...]:
@@ -45,6 +49,44 @@ def harmonic_orders(q_rad: ArrayLike) -> tuple[int, ...]:
         return ()
     resolved = int(2.0 * math.pi * len(q) / (POSES_PER_PERIOD * coverage))
     return tuple(range(1, min(MAX_HARMONIC_ORDER, max(MIN_HARMONIC_ORDER, resolved)) + 1))
+
+
+def order_resolution(q_rad: ArrayLike) -> float:
+    """The smallest difference of two harmonic orders a joint read at ``q_rad`` ``(m,)`` rad
+    tells apart: ``2π / coverage`` to the nearest whole order (at least 1), the Rayleigh
+    criterion — orders k and k' drift by one full cycle against each other over the
+    coverage only when ``|k − k'|·coverage ≥ 2π``. Closer orders are one harmonic under a
+    slow envelope; fitted together they take large amplitudes of opposite sign that cancel
+    on the covered angles and not beyond them (infinite for a joint that does not move).
+
+    The coverage is the range of the central 98 % of the readings (1st to 99th
+    percentile): one isolated pose among 100 or more (a parked pose among random ones)
+    does not resolve a pair that the others leave unresolved, and a joint read all round
+    resolves every order (its coverage a little short of 2π)."""
+    q = np.asarray(q_rad, dtype=float)
+    coverage = float(np.subtract(*np.percentile(q, [99.0, 1.0]))) if q.size else 0.0
+    if coverage <= MIN_MOVE_RAD:
+        return math.inf
+    return float(max(1, math.floor(ORDER_BEATS * 2.0 * math.pi / coverage + 0.5)))
+
+
+def resolved_beside(spec: EffectSpec, specs: Collection[EffectSpec], q_rad: ArrayLike) -> bool:
+    """Whether a harmonic candidate ``spec`` is told apart from every harmonic of the same
+    joint in ``specs`` (any harmonic kind, another order): the orders differ by at least
+    :func:`order_resolution` of that joint's readings ``q_rad`` ``(m, n)`` rad in the
+    identification poses. Other candidates always are. The same order of another kind (a
+    link's wobble beside its reading's error) differs in direction, not in frequency."""
+    if scan_key(spec) is None:
+        return True
+    others = [
+        s.order
+        for s in specs
+        if scan_key(s) is not None and s.joint == spec.joint and s.order != spec.order
+    ]
+    if not others:
+        return True
+    resolution = order_resolution(np.asarray(q_rad, dtype=float)[:, spec.joint - 1])
+    return all(abs(spec.order - k) >= resolution for k in others)
 
 
 def loaded_joints(ctx: EffectContext) -> tuple[int, ...]:

@@ -17,7 +17,11 @@ from benchmarks.bench_attribution import twin_description
 from calibration.effects.candidate_scoring import LinearizedModel, score_candidate
 from calibration.effects.closed_loop import ClosedLoopResult, run_closed_loop
 from calibration.effects.effect_base import MAX_HARMONIC_ORDER, MIN_HARMONIC_ORDER, EffectSpec
-from calibration.effects.effect_candidates import harmonic_orders
+from calibration.effects.effect_candidates import (
+    harmonic_orders,
+    order_resolution,
+    resolved_beside,
+)
 from sim_devices.effects import UndeclaredEffects
 from sim_devices.pose_campaign import CampaignData, CampaignSettings, emulated_campaign
 
@@ -93,3 +97,34 @@ def test_the_scan_pays_for_its_orders():
     expected = min(1.0, (1.0 - (1.0 - one.p_value) ** 24) * 10)
     assert many.p_adjusted == pytest.approx(expected, rel=1e-9)
     assert many.p_adjusted > one.p_adjusted
+
+
+def test_a_second_order_must_be_resolved_over_the_joints_coverage():
+    """Two orders of one joint are told apart only when they drift a full cycle against
+    each other over the covered angles (|k − k'|·coverage ≥ 2π; the coverage the central
+    98 % of the readings; to the nearest order): over 60° that is 6."""
+    assert order_resolution(np.linspace(-math.pi, math.pi, 50)) == 1.0
+    part = np.radians(np.linspace(-180.0, -120.0, 50))
+    assert order_resolution(part) == 6.0  # 360° / (0.98 · 60°) to the nearest order
+    rng = np.random.default_rng(1)
+    assert order_resolution(rng.uniform(-math.pi, math.pi, 300)) == 1.0  # read all round
+    # one parked pose far from 100 or more others does not stretch the coverage
+    many = np.radians(np.linspace(-180.0, -120.0, 120))
+    assert order_resolution(np.append(many, math.radians(-90.0))) == 6.0
+    assert order_resolution(np.full(10, 0.2)) == math.inf
+    q = np.zeros((50, 3))
+    q[:, 1] = np.radians(np.linspace(-180.0, -120.0, 50))  # joint 2 covers 60°
+    q[:, 0] = np.linspace(-math.pi, math.pi, 50)  # joint 1 a whole revolution
+    model = (EffectSpec("joint_harmonic", joint=2, order=20),)
+
+    def offered(kind: str, joint: int, order: int) -> bool:
+        return resolved_beside(EffectSpec(kind, joint=joint, order=order), model, q)
+
+    assert not offered("joint_harmonic", 2, 24) and not offered("joint_harmonic", 2, 15)
+    assert not offered("link_harmonic", 2, 23)  # any harmonic kind of the same joint
+    assert offered("joint_harmonic", 2, 26) and offered("joint_harmonic", 2, 14)
+    assert offered("link_harmonic", 2, 20)  # the same order: another direction
+    assert offered("joint_harmonic", 1, 21)  # another joint
+    assert resolved_beside(EffectSpec("lost_motion", joint=2), model, q)  # not a harmonic
+    full = (EffectSpec("joint_harmonic", joint=1, order=7),)
+    assert resolved_beside(EffectSpec("joint_harmonic", joint=1, order=8), full, q)
