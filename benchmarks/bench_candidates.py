@@ -19,12 +19,12 @@ import time
 
 import numpy as np
 
-from calibration.effects.closed_loop import campaign_effect_data, run_closed_loop
+from calibration.effects.closed_loop import ClosedLoopResult, campaign_effect_data, run_closed_loop
 from calibration.effects.effect_base import EffectContext
 from calibration.effects.effect_kinds import predict_points
 from calibration.model.description import load_robot
 from sim_devices.effects import UndeclaredEffects
-from sim_devices.pose_campaign import CampaignSettings, emulated_campaign
+from sim_devices.pose_campaign import CampaignData, CampaignSettings, emulated_campaign
 
 CASES = {
     "thermal": ("thermal_expansion",),
@@ -38,6 +38,20 @@ def _seeds(text: str) -> list[int]:
     return list(range(int(lo), int(hi or lo) + 1))
 
 
+def truth_errors_mm(data: CampaignData, result: ClosedLoopResult) -> list[float]:
+    """Validation mean distance (mm) from the emulator's truth after the geometry and
+    after each added effect (the loop's stages from the geometric one on)."""
+    desc = data.cell.nominal
+    camp = data.campaign
+    val = camp.mask("validate")
+    ctx = EffectContext(desc, campaign_effect_data(desc, camp).subset(val))
+    out = []
+    for stage in result.stages[1:]:
+        pred = predict_points(stage.model, stage.specs, stage.effect_values, ctx)
+        out.append(float(np.mean(np.linalg.norm(pred - data.true_prediction_mm[val], axis=1))))
+    return out
+
+
 def run_seed(robot: str, case: str, seed: int) -> str:
     """One seed's line: added effects, truth errors per stage (mm), loop time (s)."""
     desc = load_robot(robot)
@@ -47,12 +61,7 @@ def run_seed(robot: str, case: str, seed: int) -> str:
     started = time.perf_counter()
     result = run_closed_loop(desc, camp)
     elapsed = time.perf_counter() - started
-    val = camp.mask("validate")
-    ctx = EffectContext(desc, campaign_effect_data(desc, camp).subset(val))
-    errors = []
-    for stage in result.stages[1:]:
-        pred = predict_points(stage.model, stage.specs, stage.effect_values, ctx)
-        errors.append(float(np.mean(np.linalg.norm(pred - data.true_prediction_mm[val], axis=1))))
+    errors = truth_errors_mm(data, result)
     added = "; ".join(s.label for s in result.added) or "nothing"
     first = ""
     if result.added:

@@ -23,14 +23,11 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
-from calibration.effects.closed_loop import ClosedLoopResult, campaign_effect_data, run_closed_loop
-from calibration.effects.effect_base import EffectContext
-from calibration.effects.effect_kinds import predict_points
+from benchmarks.bench_candidates import truth_errors_mm
+from calibration.effects.closed_loop import ClosedLoopResult, run_closed_loop
 from calibration.model.description import load_robot
 from sim_devices.effects import UndeclaredEffects
-from sim_devices.pose_campaign import CampaignData, CampaignSettings, emulated_campaign
+from sim_devices.pose_campaign import CampaignSettings, emulated_campaign
 
 
 def coupling_settings(rho: float) -> CampaignSettings:
@@ -41,20 +38,6 @@ def coupling_settings(rho: float) -> CampaignSettings:
     return CampaignSettings(
         effects=UndeclaredEffects.named("joint_coupling", coupling_coefficient=rho)
     )
-
-
-def truth_errors_mm(data: CampaignData, result: ClosedLoopResult) -> list[float]:
-    """Validation mean distance (mm) from the emulator's truth after the geometry and
-    after each added effect."""
-    desc = data.cell.nominal
-    camp = data.campaign
-    val = camp.mask("validate")
-    ctx = EffectContext(desc, campaign_effect_data(desc, camp).subset(val))
-    out = []
-    for stage in result.stages[1:]:
-        pred = predict_points(stage.model, stage.specs, stage.effect_values, ctx)
-        out.append(float(np.mean(np.linalg.norm(pred - data.true_prediction_mm[val], axis=1))))
-    return out
 
 
 def implied_coefficient(result: ClosedLoopResult) -> tuple[float, float]:

@@ -16,15 +16,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from benchmarks.bench_candidates import truth_errors_mm
 from calibration.effects.closed_loop import (
-    ClosedLoopResult,
-    campaign_effect_data,
     run_closed_loop,
 )
 from calibration.effects.effect_base import EffectContext, EffectData, EffectSpec, ModelAtPoses
 from calibration.effects.effect_coupling import coupling_candidates, torque_proxy_rad
 from calibration.effects.effect_gravity import counterbalance_terms
-from calibration.effects.effect_kinds import KINDS, predict_points
+from calibration.effects.effect_kinds import KINDS
 from calibration.model.description import load_robot
 from calibration.model.gravity_regressor import base_moments, moment_names, raw_moments_from_masses
 from calibration.model.kinematics import KinematicModel
@@ -32,7 +31,6 @@ from calibration.model.statics import STANDARD_GRAVITY_M_S2
 from sim_devices.effects import UndeclaredEffects, coupling_compliance_rad_per_nmm, true_tcp_mm
 from sim_devices.physical_arm import PhysicalArm
 from sim_devices.pose_campaign import (
-    CampaignData,
     CampaignSettings,
     emulated_campaign,
     sample_reachable_poses,
@@ -109,26 +107,12 @@ def test_offered_after_a_gravity_term_in_either_form() -> None:
     assert from_linear.names == ("link2.mx", "link3.mx") and from_linear.shape == (4.0, 5.0)
 
 
-def truth_errors(data: CampaignData, seed_result: ClosedLoopResult) -> list[float]:
-    """Validation mean distance (mm) from the emulator's truth after each stage from the
-    geometry on."""
-    desc = data.cell.nominal
-    camp = data.campaign
-    val = camp.mask("validate")
-    ctx = EffectContext(desc, campaign_effect_data(desc, camp).subset(val))
-    out = []
-    for stage in seed_result.stages[1:]:
-        pred = predict_points(stage.model, stage.specs, stage.effect_values, ctx)
-        out.append(float(np.mean(np.linalg.norm(pred - data.true_prediction_mm[val], axis=1))))
-    return out
-
-
 def loop_on(robot: str, seed: int, coupled: bool) -> tuple[list[str], list[float]]:
     """The added kinds and the truth errors of the loop on an emulated campaign (the twin
     given the campaign and the nominal description only)."""
     data = emulated_campaign(robot, seed, COUPLED if coupled else GRAVITY)
     result = run_closed_loop(load_robot(robot), data.campaign)
-    return [s.kind for s in result.added], truth_errors(data, result)
+    return [s.kind for s in result.added], truth_errors_mm(data, result)
 
 
 @pytest.mark.parametrize(("robot", "seed"), [("kr500", 1), ("kr500", 3), ("hp20d", 1)])

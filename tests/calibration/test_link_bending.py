@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.effects.closed_loop import campaign_effect_data, run_closed_loop
+from benchmarks.bench_candidates import truth_errors_mm
+from calibration.effects.closed_loop import run_closed_loop
 from calibration.effects.effect_base import EffectContext, EffectData, EffectSpec, ModelAtPoses
-from calibration.effects.effect_kinds import KINDS, predict_points
+from calibration.effects.effect_kinds import KINDS
 from calibration.model.description import load_robot
 from calibration.model.gravity_regressor import moment_names, raw_moments_from_masses
 from calibration.model.kinematics import KinematicModel, tcp_positions
@@ -65,13 +66,7 @@ def test_loop_names_the_bending_after_the_gravity_deflection():
         result = run_closed_loop(desc, data.campaign)
         kinds = [s.kind for s in result.added]
         assert kinds[0] == "gravity_deflection", (seed, kinds)
-        camp = data.campaign
-        val = camp.mask("validate")
-        ctx = EffectContext(desc, campaign_effect_data(desc, camp).subset(val))
-        errors = []
-        for stage in result.stages[1:]:
-            pred = predict_points(stage.model, stage.specs, stage.effect_values, ctx)
-            errors.append(np.mean(np.linalg.norm(pred - data.true_prediction_mm[val], axis=1)))
+        errors = truth_errors_mm(data, result)
         assert errors[-1] <= errors[1], (seed, errors)  # [1]: + the gravity term
         if "link_bending" in kinds:
             named += 1
