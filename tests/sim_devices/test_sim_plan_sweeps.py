@@ -1,0 +1,182 @@
+"""The emulated cell runs a plan's scale-calibration sweeps (``[cell] plan_sweeps = true``,
+the plan's ``sweeps.csv`` next to its ``campaign_joints.csv``), and the twin calibrates
+from that campaign sampled on the simulated clock (as ``benchmarks.bench_demo_seeds``).
+
+The plan: a KR500 with its joint ranges narrowed (``tests/daq/test_demo_planned.py``'s
+``narrow_kr500``), 12 + 8 poses; its sweeps whole in view are joints 4 and 6.
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks.bench_demo_seeds import RATE_HZ, TRACKER_STATUS, _SampledPlant, _stream
+from calibration.cli import main as twin_main
+from calibration.identify.campaign_files import read_planned_sweeps
+from calibration.model.description import load_robot
+from calibration.twin.pairing import VALID_BIT
+from calibration.twin.phase_detection import PhaseOptions
+from calibration.twin.streams import CellStreams
+from calibration.twin.twin_run import run_twin
+from daq.demo import sim_config_text
+from sim_devices.config import CellConfig
+from sim_devices.plant import Plant
+from sim_devices.tracker import TrackerInstrument
+from tests import bad_input
+from tests.daq.test_demo_planned import narrow_kr500
+
+SIM_CELL = str(Path(sys.executable).parent / "sim-cell")
+N_IDENTIFY, N_VALIDATE = 12, 8
+SPEED = 160.0
+
+
+@pytest.fixture(scope="module")
+def plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``DIR`` with the robot file, the plan (``DIR/plan``) and its sweeps."""
+    root = tmp_path_factory.mktemp("planned")
+    (root / "narrow_kr500.toml").write_text(narrow_kr500(), encoding="utf-8")
+    argv = ["plan", "--robot", str(root / "narrow_kr500.toml"), "--poses", str(N_IDENTIFY)]
+    argv += ["--validate", str(N_VALIDATE), "--candidates", "400", "--out", str(root / "plan")]
+    assert twin_main(argv) == 0
+    return root
+
+
+def _cell_text(root: Path, plan_dir: Path, *, sweeps: bool, seed: int = 1) -> str:
+    """The demo's planned cell (line of sight on), ``plan_sweeps`` as given."""
+    text = sim_config_text(
+        str(root / "narrow_kr500.toml"), seed, SPEED, "gravity_deflection",
+        encoders=False, rate_hz=RATE_HZ, plan=str(plan_dir / "campaign_joints.csv"),
+    )  # fmt: skip
+    return text.replace(
+        'program = "campaign"', f'program = "campaign"\nplan_sweeps = {str(sweeps).lower()}'
+    )
+
+
+def _program(text: str) -> Plant:
+    return Plant.from_config(CellConfig.loads(text, source="cell"))
+
+
+def test_without_plan_sweeps_or_sweeps_csv_the_program_is_unchanged(plan, tmp_path):
+    root = plan
+    bare = tmp_path / "bare"  # the plan without its sweeps.csv
+    bare.mkdir()
+    shutil.copy(root / "plan" / "campaign_joints.csv", bare)
+    reference = _program(_cell_text(root, bare, sweeps=False)).trajectory
+    for plan_dir, sweeps in ((root / "plan", False), (bare, True)):
+        got = _program(_cell_text(root, plan_dir, sweeps=sweeps)).trajectory
+        assert got.labels == reference.labels
+        np.testing.assert_array_equal(got.q0_rad, reference.q0_rad)
+    # the default cell (no plan) is the campaign without sweeps: plan_sweeps needs a plan
+    bad_input.refused(
+        tmp_path,
+        [SIM_CELL, "truth", "--config", _write(tmp_path, "[cell]\nplan_sweeps = true\n"),
+         "--out", "truth.toml"],
+        ["[cell]", "'plan_sweeps'", "needs a plan"],
+    )  # fmt: skip
+
+
+def _write(tmp_path: Path, text: str, name: str = "cell.toml") -> str:
+    (tmp_path / name).write_text(text, encoding="utf-8")
+    return name
+
+
+def test_the_cell_sweeps_the_planned_joints_at_the_plans_positions_with_the_tcp(plan):
+    root = plan
+    planned = read_planned_sweeps(root / "plan" / "sweeps.csv", 6)
+    whole = [j for j in planned.q_deg if planned.whole(j)]
+    assert whole == [4, 6]  # the narrow arm's: the others leave the reflector's cone
+    plant = _program(_cell_text(root, root / "plan", sweeps=True))
+    sched = plant.trajectory.schedule()
+    default = _program(_cell_text(root, root / "plan", sweeps=False)).trajectory.schedule()
+    home = np.radians(load_robot(str(root / "narrow_kr500.toml")).home)
+    for j in range(1, 7):
+        stops = [s for s in sched if s["label"].startswith(f"joint{j} sweep")]
+        mid = np.array([0.5 * (s["arrive_s"] + s["leave_s"]) for s in stops])
+        q = np.degrees(plant.joint_state(mid).q_cmd_rad)
+        if j in whole:  # down and back up through the plan's stops, the TCP target
+            np.testing.assert_allclose(q, np.vstack([planned.q_deg[j], planned.q_deg[j][::-1]]))
+            assert {s["target"] for s in stops} == {"tcp"}
+            change = [s for s in sched if s["label"] == f"joint{j} target tcp"]
+            assert len(change) == 1 and change[0]["target"] == "tcp"
+            k = sched.index(change[0])
+            assert sched[k - 1]["label"] == f"joint{j} home 10"  # after its Home returns
+            continue
+        # the others: today's sweep (every other joint at Home, the target on the link)
+        assert [s["label"] for s in stops] == [
+            s["label"] for s in default if s["label"].startswith(f"joint{j} sweep")
+        ]
+        assert {s["target"] for s in stops} == {f"link:{j}"}
+        others = np.delete(np.radians(q), j - 1, axis=1)
+        np.testing.assert_allclose(others, np.delete(home, j - 1)[None, :].repeat(len(q), 0))
+
+
+BAD_SWEEPS = [
+    # (case, rows after the header, key words of the one line)
+    ("joint", "7,0,{row},1,0\n", ["line 2", "column 'joint'", "6 joints"]),
+    ("stop", "4,0,{row},1,0\n4,2,{row2},1,0\n", ["line 3", "column 'stop'", "expected 1"]),
+    ("held", "4,0,{row},1,0\n4,1,{row_q1},1,0\n", ["line 3", "'q1_deg'", "moves it alone"]),
+    ("down", "4,0,{row},1,0\n4,1,{row},1,0\n", ["line 3", "'q4_deg'", "not below"]),
+    ("in_view", "4,0,{row},yes,0\n", ["line 2", "'in_view'", "'yes'"]),
+    ("limits", "4,0,{row_far},1,0\n", ["line 2", "'q4_deg'", "joint limits"]),
+]
+
+
+@pytest.mark.parametrize(("case", "rows", "words"), BAD_SWEEPS, ids=[c[0] for c in BAD_SWEEPS])
+def test_a_bad_sweeps_file_is_one_line_naming_file_line_and_column(tmp_path, case, rows, words):
+    q = ",".join(f"q{j}_deg" for j in range(1, 7))
+    (tmp_path / "campaign_joints.csv").write_text(
+        f"pose,set,{q}\n1,identify,10,20,-30,5,40,0\n", encoding="utf-8"
+    )
+    body = rows.format(
+        row="10,20,-30,5,40,0", row2="10,20,-30,1,40,0", row_q1="11,20,-30,3,40,0",
+        row_far="10,20,-30,500,40,0",
+    )  # fmt: skip
+    (tmp_path / "sweeps.csv").write_text(f"joint,stop,{q},in_view,torque_nm\n{body}", "utf-8")
+    cell = _write(tmp_path, '[cell]\nplan = "campaign_joints.csv"\nplan_sweeps = true\n')
+    argv = [SIM_CELL, "truth", "--config", cell, "--out", "truth.toml"]
+    bad_input.refused(tmp_path, argv, ["cell.toml", "'plan'", "sweeps.csv", *words])
+
+
+def _sampled(text: str) -> tuple[CellStreams, _SampledPlant]:
+    """The cell's grating and tracker streams on the simulated clock (bench_demo_seeds)."""
+    config = CellConfig.loads(text, source="cell")
+    plant = _SampledPlant.from_config(config)
+    wall = np.arange(0.0, plant.trajectory.end_s / SPEED + 2.0, 1.0 / RATE_HZ)
+    state = plant.joint_state(plant.clock.sim_s(wall))
+    rng = np.random.default_rng(plant.cell.seed + 11)
+    counts = plant.grating_counts(state.q_out_rad, rng, config.grating.noise_counts)
+    names = [f"grating{j}_counts" for j in range(1, counts.shape[1] + 1)]
+    valid = np.full(counts.shape, VALID_BIT, dtype=np.uint16)
+    grating = _stream("cell/grating/samples", "grating", names, wall, counts, valid)
+    points, codes = TrackerInstrument(plant, config.tracker, config.effects).measure(wall)
+    status = np.array([TRACKER_STATUS[c] for c in range(3)], dtype=np.uint16)[codes]
+    tracker = _stream(
+        "cell/tracker/samples", "tracker", ["x_mm", "y_mm", "z_mm"],
+        wall, points, np.repeat(status[:, None], 3, axis=1),
+    )  # fmt: skip
+    return CellStreams(grating, tracker, None, "planned sweeps, simulated"), plant
+
+
+def test_the_twin_calibrates_from_the_planned_sweeps_campaign(plan):
+    root = plan
+    robot = load_robot(str(root / "narrow_kr500.toml"))
+    planned = read_planned_sweeps(root / "plan" / "sweeps.csv", 6)
+    streams, _ = _sampled(_cell_text(root, root / "plan", sweeps=True))
+    run = run_twin(streams, robot, phase_options=PhaseOptions(identify_count=N_IDENTIFY))
+    phases = run.measurements.phases.summary()
+    for j, q in planned.q_deg.items():  # the plan's stops for its sweeps, today's otherwise
+        lo, hi = robot.joints[j - 1].lower_deg + 1, robot.joints[j - 1].upper_deg - 1
+        k = len(q) if planned.whole(j) else int(np.floor((hi - lo) / 2.0)) + 1
+        assert phases["sweep_stops"][str(j)] == {"forward": k, "backward": k}, j
+    assert all(v >= 9 for v in phases["home_returns"].values()), phases  # of 10
+    assert phases["poses"] == {"identify": N_IDENTIFY, "validate": N_VALIDATE}
+    assert run.success
+    loop = run.calibration.final.loop
+    assert loop is not None
+    val = [s.mean_ap("validate") for s in loop.stages]
+    assert val[-1] < 0.5 * val[0], val  # calibrated: nominal -> final
