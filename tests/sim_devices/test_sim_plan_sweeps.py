@@ -15,24 +15,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.bench_demo_seeds import RATE_HZ, TRACKER_STATUS, _SampledPlant, _stream
+from benchmarks.bench_plan_sweeps import N_IDENTIFY, N_VALIDATE, calibrate, cell_text
 from calibration.cli import main as twin_main
 from calibration.identify.campaign_files import read_planned_sweeps
 from calibration.model.description import load_robot
-from calibration.twin.pairing import VALID_BIT
-from calibration.twin.phase_detection import PhaseOptions
-from calibration.twin.streams import CellStreams
-from calibration.twin.twin_run import run_twin
-from daq.demo import sim_config_text
 from sim_devices.config import CellConfig
 from sim_devices.plant import Plant
-from sim_devices.tracker import TrackerInstrument
 from tests import bad_input
 from tests.daq.test_demo_planned import narrow_kr500
 
 SIM_CELL = str(Path(sys.executable).parent / "sim-cell")
-N_IDENTIFY, N_VALIDATE = 12, 8
-SPEED = 160.0
 
 
 @pytest.fixture(scope="module")
@@ -48,13 +40,7 @@ def plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _cell_text(root: Path, plan_dir: Path, *, sweeps: bool, seed: int = 1) -> str:
     """The demo's planned cell (line of sight on), ``plan_sweeps`` as given."""
-    text = sim_config_text(
-        str(root / "narrow_kr500.toml"), seed, SPEED, "gravity_deflection",
-        encoders=False, rate_hz=RATE_HZ, plan=str(plan_dir / "campaign_joints.csv"),
-    )  # fmt: skip
-    return text.replace(
-        'program = "campaign"', f'program = "campaign"\nplan_sweeps = {str(sweeps).lower()}'
-    )
+    return cell_text(root / "narrow_kr500.toml", plan_dir, sweeps=sweeps, seed=seed)
 
 
 def _program(text: str) -> Plant:
@@ -142,32 +128,11 @@ def test_a_bad_sweeps_file_is_one_line_naming_file_line_and_column(tmp_path, cas
     bad_input.refused(tmp_path, argv, ["cell.toml", "'plan'", "sweeps.csv", *words])
 
 
-def _sampled(text: str) -> tuple[CellStreams, _SampledPlant]:
-    """The cell's grating and tracker streams on the simulated clock (bench_demo_seeds)."""
-    config = CellConfig.loads(text, source="cell")
-    plant = _SampledPlant.from_config(config)
-    wall = np.arange(0.0, plant.trajectory.end_s / SPEED + 2.0, 1.0 / RATE_HZ)
-    state = plant.joint_state(plant.clock.sim_s(wall))
-    rng = np.random.default_rng(plant.cell.seed + 11)
-    counts = plant.grating_counts(state.q_out_rad, rng, config.grating.noise_counts)
-    names = [f"grating{j}_counts" for j in range(1, counts.shape[1] + 1)]
-    valid = np.full(counts.shape, VALID_BIT, dtype=np.uint16)
-    grating = _stream("cell/grating/samples", "grating", names, wall, counts, valid)
-    points, codes = TrackerInstrument(plant, config.tracker, config.effects).measure(wall)
-    status = np.array([TRACKER_STATUS[c] for c in range(3)], dtype=np.uint16)[codes]
-    tracker = _stream(
-        "cell/tracker/samples", "tracker", ["x_mm", "y_mm", "z_mm"],
-        wall, points, np.repeat(status[:, None], 3, axis=1),
-    )  # fmt: skip
-    return CellStreams(grating, tracker, None, "planned sweeps, simulated"), plant
-
-
 def test_the_twin_calibrates_from_the_planned_sweeps_campaign(plan):
     root = plan
     robot = load_robot(str(root / "narrow_kr500.toml"))
     planned = read_planned_sweeps(root / "plan" / "sweeps.csv", 6)
-    streams, _ = _sampled(_cell_text(root, root / "plan", sweeps=True))
-    run = run_twin(streams, robot, phase_options=PhaseOptions(identify_count=N_IDENTIFY))
+    run, _ = calibrate(_cell_text(root, root / "plan", sweeps=True), robot)
     phases = run.measurements.phases.summary()
     for j, q in planned.q_deg.items():  # the plan's stops for its sweeps, today's otherwise
         lo, hi = robot.joints[j - 1].lower_deg + 1, robot.joints[j - 1].upper_deg - 1
