@@ -110,6 +110,21 @@ def row(variant: str, seed: int, run: TwinRun, plant: _SampledPlant) -> dict[str
     }
 
 
+def force_in_view(plan: Path, out: Path, joints: tuple[int, ...]) -> Path:
+    """A copy of ``plan`` in ``out`` whose ``sweeps.csv`` flags the stops of ``joints`` in
+    view and every other stop out of view (the cell then runs those joints' planned
+    sweeps only); returns ``out``."""
+    out.mkdir()
+    (out / "campaign_joints.csv").write_bytes((plan / "campaign_joints.csv").read_bytes())
+    lines = (plan / "sweeps.csv").read_text(encoding="utf-8").splitlines()
+    fields = [x.split(",") for x in lines[1:]]
+    for f in fields:
+        f[-2] = "1" if int(f[0]) in joints else "0"
+    text = "\n".join([lines[0], *(",".join(f) for f in fields)]) + "\n"
+    (out / "sweeps.csv").write_text(text, encoding="utf-8")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     from calibration.cli import main as twin_main
     from tests.daq.test_demo_planned import narrow_kr500
@@ -127,15 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         argv_plan += ["--validate", str(N_VALIDATE), "--candidates", "400", "--out", str(plan)]
         if twin_main(argv_plan) != 0:
             return 1
-        forced = root / "forced"  # joints 2 and 3's planned sweeps flagged in view
-        forced.mkdir()
-        (forced / "campaign_joints.csv").write_bytes((plan / "campaign_joints.csv").read_bytes())
-        lines = (plan / "sweeps.csv").read_text(encoding="utf-8").splitlines()
-        fields = [x.split(",") for x in lines[1:]]
-        for f in fields:
-            f[-2] = "1" if f[0] in ("2", "3") else "0"
-        text = "\n".join([lines[0], *(",".join(f) for f in fields)]) + "\n"
-        (forced / "sweeps.csv").write_text(text, encoding="utf-8")
+        forced = force_in_view(plan, root / "forced", (2, 3))
         robot = load_robot(str(robot_file))
         for seed in range(int(a), int(b or a) + 1):
             variants = (
