@@ -125,14 +125,12 @@ def force_in_view(plan: Path, out: Path, joints: tuple[int, ...]) -> Path:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
+def rows(seeds: list[int]) -> list[dict[str, Any]]:
+    """The module docstring's rows for the cell seeds ``seeds`` (the plan made here)."""
     from calibration.cli import main as twin_main
     from tests.daq.test_demo_planned import narrow_kr500
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--seeds", default="1-5", help="cell seeds, a-b")
-    args = parser.parse_args(argv)
-    a, _, b = args.seeds.partition("-")
+    out: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         robot_file = root / "narrow_kr500.toml"
@@ -141,18 +139,33 @@ def main(argv: list[str] | None = None) -> int:
         argv_plan = ["plan", "--robot", str(robot_file), "--poses", str(N_IDENTIFY)]
         argv_plan += ["--validate", str(N_VALIDATE), "--candidates", "400", "--out", str(plan)]
         if twin_main(argv_plan) != 0:
-            return 1
+            raise RuntimeError("twin plan failed")
         forced = force_in_view(plan, root / "forced", (2, 3))
         robot = load_robot(str(robot_file))
-        for seed in range(int(a), int(b or a) + 1):
-            variants = (
-                ("default", plan, False, True),
-                ("planned", plan, True, True),
-                ("planned 2,3, no line of sight", forced, True, False),
-            )
+        variants = (
+            ("default", plan, False, True),
+            ("planned", plan, True, True),
+            ("planned 2,3, no line of sight", forced, True, False),
+        )
+        for seed in seeds:
             for name, where, sweeps, sight in variants:
                 text = cell_text(robot_file, where, sweeps=sweeps, seed=seed, sight=sight)
-                print(json.dumps(row(name, seed, *calibrate(text, robot))), flush=True)
+                out.append(row(name, seed, *calibrate(text, robot)))
+                print(json.dumps(out[-1]), flush=True)
+    return out
+
+
+def run(quick: bool) -> list[dict[str, Any]]:
+    """``python -m benchmarks``'s entry: cell seed 1 (quick) or 1-5."""
+    return rows([1] if quick else list(range(1, 6)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seeds", default="1-5", help="cell seeds, a-b")
+    args = parser.parse_args(argv)
+    a, _, b = args.seeds.partition("-")
+    rows(list(range(int(a), int(b or a) + 1)))
     return 0
 
 
