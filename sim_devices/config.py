@@ -65,6 +65,10 @@ class CellSection:
     # a plan's campaign_joints.csv (twin plan): the campaign program's poses, identify
     # then validate, each in the file's order ("" = random poses); relative to the cell file
     plan: str = ""
+    # run the plan's scale-calibration sweeps (sweeps.csv next to the plan) for the joints
+    # it sweeps whole in view, the reflector the TCP's; off: every joint's sweep the
+    # default (docs/planning.md: the TCP close to joint 4's and 6's axes spoils their maps)
+    plan_sweeps: bool = False
     # robot seconds the campaign holds at Home before it starts (the operator starting the
     # program once every device is recorded: a daemon connecting late loses no sweep)
     start_hold_s: float = 0.0
@@ -320,6 +324,8 @@ def _check(cfg: CellConfig, source: str) -> None:
         fail("cell", "program", f"must be one of {', '.join(PROGRAMS)}, got {cfg.cell.program!r}")
     if cfg.cell.plan and cfg.cell.program != "campaign":
         fail("cell", "plan", f"only the 'campaign' program runs a plan, not {cfg.cell.program!r}")
+    if cfg.cell.plan_sweeps and not cfg.cell.plan:
+        fail("cell", "plan_sweeps", "needs a plan ([cell] plan): the sweeps are read next to it")
     if cfg.cell.check_dwell_s >= cfg.cell.check_every_s:
         fail(
             "cell",
@@ -433,6 +439,7 @@ def load_cell(path: str | None) -> CellConfig:
         )
     check_for_robot(cfg, n, source)
     read_plan(cfg, robot_option(cfg.cell.robot), source)
+    read_plan_sweeps(cfg, robot_option(cfg.cell.robot), source)
     return cfg
 
 
@@ -459,6 +466,32 @@ def read_plan(
     if not len(identify):
         raise SimConfigError(f"{where} {plan.source}: no 'identify' pose")
     return identify, np.radians(plan.of_set("validate"))
+
+
+def read_plan_sweeps(
+    cfg: CellConfig, robot: RobotDescription, source: str
+) -> dict[int, FloatArray] | None:
+    """The planned scale-calibration sweeps next to ``[cell] plan`` with ``[cell]
+    plan_sweeps`` on (its directory's ``sweeps.csv``, ``twin plan``'s; None: off, or no
+    such file): per joint swept whole in view (1-based) its forward pass's stops ``(K, n)``
+    rad, from the upper limit down. A bad file is one line naming the key, the file, its
+    line and column."""
+    if not (cfg.cell.plan and cfg.cell.plan_sweeps):
+        return None
+    path = Path(cfg.cell.plan).parent / "sweeps.csv"
+    if not path.is_file():
+        return None
+    import numpy as np
+
+    from calibration.errors import CalibrationError
+    from calibration.identify.campaign_files import read_planned_sweeps
+
+    limits = [(j.lower_deg, j.upper_deg) for j in robot.joints]
+    try:
+        plan = read_planned_sweeps(path, robot.n_joints, limits_deg=limits)
+    except CalibrationError as exc:
+        raise SimConfigError(f"{source}: [cell]: key 'plan': {one_line(str(exc))}") from None
+    return {j: np.radians(q) for j, q in plan.q_deg.items() if plan.whole(j)}
 
 
 # -- command-line options ---------------------------------------------------------------

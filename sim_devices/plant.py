@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -48,7 +49,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration.model.description import RobotDescription, load_robot
 from calibration.model.kinematics import KinematicModel, tcp_positions
-from sim_devices.config import CellConfig, CellSection, read_plan
+from sim_devices.config import CellConfig, CellSection, read_plan, read_plan_sweeps
 from sim_devices.drift import DriftDraws, draw_drift, drifted_points_mm
 from sim_devices.effects import (
     grating_reading_rad,
@@ -191,6 +192,7 @@ class Plant:
             planned,
             start_hold_s=config.cell.start_hold_s,
             cell=config.cell,
+            sweeps=read_plan_sweeps(config, nominal, "cell config"),
         )
         return cls(cell, trajectory, config, clock or SimClock(config.cell.speed))
 
@@ -431,6 +433,7 @@ def campaign_moves(
     joints: tuple[int, ...] | None = None,
     target_change_s: float = 20.0,
     poses: tuple[FloatArray, FloatArray] | None = None,
+    sweeps: Mapping[int, FloatArray] | None = None,
 ) -> list[Move]:
     """The calibration campaign as moves (method.md §2-3).
 
@@ -443,6 +446,9 @@ def campaign_moves(
     on the TCP for the poses. The reflector is mounted on the first swept link before the
     program starts; every later change is a zero-motion move at Home whose dwell
     ``target_change_s`` is the operator moving it (the random draws do not depend on it).
+
+    ``sweeps``: a plan's (1-based joint: its stops ``(K, n)`` rad, the others held where
+    the plan puts them), swept after the joint's Home returns (:func:`_planned_sweep`).
     """
     home = np.radians(desc.home)
     lo, hi = _limits_rad(desc)
@@ -458,17 +464,13 @@ def campaign_moves(
                 Move(tuple(away), 0.3, 0.2, f"joint{j + 1} home-return {r + 1} away", link)
             )
             moves.append(Move(tuple(home), slow_speed, dwell_s, f"joint{j + 1} home {r + 1}", link))
+        if sweeps is not None and j + 1 in sweeps:
+            moves += _planned_sweep(home, j, sweeps[j + 1], slow_speed, dwell_s, target_change_s)
+            continue
         step = math.radians(sweep_step_deg)
-        n_steps = math.floor((hi[j] - lo[j]) / step)
-        stops = hi[j] - step * np.arange(n_steps + 1)
-        for direction, seq in (("down", stops), ("up", stops[::-1])):
-            for k, a in enumerate(seq):
-                q = home.copy()
-                q[j] = a
-                moves.append(
-                    Move(tuple(q), slow_speed, dwell_s, f"joint{j + 1} sweep {direction} {k}", link)
-                )
-        moves.append(Move(tuple(home), 0.3, 0.5, f"joint{j + 1} done", link))
+        stops = np.tile(home, (math.floor((hi[j] - lo[j]) / step) + 1, 1))
+        stops[:, j] = hi[j] - step * np.arange(len(stops))
+        moves += _sweep(home, j, stops, slow_speed, dwell_s, link)
     if moves:
         moves.append(Move(tuple(home), 0.3, target_change_s, "target tcp", "tcp"))
     if poses is None:
@@ -480,6 +482,37 @@ def campaign_moves(
     return moves
 
 
+def _planned_sweep(
+    home: FloatArray,
+    j: int,
+    stops: FloatArray,
+    slow_speed: float,
+    dwell_s: float,
+    target_change_s: float,
+) -> list[Move]:
+    """Joint ``j``'s (0-based) planned sweep through ``stops`` ``(K, n)`` rad: the
+    reflector moved to the TCP at Home (the plan's sweeps keep it in view there), to the
+    first stop, down and back up at ``slow_speed``, back to Home with the reflector still
+    on the TCP (the next joint's target change moves it)."""
+    moves = [Move(tuple(home), 0.3, target_change_s, f"joint{j + 1} target tcp", "tcp")]
+    moves.append(Move(tuple(stops[0]), 0.3, 0.0, f"joint{j + 1} to sweep", "tcp"))
+    return moves + _sweep(home, j, stops, slow_speed, dwell_s, "tcp")
+
+
+def _sweep(
+    home: FloatArray, j: int, stops: FloatArray, slow_speed: float, dwell_s: float, target: str
+) -> list[Move]:
+    """Joint ``j``'s (0-based) sweep: ``stops`` ``(K, n)`` rad down and back up at
+    ``slow_speed``, ``dwell_s`` at each, then back to Home."""
+    moves: list[Move] = []
+    for direction, seq in (("down", stops), ("up", stops[::-1])):
+        for k, q in enumerate(seq):
+            label = f"joint{j + 1} sweep {direction} {k}"
+            moves.append(Move(tuple(q), slow_speed, dwell_s, label, target))
+    moves.append(Move(tuple(home), 0.3, 0.5, f"joint{j + 1} done", target))
+    return moves
+
+
 def build_program(
     name: str,
     desc: RobotDescription,
@@ -488,16 +521,19 @@ def build_program(
     *,
     start_hold_s: float = 0.0,
     cell: CellSection | None = None,
+    sweeps: Mapping[int, FloatArray] | None = None,
 ) -> Trajectory:
     """A built-in program by name (``campaign``, ``production``, ``random``, ``hold``);
     ``planned``: the campaign's identify and validate poses (rad), a plan's
-    (:func:`campaign_moves`); ``start_hold_s``: the campaign first holds at Home this long
-    (robot seconds); ``production`` takes its check poses, period and dwell from ``cell``."""
+    (:func:`campaign_moves`); ``sweeps``: a plan's sweeps of the joints it sweeps whole in
+    view (:func:`campaign_moves`); ``start_hold_s``: the campaign first holds at Home this
+    long (robot seconds); ``production`` takes its check poses, period and dwell from
+    ``cell``."""
     vmax = np.radians(DEFAULT_VMAX_DEG_S[: desc.n_joints])
     amax = np.radians(DEFAULT_AMAX_DEG_S2[: desc.n_joints])
     home = np.radians(desc.home)
     if name == "campaign":
-        moves = campaign_moves(desc, rng, poses=planned)
+        moves = campaign_moves(desc, rng, poses=planned, sweeps=sweeps)
         if start_hold_s > 0.0 and moves:  # the first target mounted already
             moves.insert(0, Move(tuple(home), 0.3, start_hold_s, "start hold", moves[0].target))
         return Trajectory.build(home, moves, vmax, amax)

@@ -7,7 +7,8 @@ is seconds since the start of the campaign; q are the grating joint angles (degr
 the tracker TCP target in the tracker frame (mm). Other columns are ignored.
 
 ``campaign_joints.csv`` (``twin plan``'s joint list, the emulated cell's ``[cell] plan``):
-``pose,set,q1_deg..qN_deg``. ``joints.csv`` (input of ``twin predict``):
+``pose,set,q1_deg..qN_deg``; its ``sweeps.csv`` (the planned scale-calibration sweeps):
+``joint,stop,q1_deg..qN_deg,in_view,torque_nm``. ``joints.csv`` (input of ``twin predict``):
 ``pose,t_s,q1_deg..qN_deg``; other columns ignored. ``points.csv`` (its output):
 ``pose,x_mm,y_mm,z_mm``. ``targets.csv`` (input of ``twin compensate``) and ``loads.csv``
 (a load test, ``twin stiffness``): see their readers.
@@ -371,6 +372,94 @@ def read_planned_poses(
         set=tuple(str(v[0]) for v in values),
         q_deg=np.array([v[1] for v in values], dtype=float).reshape(len(poses), n_joints),
     )
+
+
+@dataclass(frozen=True)
+class PlannedSweeps:
+    """The rows of a plan's ``sweeps.csv`` (``twin plan``): per swept joint (1-based, in
+    the file's order) its forward pass's stops ``(K, n)`` deg from the upper limit down
+    and whether each is in view ``(K,)``."""
+
+    source: str
+    q_deg: dict[int, FloatArray]
+    in_view: dict[int, NDArray[np.bool_]]
+
+    def whole(self, joint: int) -> bool:
+        """Whether every stop of ``joint``'s sweep is in view."""
+        return bool(self.in_view[joint].all())
+
+
+def _integer(fields: dict[str, str], column: str) -> int:
+    text = fields[column].strip()
+    if not text.isdigit():
+        raise _RowError(column, f"{text!r} is not a non-negative integer")
+    return int(text)
+
+
+def read_planned_sweeps(
+    path: str | Path, n_joints: int, *, limits_deg: JointLimits | None = None
+) -> PlannedSweeps:
+    """Read a plan's ``sweeps.csv`` (``joint,stop,q1_deg..qN_deg,in_view``; ``torque_nm``
+    and other columns ignored). Each joint's rows come together, stops numbered 0, 1, …,
+    its angle decreasing and the other joints held (a sweep moves its joint alone); a bad
+    row is a :class:`DataFileError` naming the file, line and column."""
+    source, header, rows = _read_table(path)
+    qcols = joint_columns(n_joints)
+    _check_columns(source, header, ["joint", "stop", *qcols, "in_view"], n_joints)
+    q_deg: dict[int, list[list[float]]] = {}
+    in_view: dict[int, list[bool]] = {}
+    last = 0
+    for line, raw in rows:
+        try:
+            if len(raw) < len(header):
+                raise _RowError(None, f"{len(raw)} fields, the header has {len(header)}")
+            f = dict(zip(header, raw, strict=False))
+            joint, stop = _integer(f, "joint"), _integer(f, "stop")
+            if not 1 <= joint <= n_joints:
+                raise _RowError("joint", f"joint {joint}: the robot has {n_joints} joints")
+            if joint != last and joint in q_deg:
+                raise _RowError("joint", f"joint {joint}'s rows do not come together")
+            if stop != len(q_deg.get(joint, [])):
+                raise _RowError("stop", f"stop {stop}, expected {len(q_deg.get(joint, []))}")
+            q = _joint_angles(f, qcols, limits_deg)
+            flag = f["in_view"].strip()
+            if flag not in ("0", "1"):
+                raise _RowError("in_view", f"{flag!r} is not 0 or 1")
+            _check_sweep_stop(q, q_deg.get(joint, []), joint, qcols)
+        except _RowError as exc:
+            where = f"column '{exc.column}': " if exc.column else ""
+            raise DataFileError(f"{source}: line {line}: {where}{exc.message}") from None
+        last = joint
+        q_deg.setdefault(joint, []).append(q)
+        in_view.setdefault(joint, []).append(flag == "1")
+    if not q_deg:
+        raise DataFileError(f"{source}: no valid data rows")
+    return PlannedSweeps(
+        source,
+        {j: np.array(v, dtype=float) for j, v in q_deg.items()},
+        {j: np.array(v, dtype=bool) for j, v in in_view.items()},
+    )
+
+
+def _check_sweep_stop(
+    q: list[float], before: list[list[float]], joint: int, qcols: list[str]
+) -> None:
+    """A stop after the first moves the swept joint down and no other joint."""
+    if not before:
+        return
+    first, prev = before[0], before[-1]
+    if not q[joint - 1] < prev[joint - 1]:
+        raise _RowError(
+            qcols[joint - 1],
+            f"{q[joint - 1]} deg not below the previous stop's {prev[joint - 1]} "
+            "(the sweep runs from the upper limit down)",
+        )
+    for k, (a, b) in enumerate(zip(q, first, strict=True)):
+        if k != joint - 1 and abs(a - b) > 1e-6:
+            raise _RowError(
+                qcols[k],
+                f"{a} deg, the sweep's first stop {b}: a sweep of joint {joint} moves it alone",
+            )
 
 
 @dataclass(frozen=True)

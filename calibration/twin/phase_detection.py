@@ -18,9 +18,12 @@ its own controller's or a pendant operator's. Everything here comes from the gra
    limit to limit, then back); the counts-to-angle sign is not assumed, the scale fit finds
    it from the circle.
 3. **Home.** The Home reading of joint k is the median of joint k's counts over the sweep
-   stops of the *other* joints (during a joint's sweep every other joint sits at Home). A
-   dwell is *at Home* when every joint is within ``home_tolerance`` sweep steps of that
-   vector.
+   stops of the *other* joints (during the default campaign's sweeps every other joint
+   sits at Home), where that is within ``span_counts`` of the most visited dwell position
+   (the non-sweep dwells within ``home_tolerance`` sweep steps of one dwell on every
+   joint: the Home returns, ~10 a joint, make it Home); else that position's median (a
+   planned sweep holds the other joints away from Home). A dwell is *at Home* when every
+   joint is within ``home_tolerance`` sweep steps of that vector.
 4. **Home returns.** A Home dwell (not a sweep stop) approached by one joint alone (the
    other joints' excursion at most ``single_joint_ratio`` of its, counted from the last
    sample where another joint was away from Home), at the sweep speed: its
@@ -224,13 +227,42 @@ def _find_sweeps(
     return stops, {j: float(np.median(v)) for j, v in step_counts.items()}
 
 
-def _home_vector(dwells: list[Dwell], stops: list[SweepStop], n: int) -> FloatArray:
+def _home_vector(
+    dwells: list[Dwell], stops: list[SweepStop], n: int, tol: FloatArray, span: float
+) -> FloatArray:
+    """Home ``(n,)`` counts, NaN where unknown: the most visited dwell position (dwells
+    within ``tol`` ``(n,)`` of one another: the Home returns, ~10 a joint, make it Home),
+    its median; per joint the median of its counts over the other joints' sweep stops
+    instead where that agrees with it within ``span`` counts (a dwell's own span: the
+    default campaign holds every other joint at Home during a sweep, and its result stays
+    what it was; a planned sweep holds them away from Home and would bias it)."""
     home = np.full(n, np.nan)
     for k in range(n):
         vals = [dwells[s.dwell].counts[k] for s in stops if s.joint != k + 1]
         if vals:
             home[k] = float(np.median(vals))
-    return home
+    visited = _most_visited(dwells, {s.dwell for s in stops}, tol)
+    if visited is None:
+        return home
+    agree = np.abs(home - visited) <= span  # False where either is NaN
+    return np.where(agree, home, visited)
+
+
+def _most_visited(dwells: list[Dwell], skip: set[int], tol: FloatArray) -> FloatArray | None:
+    """The median counts ``(n,)`` of the largest set of dwells (not in ``skip``) within
+    ``tol`` of one of them on every joint with a finite tolerance (None: no such joint or
+    dwell)."""
+    known = np.isfinite(tol)
+    rest = np.array([d.counts for d in dwells if d.index not in skip])
+    if not known.any() or rest.shape[0] == 0:
+        return None
+    c = rest[:, known]
+    near = np.ones((len(c), len(c)), dtype=bool)
+    for k in range(c.shape[1]):  # joint by joint: (m, m) at a time
+        near &= np.abs(c[:, None, k] - c[None, :, k]) <= tol[known][k]
+    best = int(np.argmax(near.sum(axis=1)))
+    out: FloatArray = np.median(rest[near[best]], axis=0)
+    return out
 
 
 def find_phases(t_ns: IntArray, counts: IntArray, opts: PhaseOptions | None = None) -> Phases:
@@ -244,14 +276,14 @@ def find_phases(t_ns: IntArray, counts: IntArray, opts: PhaseOptions | None = No
     n = counts.shape[1]
     dwells = find_dwells(np.asarray(t_ns, dtype=np.int64), counts, opts)
     stops, step_counts = _find_sweeps(dwells, opts)
-    home = _home_vector(dwells, stops, n)
-    in_sweep = {s.dwell for s in stops}
-    sweep_speed = _sweep_speeds(t_ns, counts, dwells, stops)
     # joints without a sweep: the smallest step of the swept joints sets their tolerance
     fallback = min(step_counts.values()) if step_counts else np.nan
     tol = np.array(
         [opts.home_tolerance * step_counts.get(k + 1, fallback) for k in range(n)], dtype=float
     )
+    home = _home_vector(dwells, stops, n, tol, opts.span_counts)
+    in_sweep = {s.dwell for s in stops}
+    sweep_speed = _sweep_speeds(t_ns, counts, dwells, stops)
     homes: list[HomeReturn] = []
     poses_idx: list[int] = []
     other: list[int] = []

@@ -15,10 +15,12 @@ from sim_devices.plant import DEFAULT_AMAX_DEG_S2, DEFAULT_VMAX_DEG_S, campaign_
 COUNTS_PER_RAD = np.array([1.2e6, 0.9e6, 0.7e6, 0.44e6, 0.32e6, 0.22e6])
 
 
-def _stream(joints=(0, 1, 5), n_id=10, n_val=15, dt_sim=0.1, seed=4, noise=0.5):
+def _stream(joints=(0, 1, 5), n_id=10, n_val=15, dt_sim=0.1, seed=4, noise=0.5, sweeps=None):
     desc = load_robot("kr500")
     rng = np.random.default_rng(seed)
-    moves = campaign_moves(desc, rng, joints=joints, n_identification=n_id, n_validation=n_val)
+    moves = campaign_moves(
+        desc, rng, joints=joints, n_identification=n_id, n_validation=n_val, sweeps=sweeps
+    )
     traj = Trajectory.build(
         np.radians(desc.home),
         moves,
@@ -54,6 +56,45 @@ def test_finds_the_programs_sweeps_home_returns_and_poses():
     first = next(st for st in ph.sweeps if st.joint == 1 and st.pass_name == "forward")
     d = ph.dwells[first.dwell]
     assert d.counts[0] == pytest.approx(1e9 + math.radians(hi[0]) * COUNTS_PER_RAD[0], abs=3)
+
+
+#: where a planned sweep holds the other joints (deg): away from Home (0, -90, 90, 0, 0, 0)
+HELD_DEG = np.array([25.0, -70.0, 60.0, 30.0, 45.0, -40.0])
+
+
+def _planned(joint: int) -> np.ndarray:
+    """A planned sweep of ``joint`` (1-based): 2° stops 2° inside its limits, the other
+    joints at :data:`HELD_DEG`, ``(K, 6)`` rad."""
+    j = load_robot("kr500").joints[joint - 1]
+    stops = np.arange(j.upper_deg - 2.0, j.lower_deg + 2.0, -2.0)
+    q = np.tile(HELD_DEG, (len(stops), 1))
+    q[:, joint - 1] = stops
+    return np.radians(q)
+
+
+def test_sweeps_holding_the_other_joints_away_from_home_find_the_same_phases():
+    _, _, t_ns, counts = _stream()
+    default = find_phases(t_ns, counts)
+    sweeps = {2: _planned(2), 6: _planned(6)}
+    _, _, t_ns, counts = _stream(sweeps=sweeps)
+    ph = find_phases(t_ns, counts)
+    s, s0 = ph.summary(), default.summary()
+    assert s["sweep_stops"]["1"] == s0["sweep_stops"]["1"]
+    for j, q in sweeps.items():
+        assert s["sweep_stops"][str(j)] == {"forward": len(q), "backward": len(q)}
+    assert s["home_returns"] == s0["home_returns"] == {"1": 10, "2": 10, "6": 10}
+    assert s["poses"] == s0["poses"] == {"identify": 10, "validate": 15}
+    np.testing.assert_allclose(ph.home_counts, 1_000_000_000, atol=3)
+    # the same poses (the planned sweeps draw nothing: the same random poses)
+    np.testing.assert_allclose(
+        [ph.dwells[p.dwell].counts for p in ph.poses],
+        [default.dwells[p.dwell].counts for p in default.poses],
+        atol=2,
+    )
+    # the sweeps alone would have put Home elsewhere: most of the other joints' stops
+    # are the planned ones, away from Home
+    held = [ph.dwells[st.dwell].counts for st in ph.sweeps if st.joint != 1]
+    assert np.all(np.abs(np.median(held, axis=0)[[0, 2, 3, 4]] - 1e9) > 1e4)
 
 
 def test_pose_split_is_in_time_order():
