@@ -67,6 +67,11 @@ class SweepSettings:
     refine_rounds: int = 20
     refine_step_deg: float = 20.0
     refine_every: int = 3
+    #: the reflector's least distance from the swept joint's axis (mm): the scale map is
+    #: read off its circle, so a 2° step must move it ≥ 7 mm and a tracker point's
+    #: ~0.015 mm must stay ≤ ~15″ of angle (the default link targets sit ~500 mm out); the
+    #: TCP on a wrist axis sees every stop and measures no angle
+    min_radius_mm: float = 200.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,11 +180,16 @@ class _Scores:
     view: NDArray[np.int8]
     clear: NDArray[np.int8]
     torque: FloatArray
+    #: the reflector's distance from the swept axis ``(C,)`` mm, and the least usable
+    radius_mm: FloatArray
+    min_radius_mm: float
 
     @property
     def n_ok(self) -> NDArray[np.intp]:
+        """Stops in view and clear per candidate ``(C,)``; none where the reflector is
+        too near the swept axis to measure its angle."""
         counts: NDArray[np.intp] = ((self.view == 0) & (self.clear == 0)).sum(axis=1)
-        return counts
+        return counts * (self.radius_mm >= self.min_radius_mm)
 
     def order(self) -> NDArray[np.intp]:
         """Best first: most stops in view and clear, then the least torque swing."""
@@ -194,17 +204,24 @@ def _score(
     cand: FloatArray,
     joint: int,
     stops: FloatArray,
+    min_radius_mm: float,
 ) -> _Scores:
     q = np.repeat(cand[:, None, :], len(stops), axis=1)  # (C, K, n)
     q[:, :, joint - 1] = stops
     flat = q.reshape(-1, cand.shape[1])
     pos, axis = reflector_in_base(model, geometry, flat)
     shape = (len(cand), len(stops))
+    # the circle's radius from its chords: |Δp| = 2·R·sin(Δq/2) between stops
+    p = pos.reshape(*shape, 3)
+    chord = np.linalg.norm(np.diff(p, axis=1), axis=2)
+    radius = np.median(chord / (2.0 * np.sin(np.abs(np.diff(stops)) / 2.0)), axis=1)
     return _Scores(
         q,
         view_codes(geometry, pos, axis).reshape(shape),
         collision_codes(model, geometry, flat).reshape(shape),
         gravity_torque_nm(model, masses, flat, joint).reshape(shape),
+        radius,
+        min_radius_mm,
     )
 
 
@@ -264,17 +281,27 @@ def plan_joint_sweep(
     lo = np.radians([j.lower_deg + m.limit_margin_deg for j in description.joints])
     hi = np.radians([j.upper_deg - m.limit_margin_deg for j in description.joints])
 
+    r_min = settings.min_radius_mm
+
     def on_coarse(cand: FloatArray) -> _Scores:
-        return _score(model, masses, checked, cand, joint, coarse)
+        return _score(model, masses, checked, cand, joint, coarse, r_min)
 
     cand = _candidates(description, joint, settings, rng)
     refined = _refine(on_coarse, cand, joint, (lo, hi), settings, rng)
-    final = _score(model, masses, checked, np.vstack([cand[:1], refined]), joint, stops)
+    final = _score(model, masses, checked, np.vstack([cand[:1], refined]), joint, stops, r_min)
     best = int(final.order()[0])
     ok = (final.view[best] == 0) & (final.clear[best] == 0)
+    tried = len(cand) + settings.refine_rounds * settings.refine_keep * settings.refine_children
     reason = ""
-    if not ok.all():
-        tried = len(cand) + settings.refine_rounds * settings.refine_keep * settings.refine_children
+    if final.radius_mm[best] < r_min:  # no position holds the reflector off the axis in view
+        ok[:] = False
+        reason = (
+            f"over {tried} positions of the other joints none kept the reflector (the TCP's) "
+            f"in view and {r_min:.0f} mm or more from joint {joint}'s axis (the best "
+            f"{float(final.radius_mm[best]):.0f} mm: too near to read the angle off its "
+            "circle): sweep it with a target on the link"
+        )
+    elif not ok.all():
         reason = (
             f"at best {int(ok.sum())} of {len(stops)} stops in view and clear over {tried} "
             f"positions of the other joints ({_why(final.view[best], final.clear[best], checked)})"
