@@ -70,7 +70,11 @@ from calibration.effects.effect_base import (
     ModelAtPoses,
 )
 from calibration.effects.effect_bending import bending_candidates
-from calibration.effects.effect_candidates import candidate_effects, resolved_beside, scan_key
+from calibration.effects.effect_candidates import (
+    candidate_effects,
+    resolved_candidates,
+    scan_key,
+)
 from calibration.effects.effect_coupling import coupling_candidates
 from calibration.effects.effect_kinds import (
     KINDS,
@@ -426,13 +430,15 @@ class _Search:
         self, specs: tuple[EffectSpec, ...], values: FloatArray, set_aside: set[EffectSpec]
     ) -> list[EffectSpec]:
         """The round's candidates: the library's not in the model or set aside (a joint's
-        harmonic only at orders resolved from its orders in the model), and the bending of
+        harmonic only at orders resolved from its orders in the model, unless the data
+        carry scale maps from sweeps: there the loop's harmonics are corrections of maps
+        measured over the joint's whole range, which the joint fit rounds fold into them,
+        not terms extrapolated beyond the poses' angles), and the bending of
         the links and the shoulder's coupling from the model's gravity term
         (:func:`bending_candidates`, :func:`coupling_candidates`)."""
         offered = [s for s in self.library if s not in specs and s not in set_aside]
         offered = [s for s in offered if not _same_slot(s, specs)]
-        q = self.problem.ctx.data.q_rad
-        offered = [s for s in offered if resolved_beside(s, specs, q)]
+        offered = resolved_candidates(offered, specs, self.problem.ctx.data)
         parts = split_values(specs, values)
         if self.bending:
             offered += bending_candidates(self.problem.ctx, specs, parts, set_aside)

@@ -18,6 +18,7 @@ from calibration.effects.effect_base import (
     MIN_MOVE_RAD,
     POSES_PER_PERIOD,
     EffectContext,
+    EffectData,
     EffectSpec,
 )
 from calibration.effects.effect_gravity import counterbalance_terms
@@ -87,6 +88,20 @@ def resolved_beside(spec: EffectSpec, specs: Collection[EffectSpec], q_rad: Arra
         return True
     resolution = order_resolution(np.asarray(q_rad, dtype=float)[:, spec.joint - 1])
     return all(abs(spec.order - k) >= resolution for k in others)
+
+
+def resolved_candidates(
+    offered: list[EffectSpec], specs: Collection[EffectSpec], data: EffectData
+) -> list[EffectSpec]:
+    """The round's candidates ``offered`` with every harmonic not resolved beside the
+    model's ``specs`` (:func:`resolved_beside`) left out, over the poses of ``data``; all
+    of them when the data carry scale maps from sweeps (``sweep_reference``): there the
+    loop's harmonics correct maps measured over the joint's whole range, which the joint
+    fit rounds fold into them, not terms extrapolated beyond the poses' angles (the demo's
+    first round needs orders 1 and 2 of joint 5 together, unresolved over its poses)."""
+    if data.sweep_reference is not None:
+        return offered
+    return [s for s in offered if resolved_beside(s, specs, data.q_rad)]
 
 
 def loaded_joints(ctx: EffectContext) -> tuple[int, ...]:

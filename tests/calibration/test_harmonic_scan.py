@@ -16,11 +16,17 @@ import pytest
 from benchmarks.bench_attribution import twin_description
 from calibration.effects.candidate_scoring import LinearizedModel, score_candidate
 from calibration.effects.closed_loop import ClosedLoopResult, run_closed_loop
-from calibration.effects.effect_base import MAX_HARMONIC_ORDER, MIN_HARMONIC_ORDER, EffectSpec
+from calibration.effects.effect_base import (
+    MAX_HARMONIC_ORDER,
+    MIN_HARMONIC_ORDER,
+    EffectData,
+    EffectSpec,
+)
 from calibration.effects.effect_candidates import (
     harmonic_orders,
     order_resolution,
     resolved_beside,
+    resolved_candidates,
 )
 from sim_devices.effects import UndeclaredEffects
 from sim_devices.pose_campaign import CampaignData, CampaignSettings, emulated_campaign
@@ -97,6 +103,19 @@ def test_the_scan_pays_for_its_orders():
     expected = min(1.0, (1.0 - (1.0 - one.p_value) ** 24) * 10)
     assert many.p_adjusted == pytest.approx(expected, rel=1e-9)
     assert many.p_adjusted > one.p_adjusted
+
+
+def test_with_scale_maps_from_sweeps_the_resolution_rule_does_not_apply():
+    """``twin run``'s loop (data with a sweep reference: the joint harmonics correct scale
+    maps measured over each joint's whole range) is offered the unresolved order too; the
+    same poses without maps are not."""
+    q = np.zeros((50, 3))
+    q[:, 1] = np.radians(np.linspace(-180.0, -120.0, 50))  # joint 2 covers 60°
+    model = (EffectSpec("joint_harmonic", joint=2, order=20),)
+    near = [EffectSpec("joint_harmonic", joint=2, order=24)]
+    assert resolved_candidates(near, model, EffectData(q)) == []
+    with_maps = EffectData(q, sweep_reference=np.zeros(3))
+    assert resolved_candidates(near, model, with_maps) == near
 
 
 def test_a_second_order_must_be_resolved_over_the_joints_coverage():
