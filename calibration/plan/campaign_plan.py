@@ -516,10 +516,8 @@ def physical_form_columns(
         shape=(1.0,) * len(joints),
     )  # fmt: skip
     shared = regressor_matrix([spec], ctx, slice(0, len(kin.q_rad)), kin)
-    n = kin.model.n_joints
-    theta = kin.jacobian[:, :, 3 : 5 * n : 5]  # ∂TCP/∂θ_j (N, 3, n)
     tau = ctx.torques_nmm  # (N, n)
-    turned = np.stack([theta[:, :, j - 1] * tau[:, None, j - 1] for j in joints], axis=2)
+    turned = np.stack([kin.joint_axis(j) * tau[:, None, j - 1] for j in joints], axis=2)
     reference = int(np.argmax(np.sqrt(np.mean(turned**2, axis=(0, 1)))))
     ratios = [k for k in range(len(joints)) if k != reference]
     # a joint's column is its compliance (rad per N·mm) times the torque: ρ_j up to the
