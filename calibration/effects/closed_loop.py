@@ -94,6 +94,7 @@ from calibration.effects.gravity_form import (
     gravity_step,
     physical_gravity,
     physical_parameter_count,
+    refit_physical_form,
 )
 from calibration.effects.loop_stop import Rejected, ScoredRound, StopReason, stop_reason
 from calibration.errors import IdentificationError
@@ -109,6 +110,9 @@ from calibration.model.description import RobotDescription
 from calibration.model.kinematics import KinematicModel
 
 FloatArray = NDArray[np.float64]
+#: A tried step: the model's effects, its identification and the gravity form's decision,
+#: or why the step failed.
+_Tried = tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str
 
 CRITERION = (
     "a candidate is added when its cross-validated error reduction on the "
@@ -137,6 +141,7 @@ class LoopSettings:
     rtol: float = 1e-6  # a candidate column this close to the model's span is dropped
     validation_guard: bool = True  # undo a step that makes the validation error worse
     max_rejected: int = 4  # candidates set aside by the validation guard before stopping
+    refit_gravity_form: bool = True  # refit the physical form's ratios after a later effect
 
     def __post_init__(self) -> None:
         if self.folds < 2:
@@ -457,6 +462,31 @@ class _Search:
         max_effects, max_rejected = self.settings.max_effects, self.settings.max_rejected
         return stop_reason(code, max_effects, max_rejected, scored, rejected, set_aside)
 
+    def refit(self, step: _Tried) -> _Tried:
+        """``step`` with its physical gravity term's ratios refitted beside an effect added
+        after it (:func:`refit_physical_form`), when that lowers the SSE."""
+        linear = [s for s in self.library if s.kind == "gravity_deflection"]
+        if isinstance(step, str) or not linear or not self.settings.refit_gravity_form:
+            return step
+        specs, result, _form = step
+        if specs[-1].kind == "gravity_deflection":
+            return step
+        problem = self.problem
+
+        def linearize(
+            res: IdentificationResult, model: tuple[EffectSpec, ...]
+        ) -> tuple[LinearizedModel, FloatArray]:
+            lin, sw, kin = problem.linearized(res, model, self.settings)
+            return lin, problem.columns(linear[0], sw, kin)
+
+        refit = refit_physical_form(
+            problem.ctx, specs, result, linear[0], problem.identify, linearize
+        )
+        if refit is None:
+            return step
+        self.tell(f"closed loop: gravity deflection, {refit[2]['gravity_form']['reason']}")
+        return refit
+
     def run(
         self, stages: list[Stage], result: IdentificationResult
     ) -> tuple[list[CandidateScore], list[Rejected], StopReason]:
@@ -491,7 +521,7 @@ class _Search:
                 return scores, rejected, stop
             chosen, reason = choose(scored.lin, scores, scored.columns)
             step = _guarded(
-                _try_step(problem, result, specs, chosen.spec, scored, tell),
+                self.refit(_try_step(problem, result, specs, chosen.spec, scored, tell)),
                 problem,
                 stages[-1],
                 settings,
@@ -545,7 +575,7 @@ class _Step:
 
 
 def _guarded(
-    step: tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str,
+    step: _Tried,
     problem: _Problem,
     previous: Stage,
     settings: LoopSettings,
@@ -711,7 +741,7 @@ def _try_step(
     spec: EffectSpec,
     scored: ScoredRound,
     tell: Callable[[str], None],
-) -> tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str:
+) -> _Tried:
     """Re-identify with ``spec`` added (a gravity term in the form the data supports,
     :func:`~calibration.effects.gravity_form.gravity_step`); a string says why the step
     failed."""

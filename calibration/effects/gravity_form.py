@@ -227,3 +227,75 @@ def weighted_sse(result: IdentificationResult) -> float:
     """The LM's weighted residual sum of squares at its solution."""
     r = np.asarray(result.optimize_result.fun, dtype=float)
     return float(r @ r)
+
+
+#: The model's weighted linearisation at a result of ``specs`` and the linear gravity
+#: candidate's weighted columns ``(3m, k)`` there (the closed loop's).
+Linearize = Callable[
+    [IdentificationResult, tuple[EffectSpec, ...]], tuple[LinearizedModel, FloatArray]
+]
+
+
+def refit_physical_form(
+    ctx: EffectContext,
+    specs: tuple[EffectSpec, ...],
+    result: IdentificationResult,
+    linear_spec: EffectSpec,
+    identify: Identify,
+    linearize: Linearize,
+) -> tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | None:
+    """The model ``specs`` (fitted: ``result``) with its physical gravity term's compliance
+    ratios fitted again beside the model's other effects, and the form's record for the
+    report; None when it holds no physical term or the refit does not lower the weighted
+    SSE.
+
+    The ratios are a shape the LM holds: fitted once, when the term is added, on the
+    residual of the model then. An effect added later (a cyclic error) was part of that
+    residual and pulled the ratios; with it in the model they are profiled again
+    (:func:`physical_gravity` on the residual of the model without the gravity term), and
+    the model re-identified from there, kept when the SSE drop is significant on the
+    ratios' count (F-test at :data:`PHYSICAL_FORM_ALPHA`). The parameter count may not
+    grow (a limit form that splits more groups is the loop's own choice to score, not a
+    refit's)."""
+    from calibration.effects.effect_kinds import split_values
+
+    at = [i for i, s in enumerate(specs) if s.kind == "gravity_deflection"]
+    if len(at) != 1 or specs[at[0]].parameter != "physical":
+        return None
+    i = at[0]
+    parts = split_values(specs, result.effect_values)
+    others = specs[:i] + specs[i + 1 :]
+    rest = parts[:i] + parts[i + 1 :]
+    try:
+        without = identify(others, np.concatenate(rest) if rest else np.zeros(0))
+    except IdentificationError:
+        return None
+    lin, cols = linearize(without, others)
+    form = physical_gravity(ctx, len(ctx.data), linear_spec, lin, cols)
+    if form is None:
+        return None
+    phys_spec, fit = form
+    if len(phys_spec.parameter_names()) > len(specs[i].parameter_names()):
+        return None
+    own = np.zeros(len(phys_spec.names) - len(fit.moments))
+    new_specs = (*specs[:i], phys_spec, *specs[i + 1 :])
+    start = np.concatenate([*parts[:i], fit.moments, own, *parts[i + 1 :]])
+    try:
+        refit = identify(new_specs, start)
+    except IdentificationError:
+        return None
+    # the ratios move only when the data say they are off: an F-test of the refit's SSE
+    # drop on the ratios' count (a look-alike added after the term, taking part of the
+    # deflection itself, would otherwise pull them to itself)
+    sse_held, sse_refit = weighted_sse(result), weighted_sse(refit)
+    d1 = max(physical_parameter_count(phys_spec) - len(phys_spec.names), 1)
+    dof = max(3 * len(ctx.data) - int(np.count_nonzero(refit.free)) - d1, 1)
+    f_stat = ((sse_held - sse_refit) / d1) / max(sse_refit / dof, 1e-300)
+    p = float(f_distribution.sf(max(f_stat, 0.0), d1, dof))
+    if not p < PHYSICAL_FORM_ALPHA:
+        return None
+    reason = (
+        f"physical form, its compliance ratios refitted beside {specs[-1].label} "
+        f"(F = {f_stat:.2f}, p = {p:.2g})"
+    )
+    return new_specs, refit, _form_info(ctx, "physical", reason, phys_spec, fit, None, None)

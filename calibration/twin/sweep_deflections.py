@@ -151,8 +151,13 @@ def _compliance_ratio_variance(spec: EffectSpec, loop: ClosedLoopResult, n: int)
     profile of them) adds ``(d_j / ρ_j)²·var(ρ_j)`` to a deflection's variance."""
     ratio_var = np.zeros(n)
     if spec.parameter == "physical":
-        form = next(
-            (st.shape["gravity_form"] for st in loop.stages if "gravity_form" in st.shape), None
+        form = next(  # the last record: a later step may have refitted the ratios
+            (
+                st.shape["gravity_form"]
+                for st in reversed(loop.stages)
+                if "gravity_form" in st.shape
+            ),
+            None,
         )
         if form is not None:
             for j, r, se in zip(
