@@ -392,7 +392,7 @@ def run_closed_loop(
     geometric identification of the same poses. ``kinds`` (or ``settings.kinds``)
     restricts the candidate kinds. ``sweep_referenced`` and ``sweep_configurations``
     ``(n, n)`` rad: see :func:`campaign_effect_data` (the gravity term then models the
-    deflection relative to each sweep's configuration).
+    deflection relative to each sweep's configuration). Long for its keyword options.
     """
     started = time.perf_counter()
     tell = say or (lambda _text: None)
