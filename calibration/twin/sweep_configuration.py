@@ -22,9 +22,10 @@ from calibration.scales.grating_scale import JointSweep
 FloatArray = NDArray[np.float64]
 
 #: A joint whose median reading over another joint's sweep stops is within this of Home
-#: (deg, 180″) is taken at Home exactly: far above a held joint's read noise through its
-#: map (arcseconds), far below a planned position away from Home (degrees), so that a
-#: campaign swept at Home keeps exactly the Home reference.
+#: (deg, 180″) is taken at Home exactly: far above how far a joint held at Home reads off
+#: it (gear torsion and backlash under the changing load: up to 26″ in the emulator's scale
+#: campaign, seed 1, ``tests/calibration/test_sweep_configuration.py``), far below a planned
+#: position (degrees), so that a campaign swept at Home keeps exactly the Home reference.
 HOME_SNAP_DEG = 0.05
 
 

@@ -25,7 +25,11 @@ from calibration.model.gravity_regressor import link_rotations
 from calibration.model.kinematics import KinematicModel
 from calibration.scales.chain_scale import ScaleCampaignResult, calibrate_scales
 from calibration.scales.sweep_inputs import JointSweep
-from calibration.twin.sweep_configuration import HOME_SNAP_DEG, sweep_configurations
+from calibration.twin.sweep_configuration import (
+    HOME_SNAP_DEG,
+    stop_angles_rad,
+    sweep_configurations,
+)
 from sim_devices.pose_campaign import sample_reachable_poses
 from sim_devices.scale_campaign import CampaignOptions, ScaleCampaign, run_campaign
 from sim_devices.truth import TrueCell
@@ -133,10 +137,19 @@ def _scale_campaign() -> tuple[ScaleCampaign, ScaleCampaignResult]:
 
 
 def test_sweeps_at_home_give_home_exactly() -> None:
+    """The joints held at Home read off it by tens of arc-seconds (the load on their
+    gears), within :data:`HOME_SNAP_DEG`: every row is Home, bit for bit."""
     desc = load_robot("kr500")
     camp, scales = _scale_campaign()
+    home = np.radians(desc.home)
+    off = [
+        np.delete(np.median(stop_angles_rad(desc, scales, s), axis=0) - home, j - 1)
+        for j, s in camp.joint_sweeps().items()
+    ]
+    worst_deg = float(np.degrees(np.max(np.abs(off))))
+    assert 10.0 / 3600 < worst_deg < HOME_SNAP_DEG  # 26″ (seed 1)
     configs = sweep_configurations(desc, camp.joint_sweeps(), scales)
-    np.testing.assert_array_equal(configs, np.tile(np.radians(desc.home), (6, 1)))
+    np.testing.assert_array_equal(configs, np.tile(home, (6, 1)))
 
 
 def test_sweeps_held_away_from_home_give_their_configuration() -> None:
