@@ -14,11 +14,14 @@ deflection undeclared, 160x, 1 kHz), sampled on the **simulated clock** as
   with a reflector far from the swept axis.
 
 Printed per row: the sweep stops found per joint, Home returns, poses, the validation mean
-per stage (mm), and each scale map's error against the emulator's strip (the map read at
-the strip's ideal counts over the joint's range less the true angle: RMS about its mean,
-arcsec).
+per stage (mm), each joint fit round's final validation mean (mm) and what its loop added,
+and each scale map's error against the emulator's strip (the map read at the strip's ideal
+counts over the joint's range less the true angle: RMS about its mean, arcsec).
 
-    python -m benchmarks.bench_plan_sweeps [--seeds 1-5]
+    python -m benchmarks.bench_plan_sweeps [--seeds 1-5] [--poses 12 --validate 8]
+
+With 12 + 8 poses the loop adds no gravity term; ``--poses 40 --validate 40`` gives it
+enough poses to find one (the gravity term's sweep reference then matters).
 """
 
 from __future__ import annotations
@@ -77,9 +80,11 @@ def sampled(text: str) -> tuple[CellStreams, _SampledPlant]:
     return CellStreams(grating, tracker, None, "planned cell, simulated"), plant
 
 
-def calibrate(text: str, robot: RobotDescription) -> tuple[TwinRun, _SampledPlant]:
+def calibrate(
+    text: str, robot: RobotDescription, n_identify: int = N_IDENTIFY
+) -> tuple[TwinRun, _SampledPlant]:
     streams, plant = sampled(text)
-    options = PhaseOptions(identify_count=N_IDENTIFY)
+    options = PhaseOptions(identify_count=n_identify)
     return run_twin(streams, robot, phase_options=options), plant
 
 
@@ -99,6 +104,7 @@ def row(variant: str, seed: int, run: TwinRun, plant: _SampledPlant) -> dict[str
     phases = run.measurements.phases.summary()
     loop = run.calibration.final.loop
     stages = [] if loop is None else [round(s.mean_ap("validate"), 4) for s in loop.stages]
+    rounds = [r.loop for r in run.calibration.rounds]
     return {
         "variant": variant,
         "seed": seed,
@@ -106,6 +112,10 @@ def row(variant: str, seed: int, run: TwinRun, plant: _SampledPlant) -> dict[str
         "home_returns": phases["home_returns"],
         "poses": phases["poses"],
         "validate_mean_mm": stages,
+        "rounds_validate_mm": [
+            None if r is None else round(r.stages[-1].mean_ap("validate"), 4) for r in rounds
+        ],
+        "rounds_added": [[] if r is None else [s.label for s in r.stages[2:]] for r in rounds],
         "map_rms_arcsec": map_errors_arcsec(run, plant, run.robot),
     }
 
@@ -125,8 +135,11 @@ def force_in_view(plan: Path, out: Path, joints: tuple[int, ...]) -> Path:
     return out
 
 
-def rows(seeds: list[int]) -> list[dict[str, Any]]:
-    """The module docstring's rows for the cell seeds ``seeds`` (the plan made here)."""
+def rows(
+    seeds: list[int], poses: tuple[int, int] = (N_IDENTIFY, N_VALIDATE)
+) -> list[dict[str, Any]]:
+    """The module docstring's rows for the cell seeds ``seeds`` (the plan made here, of
+    ``poses`` identification + validation poses)."""
     from calibration.cli import main as twin_main
     from tests.daq.test_demo_planned import narrow_kr500
 
@@ -136,8 +149,8 @@ def rows(seeds: list[int]) -> list[dict[str, Any]]:
         robot_file = root / "narrow_kr500.toml"
         robot_file.write_text(narrow_kr500(), encoding="utf-8")
         plan = root / "plan"
-        argv_plan = ["plan", "--robot", str(robot_file), "--poses", str(N_IDENTIFY)]
-        argv_plan += ["--validate", str(N_VALIDATE), "--candidates", "400", "--out", str(plan)]
+        argv_plan = ["plan", "--robot", str(robot_file), "--poses", str(poses[0])]
+        argv_plan += ["--validate", str(poses[1]), "--candidates", "400", "--out", str(plan)]
         if twin_main(argv_plan) != 0:
             raise RuntimeError("twin plan failed")
         forced = force_in_view(plan, root / "forced", (2, 3))
@@ -150,7 +163,7 @@ def rows(seeds: list[int]) -> list[dict[str, Any]]:
         for seed in seeds:
             for name, where, sweeps, sight in variants:
                 text = cell_text(robot_file, where, sweeps=sweeps, seed=seed, sight=sight)
-                out.append(row(name, seed, *calibrate(text, robot)))
+                out.append(row(name, seed, *calibrate(text, robot, poses[0])))
                 print(json.dumps(out[-1]), flush=True)
     return out
 
@@ -163,9 +176,11 @@ def run(quick: bool) -> list[dict[str, Any]]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", default="1-5", help="cell seeds, a-b")
+    parser.add_argument("--poses", type=int, default=N_IDENTIFY, help="identification poses")
+    parser.add_argument("--validate", type=int, default=N_VALIDATE, help="validation poses")
     args = parser.parse_args(argv)
     a, _, b = args.seeds.partition("-")
-    rows(list(range(int(a), int(b or a) + 1)))
+    rows(list(range(int(a), int(b or a) + 1)), (args.poses, args.validate))
     return 0
 
 

@@ -63,6 +63,7 @@ def calibrate(
     point_sigma_mm: ArrayLike | None = None,
     loop_settings: LoopSettings | None = None,
     sweep_referenced: bool = False,
+    sweep_configurations: ArrayLike | None = None,
     learned: bool = True,
     progress: ProgressCallback | None = None,
     say: Callable[[str], None] | None = None,
@@ -73,7 +74,9 @@ def calibrate(
 
     ``loss``, ``f_scale_mm``, ``point_sigma_mm`` ``(m_identify,)`` and ``progress`` go to
     the identification (:func:`~calibration.identify.identification.identify`) and the loop;
-    ``sweep_referenced`` to the loop (:func:`~calibration.effects.closed_loop.run_closed_loop`).
+    ``sweep_referenced`` and ``sweep_configurations`` ``(n, n)`` rad (each joint's sweep
+    configuration; None: Home) to the loop
+    (:func:`~calibration.effects.closed_loop.run_closed_loop`).
     ``on_geometric`` sees the geometric result before the loop starts (a caller's checks
     and messages, in order). With ``effects`` and ``learned``, the learned residual stage
     follows the loop (:func:`learned_stage_of`). Long for its keyword options, each handed to
@@ -110,6 +113,7 @@ def calibrate(
         geometric=geometric,
         say=say,
         sweep_referenced=sweep_referenced,
+        sweep_configurations=sweep_configurations,
     )
     calibrated = loop.calibrated_description(description)
     calibrated = _tracked(calibrated, loop.result, campaign)

@@ -249,17 +249,31 @@ class ClosedLoopResult:
 
 
 def campaign_effect_data(
-    description: RobotDescription, campaign: Campaign, *, sweep_referenced: bool = False
+    description: RobotDescription,
+    campaign: Campaign,
+    *,
+    sweep_referenced: bool = False,
+    sweep_configurations: ArrayLike | None = None,
 ) -> EffectData:
     """Effect data of a whole campaign: directions from its pose sequence (from Home),
     the temperatures of its ``temp_c`` column when it has one.
 
-    ``sweep_referenced``: the joint readings come from scale maps fitted on sweeps with
-    the other joints at Home, which absorbed each swept link's deflection there.
+    ``sweep_referenced``: the joint readings come from scale maps fitted on sweeps, which
+    absorbed each swept link's deflection in its sweep configuration: the other joints at
+    Home, or per joint ``sweep_configurations`` ``(n, n)`` rad when given (row j: joint
+    j+1's sweep configuration, :attr:`EffectData.sweep_reference`).
     """
     home = np.radians(description.home)
     data = EffectData.from_sequence(campaign.q_rad, campaign.t_s, home, temp_c=campaign.temp_c)
-    return replace(data, sweep_reference=home) if sweep_referenced else data
+    if not sweep_referenced:
+        return data
+    if sweep_configurations is None:
+        return replace(data, sweep_reference=home)
+    n = description.n_joints
+    configs = np.array(sweep_configurations, dtype=float)
+    if configs.shape != (n, n):
+        raise ValueError(f"sweep_configurations: shape {configs.shape}, expected {(n, n)}")
+    return replace(data, sweep_reference=configs)
 
 
 # -- the loop ---------------------------------------------------------------------------------
@@ -288,11 +302,15 @@ class _Problem:
         point_sigma_mm: ArrayLike | None,
         *,
         sweep_referenced: bool,
+        sweep_configurations: ArrayLike | None,
     ) -> _Problem:
         """The campaign's identification poses (weighted by ``point_sigma_mm`` ``(m,)`` as
         :func:`~calibration.identify.identification.identify` does) and its validation poses."""
         nominal = KinematicModel.from_description(description)
-        data = campaign_effect_data(description, campaign, sweep_referenced=sweep_referenced)
+        data = campaign_effect_data(
+            description, campaign, sweep_referenced=sweep_referenced,
+            sweep_configurations=sweep_configurations,
+        )  # fmt: skip
         masks = {s: campaign.mask(s) for s in ("identify", "validate")}
         masks = {s: m for s, m in masks.items() if m.any()}
         if "identify" not in masks:
@@ -370,14 +388,16 @@ def run_closed_loop(
     say: Callable[[str], None] | None = None,
     kinds: Collection[str] | None = None,
     sweep_referenced: bool = False,
+    sweep_configurations: ArrayLike | None = None,
 ) -> ClosedLoopResult:
     """Run the loop on a campaign (identification rows fit, validation rows report).
 
     ``point_sigma_mm`` ``(m_identify,)`` weights the identification poses as in
     :func:`~calibration.identify.identification.identify`; ``geometric`` reuses an existing
     geometric identification of the same poses. ``kinds`` (or ``settings.kinds``)
-    restricts the candidate kinds. ``sweep_referenced``: see :func:`campaign_effect_data`
-    (the gravity term then models the deflection relative to each sweep's configuration).
+    restricts the candidate kinds. ``sweep_referenced`` and ``sweep_configurations``
+    ``(n, n)`` rad: see :func:`campaign_effect_data` (the gravity term then models the
+    deflection relative to each sweep's configuration). Long for its keyword options.
     """
     started = time.perf_counter()
     tell = say or (lambda _text: None)
@@ -390,8 +410,9 @@ def run_closed_loop(
         progress=progress,
     )
     problem = _Problem.of_campaign(
-        description, campaign, id_kwargs, point_sigma_mm, sweep_referenced=sweep_referenced
-    )
+        description, campaign, id_kwargs, point_sigma_mm, sweep_referenced=sweep_referenced,
+        sweep_configurations=sweep_configurations,
+    )  # fmt: skip
     allowed = kinds if kinds is not None else settings.kinds
     span = _campaign_span(campaign)
     library = [_with_span(s, span) for s in candidate_effects(problem.ctx, allowed)]

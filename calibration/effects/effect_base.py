@@ -116,9 +116,10 @@ class EffectData:
     t_s: FloatArray | None = None
     direction: FloatArray | None = None
     #: Readings through scale maps fitted on sweeps with the other joints at this vector
-    #: ``(n,)`` rad (None: maps that read the rings alone). Such a map has absorbed the
-    #: swept link's deflection in its sweep configuration, so the gravity term models the
-    #: deflection relative to it (:class:`GravityDeflection`).
+    #: ``(n,)`` rad, or per joint ``(n, n)`` rad (row j: joint j+1's sweep configuration,
+    #: its own entry unused); None: maps that read the rings alone. Such a map has absorbed
+    #: the swept link's deflection in its sweep configuration, so the gravity term models
+    #: the deflection relative to it (:class:`GravityDeflection`).
     sweep_reference: FloatArray | None = None
     #: The temperature ``(m,)`` °C read at each pose (campaign.csv's optional ``temp_c``;
     #: None: not measured). Temperature-driven terms are 0 without it: the twin predicts at

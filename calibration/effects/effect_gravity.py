@@ -262,22 +262,27 @@ class GravityDeflection(EffectKind):
         its sweep (the reference with joint j at its reading): the deflection of every link
         i ≤ j there, turned into an angle about axis j by ``z_i·z_j`` (a rotation about a
         parallel upstream axis shows in j's circle one to one, about a perpendicular one
-        it only tilts the circle). A term of joint j's own angle alone vanishes.
+        it only tilts the circle). A term of joint j's own angle alone vanishes. The
+        reference is one configuration ``(n,)`` for every joint or one per joint ``(n, n)``
+        (row j: joint j's sweep configuration; the axes ``z`` are taken there).
         """
         d = self._plain(spec, ctx.gravity, kin.model, kin.q_rad)
         ref = ctx.data.sweep_reference
         if ref is None:
             return d
         n = kin.model.n_joints
-        home = np.asarray(ref, dtype=float)
-        z = link_rotations(kin.model, home[None, :])[0, :, :, 2]  # axes at the reference
-        seen = np.tril(z @ z.T).T  # [i, j] = z_i·z_j for i ≤ j
+        rows = np.broadcast_to(np.asarray(ref, dtype=float), (n, n))
+        # each distinct configuration once (one for a single reference, as the (n,) form)
+        configs, which = np.unique(rows, axis=0, return_inverse=True)
+        z = link_rotations(kin.model, configs)[:, :, :, 2]  # (U, n, 3): axes at each
+        seen = [np.tril(zu @ zu.T).T for zu in z]  # [u][i, j] = z_i·z_j for i ≤ j, at u
         scale = np.sqrt(np.mean(d * d, axis=0))  # (n, P) before the subtraction
         for j in range(n):
-            qs = np.broadcast_to(home, kin.q_rad.shape).copy()
+            qs = np.broadcast_to(rows[j], kin.q_rad.shape).copy()
             qs[:, j] = kin.q_rad[:, j]
             absorbed = self._plain(spec, ctx.gravity, kin.model, qs)
-            d[:, j] -= np.einsum("i,rip->rp", seen[: j + 1, j], absorbed[:, : j + 1])
+            at = seen[int(which.ravel()[j])]
+            d[:, j] -= np.einsum("i,rip->rp", at[: j + 1, j], absorbed[:, : j + 1])
         # what cancels (a term of the joint's own angle alone) cancels to rounding, ~1e-16
         # of the plain term: make it exactly zero, or it would pass for a parameter
         gone = np.sqrt(np.mean(d * d, axis=0)) <= 1e-9 * scale

@@ -25,6 +25,7 @@ from calibration.twin.campaign_measurement import (
     campaign_from_scales,
     quiet,
 )
+from calibration.twin.sweep_configuration import sweep_configurations
 from calibration.twin.sweep_deflections import sweep_deflections
 
 if TYPE_CHECKING:
@@ -187,6 +188,7 @@ def _twin_round(
     cal = calibrate(
         robot, campaign, effects=effects, loop_settings=loop_settings, say=say,
         sweep_referenced=deflection is None,
+        sweep_configurations=sweep_configurations(robot, meas.sweeps, scales),
     )  # fmt: skip
     return TwinRound(
         scales, campaign, cal.geometric, cal.loop, deflection, cal.description, cal.learned

@@ -16,6 +16,7 @@ from calibration.model.description import RobotDescription
 from calibration.scales.chain_scale import ScaleCampaignResult
 from calibration.scales.grating_scale import JointSweep
 from calibration.twin.campaign_measurement import CampaignMeasurements
+from calibration.twin.sweep_configuration import stop_angles_rad, sweep_configurations
 
 if TYPE_CHECKING:
     from calibration.effects.closed_loop import ClosedLoopResult
@@ -51,7 +52,8 @@ def sweep_deflections(
     if loop is None or term is None:
         return None
     robot = meas.robot
-    acting = _acting_moments(robot, campaign, term)
+    reference = sweep_configurations(robot, meas.sweeps, scales)
+    acting = _acting_moments(robot, campaign, term, reference)
     sweeps = {
         j: _sweep_deflection(robot, scales, sweep, term, acting) for j, sweep in meas.sweeps.items()
     }
@@ -99,14 +101,15 @@ def _gravity_term(loop: ClosedLoopResult) -> _GravityTerm | None:
 
 
 def _acting_moments(
-    robot: RobotDescription, campaign: Campaign, term: _GravityTerm
+    robot: RobotDescription, campaign: Campaign, term: _GravityTerm, reference: FloatArray
 ) -> NDArray[np.bool_]:
     """Which moments' share of each joint ``(n, P)`` the identification poses see apart
-    from that joint's own angle (relative to Home): what the maps cannot hold."""
+    from that joint's own angle (relative to its sweep configuration, ``reference``
+    ``(n, n)`` rad): what the maps cannot hold."""
     from calibration.effects.effect_base import EffectContext, EffectData, ModelAtPoses
 
     q_poses = campaign.q_rad[campaign.mask("identify")]
-    ref_ctx = EffectContext(robot, EffectData(q_poses, sweep_reference=np.radians(robot.home)))
+    ref_ctx = EffectContext(robot, EffectData(q_poses, sweep_reference=reference))
     d_ref = term.kind.deflection_jacobian(term.spec, ref_ctx, ModelAtPoses.of(term.model, q_poses))
     rms = np.sqrt(np.mean(d_ref**2, axis=0))  # (n, P): what the poses see apart from maps
     acting: NDArray[np.bool_] = rms > 1e-9 * max(float(rms.max(initial=0.0)), 1e-300)
@@ -124,16 +127,7 @@ def _sweep_deflection(
     read through ``scales``, the ``acting`` moments only) and its variance ``(S, n)``."""
     from calibration.effects.effect_base import EffectContext, EffectData, ModelAtPoses
 
-    by_joint = {r.joint: r.scale for r in scales}
-    assert sweep.chain_counts is not None
-    q = np.radians(
-        np.column_stack(
-            [
-                by_joint[i + 1].counts_to_joint_deg(sweep.chain_counts[:, i])
-                for i in range(robot.n_joints)
-            ]
-        )
-    )
+    q = stop_angles_rad(robot, scales, sweep)
     ctx = EffectContext(robot, EffectData(q))
     kin = ModelAtPoses.of(term.model, q)
     unit = np.eye(len(term.values))
