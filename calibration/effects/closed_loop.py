@@ -64,7 +64,6 @@ from calibration.effects.candidate_scoring import (
 )
 from calibration.effects.effect_base import (
     EffectContext,
-    EffectData,
     EffectSpec,
     Evidence,
     ModelAtPoses,
@@ -78,9 +77,6 @@ from calibration.effects.effect_candidates import (
 from calibration.effects.effect_coupling import coupling_candidates
 from calibration.effects.effect_kinds import (
     KINDS,
-    check_kinds,
-    effect_terms,
-    predict_points,
     regressor_matrix,
     split_values,
     to_descriptions,
@@ -96,6 +92,9 @@ from calibration.effects.gravity_form import (
     physical_parameter_count,
     refit_physical_form,
 )
+from calibration.effects.loop_problem import LoopProblem, validation_set_name
+from calibration.effects.loop_problem import LoopSettings as LoopSettings
+from calibration.effects.loop_problem import campaign_effect_data as campaign_effect_data
 from calibration.effects.loop_stop import Rejected, ScoredRound, StopReason, stop_reason
 from calibration.errors import IdentificationError
 from calibration.identify.campaign_files import Campaign
@@ -104,7 +103,6 @@ from calibration.identify.identification import (
     LMSettings,
     ProgressCallback,
     base_start_from_registration,
-    identify,
 )
 from calibration.model.description import RobotDescription
 from calibration.model.kinematics import KinematicModel
@@ -112,6 +110,7 @@ from calibration.model.kinematics import KinematicModel
 FloatArray = NDArray[np.float64]
 #: A tried step: the model's effects, its identification and the gravity form's decision,
 #: or why the step failed.
+DEFAULT_SETTINGS = LoopSettings()
 _Tried = tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str
 
 CRITERION = (
@@ -125,33 +124,6 @@ CRITERION = (
     "physical kind: then that one), everything is re-identified, and a step that makes the "
     "validation error worse is undone"
 )
-
-
-@dataclass(frozen=True)
-class LoopSettings:
-    """How the loop searches (see the module docstring for the criterion)."""
-
-    folds: int = 5  # K-fold cross-validation's folds (``leave_one_out`` False)
-    leave_one_out: bool = True  # cross-validate by leaving one pose out (exact PRESS)
-    alpha: float = 1e-3  # family-wise false-positive probability per round
-    penalty_per_parameter: float | None = None  # σ² per parameter; None: ln(3m)
-    max_effects: int = 6
-    kinds: tuple[str, ...] | None = None  # candidate kinds offered (None: all)
-    fold_seed: int = 0
-    rtol: float = 1e-6  # a candidate column this close to the model's span is dropped
-    validation_guard: bool = True  # undo a step that makes the validation error worse
-    max_rejected: int = 4  # candidates set aside by the validation guard before stopping
-    refit_gravity_form: bool = True  # refit the physical form's ratios after a later effect
-
-    def __post_init__(self) -> None:
-        if self.folds < 2:
-            raise IdentificationError("the closed loop needs at least 2 folds")
-        if not 0.0 < self.alpha < 1.0:
-            raise IdentificationError("alpha must be in (0, 1)")
-        if self.kinds is not None:
-            check_kinds(self.kinds)
-        if self.max_effects < 0:
-            raise IdentificationError(f"max_effects must be >= 0, got {self.max_effects}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -248,131 +220,6 @@ class ClosedLoopResult:
         return replace(desc, effects=effects)
 
 
-def campaign_effect_data(
-    description: RobotDescription,
-    campaign: Campaign,
-    *,
-    sweep_referenced: bool = False,
-    sweep_configurations: ArrayLike | None = None,
-) -> EffectData:
-    """Effect data of a whole campaign: directions from its pose sequence (from Home),
-    the temperatures of its ``temp_c`` column when it has one.
-
-    ``sweep_referenced``: the joint readings come from scale maps fitted on sweeps, which
-    absorbed each swept link's deflection in its sweep configuration: the other joints at
-    Home, or per joint ``sweep_configurations`` ``(n, n)`` rad when given (row j: joint
-    j+1's sweep configuration, :attr:`EffectData.sweep_reference`).
-    """
-    home = np.radians(description.home)
-    data = EffectData.from_sequence(campaign.q_rad, campaign.t_s, home, temp_c=campaign.temp_c)
-    if not sweep_referenced:
-        return data
-    if sweep_configurations is None:
-        return replace(data, sweep_reference=home)
-    n = description.n_joints
-    configs = np.array(sweep_configurations, dtype=float)
-    if configs.shape != (n, n):
-        raise ValueError(f"sweep_configurations: shape {configs.shape}, expected {(n, n)}")
-    return replace(data, sweep_reference=configs)
-
-
-# -- the loop ---------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class _Problem:
-    """The identification poses and how they are weighted; the validation sets."""
-
-    nominal: KinematicModel
-    ctx: EffectContext  # identification poses
-    meas: FloatArray  # (m, 3)
-    prior: FloatArray  # (m,) relative weights of the points
-    contexts: dict[str, EffectContext]
-    points: dict[str, FloatArray]
-    identify_kwargs: dict[str, Any]
-
-    @property
-    def m(self) -> int:
-        return len(self.meas)
-
-    @classmethod
-    def of_campaign(
-        cls,
-        description: RobotDescription,
-        campaign: Campaign,
-        identify_kwargs: dict[str, Any],
-        point_sigma_mm: ArrayLike | None,
-        *,
-        sweep_referenced: bool,
-        sweep_configurations: ArrayLike | None,
-    ) -> _Problem:
-        """The campaign's identification poses (weighted by ``point_sigma_mm`` ``(m,)`` as
-        :func:`~calibration.identify.identification.identify` does) and its validation poses."""
-        nominal = KinematicModel.from_description(description)
-        data = campaign_effect_data(
-            description, campaign, sweep_referenced=sweep_referenced,
-            sweep_configurations=sweep_configurations,
-        )  # fmt: skip
-        masks = {s: campaign.mask(s) for s in ("identify", "validate")}
-        masks = {s: m for s, m in masks.items() if m.any()}
-        if "identify" not in masks:
-            raise IdentificationError("the campaign has no identification poses")
-        contexts = {s: EffectContext(description, data.subset(m)) for s, m in masks.items()}
-        points = {s: campaign.xyz_mm[m] for s, m in masks.items()}
-        ctx_id = contexts["identify"]
-        m = len(ctx_id.data)
-        prior = np.ones(m)
-        if point_sigma_mm is not None:
-            ps = np.broadcast_to(np.asarray(point_sigma_mm, dtype=float), (m,))
-            prior = (1.0 / np.sqrt(np.mean(1.0 / ps**2)) / ps) ** 2
-        return cls(nominal, ctx_id, points["identify"], prior, contexts, points, identify_kwargs)
-
-    def identify(
-        self, specs: tuple[EffectSpec, ...], start: FloatArray | None
-    ) -> IdentificationResult:
-        terms = effect_terms(specs, self.ctx, start=start) if specs else None
-        q = self.ctx.data.q_rad
-        return identify(self.nominal, q, self.meas, effects=terms, **self.identify_kwargs)
-
-    def errors(
-        self, model: KinematicModel, specs: tuple[EffectSpec, ...], values: FloatArray
-    ) -> dict[str, FloatArray]:
-        return {
-            s: self.points[s] - predict_points(model, specs, values, self.contexts[s])
-            for s in self.contexts
-        }
-
-    def linearized(
-        self, result: IdentificationResult, specs: tuple[EffectSpec, ...], settings: LoopSettings
-    ) -> tuple[LinearizedModel, FloatArray, ModelAtPoses]:
-        """The model at its solution, weighted like the fit; the weights ``(m,)``."""
-        model, values = result.model, result.effect_values
-        kin = ModelAtPoses.of(model, self.ctx.data.q_rad)
-        sw = np.sqrt(self.prior * result.pose_weights)
-        pred = predict_points(model, specs, values, self.ctx)
-        residual = ((pred - self.meas) * sw[:, None]).ravel()
-        effects = regressor_matrix(specs, self.ctx, slice(0, self.m), kin)
-        jac = np.concatenate([kin.jacobian, effects], axis=2)[:, :, result.free]
-        jac = jac * sw[:, None, None]
-        lin = LinearizedModel.build(
-            residual,
-            jac.reshape(-1, jac.shape[-1]),
-            self.m,
-            settings.folds,
-            settings.fold_seed,
-            leave_one_out=settings.leave_one_out,
-        )
-        return lin, sw, kin
-
-    def columns(self, spec: EffectSpec, sw: FloatArray, kin: ModelAtPoses) -> FloatArray:
-        """A candidate's weighted regressor ``(3m, k)``."""
-        sel = slice(0, self.m)
-        r = KINDS[spec.kind].regressor(spec, self.ctx, sel, kin) * sw[:, None, None]
-        return r.reshape(3 * self.m, -1)
-
-
-def _set_name(contexts: dict[str, EffectContext]) -> str:
-    return "validate" if "validate" in contexts else "identify"
-
-
 def run_closed_loop(
     description: RobotDescription,
     campaign: Campaign,
@@ -382,7 +229,7 @@ def run_closed_loop(
     f_scale_mm: float | None = None,
     point_sigma_mm: ArrayLike | None = None,
     lm_settings: LMSettings | None = None,
-    settings: LoopSettings = LoopSettings(),
+    settings: LoopSettings = DEFAULT_SETTINGS,
     geometric: IdentificationResult | None = None,
     progress: ProgressCallback | None = None,
     say: Callable[[str], None] | None = None,
@@ -409,7 +256,7 @@ def run_closed_loop(
         point_sigma_mm=point_sigma_mm,
         progress=progress,
     )
-    problem = _Problem.of_campaign(
+    problem = LoopProblem.of_campaign(
         description, campaign, id_kwargs, point_sigma_mm, sweep_referenced=sweep_referenced,
         sweep_configurations=sweep_configurations,
     )  # fmt: skip
@@ -443,7 +290,7 @@ class _Search:
     """The search's fixed inputs: the problem, the candidate library, the penalty per
     parameter (σ²), the campaign's time span (s), the settings and where to tell."""
 
-    problem: _Problem
+    problem: LoopProblem
     library: list[EffectSpec]
     penalty: float
     span: tuple[float, ...]
@@ -564,7 +411,7 @@ class _Search:
 
 
 def _first_stages(
-    problem: _Problem, geometric: IdentificationResult | None
+    problem: LoopProblem, geometric: IdentificationResult | None
 ) -> tuple[list[Stage], IdentificationResult]:
     """The nominal stage (its base registered on the points) and the geometric one (
     ``geometric``, or identified here), and the geometric identification."""
@@ -597,7 +444,7 @@ class _Step:
 
 def _guarded(
     step: _Tried,
-    problem: _Problem,
+    problem: LoopProblem,
     previous: Stage,
     settings: LoopSettings,
 ) -> _Step | str:
@@ -607,7 +454,7 @@ def _guarded(
         return step
     new_specs, new_result, form_info = step
     errors = problem.errors(new_result.model, new_specs, new_result.effect_values)
-    set_name = _set_name(problem.contexts)
+    set_name = validation_set_name(problem.contexts)
     before = previous.mean_ap(set_name)
     after = mean_ap_mm(errors[set_name])
     if settings.validation_guard and set_name == "validate" and after > before:
@@ -621,7 +468,7 @@ def _effect_stage(
     reason: str,
     scored: ScoredRound,
     previous: Stage,
-    problem: _Problem,
+    problem: LoopProblem,
 ) -> Stage:
     """The stage of an accepted step: its round's scores, competitors, shape and evidence."""
     shape: dict[str, Any] = {}
@@ -669,7 +516,7 @@ def _same_slot(spec: EffectSpec, specs: tuple[EffectSpec, ...]) -> bool:
 
 
 def _score_round(
-    problem: _Problem,
+    problem: LoopProblem,
     result: IdentificationResult,
     specs: tuple[EffectSpec, ...],
     offered: list[EffectSpec],
@@ -741,7 +588,7 @@ def _scan_orders(
 
 
 def _profile_lag(
-    problem: _Problem,
+    problem: LoopProblem,
     spec: EffectSpec,
     sw: FloatArray,
     kin: ModelAtPoses,
@@ -756,7 +603,7 @@ def _profile_lag(
 
 
 def _try_step(
-    problem: _Problem,
+    problem: LoopProblem,
     result: IdentificationResult,
     specs: tuple[EffectSpec, ...],
     spec: EffectSpec,
@@ -794,7 +641,7 @@ def _evidence(
     stage: Stage, previous: Stage, spec: EffectSpec, contexts: dict[str, EffectContext]
 ) -> EvidencePlot | None:
     """The added effect's evidence on the validation set (identification set without one)."""
-    set_name = _set_name(contexts)
+    set_name = validation_set_name(contexts)
     ctx = contexts[set_name]
     kin = ModelAtPoses.of(stage.model, ctx.data.q_rad)
     values = stage.values_of(spec)

@@ -284,14 +284,7 @@ def refit_physical_form(
         refit = identify(new_specs, start)
     except IdentificationError:
         return None
-    # the ratios move only when the data say they are off: an F-test of the refit's SSE
-    # drop on the ratios' count (a look-alike added after the term, taking part of the
-    # deflection itself, would otherwise pull them to itself)
-    sse_held, sse_refit = weighted_sse(result), weighted_sse(refit)
-    d1 = max(physical_parameter_count(phys_spec) - len(phys_spec.names), 1)
-    dof = max(3 * len(ctx.data) - int(np.count_nonzero(refit.free)) - d1, 1)
-    f_stat = ((sse_held - sse_refit) / d1) / max(sse_refit / dof, 1e-300)
-    p = float(f_distribution.sf(max(f_stat, 0.0), d1, dof))
+    f_stat, p = _ratio_test(len(ctx.data), result, refit, phys_spec)
     if not p < PHYSICAL_FORM_ALPHA:
         return None
     reason = (
@@ -299,3 +292,16 @@ def refit_physical_form(
         f"(F = {f_stat:.2f}, p = {p:.2g})"
     )
     return new_specs, refit, _form_info(ctx, "physical", reason, phys_spec, fit, None, None)
+
+
+def _ratio_test(
+    m: int, held: IdentificationResult, refit: IdentificationResult, phys_spec: EffectSpec
+) -> tuple[float, float]:
+    """F statistic and p-value of the refit's SSE drop on the ratios' count. The ratios
+    move only when the data say they are off: a look-alike added after the term, taking
+    part of the deflection itself, would otherwise pull them to itself."""
+    sse_held, sse_refit = weighted_sse(held), weighted_sse(refit)
+    d1 = max(physical_parameter_count(phys_spec) - len(phys_spec.names), 1)
+    dof = max(3 * m - int(np.count_nonzero(refit.free)) - d1, 1)
+    f_stat = ((sse_held - sse_refit) / d1) / max(sse_refit / dof, 1e-300)
+    return float(f_stat), float(f_distribution.sf(max(f_stat, 0.0), d1, dof))
