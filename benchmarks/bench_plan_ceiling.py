@@ -5,14 +5,16 @@ fits the emulator's noise-free points of the 150 random poses (the effects of
 ``bench_plan.EFFECTS``, the loop offered gravity and the cyclic errors, ``ADMITTED``): the
 model the data call for (on every seed measured, the physical gravity form and joint 1's
 cyclic error). At that model, linearised, with every parameter free (no prior: the fit as
-done) and every point weighed alike (as the benchmark's fit), the **mean prediction
-variance** over the 300 held-out poses (σ = 1 per axis, so in units of the tracker's σ²) of
+done), the **mean prediction variance** (mm², summed over x, y, z) over the 300 held-out
+poses of the fit as the benchmark does it (every point weighed alike) under the tracker's
+noise as the emulator draws it (1 σ per axis from its MPE at each point's distance: the
+sandwich ``(AᵀA)⁻¹AᵀΣA(AᵀA)⁻¹``), of
 
 * the planned 50 identification poses, random 50 and random 150;
 * an **oracle 50**: chosen for that very model (greedy D-optimal start, then the
-  planner's own I-optimal exchange, :func:`calibration.plan.plan_criterion.exchange`) from
-  the plan's candidates: what a planner that knew the final model, its compliance ratios
-  included, could reach.
+  planner's own I-optimal exchange, :func:`calibration.plan.plan_criterion.exchange`, the
+  points weighed by 1/σ² as the planner does) from the plan's candidates: what a planner
+  that knew the final model, its compliance ratios included, could reach.
 
 ``equivalent_random`` is ``150 · v(random 150) / v(design)``: how many random poses the
 design's variance is worth; ``rms_vs_random150`` is ``√(v / v(random 150))``, the ratio a
@@ -42,7 +44,7 @@ from calibration.model.kinematics import KinematicModel, identification_jacobian
 from calibration.plan.campaign_plan import PlanSettings, candidate_poses, plan_campaign
 from calibration.plan.plan_criterion import DesignProblem, exchange
 from sim_devices.pose_campaign import CampaignSettings, measure_campaign
-from sim_devices.truth import TrueCell
+from sim_devices.truth import TrackerModel, TrueCell
 
 FloatArray = NDArray[np.float64]
 Row = dict[str, Any]
@@ -50,7 +52,7 @@ Row = dict[str, Any]
 
 class _FinalModel:
     """The loop's final model as a linear design problem: blocks ``(N, 3, p)`` of the
-    free geometry and the effects' parameters at any poses."""
+    free geometry and the effects' parameters at any poses, and the emulator's tracker."""
 
     def __init__(
         self,
@@ -58,8 +60,9 @@ class _FinalModel:
         model: KinematicModel,
         specs: tuple[EffectSpec, ...],
         q_span: FloatArray,
+        tracker: TrackerModel,
     ) -> None:
-        self.nominal, self.model, self.specs = nominal, model, specs
+        self.nominal, self.model, self.specs, self.tracker = nominal, model, specs, tracker
         n_effect = self._all(q_span[:1]).shape[2] - len(model.parameter_names())
         free = analyze_model(model, q_span).free
         self.free = np.concatenate([free, np.ones(n_effect, dtype=bool)])
@@ -73,19 +76,29 @@ class _FinalModel:
     def blocks(self, q: FloatArray) -> FloatArray:
         return self._all(q)[:, :, self.free]
 
+    def sigma_mm(self, q: FloatArray) -> FloatArray:
+        """The tracker's 1 σ per axis ``(N,)`` at the poses' points, as the emulator draws it."""
+        tcp, _ = identification_jacobian(self.model, q)
+        sigma: FloatArray = self.tracker.sigma_mm(tcp)
+        return sigma
+
 
 def prediction_variance(final: _FinalModel, q_design: FloatArray, held: FloatArray) -> float:
-    """Mean over ``held`` of the prediction variance (summed over x, y, z; σ = 1) of the
-    fit from ``q_design`` ``(m, n)``, every parameter free."""
+    """Mean over ``held`` of the prediction variance (mm², summed over x, y, z) of the
+    unweighted fit from ``q_design`` ``(m, n)``, every parameter free, under the tracker's
+    noise at each point."""
     a = final.blocks(q_design).reshape(-1, int(final.free.sum()))
-    cov = np.linalg.pinv(a.T @ a, rcond=1e-12)
+    var = np.repeat(final.sigma_mm(q_design) ** 2, 3)
+    inv = np.linalg.pinv(a.T @ a, rcond=1e-12)
+    cov = inv @ (a.T * var) @ a @ inv
     h = final.blocks(held)
     return float(np.mean(np.einsum("nip,pq,niq->n", h, cov, h)))
 
 
 def oracle_design(final: _FinalModel, candidates: FloatArray, k: int) -> FloatArray:
-    """``k`` of ``candidates`` chosen for the final model itself (D start, I exchange)."""
-    b = final.blocks(candidates)
+    """``k`` of ``candidates`` chosen for the final model itself (D start, I exchange),
+    the points weighed by 1/σ² as the planner does."""
+    b = final.blocks(candidates) / final.sigma_mm(candidates)[:, None, None]
     scale = np.sqrt(np.mean(b**2, axis=(0, 1)))
     scale[scale == 0] = 1.0
     b = b / scale
@@ -122,7 +135,7 @@ def run_seed(seed: int, n_candidates: int = 5000, n_plan: int = 50) -> Row:
     fitted = calibrate(nominal, campaign, effects=True, loop_settings=ADMITTED, learned=False)
     assert fitted.loop is not None
     stage = fitted.loop.final
-    final = _FinalModel(nominal, stage.model, stage.specs, pool)
+    final = _FinalModel(nominal, stage.model, stage.specs, pool, cell.tracker)
     oracle = oracle_design(final, plan.candidates.q_rad, n_plan)
     v = {
         name: prediction_variance(final, q, held)
