@@ -111,6 +111,8 @@ FloatArray = NDArray[np.float64]
 #: A tried step: the model's effects, its identification and the gravity form's decision,
 #: or why the step failed.
 DEFAULT_SETTINGS = LoopSettings()
+#: Kinds whose shape is taken from the gravity term's values when they are offered.
+_ON_GRAVITY = ("joint_coupling", "link_bending")
 _Tried = tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str
 
 CRITERION = (
@@ -332,12 +334,15 @@ class _Search:
 
     def refit(self, step: _Tried) -> _Tried:
         """``step`` with its physical gravity term's ratios refitted beside an effect added
-        after it (:func:`refit_physical_form`), when that lowers the SSE."""
+        after it (:func:`refit_physical_form`), when that lowers the SSE significantly.
+        Not beside a term built on the gravity term's values (the shoulder's coupling, a
+        link's bending: their shape is its torques or moments at the time, and would no
+        longer mean what it says)."""
         linear = [s for s in self.library if s.kind == "gravity_deflection"]
         if isinstance(step, str) or not linear or not self.settings.refit_gravity_form:
             return step
         specs, result, _form = step
-        if specs[-1].kind == "gravity_deflection":
+        if specs[-1].kind == "gravity_deflection" or any(s.kind in _ON_GRAVITY for s in specs):
             return step
         problem = self.problem
 
