@@ -5,8 +5,8 @@ on the simulated clock, gravity deflection undeclared), per cell seed:
 
 * ``maps``: each joint's map error against the strip (RMS about the mean, ″) refitted from
   the sweeps with nothing taken out, with the emulator's true deflection of every link
-  taken out (``sim_devices.effects.link_rotation_rad`` at the stops), and of each joint
-  fit round (``calibrate_twin``);
+  taken out (``sim_devices.effects.link_rotation_rad`` at the stops; the terms joint 4's
+  map kept), and of each joint fit round (``calibrate_twin``);
 * per round that took deflection out: per swept joint and link, the deflection taken out
   and the true one at the stops (RMS about the mean over the stops, ″) and the RMS of
   their difference; the maps with joint 4's take-out replaced by the truth;
@@ -115,12 +115,13 @@ def one_seed(robot_file: Path, plan: Path, seed: int, args: argparse.Namespace) 
         for j, sweep in meas.sweeps.items()
     }
 
-    def refit(taken: dict[int, np.ndarray] | None) -> list[float]:
+    def refit(taken: dict[int, np.ndarray] | None) -> str:
         scales = calibrate_scales(
             meas.sweeps, meas.home_counts, home_deg=robot.home, limits_deg=limits,
             link_rotations_rad=taken,
         )  # fmt: skip
-        return map_errors(scales, plant, robot)
+        terms = next(r.scale.terms for r in scales if r.joint == 4)
+        return f"{map_errors(scales, plant, robot)} (joint 4's terms {list(terms)})"
 
     print(f"seed {seed}: maps with nothing taken out {refit(None)}, the truth {refit(truth)}")
     round_one_term(meas, twin.rounds[0], plant)
