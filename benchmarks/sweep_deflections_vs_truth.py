@@ -10,8 +10,10 @@ on the simulated clock, gravity deflection undeclared), per cell seed:
 * per round that took deflection out: per swept joint and link, the deflection taken out
   and the true one at the stops (RMS about the mean over the stops, ″) and the RMS of
   their difference; the maps with joint 4's take-out replaced by the truth;
-* round 1's gravity term (its joints and compliance ratios) and, per joint at the campaign's
-  poses, its deflection relative to the sweep configurations (what the poses see: the
+* round 1's gravity term (its joints and compliance ratios), per joint the signal-to-noise
+  ratio over the sweeps of what round 2 takes out and the share its shrinkage keeps
+  (:func:`~calibration.twin.sweep_deflections.sweep_deflections`), and per joint at the
+  campaign's poses, its deflection relative to the sweep configurations (what the poses see: the
   round's fit) and plain (what the next round takes out), the twin's and the truth's.
 
     python -m benchmarks.sweep_deflections_vs_truth [--seeds 5-6] [--poses 40 --validate 40]
@@ -39,7 +41,12 @@ from calibration.twin.campaign_measurement import CampaignMeasurements, measure_
 from calibration.twin.fit_rounds import TwinRound, calibrate_twin
 from calibration.twin.phase_detection import PhaseOptions
 from calibration.twin.sweep_configuration import stop_angles_rad, sweep_configurations
-from calibration.twin.sweep_deflections import _gravity_term
+from calibration.twin.sweep_deflections import (
+    _acting_moments,
+    _compliance_ratio_variance,
+    _gravity_term,
+    _sweep_deflection,
+)
 from sim_devices.effects import link_rotation_rad
 from sim_devices.plant import Plant
 
@@ -91,6 +98,17 @@ def round_one_term(meas: CampaignMeasurements, first: TwinRound, plant: Plant) -
     z = link_rotations(term.model, ref)[:, :, :, 2]
     t_rel = true_relative(plant, q, ref, z)
     t_plain = link_rotation_rad(plant.undeclared, plant.arm, q)
+    acting = _acting_moments(robot, first.campaign, term, ref)
+    ratio_var = _compliance_ratio_variance(term.spec, first.loop, robot.n_joints)
+    signal, noise = np.zeros(robot.n_joints), np.zeros(robot.n_joints)
+    for sweep in meas.sweeps.values():  # as sweep_deflections sums them
+        value, var = _sweep_deflection(robot, first.scales, sweep, term, acting)
+        signal += np.sum(value**2, axis=0)
+        noise += np.sum(var, axis=0) + np.sum(value**2, axis=0) * ratio_var
+    snr = np.sqrt(signal / np.maximum(noise, 1e-300))
+    shrink = np.clip(1.0 - noise / np.maximum(signal, 1e-300), 0.0, 1.0)
+    print(f"    what round 2 takes out, per joint: signal-to-noise over the sweeps "
+          f"{np.round(snr, 2).tolist()}, share kept {np.round(shrink, 2).tolist()}")  # fmt: skip
     for j in term.spec.joints:
         i = j - 1
         miss = np.sqrt(np.mean((rel[:, i] - t_rel[:, i]) ** 2)) * ARCSEC
