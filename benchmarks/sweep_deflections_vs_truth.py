@@ -7,6 +7,8 @@ on the simulated clock, gravity deflection undeclared), per cell seed:
   the sweeps with nothing taken out, with the emulator's true deflection of every link
   taken out (``sim_devices.effects.link_rotation_rad`` at the stops; the terms joint 4's
   map kept), and of each joint fit round (``calibrate_twin``);
+* per round, each joint's output angle at Home as the twin has it (the map and the loop's
+  terms of that joint, :func:`output_errors`) against the emulator's (ring and deflection);
 * per round that took deflection out: per swept joint and link, the deflection taken out
   and the true one at the stops (RMS about the mean over the stops, ″) and the RMS of
   their difference; the maps with joint 4's take-out replaced by the truth;
@@ -119,6 +121,44 @@ def round_one_term(meas: CampaignMeasurements, first: TwinRound, plant: Plant) -
         )
 
 
+def output_errors(rnd: TwinRound, plant: Plant, robot: RobotDescription) -> list[float]:
+    """Per joint, the round's twin against the emulator at Home with that joint moved over
+    its range: the map's reading plus the round's loop terms of that joint (its cyclic
+    errors; the gravity term's plain deflection when the round took deflection out, none
+    in the relative form of round 1, whose reference is Home) against the ring angle plus
+    the true deflection; RMS about the mean, ″. Other terms (link harmonics, geometry) are
+    left out."""
+    from calibration.effects.effect_kinds import split_values
+
+    by_joint = {r.joint: r.scale for r in rnd.scales}
+    terms = []
+    if rnd.loop is not None and rnd.loop.final.result is not None:
+        final = rnd.loop.final
+        terms = list(
+            zip(final.specs, split_values(final.specs, final.result.effect_values), strict=True)
+        )
+    term = None if rnd.loop is None else _gravity_term(rnd.loop)
+    out = []
+    for j, joint in enumerate(robot.joints):
+        q = np.zeros((400, robot.n_joints))
+        q[:, j] = np.radians(np.linspace(joint.lower_deg, joint.upper_deg, 400))
+        twin = np.radians(
+            by_joint[j + 1].counts_to_joint_deg(plant.cell.strips[j].ideal_counts(q[:, j]))
+        )
+        for spec, v in terms:
+            if spec.kind == "joint_harmonic" and spec.joint == j + 1:
+                k = spec.order * q[:, j]
+                twin += np.radians(v[0] * np.cos(k) + v[1] * np.sin(k))
+        if term is not None and rnd.deflection_rad is not None:
+            ctx = EffectContext(robot, EffectData(q))
+            twin += term.kind.joint_deflections_rad(
+                term.spec, term.values, ctx, ModelAtPoses.of(term.model, q)
+            )[:, j]
+        true = q[:, j] + link_rotation_rad(plant.undeclared, plant.arm, q)[:, j]
+        out.append(round(float(np.std(twin - true) * ARCSEC), 2))
+    return out
+
+
 def one_seed(robot_file: Path, plan: Path, seed: int, args: argparse.Namespace) -> None:
     robot = load_robot(str(robot_file))
     text = cell_text(robot_file, plan, sweeps=args.variant == "planned", seed=seed)
@@ -148,6 +188,8 @@ def one_seed(robot_file: Path, plan: Path, seed: int, args: argparse.Namespace) 
         val = None if rnd.loop is None else round(rnd.loop.stages[-1].mean_ap("validate"), 4)
         print(f"  round {k}: maps {map_errors(rnd.scales, plant, robot)}; validate {val} mm; "
               f"loop added {added}")  # fmt: skip
+        print(f"    output at Home (map + the loop's terms of the joint) against the truth "
+              f"{output_errors(rnd, plant, robot)}")  # fmt: skip
         if rnd.deflection_rad is None:
             continue
         for j in sorted(rnd.deflection_rad):
