@@ -16,9 +16,11 @@ deflection undeclared, 160x, 1 kHz), sampled on the **simulated clock** as
 Printed per row: the sweep stops found per joint, Home returns, poses, the validation mean
 per stage (mm), each joint fit round's final validation mean (mm) and what its loop added,
 and each scale map's error against the emulator's strip (the map read at the strip's ideal
-counts over the joint's range less the true angle: RMS about its mean, arcsec).
+counts over the joint's range less the true angle: RMS about its mean, arcsec), of the
+twin (``map_rms_arcsec``) and of each round (``rounds_map_rms_arcsec``).
 
     python -m benchmarks.bench_plan_sweeps [--seeds 1-5] [--poses 12 --validate 8]
+        [--variants default planned "planned 2,3"]
 
 With 12 + 8 poses the loop adds no gravity term; ``--poses 40 --validate 40`` gives it
 enough poses to find one (the gravity term's sweep reference then matters).
@@ -88,9 +90,12 @@ def calibrate(
     return run_twin(streams, robot, phase_options=options), plant
 
 
-def map_errors_arcsec(run: TwinRun, plant: _SampledPlant, robot: RobotDescription) -> list[float]:
-    """Each joint's scale map against the emulator's strip: RMS about the mean, arcsec."""
-    by_joint = {r.joint: r.scale for r in run.calibration.final.scales}
+def map_errors_arcsec(
+    run: TwinRun, plant: _SampledPlant, robot: RobotDescription, round_index: int = -1
+) -> list[float]:
+    """Each joint's scale map (of joint fit round ``round_index``, the last by default)
+    against the emulator's strip: RMS about the mean, arcsec."""
+    by_joint = {r.joint: r.scale for r in run.calibration.rounds[round_index].scales}
     out = []
     for j, joint in enumerate(robot.joints):
         q = np.radians(np.linspace(joint.lower_deg, joint.upper_deg, 400))
@@ -117,6 +122,9 @@ def row(variant: str, seed: int, run: TwinRun, plant: _SampledPlant) -> dict[str
         ],
         "rounds_added": [[] if r is None else [s.label for s in r.stages[2:]] for r in rounds],
         "map_rms_arcsec": map_errors_arcsec(run, plant, run.robot),
+        "rounds_map_rms_arcsec": [
+            map_errors_arcsec(run, plant, run.robot, k) for k in range(len(rounds))
+        ],
     }
 
 
@@ -135,11 +143,17 @@ def force_in_view(plan: Path, out: Path, joints: tuple[int, ...]) -> Path:
     return out
 
 
+VARIANTS = ("default", "planned", "planned 2,3")
+
+
 def rows(
-    seeds: list[int], poses: tuple[int, int] = (N_IDENTIFY, N_VALIDATE)
+    seeds: list[int],
+    poses: tuple[int, int] = (N_IDENTIFY, N_VALIDATE),
+    variants: tuple[str, ...] = VARIANTS,
 ) -> list[dict[str, Any]]:
     """The module docstring's rows for the cell seeds ``seeds`` (the plan made here, of
-    ``poses`` identification + validation poses)."""
+    ``poses`` identification + validation poses), the ``variants`` named (of
+    :data:`VARIANTS`) only."""
     from calibration.cli import main as twin_main
     from tests.daq.test_demo_planned import narrow_kr500
 
@@ -155,13 +169,14 @@ def rows(
             raise RuntimeError("twin plan failed")
         forced = force_in_view(plan, root / "forced", (2, 3))
         robot = load_robot(str(robot_file))
-        variants = (
+        table = (
             ("default", plan, False, True),
             ("planned", plan, True, True),
             ("planned 2,3, no line of sight", forced, True, False),
         )
+        chosen = [v for v, key in zip(table, VARIANTS, strict=True) if key in variants]
         for seed in seeds:
-            for name, where, sweeps, sight in variants:
+            for name, where, sweeps, sight in chosen:
                 text = cell_text(robot_file, where, sweeps=sweeps, seed=seed, sight=sight)
                 out.append(row(name, seed, *calibrate(text, robot, poses[0])))
                 print(json.dumps(out[-1]), flush=True)
@@ -178,9 +193,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", default="1-5", help="cell seeds, a-b")
     parser.add_argument("--poses", type=int, default=N_IDENTIFY, help="identification poses")
     parser.add_argument("--validate", type=int, default=N_VALIDATE, help="validation poses")
+    parser.add_argument(
+        "--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS),
+        help="the variants to run (default: all three)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     a, _, b = args.seeds.partition("-")
-    rows(list(range(int(a), int(b or a) + 1)), (args.poses, args.validate))
+    seeds = list(range(int(a), int(b or a) + 1))
+    rows(seeds, (args.poses, args.validate), tuple(args.variants))
     return 0
 
 
