@@ -246,8 +246,8 @@ def refit_physical_form(
 ) -> tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | None:
     """The model ``specs`` (fitted: ``result``) with its physical gravity term's compliance
     ratios fitted again beside the model's other effects, and the form's record for the
-    report; None when it holds no physical term or the refit does not lower the weighted
-    SSE.
+    report; None when it holds no physical term or the refit's SSE drop is not
+    significant.
 
     The ratios are a shape the LM holds: fitted once, when the term is added, on the
     residual of the model then. An effect added later (a cyclic error) was part of that
