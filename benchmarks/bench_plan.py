@@ -46,6 +46,7 @@ from calibration.identify.pose_selection import select_poses
 from calibration.model.cell_geometry import CellGeometrySpec, resolve
 from calibration.model.description import RobotDescription, load_robot
 from calibration.plan.campaign_plan import (
+    CampaignPlan,
     PlanSettings,
     candidate_poses,
     observability,
@@ -106,6 +107,38 @@ def held_out_error_mm(
     return float(np.mean(np.linalg.norm(predicted - held.true_prediction_mm, axis=1)))
 
 
+@dataclass(frozen=True)
+class SeedCampaigns:
+    """One seed's cell and campaigns: the true cell, the plan (its identification ``q_id``
+    and validation ``q_val`` poses, rad), ``3·n_plan`` random poses in view and clear (the
+    first ``n_plan`` are random 50) and the held-out poses, drawn after them."""
+
+    nominal: RobotDescription
+    cell: TrueCell
+    plan: CampaignPlan
+    q_id: FloatArray
+    q_val: FloatArray
+    random: FloatArray
+    held: FloatArray
+
+
+def seed_campaigns(seed: int, n_candidates: int = 5000, n_plan: int = 50) -> SeedCampaigns:
+    """The planned and random campaigns of one seed (module text)."""
+    nominal = load_robot("kr500")
+    cell = TrueCell.create(nominal, seed)
+    geometry = resolve(CellGeometrySpec(), nominal)
+    settings = PlanSettings(n_identify=n_plan, n_validate=20, n_candidates=n_candidates, seed=seed)
+    plan = plan_campaign(nominal, geometry, settings)
+    pool = candidate_poses(
+        nominal,
+        geometry,
+        replace(settings, n_candidates=3 * n_plan + N_HELD_OUT),
+        np.random.default_rng([seed, 99]),
+    ).q_rad
+    q_id, q_val = plan.q_rad[plan.is_identify], plan.q_rad[~plan.is_identify]
+    return SeedCampaigns(nominal, cell, plan, q_id, q_val, pool[: 3 * n_plan], pool[3 * n_plan :])
+
+
 def run_seed(
     seed: int,
     n_candidates: int = 5000,
@@ -114,19 +147,9 @@ def run_seed(
     loop: LoopSettings | None = None,
 ) -> SeedOutcome:
     """One seed of the proof (module text); ``loop``: the closed loop's settings."""
-    nominal = load_robot("kr500")
-    cell = TrueCell.create(nominal, seed)
-    geometry = resolve(CellGeometrySpec(), nominal)
-    settings = PlanSettings(n_identify=n_plan, n_validate=20, n_candidates=n_candidates, seed=seed)
-    plan = plan_campaign(nominal, geometry, settings)
-    q_id, q_val = plan.q_rad[plan.is_identify], plan.q_rad[~plan.is_identify]
-    pool = candidate_poses(
-        nominal,
-        geometry,
-        replace(settings, n_candidates=3 * n_plan + N_HELD_OUT),
-        np.random.default_rng([seed, 99]),
-    ).q_rad
-    random150, held = pool[: 3 * n_plan], pool[3 * n_plan :]
+    sc = seed_campaigns(seed, n_candidates, n_plan)
+    nominal, cell, plan, q_id, q_val = sc.nominal, sc.cell, sc.plan, sc.q_id, sc.q_val
+    random150, held = sc.random, sc.held
     truth_geometry = cell_geometry(cell, CellGeometrySpec())
     hidden = int(
         np.count_nonzero(

@@ -32,19 +32,17 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from benchmarks.bench_plan import ADMITTED, EFFECTS, N_HELD_OUT
+from benchmarks.bench_plan import ADMITTED, EFFECTS, seed_campaigns
 from calibration.effects.calibrate import calibrate
 from calibration.effects.effect_base import EffectContext, EffectData, EffectSpec, ModelAtPoses
 from calibration.effects.effect_kinds import regressor_matrix
 from calibration.identify.identifiability import analyze_model
 from calibration.identify.pose_selection import select_poses
-from calibration.model.cell_geometry import CellGeometrySpec, resolve
-from calibration.model.description import RobotDescription, load_robot
+from calibration.model.description import RobotDescription
 from calibration.model.kinematics import KinematicModel, identification_jacobian
-from calibration.plan.campaign_plan import PlanSettings, candidate_poses, plan_campaign
 from calibration.plan.plan_criterion import DesignProblem, exchange
 from sim_devices.pose_campaign import CampaignSettings, measure_campaign
-from sim_devices.truth import TrackerModel, TrueCell
+from sim_devices.truth import TrackerModel
 
 FloatArray = NDArray[np.float64]
 Row = dict[str, Any]
@@ -117,17 +115,10 @@ def oracle_design(final: _FinalModel, candidates: FloatArray, k: int) -> FloatAr
 
 def run_seed(seed: int, n_candidates: int = 5000, n_plan: int = 50) -> Row:
     """One seed's variances and what they are worth (module text)."""
-    nominal = load_robot("kr500")
-    cell = TrueCell.create(nominal, seed)
-    geometry = resolve(CellGeometrySpec(), nominal)
-    settings = PlanSettings(n_identify=n_plan, n_validate=20, n_candidates=n_candidates, seed=seed)
-    plan = plan_campaign(nominal, geometry, settings)
-    q_id, q_val = plan.q_rad[plan.is_identify], plan.q_rad[~plan.is_identify]
-    pool = candidate_poses(
-        nominal, geometry, replace(settings, n_candidates=3 * n_plan + N_HELD_OUT),
-        np.random.default_rng([seed, 99]),
-    ).q_rad  # fmt: skip
-    random150, held = pool[: 3 * n_plan], pool[3 * n_plan :]
+    sc = seed_campaigns(seed, n_candidates, n_plan)
+    nominal, cell, plan, q_id, q_val = sc.nominal, sc.cell, sc.plan, sc.q_id, sc.q_val
+    random150, held = sc.random, sc.held
+    pool = np.vstack([random150, held])
     exact = replace(CampaignSettings(effects=EFFECTS), grating_noise_deg=0.0)
     data = measure_campaign(cell, random150, q_val, np.random.default_rng([seed, 7]), exact)
     assert data.expected_mm is not None  # the tracker's scale error is on

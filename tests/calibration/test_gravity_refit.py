@@ -15,18 +15,10 @@ from functools import cache
 import pytest
 
 from benchmarks.bench_attribution import twin_description
-from calibration.effects.closed_loop import ClosedLoopResult, LoopSettings, run_closed_loop
+from benchmarks.bench_plan import ADMITTED  # the gravity term and the cyclic errors, two
+from calibration.effects.closed_loop import ClosedLoopResult, run_closed_loop
 from sim_devices.effects import UndeclaredEffects
 from sim_devices.pose_campaign import CampaignSettings, emulated_campaign
-
-#: The two effects admitted in the order the loop finds them, no selection in the way.
-ADMITTED = LoopSettings(
-    kinds=("gravity_deflection", "joint_harmonic"),
-    max_effects=2,
-    penalty_per_parameter=0.0,
-    alpha=0.999,
-    validation_guard=False,
-)
 
 
 @cache
