@@ -111,8 +111,6 @@ FloatArray = NDArray[np.float64]
 #: A tried step: the model's effects, its identification and the gravity form's decision,
 #: or why the step failed.
 DEFAULT_SETTINGS = LoopSettings()
-#: Kinds whose shape is taken from the gravity term's values when they are offered.
-_ON_GRAVITY = ("joint_coupling", "link_bending")
 _Tried = tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str
 
 CRITERION = (
@@ -342,7 +340,8 @@ class _Search:
         if isinstance(step, str) or not linear or not self.settings.refit_gravity_form:
             return step
         specs, result, _form = step
-        if specs[-1].kind == "gravity_deflection" or any(s.kind in _ON_GRAVITY for s in specs):
+        on_gravity = any(KINDS[s.kind].built_on_gravity for s in specs)
+        if specs[-1].kind == "gravity_deflection" or on_gravity:
             return step
         problem = self.problem
 

@@ -350,6 +350,9 @@ class EffectKind(ABC):
     needs_time: bool = False
     needs_direction: bool = False
     needs_temperature: bool = False  # offered only with a varying temp_c column
+    #: its shape is the gravity term's fitted values when offered (the gravity term's
+    #: ratios are then not refitted beneath it)
+    built_on_gravity: bool = False
     description: str = ""
 
     def slot(self, spec: EffectSpec) -> tuple[str | int, ...]:

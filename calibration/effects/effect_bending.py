@@ -66,6 +66,7 @@ class LinkBending(EffectKind):
     (µrad) when the candidate was offered."""
 
     kind = "link_bending"
+    built_on_gravity = True
     description = (
         "a link turning about its own x and y axes under the bending moment of everything "
         "outboard (its bending and its bearing's tilt; the gravity term's moments)"

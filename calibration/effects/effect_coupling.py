@@ -96,6 +96,7 @@ class JointCoupling(EffectKind):
     terms), ``spec.shape`` their weighted values (µrad) when offered."""
 
     kind = "joint_coupling"
+    built_on_gravity = True
     description = (
         "two joints sharing compliance after their rings (a shared gearbox housing, a "
         "parallelogram linkage): each turns under the other's gravity torque (the "
