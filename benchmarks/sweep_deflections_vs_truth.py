@@ -44,10 +44,10 @@ from calibration.twin.fit_rounds import TwinRound, calibrate_twin
 from calibration.twin.phase_detection import PhaseOptions
 from calibration.twin.sweep_configuration import stop_angles_rad, sweep_configurations
 from calibration.twin.sweep_deflections import (
-    _acting_moments,
-    _compliance_ratio_variance,
-    _gravity_term,
-    _sweep_deflection,
+    acting_moments,
+    compliance_ratio_variance,
+    gravity_term,
+    sweep_deflection,
 )
 from sim_devices.effects import link_rotation_rad
 from sim_devices.plant import Plant
@@ -80,7 +80,7 @@ def true_relative(plant: Plant, q: np.ndarray, ref: np.ndarray, z: np.ndarray) -
 
 def round_one_term(meas: CampaignMeasurements, first: TwinRound, plant: Plant) -> None:
     """Round 1's gravity term at the poses against the truth (module docstring)."""
-    term = None if first.loop is None else _gravity_term(first.loop)
+    term = None if first.loop is None else gravity_term(first.loop)
     if term is None:
         print("  round 1: no gravity term")
         return
@@ -100,11 +100,11 @@ def round_one_term(meas: CampaignMeasurements, first: TwinRound, plant: Plant) -
     z = link_rotations(term.model, ref)[:, :, :, 2]
     t_rel = true_relative(plant, q, ref, z)
     t_plain = link_rotation_rad(plant.undeclared, plant.arm, q)
-    acting = _acting_moments(robot, first.campaign, term, ref)
-    ratio_var = _compliance_ratio_variance(term.spec, first.loop, robot.n_joints)
+    acting = acting_moments(robot, first.campaign, term, ref)
+    ratio_var = compliance_ratio_variance(term.spec, first.loop, robot.n_joints)
     signal, noise = np.zeros(robot.n_joints), np.zeros(robot.n_joints)
     for sweep in meas.sweeps.values():  # as sweep_deflections sums them
-        value, var = _sweep_deflection(robot, first.scales, sweep, term, acting)
+        value, var = sweep_deflection(robot, first.scales, sweep, term, acting)
         signal += np.sum(value**2, axis=0)
         noise += np.sum(var, axis=0) + np.sum(value**2, axis=0) * ratio_var
     snr = np.sqrt(signal / np.maximum(noise, 1e-300))
@@ -137,7 +137,7 @@ def output_errors(rnd: TwinRound, plant: Plant, robot: RobotDescription) -> list
         terms = list(
             zip(final.specs, split_values(final.specs, final.result.effect_values), strict=True)
         )
-    term = None if rnd.loop is None else _gravity_term(rnd.loop)
+    term = None if rnd.loop is None else gravity_term(rnd.loop)
     out = []
     for j, joint in enumerate(robot.joints):
         q = np.zeros((400, robot.n_joints))

@@ -48,17 +48,17 @@ def sweep_deflections(
     standard error (a rigid joint's estimate is noise) is not taken out, a well determined
     one nearly all of it, and nothing switches on and off between rounds.
     """
-    term = None if loop is None else _gravity_term(loop)
+    term = None if loop is None else gravity_term(loop)
     if loop is None or term is None:
         return None
     robot = meas.robot
     reference = sweep_configurations(robot, meas.sweeps, scales)
-    acting = _acting_moments(robot, campaign, term, reference)
+    acting = acting_moments(robot, campaign, term, reference)
     sweeps = {
-        j: _sweep_deflection(robot, scales, sweep, term, acting) for j, sweep in meas.sweeps.items()
+        j: sweep_deflection(robot, scales, sweep, term, acting) for j, sweep in meas.sweeps.items()
     }
     n = meas.n_joints
-    ratio_var = _compliance_ratio_variance(term.spec, loop, n)
+    ratio_var = compliance_ratio_variance(term.spec, loop, n)
     signal = np.zeros(n)
     noise = np.zeros(n)
     for value, var in sweeps.values():
@@ -70,7 +70,7 @@ def sweep_deflections(
 
 
 @dataclass(frozen=True, eq=False)
-class _GravityTerm:
+class GravityTerm:
     """A loop's fitted gravity deflection: its spec, values ``(k,)`` and their covariance
     ``(k, k)``, the kind that evaluates it and the loop's final model."""
 
@@ -81,7 +81,7 @@ class _GravityTerm:
     model: KinematicModel
 
 
-def _gravity_term(loop: ClosedLoopResult) -> _GravityTerm | None:
+def gravity_term(loop: ClosedLoopResult) -> GravityTerm | None:
     """The loop's gravity deflection term (None: it found none)."""
     from calibration.effects.effect_gravity import GravityDeflection
     from calibration.effects.effect_kinds import KINDS, split_values
@@ -97,11 +97,11 @@ def _gravity_term(loop: ClosedLoopResult) -> _GravityTerm | None:
     cov = _effect_covariance(final.result, index, final.specs)
     kind = KINDS["gravity_deflection"]
     assert isinstance(kind, GravityDeflection)
-    return _GravityTerm(spec, values, cov, kind, final.model)
+    return GravityTerm(spec, values, cov, kind, final.model)
 
 
-def _acting_moments(
-    robot: RobotDescription, campaign: Campaign, term: _GravityTerm, reference: FloatArray
+def acting_moments(
+    robot: RobotDescription, campaign: Campaign, term: GravityTerm, reference: FloatArray
 ) -> NDArray[np.bool_]:
     """Which moments' share of each joint ``(n, P)`` the identification poses see apart
     from that joint's own angle (relative to its sweep configuration, ``reference``
@@ -116,11 +116,11 @@ def _acting_moments(
     return acting
 
 
-def _sweep_deflection(
+def sweep_deflection(
     robot: RobotDescription,
     scales: ScaleCampaignResult,
     sweep: JointSweep,
-    term: _GravityTerm,
+    term: GravityTerm,
     acting: NDArray[np.bool_],
 ) -> tuple[FloatArray, FloatArray]:
     """The term's deflection of every link ``(S, n)`` rad at one sweep's stops (the stops
@@ -139,7 +139,7 @@ def _sweep_deflection(
     return value, variance
 
 
-def _compliance_ratio_variance(spec: EffectSpec, loop: ClosedLoopResult, n: int) -> FloatArray:
+def compliance_ratio_variance(spec: EffectSpec, loop: ClosedLoopResult, n: int) -> FloatArray:
     """Per joint ``(n,)``, the relative variance of its compliance ratio: the physical
     form's ratios are held fixed in the fit, and their own uncertainty (from the loop's
     profile of them) adds ``(d_j / ρ_j)²·var(ρ_j)`` to a deflection's variance."""
