@@ -123,6 +123,17 @@ def spherical_approximation(model: KinematicModel) -> KinematicModel:
     return approx
 
 
+def has_spherical_approximation(model: KinematicModel) -> bool:
+    """Whether :func:`spherical_approximation` exists for ``model``: the closed form can
+    seed its inverse kinematics (not so for an arm whose wrist axes are far from meeting,
+    such as the UR family's)."""
+    try:
+        spherical_approximation(model)
+    except KinematicsError:
+        return False
+    return True
+
+
 @dataclass(frozen=True, eq=False)
 class PieperGeometry:
     """Constants of the closed form, derived from a Pieper model (mm, rad)."""

@@ -66,6 +66,8 @@ from calibration.model.kinematics import (
     KinematicModel,
     identification_jacobian,
 )
+from calibration.model.numeric_ik import jacobian_conditioning, multi_start_ik
+from calibration.model.pieper_closed_form import has_spherical_approximation
 from calibration.plan.plan_criterion import (
     DesignProblem,
     criterion_value,
@@ -74,6 +76,9 @@ from calibration.plan.plan_criterion import (
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+
+UNREACHABLE = "out of the arm's reach"
+NEAR_SINGULARITY = "IK branch near a singularity"
 
 
 @dataclass(frozen=True)
@@ -94,6 +99,11 @@ class PlanSettings:
     effects: tuple[str, ...] = ("gravity", "harmonic", "scale")
     wrist_margin_deg: float = 10.0  # q5 at least this far from 0 (axes 4 and 6 apart)
     elbow_margin_deg: float = 10.0  # forearm this far from stretched or folded
+    #: an arm without a spherical wrist (numeric IK): starts per drawn pose, and the least
+    #: conditioning of its Jacobian (:func:`calibration.model.numeric_ik.jacobian_conditioning`;
+    #: 0.01 flags about as many random joint vectors of the presets as the 10° margins)
+    ik_starts: int = 4
+    min_conditioning: float = 0.01
     tracker_mpe_um: float = 15.0  # the tracker's MPE: ±(a + b·distance), taken as 2 σ
     tracker_mpe_um_per_m: float = 6.0
 
@@ -107,6 +117,7 @@ class Candidates:
     tcp_mm: FloatArray
     tried: int  # reflector poses drawn
     dropped: dict[str, int] = field(default_factory=dict)
+    ik: str = "closed form"  # how the drawn poses were solved (the report states it)
 
 
 @dataclass(frozen=True, eq=False)
@@ -130,6 +141,7 @@ class Observability:
     left_out_weighted: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 0)))
     left_out_plain: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 0)))
     left_out: tuple[str, ...] = ()  # the left-out effects' labels
+    unseen: tuple[str, ...] = ()  # effect parameters that move the reflector at no candidate
 
 
 @dataclass(frozen=True, eq=False)
@@ -237,22 +249,14 @@ def candidate_poses(
     found: list[FloatArray] = []
     have = tried = 0
     batch = max(512, settings.n_candidates // 4)
+    closed_form = has_spherical_approximation(model)
     for _ in range(40):
         poses = _target_poses(geometry, batch, rng, tilt)
         tried += batch
-        ik = solve_ik(
-            model, poses, frame="base", target="tcp", limits=inner, q_current_rad=home,
-            margins=margins,
-        )  # fmt: skip
-        reach = ik.reachable
-        dropped["out of the arm's reach"] += int(np.count_nonzero(~reach.any(axis=1)))
-        out_limits = reach & ~ik.within_limits
-        dropped[f"IK branch outside the joint limits (less {settings.limit_margin_deg:g}°)"] += int(
-            np.count_nonzero(out_limits)
-        )
-        sing = ik.valid & ik.singular
-        dropped["IK branch near a singularity"] += int(np.count_nonzero(sing))
-        q = ik.solutions_rad[ik.valid & ~ik.singular]
+        if closed_form:
+            q = _closed_form_solutions(model, poses, inner, home, margins, settings, dropped)
+        else:
+            q = _numeric_solutions(model, poses, inner, home, settings, dropped, rng)
         q = q[_first_of_each(q)]
         q = _keep(model, with_margins(geometry, settings), q, home, dropped)
         found.append(q)
@@ -263,10 +267,10 @@ def candidate_poses(
     # the branches of one drawn pose come together: shuffled, any first k are random poses
     q_all = q_all[rng.permutation(len(q_all))][: settings.n_candidates]
     if len(q_all) == 0:
-        reachable = tried - dropped["out of the arm's reach"]
-        if reachable == 0 or dropped["IK branch near a singularity"] + sum(
+        reachable = tried - dropped[UNREACHABLE]
+        if reachable == 0 or dropped[NEAR_SINGULARITY] + sum(
             v for k, v in dropped.items() if k.startswith("IK branch outside")
-        ) == sum(v for k, v in dropped.items() if k != "out of the arm's reach"):
+        ) == sum(v for k, v in dropped.items() if k != UNREACHABLE):
             raise PlanError(
                 f"region {_box(geometry)}: no pose the arm reaches within its joint limits "
                 f"(of {tried} drawn); move the region into the arm's reach"
@@ -276,7 +280,65 @@ def candidate_poses(
             f"(of {tried} drawn: {_reasons(dropped)})"
         )
     pos, _ = reflector_in_base(model, geometry, q_all)
-    return Candidates(q_rad=q_all, tcp_mm=pos, tried=tried, dropped=dict(dropped))
+    ik = "closed form" if closed_form else f"numeric, {settings.ik_starts} starts per drawn pose"
+    return Candidates(q_rad=q_all, tcp_mm=pos, tried=tried, dropped=dict(dropped), ik=ik)
+
+
+def _closed_form_solutions(
+    model: KinematicModel,
+    poses: FloatArray,
+    inner: JointLimits,
+    home: FloatArray,
+    margins: SingularityMargins,
+    settings: PlanSettings,
+    dropped: Counter[str],
+) -> FloatArray:
+    """Every closed-form branch of the TCP ``poses`` ``(B, 4, 4)`` inside ``inner`` and away
+    from the singularities, ``(M, 6)`` rad; the others counted in ``dropped``."""
+    ik = solve_ik(
+        model, poses, frame="base", target="tcp", limits=inner, q_current_rad=home,
+        margins=margins,
+    )  # fmt: skip
+    reach = ik.reachable
+    dropped[UNREACHABLE] += int(np.count_nonzero(~reach.any(axis=1)))
+    out_limits = reach & ~ik.within_limits
+    dropped[_outside_limits(settings)] += int(np.count_nonzero(out_limits))
+    sing = ik.valid & ik.singular
+    dropped[NEAR_SINGULARITY] += int(np.count_nonzero(sing))
+    q: FloatArray = ik.solutions_rad[ik.valid & ~ik.singular]
+    return q
+
+
+def _numeric_solutions(
+    model: KinematicModel,
+    poses: FloatArray,
+    inner: JointLimits,
+    home: FloatArray,
+    settings: PlanSettings,
+    dropped: Counter[str],
+    rng: np.random.Generator,
+) -> FloatArray:
+    """For an arm without a spherical wrist: the TCP ``poses`` ``(B, 4, 4)`` solved from
+    ``settings.ik_starts`` starts each (:func:`calibration.model.numeric_ik.multi_start_ik`),
+    kept inside ``inner`` and with the Jacobian's conditioning at least
+    ``settings.min_conditioning``, ``(M, 6)`` rad; the others counted in ``dropped``."""
+    rot = poses[:, :3, :3]
+    pos = poses[:, :3, 3] - rot @ model.tool_mm
+    ik = multi_start_ik(
+        model, rot, pos, inner, rng, n_starts=settings.ik_starts, reference_rad=home
+    )
+    dropped[UNREACHABLE] += int(np.count_nonzero(~ik.converged.any(axis=1)))
+    out_limits = ik.converged & ~ik.within_limits
+    dropped[_outside_limits(settings)] += int(np.count_nonzero(out_limits))
+    q = ik.solutions_rad[ik.within_limits]
+    singular = jacobian_conditioning(model, q) < settings.min_conditioning
+    dropped[NEAR_SINGULARITY] += int(np.count_nonzero(singular))
+    kept: FloatArray = q[~singular]
+    return kept
+
+
+def _outside_limits(settings: PlanSettings) -> str:
+    return f"IK branch outside the joint limits (less {settings.limit_margin_deg:g}°)"
 
 
 def _first_of_each(q: FloatArray) -> NDArray[np.bool_]:
@@ -350,7 +412,13 @@ def observability(
     kin = ModelAtPoses(model, q_rad, tcp, jac)
     specs = loop_effects(ctx, settings.effects)
     effects, effect_names, kinds, left = _fitted_effects(ctx, kin, specs, settings, geo.shape[2])
-    names += effect_names
+    # an effect that moves the reflector at no candidate (a cyclic error of joint 6 with
+    # the reflector on its axis) is not observable here: its column is rounding noise
+    seen = _column_rms(effects) > _DEAD_COLUMN * float(np.max(_column_rms(geo), initial=1.0))
+    effects = effects[:, :, seen]
+    names += [n for n, s in zip(effect_names, seen, strict=True) if s]
+    unseen = tuple(n for n, s in zip(effect_names, seen, strict=True) if not s)
+    kinds = [k for k, s in zip(kinds, seen, strict=True) if s]
     full = np.concatenate([geo, effects], axis=2)
     scale = _column_rms(full)
     scaled = full / scale
@@ -378,10 +446,12 @@ def observability(
          / np.sqrt(len(sp.parameter_names())) for sp in left]
         or [np.zeros(0)]
     )  # fmt: skip
-    out_plain = out / _column_rms(out) * out_sd
+    out_rms = _column_rms(out)
+    out_sd = np.where(out_rms > _DEAD_COLUMN * float(np.max(scale)), out_sd, 0.0)
+    out_plain = out / out_rms * out_sd
     return Observability(
         plain / sigma, plain, basis, scale, tuple(names), prior,
-        out_plain / sigma, out_plain, tuple(sp.label for sp in left),
+        out_plain / sigma, out_plain, tuple(sp.label for sp in left), unseen,
     )  # fmt: skip
 
 
@@ -415,6 +485,10 @@ def _fitted_effects(
         names += [f"gravity deflection (physical form, linearised): {p}" for p in gravity[1]]
         kinds += ["gravity_deflection"] * len(gravity[1])
     return columns, names, kinds, left
+
+
+#: A column whose rms is below this fraction of the geometry's largest moves nothing.
+_DEAD_COLUMN = 1e-9
 
 
 def _column_rms(blocks: FloatArray) -> FloatArray:
@@ -669,6 +743,7 @@ class CampaignPlan:
     random_parameter_sigma: FloatArray  # (p,) the same for N random candidates
     random_i_value_mm2: float  # the I criterion of N random candidates
     left_out: tuple[str, ...] = ()  # effects the criterion counts as bias (not fitted)
+    unseen: tuple[str, ...] = ()  # effect parameters no candidate observes (not designed for)
 
 
 def plan_campaign(
@@ -708,4 +783,5 @@ def plan_campaign(
         random_parameter_sigma=parameter_sigmas(obs, random_rows),
         random_i_value_mm2=criterion_value(design_problem(obs), random_rows).total_mm2,
         left_out=obs.left_out,
+        unseen=obs.unseen,
     )

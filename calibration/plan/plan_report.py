@@ -51,9 +51,14 @@ def plan_report(
         f"- floor z = {geometry.floor_z_mm:g} mm (clearance {geometry.floor_clearance_mm:g} mm), "
         f"links as capsules of radius {geometry.link_radius_mm:.0f} mm, obstacles: "
         + (", ".join(f"{b.name} {_vec(b.lo)}..{_vec(b.hi)}" for b in geometry.obstacles) or "none"),
-        f"- joint limits kept with a margin of {settings.limit_margin_deg:g}°; wrist "
-        f"≥ {settings.wrist_margin_deg:g}° and elbow ≥ {settings.elbow_margin_deg:g}° from "
-        "singular",
+        f"- joint limits kept with a margin of {settings.limit_margin_deg:g}°; "
+        + (
+            f"wrist ≥ {settings.wrist_margin_deg:g}° and elbow ≥ {settings.elbow_margin_deg:g}° "
+            "from singular (closed-form inverse kinematics)"
+            if plan.candidates.ik == "closed form"
+            else f"the Jacobian's conditioning ≥ {settings.min_conditioning:g} (no spherical "
+            f"wrist: inverse kinematics {plan.candidates.ik})"
+        ),
         "",
         "## Index",
         "",
@@ -86,6 +91,13 @@ def plan_report(
         plan.parameter_names, plan.parameter_sigma, plan.random_parameter_sigma, strict=True
     ):
         lines.append(f"| {name} | {_sigma_text(name, s)} | {_sigma_text(name, r)} |")
+    if plan.unseen:
+        lines += [
+            "",
+            "Not designed for: no candidate's reflector moves with "
+            + ", ".join(plan.unseen)
+            + " (such as the last joint's cyclic error with the reflector on its axis).",
+        ]
     speeds = np.degrees(joint_speeds_rad_s(description))
     lines += [
         "",

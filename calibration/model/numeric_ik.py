@@ -1,0 +1,109 @@
+"""Inverse kinematics of any 6R arm, numerically: Levenberg-Marquardt from several starts.
+
+The closed form (:mod:`calibration.model.inverse_kinematics`) needs a spherical wrist, or a
+geometry near one to seed from. An arm whose wrist axes do not meet (the UR family: joints
+2, 3 and 4 parallel, the wrist offset by d5) has neither, and for it the same
+Levenberg-Marquardt polish (:func:`calibration.model.ik_refinement.refine`) starts instead
+from joint vectors drawn uniformly inside the limits. Different starts settle on different
+branches; which ones, and whether every branch is found, is up to the draws, so this is a
+generator of solutions (what a campaign planner needs), not the enumeration of all eight
+branches that the closed form gives.
+
+Near a singularity a general arm has no named branch angle to test (q5 on a spherical
+wrist); :func:`jacobian_conditioning` measures the distance to one as the smallest
+singular value of the geometric Jacobian over the largest, its position rows in units of
+the arm's reach so that a radian of orientation and a reach of travel weigh alike.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration.errors import KinematicsError
+from calibration.model.ik_refinement import refine
+from calibration.model.ik_results import JointLimits
+from calibration.model.kinematics import FloatArray, KinematicModel, geometric_jacobian
+from calibration.model.pieper_closed_form import nearest_equivalent, wrap_angle
+
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass(frozen=True, eq=False)
+class NumericIK:
+    """Solutions of :func:`multi_start_ik`, one row per start.
+
+    ``solutions_rad`` ``(N, K, 6)``: each start's converged joint vector, mapped to the
+    2π-equivalent inside the limits nearest the reference (NaN where it did not converge);
+    ``converged`` ``(N, K)``: the flange pose reached within the tolerances;
+    ``within_limits`` ``(N, K)``: converged, and inside the limits.
+    """
+
+    solutions_rad: FloatArray
+    converged: BoolArray
+    within_limits: BoolArray
+
+
+def arm_reach_mm(model: KinematicModel) -> float:
+    """A length scale of the arm (mm): the sum of its link lengths and offsets, the tool's
+    offset included; at least 1 mm."""
+    return max(float(np.sum(np.abs(model.a_mm)) + np.sum(np.abs(model.d_mm))), 1.0) + float(
+        np.linalg.norm(model.tool_mm)
+    )
+
+
+def jacobian_conditioning(model: KinematicModel, q_rad: FloatArray) -> FloatArray:
+    """Smallest over largest singular value ``(N,)`` of the flange's geometric Jacobian at
+    ``q_rad`` ``(N, 6)``, the velocity rows divided by the arm's reach: 0 at a singularity,
+    where some flange motion needs unbounded joint rates."""
+    jac = geometric_jacobian(model, q_rad, point="flange", frame="base")
+    jac[:, :3, :] /= arm_reach_mm(model)
+    s = np.linalg.svd(jac, compute_uv=False)
+    ratio: FloatArray = s[:, -1] / np.maximum(s[:, 0], 1e-300)
+    return ratio
+
+
+def multi_start_ik(
+    model: KinematicModel,
+    rot: FloatArray,
+    pos: FloatArray,
+    limits: JointLimits,
+    rng: np.random.Generator,
+    *,
+    n_starts: int = 4,
+    reference_rad: FloatArray | None = None,
+    tol_mm: float = 1e-6,
+    tol_rad: float = 1e-9,
+    max_iterations: int = 60,
+) -> NumericIK:
+    """Flange poses (rotations ``rot`` ``(N, 3, 3)``, origins ``pos`` ``(N, 3)`` mm, base
+    frame) solved from ``n_starts`` joint vectors each, drawn uniformly inside ``limits``
+    (a joint whose range spans more than a turn drawn over one turn). Solutions are mapped
+    to the 2π-equivalent inside the limits nearest ``reference_rad`` ``(6,)`` (zeros when
+    omitted). Raises :class:`KinematicsError` for an arm without 6 joints."""
+    if model.n_joints != 6:
+        raise KinematicsError(f"numeric IK needs 6 joints, model has {model.n_joints}")
+    n = len(pos)
+    lo = np.maximum(limits.lower_rad, -np.pi)
+    hi = np.minimum(limits.upper_rad, np.pi)
+    lo, hi = np.where(hi > lo, lo, limits.lower_rad), np.where(hi > lo, hi, limits.upper_rad)
+    starts = rng.uniform(lo, hi, size=(n, n_starts, 6))
+    q, ok, _ = refine(
+        model,
+        starts.reshape(-1, 6),
+        np.repeat(rot, n_starts, axis=0),
+        np.repeat(pos, n_starts, axis=0),
+        tol_mm=tol_mm,
+        tol_rad=tol_rad,
+        max_iterations=max_iterations,
+    )
+    ref = np.zeros(6) if reference_rad is None else np.asarray(reference_rad, dtype=float)
+    q, within = nearest_equivalent(wrap_angle(q), ref, limits)
+    q[~ok] = np.nan
+    return NumericIK(
+        solutions_rad=q.reshape(n, n_starts, 6),
+        converged=ok.reshape(n, n_starts),
+        within_limits=(ok & within).reshape(n, n_starts),
+    )
