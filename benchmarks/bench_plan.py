@@ -24,6 +24,8 @@ selection time of 50 from 5000 against a plain greedy D-optimal selection in the
     python -m benchmarks.bench_plan [--seeds 10]     # the whole proof (minutes)
     python -m benchmarks.bench_plan --admitted       # the same, the gravity term admitted
     python -m benchmarks.bench_plan --speed          # the selection's time alone (seconds)
+    python -m benchmarks.bench_plan --robot benchmarks/ur10_cell/robot.toml \
+        --cell benchmarks/ur10_cell/cell.toml        # a UR10: no spherical wrist
     python -m benchmarks --only plan --quick         # smoke run, numbers mean nothing
 """
 
@@ -33,7 +35,7 @@ import argparse
 import os
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -42,8 +44,14 @@ from numpy.typing import NDArray
 from calibration.effects.calibrate import calibrate
 from calibration.effects.closed_loop import LoopSettings
 from calibration.effects.model_effects import predict_tcp
+from calibration.errors import PlanError
 from calibration.identify.pose_selection import select_poses
-from calibration.model.cell_geometry import CellGeometrySpec, resolve
+from calibration.model.cell_geometry import (
+    EMULATOR_TABLES,
+    CellGeometrySpec,
+    read_cell_geometry,
+    resolve,
+)
 from calibration.model.description import RobotDescription, load_robot
 from calibration.plan.campaign_plan import (
     CampaignPlan,
@@ -53,6 +61,7 @@ from calibration.plan.campaign_plan import (
     plan_campaign,
     select_identification,
 )
+from edges.toml_schema import parse_toml_file
 from sim_devices.effects import UndeclaredEffects
 from sim_devices.pose_campaign import CampaignSettings, measure_campaign
 from sim_devices.tracker_view import cell_geometry, true_collision_codes, true_view_codes
@@ -108,6 +117,21 @@ def held_out_error_mm(
 
 
 @dataclass(frozen=True)
+class PlannedArm:
+    """The robot (a preset or a description file) and its cell's geometry tables."""
+
+    robot: str = "kr500"
+    cell: CellGeometrySpec = field(default_factory=CellGeometrySpec)
+
+    @classmethod
+    def from_files(cls, robot: str, cell: str | None) -> PlannedArm:
+        if cell is None:
+            return cls(robot)
+        doc = parse_toml_file(cell, PlanError, "a cell file")
+        return cls(robot, read_cell_geometry(doc, cell, PlanError, others=EMULATOR_TABLES))
+
+
+@dataclass(frozen=True)
 class SeedCampaigns:
     """One seed's cell and campaigns: the true cell, the plan (its identification ``q_id``
     and validation ``q_val`` poses, rad), ``3·n_plan`` random poses in view and clear (the
@@ -120,13 +144,18 @@ class SeedCampaigns:
     q_val: FloatArray
     random: FloatArray
     held: FloatArray
+    cell_spec: CellGeometrySpec
 
 
-def seed_campaigns(seed: int, n_candidates: int = 5000, n_plan: int = 50) -> SeedCampaigns:
-    """The planned and random campaigns of one seed (module text)."""
-    nominal = load_robot("kr500")
+def seed_campaigns(
+    seed: int, n_candidates: int = 5000, n_plan: int = 50, arm: PlannedArm | None = None
+) -> SeedCampaigns:
+    """The planned and random campaigns of one seed (module text), on ``arm`` (the KR500
+    in the default cell when omitted)."""
+    arm = arm or PlannedArm()
+    nominal = load_robot(arm.robot)
     cell = TrueCell.create(nominal, seed)
-    geometry = resolve(CellGeometrySpec(), nominal)
+    geometry = resolve(arm.cell, nominal)
     settings = PlanSettings(n_identify=n_plan, n_validate=20, n_candidates=n_candidates, seed=seed)
     plan = plan_campaign(nominal, geometry, settings)
     pool = candidate_poses(
@@ -136,7 +165,9 @@ def seed_campaigns(seed: int, n_candidates: int = 5000, n_plan: int = 50) -> See
         np.random.default_rng([seed, 99]),
     ).q_rad
     q_id, q_val = plan.q_rad[plan.is_identify], plan.q_rad[~plan.is_identify]
-    return SeedCampaigns(nominal, cell, plan, q_id, q_val, pool[: 3 * n_plan], pool[3 * n_plan :])
+    return SeedCampaigns(
+        nominal, cell, plan, q_id, q_val, pool[: 3 * n_plan], pool[3 * n_plan :], arm.cell
+    )
 
 
 def run_seed(
@@ -145,12 +176,13 @@ def run_seed(
     n_plan: int = 50,
     effects: UndeclaredEffects = EFFECTS,
     loop: LoopSettings | None = None,
+    arm: PlannedArm | None = None,
 ) -> SeedOutcome:
     """One seed of the proof (module text); ``loop``: the closed loop's settings."""
-    sc = seed_campaigns(seed, n_candidates, n_plan)
+    sc = seed_campaigns(seed, n_candidates, n_plan, arm)
     nominal, cell, plan, q_id, q_val = sc.nominal, sc.cell, sc.plan, sc.q_id, sc.q_val
     random150, held = sc.random, sc.held
-    truth_geometry = cell_geometry(cell, CellGeometrySpec())
+    truth_geometry = cell_geometry(cell, sc.cell_spec)
     hidden = int(
         np.count_nonzero(
             (true_view_codes(cell, truth_geometry, plan.q_rad) != 0)
@@ -253,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="the loop offered only gravity and the cyclic errors, no penalty (ADMITTED)",
     )
+    parser.add_argument("--robot", default="kr500", help="preset or description file (kr500)")
+    parser.add_argument("--cell", help="cell.toml (default: the emulated default cell)")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument(
         "--speed", action="store_true", help="only the selection's time (seeds 1..--seeds)"
@@ -269,7 +303,10 @@ def main(argv: list[str] | None = None) -> int:
     else:
         outcomes = []
         for s in range(args.first_seed, args.first_seed + args.seeds):
-            o = run_seed(s, effects=effects, loop=ADMITTED if args.admitted else None)
+            o = run_seed(
+                s, effects=effects, loop=ADMITTED if args.admitted else None,
+                arm=PlannedArm.from_files(args.robot, args.cell),
+            )  # fmt: skip
             print(
                 f"seed {s}: planned {o.planned_mm:.4f} mm, random 50 {o.random50_mm:.4f}, "
                 f"random 150 {o.random150_mm:.4f}, travel {o.travel_ratio:.2f}x, "

@@ -173,6 +173,14 @@ class Stage:
         return mean_ap_mm(self.errors_mm[set_name])
 
 
+#: A step whose identification points' RMS rises by more than this factor has failed.
+_FAILED_FIT = 1.5
+
+
+def _rms_mm(errors_mm: FloatArray) -> float:
+    return float(np.sqrt(np.mean(np.sum(errors_mm**2, axis=1))))
+
+
 def mean_ap_mm(errors_mm: FloatArray) -> float:
     """Mean absolute positioning error of point errors ``(m, 3)`` mm."""
     return float(np.linalg.norm(errors_mm, axis=1).mean())
@@ -458,6 +466,14 @@ def _guarded(
         return step
     new_specs, new_result, form_info = step
     errors = problem.errors(new_result.model, new_specs, new_result.effect_values)
+    fit_before, fit_after = (_rms_mm(e["identify"]) for e in (previous.errors_mm, errors))
+    if fit_after > _FAILED_FIT * fit_before:
+        # one more effect cannot fit its own points worse: the solver ended far from the
+        # optimum (seen on an emulated UR10, its gravity term started off: 0.06 -> 58 mm)
+        return (
+            f"the re-identification failed: the identification points' RMS rose from "
+            f"{fit_before:.4f} to {fit_after:.4f} mm: step undone"
+        )
     set_name = validation_set_name(problem.contexts)
     before = previous.mean_ap(set_name)
     after = mean_ap_mm(errors[set_name])
