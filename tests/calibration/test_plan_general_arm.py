@@ -12,16 +12,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchmarks.bench_plan import ADMITTED, EFFECTS, PlannedArm, seed_campaigns
+from calibration.effects.calibrate import calibrate
+from calibration.effects.model_effects import predict_tcp
 from calibration.errors import PlanError
 from calibration.model.cell_geometry import read_cell_geometry
-from calibration.model.description import load_robot
+from calibration.model.description import RobotDescription, load_robot
 from calibration.model.ik_results import JointLimits
 from calibration.model.kinematics import KinematicModel, flange_poses
 from calibration.model.numeric_ik import jacobian_conditioning, multi_start_ik
 from calibration.model.pieper_closed_form import has_spherical_approximation
+from sim_devices.pose_campaign import CampaignSettings, measure_campaign
 from sim_devices.tracker_view import cell_geometry, true_collision_codes, true_view_codes
 from sim_devices.truth import TrueCell
-from tests.calibration.test_campaign_plan import read_joints, twin_plan
+from tests.calibration.test_campaign_plan import ROOT, read_joints, twin_plan
 
 # Universal Robots' published UR10 D-H in this project's modified form (a_mm, alpha_deg,
 # d_mm), the reflector 93 mm out on the flange axis; the base puts the tracker 2.5 m in
@@ -107,3 +111,34 @@ def test_twin_plan_on_a_ur10_in_view_and_clear_by_the_emulator(ur10: Path, tmp_p
     assert "| 0 µm |" not in report and "RuntimeWarning" not in r.stderr
     with (tmp_path / "o" / "campaign_joints.csv").open() as f:
         assert next(csv.reader(f))[0] == "pose"
+
+
+def test_the_loop_undoes_a_step_whose_fit_failed_on_a_ur10() -> None:
+    """On the emulated UR10's random 150 poses (seed 1) the gravity term's re-identification
+    ends ~58 mm off its own points (the cause is not found yet: docs/closed-loop.md). The
+    loop, offered that term without its validation guard (``ADMITTED``), must undo the
+    step, not keep a twin 1000x worse than the geometry alone."""
+    arm = PlannedArm.from_files(
+        str(ROOT / "benchmarks/ur10_cell/robot.toml"), str(ROOT / "benchmarks/ur10_cell/cell.toml")
+    )
+    sc = seed_campaigns(1, 400, 50, arm)
+    settings = CampaignSettings(effects=EFFECTS)
+    data = measure_campaign(sc.cell, sc.random, sc.q_val, np.random.default_rng([1, 7]), settings)
+    said: list[str] = []
+    fitted = calibrate(
+        sc.nominal,
+        data.campaign,
+        effects=True,
+        loop_settings=ADMITTED,
+        learned=False,
+        say=said.append,
+    )
+    geometric = calibrate(sc.nominal, data.campaign, effects=False)
+    held = measure_campaign(sc.cell, sc.held[:0], sc.held, np.random.default_rng([1, 8]), settings)
+
+    def error(description: RobotDescription) -> float:
+        p = predict_tcp(description, held.campaign.q_rad, held.campaign.t_s)
+        return float(np.mean(np.linalg.norm(p - held.true_prediction_mm, axis=1)))
+
+    assert error(fitted.description) <= 1.2 * error(geometric.description)
+    assert any("re-identification failed" in line for line in said)
