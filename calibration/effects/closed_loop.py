@@ -175,6 +175,7 @@ class Stage:
 
 #: A step whose identification points' RMS rises by more than this factor has failed.
 _FAILED_FIT = 1.5
+_FAILED_FIT_REASON = "the re-identification failed"
 
 
 def _rms_mm(errors_mm: FloatArray) -> float:
@@ -338,6 +339,32 @@ class _Search:
         max_effects, max_rejected = self.settings.max_effects, self.settings.max_rejected
         return stop_reason(code, max_effects, max_rejected, scored, rejected, set_aside)
 
+    def attempt(
+        self,
+        chosen: CandidateScore,
+        result: IdentificationResult,
+        specs: tuple[EffectSpec, ...],
+        scored: ScoredRound,
+        previous: Stage,
+    ) -> _Step | str:
+        """The step adding ``chosen``, guarded (:func:`_guarded`). A re-identification that
+        failed from the nominal start is tried once more from ``previous``'s geometry: on an
+        emulated UR10, whose base start was ~67 mm off, the gravity term's fit stalled
+        from the nominal start though the geometric fit had converged from it."""
+        problem, tell = self.problem, self.tell
+        step = _guarded(
+            self.refit(_try_step(problem, result, specs, chosen.spec, scored, tell)),
+            problem, previous, self.settings,
+        )  # fmt: skip
+        if not (isinstance(step, str) and step.startswith(_FAILED_FIT_REASON)):
+            return step
+        tell(f"closed loop: {chosen.label}: {step}; identified again from the last stage")
+        warm = problem.started_at(previous.model)
+        return _guarded(
+            self.refit(_try_step(warm, result, specs, chosen.spec, scored, tell)),
+            problem, previous, self.settings,
+        )  # fmt: skip
+
     def refit(self, step: _Tried) -> _Tried:
         """``step`` with its physical gravity term's ratios refitted beside an effect added
         after it (:func:`refit_physical_form`), when that lowers the SSE significantly.
@@ -400,12 +427,7 @@ class _Search:
                 stop = self.stop("none_significant", scored, rejected, set_aside)
                 return scores, rejected, stop
             chosen, reason = choose(scored.lin, scores, scored.columns)
-            step = _guarded(
-                self.refit(_try_step(problem, result, specs, chosen.spec, scored, tell)),
-                problem,
-                stages[-1],
-                settings,
-            )
+            step = self.attempt(chosen, result, specs, scored, stages[-1])
             if isinstance(step, str):
                 rejected.append(Rejected(chosen.label, step))
                 set_aside.add(chosen.spec)
@@ -471,7 +493,7 @@ def _guarded(
         # one more effect cannot fit its own points worse: the solver ended far from the
         # optimum (seen on an emulated UR10, its gravity term started off: 0.06 -> 58 mm)
         return (
-            f"the re-identification failed: the identification points' RMS rose from "
+            f"{_FAILED_FIT_REASON}: the identification points' RMS rose from "
             f"{fit_before:.4f} to {fit_after:.4f} mm: step undone"
         )
     set_name = validation_set_name(problem.contexts)

@@ -99,6 +99,11 @@ class LoopProblem:
     def m(self) -> int:
         return len(self.meas)
 
+    def started_at(self, model: KinematicModel) -> LoopProblem:
+        """The same problem, its identifications started from ``model`` (a stage's solved
+        geometry) instead of the nominal one."""
+        return replace(self, nominal=model)
+
     @classmethod
     def of_campaign(
         cls,

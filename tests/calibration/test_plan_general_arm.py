@@ -113,26 +113,21 @@ def test_twin_plan_on_a_ur10_in_view_and_clear_by_the_emulator(ur10: Path, tmp_p
         assert next(csv.reader(f))[0] == "pose"
 
 
-def test_the_loop_undoes_a_step_whose_fit_failed_on_a_ur10() -> None:
+def test_the_loop_retries_a_failed_step_from_the_last_stage_on_a_ur10() -> None:
     """On the emulated UR10's random 150 poses (seed 1) the gravity term's re-identification
-    ends ~58 mm off its own points (the cause is not found yet: docs/closed-loop.md). The
-    loop, offered that term without its validation guard (``ADMITTED``), must undo the
-    step, not keep a twin 1000x worse than the geometry alone."""
-    arm = PlannedArm.from_files(
-        str(ROOT / "benchmarks/ur10_cell/robot.toml"), str(ROOT / "benchmarks/ur10_cell/cell.toml")
-    )
-    sc = seed_campaigns(1, 400, 50, arm)
+    from the nominal start (its base ~67 mm off) stalls ~58 mm off its own points, though
+    the geometric fit converged from there. The loop, offered that term without its
+    validation guard (``ADMITTED``), must not keep such a step (it kept a twin 59 mm off),
+    and identified again from the last stage's geometry the term is worth adding."""
+    robot, cell = (str(ROOT / "benchmarks/ur10_cell" / f) for f in ("robot.toml", "cell.toml"))
+    sc = seed_campaigns(1, 400, 50, PlannedArm.from_files(robot, cell))
     settings = CampaignSettings(effects=EFFECTS)
     data = measure_campaign(sc.cell, sc.random, sc.q_val, np.random.default_rng([1, 7]), settings)
     said: list[str] = []
     fitted = calibrate(
-        sc.nominal,
-        data.campaign,
-        effects=True,
-        loop_settings=ADMITTED,
-        learned=False,
+        sc.nominal, data.campaign, effects=True, loop_settings=ADMITTED, learned=False,
         say=said.append,
-    )
+    )  # fmt: skip
     geometric = calibrate(sc.nominal, data.campaign, effects=False)
     held = measure_campaign(sc.cell, sc.held[:0], sc.held, np.random.default_rng([1, 8]), settings)
 
@@ -140,5 +135,8 @@ def test_the_loop_undoes_a_step_whose_fit_failed_on_a_ur10() -> None:
         p = predict_tcp(description, held.campaign.q_rad, held.campaign.t_s)
         return float(np.mean(np.linalg.norm(p - held.true_prediction_mm, axis=1)))
 
-    assert error(fitted.description) <= 1.2 * error(geometric.description)
     assert any("re-identification failed" in line for line in said)
+    assert any("identified again from the last stage" in line for line in said)
+    assert fitted.loop is not None
+    assert any(s.kind == "gravity_deflection" for s in fitted.loop.final.specs)
+    assert error(fitted.description) < 0.5 * error(geometric.description)
