@@ -145,7 +145,7 @@ def _as_poses(poses: ArrayLike) -> FloatArray:
     return t
 
 
-def _flange_in_base(
+def flange_in_base(
     model: KinematicModel, poses: FloatArray, frame: str, target: str
 ) -> tuple[FloatArray, FloatArray]:
     """Flange rotations ``(N, 3, 3)`` and origins ``(N, 3)`` (mm) in the base frame."""
@@ -205,7 +205,7 @@ def solve_ik(
     ref = _reference(q_current_rad, n_pose)
     rule = _Rule(ref, limits, weights, singular_penalty, margins or SingularityMargins())
 
-    rot, pos = _flange_in_base(model, t, frame, target)
+    rot, pos = flange_in_base(model, t, frame, target)
     exact = nominal is None and is_spherical_wrist(model)
     if exact:
         geo = PieperGeometry.of(model)

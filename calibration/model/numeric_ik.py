@@ -24,7 +24,8 @@ from numpy.typing import NDArray
 
 from calibration.errors import KinematicsError
 from calibration.model.ik_refinement import refine
-from calibration.model.ik_results import JointLimits
+from calibration.model.ik_results import JointLimits, Selection
+from calibration.model.inverse_kinematics import select_solution
 from calibration.model.kinematics import FloatArray, KinematicModel, geometric_jacobian
 from calibration.model.pieper_closed_form import nearest_equivalent, wrap_angle
 
@@ -73,6 +74,7 @@ def multi_start_ik(
     rng: np.random.Generator,
     *,
     n_starts: int = 4,
+    starts_rad: FloatArray | None = None,
     reference_rad: FloatArray | None = None,
     tol_mm: float = 1e-6,
     tol_rad: float = 1e-9,
@@ -80,7 +82,8 @@ def multi_start_ik(
 ) -> NumericIK:
     """Flange poses (rotations ``rot`` ``(N, 3, 3)``, origins ``pos`` ``(N, 3)`` mm, base
     frame) solved from ``n_starts`` joint vectors each, drawn uniformly inside ``limits``
-    (a joint whose range spans more than a turn drawn over one turn). Solutions are mapped
+    (a joint whose range spans more than a turn drawn over one turn), or from the same
+    ``starts_rad`` ``(K, 6)`` for every pose when given (``rng`` then unused). Solutions are mapped
     to the 2π-equivalent inside the limits nearest ``reference_rad`` ``(6,)`` (zeros when
     omitted). Raises :class:`KinematicsError` for an arm without 6 joints."""
     if model.n_joints != 6:
@@ -89,7 +92,11 @@ def multi_start_ik(
     lo = np.maximum(limits.lower_rad, -np.pi)
     hi = np.minimum(limits.upper_rad, np.pi)
     lo, hi = np.where(hi > lo, lo, limits.lower_rad), np.where(hi > lo, hi, limits.upper_rad)
-    starts = rng.uniform(lo, hi, size=(n, n_starts, 6))
+    if starts_rad is None:
+        starts = rng.uniform(lo, hi, size=(n, n_starts, 6))
+    else:
+        n_starts = len(starts_rad)
+        starts = np.broadcast_to(np.asarray(starts_rad, dtype=float), (n, n_starts, 6))
     q, ok, _ = refine(
         model,
         starts.reshape(-1, 6),
@@ -106,4 +113,40 @@ def multi_start_ik(
         solutions_rad=q.reshape(n, n_starts, 6),
         converged=ok.reshape(n, n_starts),
         within_limits=(ok & within).reshape(n, n_starts),
+    )
+
+
+#: Starts of :func:`chosen_solution`: enough that every branch of a 6R arm is usually
+#: found (a UR has 8), drawn once so that every target and every run see the same ones.
+CHOSEN_STARTS = 16
+
+
+def chosen_solution(
+    model: KinematicModel,
+    rot: FloatArray,
+    pos: FloatArray,
+    limits: JointLimits,
+    *,
+    reference_rad: FloatArray | None = None,
+    min_conditioning: float = 0.01,
+) -> Selection:
+    """The shortest-travel solution (:func:`~calibration.model.inverse_kinematics.select_solution`)
+    of the flange poses (``rot`` ``(N, 3, 3)``, ``pos`` ``(N, 3)`` mm, base frame) among
+    those :func:`multi_start_ik` finds from :data:`CHOSEN_STARTS` fixed starts inside
+    ``limits``; a solution whose :func:`jacobian_conditioning` is below
+    ``min_conditioning`` counts as singular. Deterministic: the same poses give the same
+    joints. ``Selection.index`` is the start that found it (not a named branch)."""
+    lo = np.maximum(limits.lower_rad, -np.pi)
+    hi = np.minimum(limits.upper_rad, np.pi)
+    starts = np.random.default_rng(0).uniform(0.0, 1.0, size=(CHOSEN_STARTS, 6)) * (hi - lo) + lo
+    ref = np.zeros(6) if reference_rad is None else np.asarray(reference_rad, dtype=float)
+    ik = multi_start_ik(
+        model, rot, pos, limits, np.random.default_rng(0), starts_rad=starts, reference_rad=ref
+    )
+    singular = np.zeros(ik.within_limits.shape, dtype=bool)
+    if ik.within_limits.any():
+        cond = jacobian_conditioning(model, ik.solutions_rad[ik.within_limits])
+        singular[ik.within_limits] = cond < min_conditioning
+    return select_solution(
+        ik.solutions_rad, ref, valid=ik.within_limits, singular=singular, limits=limits
     )

@@ -37,8 +37,10 @@ from calibration.effects.model_effects import predict_tcp
 from calibration.errors import CompensationError, StiffnessError
 from calibration.model.description import RobotDescription
 from calibration.model.ik_results import JointLimits
-from calibration.model.inverse_kinematics import solve_ik
+from calibration.model.inverse_kinematics import flange_in_base, solve_ik
 from calibration.model.kinematics import KinematicModel, flange_poses, geometric_jacobian
+from calibration.model.numeric_ik import chosen_solution
+from calibration.model.pieper_closed_form import has_spherical_approximation
 from calibration.model.stiffness import force_deflection_mm, states_stiffness
 
 FloatArray = NDArray[np.float64]
@@ -176,6 +178,10 @@ def _ik_start(
     pose = np.zeros((m, 4, 4))
     pose[:, :3, :3], pose[:, :3, 3], pose[:, 3, 3] = r_target, target, 1.0
     limits = JointLimits.from_description(description)
+    if not has_spherical_approximation(model):  # no closed form to seed from: numeric
+        rot, pos = flange_in_base(model, pose, "world", "tcp")
+        sel = chosen_solution(model, rot, pos, limits)
+        return sel.q_rad.copy(), sel.index
     ik = solve_ik(model, pose, frame="world", target="tcp", limits=limits, branches="chosen")
     return ik.chosen_rad.copy(), np.where(ik.selection.found, ik.selection.index, -1)
 

@@ -1,7 +1,8 @@
-"""`twin plan` on an arm without a spherical wrist (the UR family: joints 2, 3, 4 parallel,
-the wrist offset by d5), whose inverse kinematics has no closed form here: the numeric,
-multi-start solve (:mod:`calibration.model.numeric_ik`), checked by forward kinematics
-and by the emulator's own cell geometry."""
+"""`twin plan`, the closed loop and `twin compensate` on an arm without a spherical wrist
+(the UR family: joints 2, 3, 4 parallel, the wrist offset by d5), whose inverse
+kinematics has no closed form here: the numeric, multi-start solve
+(:mod:`calibration.model.numeric_ik`), checked by forward kinematics and by the
+emulator's own cell geometry."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from calibration.model.ik_results import JointLimits
 from calibration.model.kinematics import KinematicModel, flange_poses
 from calibration.model.numeric_ik import jacobian_conditioning, multi_start_ik
 from calibration.model.pieper_closed_form import has_spherical_approximation
+from calibration.twin.compensation import compensate, rotation_xyz
 from sim_devices.pose_campaign import CampaignSettings, measure_campaign
 from sim_devices.tracker_view import cell_geometry, true_collision_codes, true_view_codes
 from sim_devices.truth import TrueCell
@@ -140,3 +142,31 @@ def test_the_loop_retries_a_failed_step_from_the_last_stage_on_a_ur10() -> None:
     assert fitted.loop is not None
     assert any(s.kind == "gravity_deflection" for s in fitted.loop.final.specs)
     assert error(fitted.description) < 0.5 * error(geometric.description)
+
+
+def test_compensate_with_an_orientation_on_a_ur10() -> None:
+    """`twin compensate`'s orientation targets need the inverse kinematics as a start; on a
+    UR10 it is the numeric one (16 fixed starts, the shortest travel from zero)."""
+    robot = load_robot(str(ROOT / "benchmarks/ur10_cell/robot.toml"))
+    model = KinematicModel.from_description(robot)
+    rng = np.random.default_rng(11)
+    q = rng.uniform(-np.pi, np.pi, size=(40, 6))
+    q = q[jacobian_conditioning(model, q) > 0.02][:20]
+    t = flange_poses(model, q)  # the tracker frame, as targets are given
+    rot = t[:, :3, :3]
+    tcp = t[:, :3, 3] + rot @ model.tool_mm
+    rpy = np.degrees(
+        np.stack(
+            [np.arctan2(rot[:, 2, 1], rot[:, 2, 2]), -np.arcsin(rot[:, 2, 0]),
+             np.arctan2(rot[:, 1, 0], rot[:, 0, 0])],
+            axis=1,
+        )
+    )  # fmt: skip
+    assert np.allclose(rotation_xyz(rpy), rot, atol=1e-12)
+    out = compensate(robot, tcp, rpy_deg=rpy)
+    assert out.ok.all(), out.reason
+    assert np.abs(out.residual_mm).max() < 1e-5
+    back = flange_poses(model, np.radians(out.q_deg))
+    assert np.abs(back[:, :3, :3] - rot).max() < 1e-8  # the stated orientation kept
+    again = compensate(robot, tcp, rpy_deg=rpy)
+    assert np.array_equal(again.q_deg, out.q_deg)  # the same starts every time
