@@ -78,6 +78,9 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
 UNREACHABLE = "out of the arm's reach"
+#: Batches of drawn poses after which a region none of whose poses the arm reaches is
+#: given up (a numeric inverse kinematics spends ~0.5 s a batch finding nothing).
+_GIVE_UP_BATCHES = 4
 NEAR_SINGULARITY = "IK branch near a singularity"
 
 
@@ -263,6 +266,8 @@ def candidate_poses(
         have += len(q)
         if have >= settings.n_candidates:
             break
+        if tried >= _GIVE_UP_BATCHES * batch and dropped[UNREACHABLE] == tried:
+            break  # nothing in reach so far: more draws would only take longer to say so
     q_all = np.concatenate(found)
     # the branches of one drawn pose come together: shuffled, any first k are random poses
     q_all = q_all[rng.permutation(len(q_all))][: settings.n_candidates]

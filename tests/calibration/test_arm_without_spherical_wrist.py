@@ -170,3 +170,12 @@ def test_compensate_with_an_orientation_on_a_ur10() -> None:
     assert np.abs(back[:, :3, :3] - rot).max() < 1e-8  # the stated orientation kept
     again = compensate(robot, tcp, rpy_deg=rpy)
     assert np.array_equal(again.q_deg, out.q_deg)  # the same starts every time
+
+
+def test_an_unreachable_region_is_one_line_on_a_ur10(tmp_path: Path) -> None:
+    robot, cell = (str(ROOT / "benchmarks/ur10_cell" / f) for f in ("robot.toml", "cell.toml"))
+    far = ["--region", "5000,5000,5000,6000,6000,6000", "--no-sweeps"]
+    r = twin_plan("--robot", robot, "--cell", cell, "--poses", "6", "--validate", "2", *far,
+                  "--out", "o", cwd=tmp_path)  # fmt: skip
+    assert r.returncode == 2 and not (tmp_path / "o").exists()
+    assert len(r.stderr.strip().splitlines()) == 1 and "no pose the arm reaches" in r.stderr
