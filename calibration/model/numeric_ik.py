@@ -66,6 +66,15 @@ def jacobian_conditioning(model: KinematicModel, q_rad: FloatArray) -> FloatArra
     return ratio
 
 
+def _start_box(limits: JointLimits) -> tuple[FloatArray, FloatArray]:
+    """Where starts are drawn ``(6,)`` each: the limits, a joint with more than a turn of
+    range over one turn (its other solutions are the same angles 2π on)."""
+    lo = np.maximum(limits.lower_rad, -np.pi)
+    hi = np.minimum(limits.upper_rad, np.pi)
+    inside = hi > lo
+    return np.where(inside, lo, limits.lower_rad), np.where(inside, hi, limits.upper_rad)
+
+
 def multi_start_ik(
     model: KinematicModel,
     rot: FloatArray,
@@ -89,9 +98,7 @@ def multi_start_ik(
     if model.n_joints != 6:
         raise KinematicsError(f"numeric IK needs 6 joints, model has {model.n_joints}")
     n = len(pos)
-    lo = np.maximum(limits.lower_rad, -np.pi)
-    hi = np.minimum(limits.upper_rad, np.pi)
-    lo, hi = np.where(hi > lo, lo, limits.lower_rad), np.where(hi > lo, hi, limits.upper_rad)
+    lo, hi = _start_box(limits)
     if starts_rad is None:
         starts = rng.uniform(lo, hi, size=(n, n_starts, 6))
     else:
@@ -136,9 +143,8 @@ def chosen_solution(
     ``limits``; a solution whose :func:`jacobian_conditioning` is below
     ``min_conditioning`` counts as singular. Deterministic: the same poses give the same
     joints. ``Selection.index`` is the start that found it (not a named branch)."""
-    lo = np.maximum(limits.lower_rad, -np.pi)
-    hi = np.minimum(limits.upper_rad, np.pi)
-    starts = np.random.default_rng(0).uniform(0.0, 1.0, size=(CHOSEN_STARTS, 6)) * (hi - lo) + lo
+    lo, hi = _start_box(limits)
+    starts = np.random.default_rng(0).uniform(lo, hi, size=(CHOSEN_STARTS, 6))
     ref = np.zeros(6) if reference_rad is None else np.asarray(reference_rad, dtype=float)
     ik = multi_start_ik(
         model, rot, pos, limits, np.random.default_rng(0), starts_rad=starts, reference_rad=ref
