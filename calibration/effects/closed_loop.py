@@ -349,7 +349,7 @@ class _Search:
     ) -> _Step | str:
         """The step adding ``chosen``, guarded (:func:`_guarded`). A re-identification that
         failed from the nominal start is tried once more from ``previous``'s geometry: on an
-        emulated UR10, whose base start was ~67 mm off, the gravity term's fit stalled
+        emulated UR10, whose base start was ~66 mm off, the gravity term's fit stalled
         from the nominal start though the geometric fit had converged from it."""
         problem, tell = self.problem, self.tell
         step = _guarded(

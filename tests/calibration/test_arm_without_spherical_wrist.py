@@ -117,7 +117,7 @@ def test_twin_plan_on_a_ur10_in_view_and_clear_by_the_emulator(ur10: Path, tmp_p
 
 def test_the_loop_retries_a_failed_step_from_the_last_stage_on_a_ur10() -> None:
     """On the emulated UR10's random 150 poses (seed 1) the gravity term's re-identification
-    from the nominal start (its base ~67 mm off) stalls ~58 mm off its own points, though
+    from the nominal start (its base ~66 mm off) stalls ~58 mm off its own points, though
     the geometric fit converged from there. The loop, offered that term without its
     validation guard (``ADMITTED``), must not keep such a step (it kept a twin 59 mm off),
     and identified again from the last stage's geometry the term is worth adding."""
