@@ -346,8 +346,11 @@ def collision_codes(
     pts = link_points(model, q_rad)
     r = geometry.link_radius_mm
     codes = np.zeros(pts.shape[0], dtype=np.int8)
-    # links from joint 2's origin outward (the first segment stands on the floor)
+    # links from joint 2's origin outward (the first segment stands on the floor); that
+    # origin itself only turns about joint 1's axis, at the height the mount gives it,
+    # which is no pose's doing (a UR's shoulder sits 127 mm above its table)
     above = pts[:, 1:, :, 2] - r - geometry.floor_clearance_mm
+    above[:, 0, 0] = np.inf
     codes[np.any(above < geometry.floor_z_mm, axis=(1, 2))] = 1
     for i, box in enumerate(geometry.obstacles):
         gap = np.maximum(np.maximum(box.lo - pts, pts - box.hi), 0.0)

@@ -17,7 +17,12 @@ from benchmarks.bench_plan import ADMITTED, EFFECTS, PlannedArm, seed_campaigns
 from calibration.effects.calibrate import calibrate
 from calibration.effects.model_effects import predict_tcp
 from calibration.errors import PlanError
-from calibration.model.cell_geometry import read_cell_geometry
+from calibration.model.cell_geometry import (
+    CellGeometrySpec,
+    link_points,
+    read_cell_geometry,
+    resolve,
+)
 from calibration.model.description import RobotDescription, load_robot
 from calibration.model.ik_results import JointLimits
 from calibration.model.kinematics import KinematicModel, flange_poses
@@ -47,8 +52,9 @@ max_mm = [400, 1800, 200]
 """
 
 
-def write_ur10(path: Path) -> Path:
-    lines = ['name = "UR10 (nominal)"', "[base]", "x_mm = -2500.0", "y_mm = 0.0"]
+def write_ur10(path: Path, home: str = "") -> Path:
+    lines = ['name = "UR10 (nominal)"', *([f"home_deg = {home}"] if home else [])]
+    lines += ["[base]", "x_mm = -2500.0", "y_mm = 0.0"]
     lines += ["z_mm = -300.0", "rx_deg = 0.0", "ry_deg = 0.0", "rz_deg = 0.0"]
     lines += ["[tool]", "x_mm = 0.0", "y_mm = 0.0", "z_mm = 93.0"]
     for a, alpha, d in UR10:
@@ -179,3 +185,27 @@ def test_an_unreachable_region_is_one_line_on_a_ur10(tmp_path: Path) -> None:
                   "--out", "o", cwd=tmp_path)  # fmt: skip
     assert r.returncode == 2 and not (tmp_path / "o").exists()
     assert len(r.stderr.strip().splitlines()) == 1 and "no pose the arm reaches" in r.stderr
+
+
+def test_a_ur10_on_its_table_plans_in_the_default_cell(tmp_path: Path) -> None:
+    """The default cell's floor at the robot's base, as a UR stands on its table: its
+    shoulder (joint 2's origin, 127 mm up) is closer to the floor than a link's radius and
+    the clearance, at every pose alike; only what the pose moves may count (no pose was
+    clear before). Home upright, as a UR's usually is."""
+    ur10 = write_ur10(tmp_path / "ur10.toml", home="[0.0, -90.0, 0.0, -90.0, 0.0, 0.0]")
+    args = ["--poses", "12", "--validate", "6", "--candidates", "500", "--no-sweeps"]
+    r = twin_plan("--robot", str(ur10), *args, "--out", "o", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    _, rows = read_joints(tmp_path / "o" / "campaign_joints.csv")
+    q = np.radians([[float(row[f"q{j}_deg"]) for j in range(1, 7)] for row in rows])
+    robot = load_robot(str(ur10))
+    for seed in (1, 2):
+        cell = TrueCell.create(robot, seed)
+        geometry = cell_geometry(cell, CellGeometrySpec())
+        assert np.all(true_view_codes(cell, geometry, q) == 0)
+        assert np.all(true_collision_codes(cell, geometry, q) == 0)
+    # the arm itself still keeps clear of the floor: every link point but the shoulder
+    z = link_points(KinematicModel.from_description(robot), q)[:, 1:, :, 2].copy()
+    assert np.allclose(z[:, 0, 0], 127.3)  # joint 2's origin: the mount's, not the pose's
+    z[:, 0, 0] = np.inf
+    assert np.all(z.min(axis=(1, 2)) >= resolve(CellGeometrySpec(), robot).link_radius_mm + 50.0)
