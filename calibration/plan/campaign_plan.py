@@ -77,11 +77,12 @@ from calibration.plan.plan_criterion import (
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
+#: Why a drawn pose gives no candidate (the report's "Poses dropped"), two of the reasons.
 UNREACHABLE = "out of the arm's reach"
+NEAR_SINGULARITY = "IK branch near a singularity"
 #: Batches of drawn poses after which a region none of whose poses the arm reaches is
 #: given up (a numeric inverse kinematics spends ~0.5 s a batch finding nothing).
 _GIVE_UP_BATCHES = 4
-NEAR_SINGULARITY = "IK branch near a singularity"
 
 
 @dataclass(frozen=True)
