@@ -302,11 +302,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"load average (1, 5, 15 min): {os.getloadavg()}")
     else:
         outcomes = []
+        arm = PlannedArm.from_files(args.robot, args.cell)
         for s in range(args.first_seed, args.first_seed + args.seeds):
-            o = run_seed(
-                s, effects=effects, loop=ADMITTED if args.admitted else None,
-                arm=PlannedArm.from_files(args.robot, args.cell),
-            )  # fmt: skip
+            o = run_seed(s, effects=effects, loop=ADMITTED if args.admitted else None, arm=arm)
             print(
                 f"seed {s}: planned {o.planned_mm:.4f} mm, random 50 {o.random50_mm:.4f}, "
                 f"random 150 {o.random150_mm:.4f}, travel {o.travel_ratio:.2f}x, "

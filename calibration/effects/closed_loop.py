@@ -108,9 +108,9 @@ from calibration.model.description import RobotDescription
 from calibration.model.kinematics import KinematicModel
 
 FloatArray = NDArray[np.float64]
+DEFAULT_SETTINGS = LoopSettings()
 #: A tried step: the model's effects, its identification and the gravity form's decision,
 #: or why the step failed.
-DEFAULT_SETTINGS = LoopSettings()
 _Tried = tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | str
 
 CRITERION = (
@@ -351,19 +351,16 @@ class _Search:
         failed from the nominal start is tried once more from ``previous``'s geometry: on an
         emulated UR10, whose base start was ~66 mm off, the gravity term's fit stalled
         from the nominal start though the geometric fit had converged from it."""
-        problem, tell = self.problem, self.tell
-        step = _guarded(
-            self.refit(_try_step(problem, result, specs, chosen.spec, scored, tell)),
-            problem, previous, self.settings,
-        )  # fmt: skip
+
+        def from_start(start: LoopProblem) -> _Step | str:
+            tried = _try_step(start, result, specs, chosen.spec, scored, self.tell)
+            return _guarded(self.refit(tried), self.problem, previous, self.settings)
+
+        step = from_start(self.problem)
         if not (isinstance(step, str) and step.startswith(_FAILED_FIT_REASON)):
             return step
-        tell(f"closed loop: {chosen.label}: {step}; identified again from the last stage")
-        warm = problem.started_at(previous.model)
-        return _guarded(
-            self.refit(_try_step(warm, result, specs, chosen.spec, scored, tell)),
-            problem, previous, self.settings,
-        )  # fmt: skip
+        self.tell(f"closed loop: {chosen.label}: {step}; identified again from the last stage")
+        return from_start(self.problem.started_at(previous.model))
 
     def refit(self, step: _Tried) -> _Tried:
         """``step`` with its physical gravity term's ratios refitted beside an effect added

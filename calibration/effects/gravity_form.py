@@ -21,6 +21,7 @@ from calibration.effects.effect_gravity import (
     group_moment_name,
     joint_moment,
 )
+from calibration.effects.effect_kinds import split_values
 from calibration.effects.effect_shapes import PhysicalGravityFit, fit_physical_gravity
 from calibration.errors import IdentificationError
 from calibration.identify.identification import IdentificationResult
@@ -257,8 +258,6 @@ def refit_physical_form(
     ratios' count (F-test at :data:`PHYSICAL_FORM_ALPHA`). The parameter count may not
     grow (a limit form that splits more groups is the loop's own choice to score, not a
     refit's)."""
-    from calibration.effects.effect_kinds import split_values
-
     at = [i for i, s in enumerate(specs) if s.kind == "gravity_deflection"]
     if len(at) != 1 or specs[at[0]].parameter != "physical":
         return None
