@@ -84,6 +84,7 @@ def run_compensate(args: argparse.Namespace) -> int:
             rpy_deg=targets.rpy_deg,
             t_s=targets.t_s,
             force_n=force,
+            skip_unreached=args.skip_bad,
         )
         bad = np.flatnonzero(~res.ok)
         if bad.size and not args.skip_bad:
