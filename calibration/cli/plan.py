@@ -27,6 +27,7 @@ from edges.outputs import OutputSet
 if TYPE_CHECKING:
     from calibration.model.cell_geometry import CellGeometry
     from calibration.model.description import RobotDescription
+    from calibration.plan.robot_programs import ProgramSettings
 
 #: The most poses either set may have (the candidate pool is this times a few).
 MAX_PLAN_POSES = 2000
@@ -110,7 +111,7 @@ def run_plan(args: argparse.Namespace) -> int:
     from calibration.model.description import load_robot
     from calibration.plan.campaign_plan import PlanSettings, plan_campaign
     from calibration.plan.plan_report import plan_report
-    from calibration.plan.robot_programs import ProgramSettings, krl_program, rapid_module
+    from calibration.plan.robot_programs import ProgramSettings
     from edges.toml_schema import parse_toml_file
 
     robot_file = args.robot if Path(args.robot).exists() else None
@@ -141,12 +142,7 @@ def run_plan(args: argparse.Namespace) -> int:
         (staged / "campaign_joints.csv").write_text(
             joints_csv(q_deg, plan.is_identify), encoding="utf-8"
         )
-        src, dat = krl_program(robot, q_deg, labels, via, prog)
-        (staged / f"{prog.name}.src").write_text(src, encoding="utf-8")
-        (staged / f"{prog.name}.dat").write_text(dat, encoding="utf-8")
-        (staged / f"{prog.name}.mod").write_text(
-            rapid_module(robot, q_deg, labels, via, prog), encoding="utf-8"
-        )
+        _write_programs(staged, robot, q_deg, labels, via, prog)
         report = plan_report(robot, geometry, settings, plan, prog)
         if not args.no_sweeps:
             report += _write_sweeps(staged, robot, geometry, args.seed)
@@ -163,7 +159,7 @@ def run_plan(args: argparse.Namespace) -> int:
 def _write_sweeps(staged: Path, robot: RobotDescription, geometry: CellGeometry, seed: int) -> str:
     """Plan the scale-calibration sweeps, stage ``sweeps.csv`` and ``twin_sweeps.*``;
     the report's section on them."""
-    from calibration.plan.robot_programs import ProgramSettings, krl_program, rapid_module
+    from calibration.plan.robot_programs import ProgramSettings
     from calibration.plan.sweep_plan import (
         SweepSettings,
         plan_sweeps,
@@ -183,16 +179,35 @@ def _write_sweeps(staged: Path, robot: RobotDescription, geometry: CellGeometry,
         content="sweep stops, each joint forward then back",
     )
     q_deg, labels, via = sweep_program_poses(sweeps)
+    _write_programs(staged, robot, q_deg, labels, via, prog)
+    lost = [s.joint for s in sweeps.sweeps if not s.whole]
+    if lost:
+        print(f"sweeps: joints {lost} not swept whole in view (see report.md)")
+    return sweep_report(robot, sweeps)
+
+
+def _write_programs(
+    staged: Path,
+    robot: RobotDescription,
+    q_deg: NDArray[np.float64],
+    labels: list[str],
+    via: set[int],
+    prog: ProgramSettings,
+) -> None:
+    """Stage ``prog``'s KRL ``.src``/``.dat`` and RAPID ``.mod`` for the poses ``q_deg``
+    ``(N, 6)``; none for an arm that is not 6-axis (said once, on stdout)."""
+    from calibration.plan.robot_programs import krl_program, programs_refused, rapid_module
+
+    refused = programs_refused(robot)
+    if refused is not None:
+        print(f"{prog.name}: no KRL or RAPID program: {refused}")
+        return
     src, dat = krl_program(robot, q_deg, labels, via, prog)
     (staged / f"{prog.name}.src").write_text(src, encoding="utf-8")
     (staged / f"{prog.name}.dat").write_text(dat, encoding="utf-8")
     (staged / f"{prog.name}.mod").write_text(
         rapid_module(robot, q_deg, labels, via, prog), encoding="utf-8"
     )
-    lost = [s.joint for s in sweeps.sweeps if not s.whole]
-    if lost:
-        print(f"sweeps: joints {lost} not swept whole in view (see report.md)")
-    return sweep_report(robot, sweeps)
 
 
 def joints_csv(q_deg: NDArray[np.float64], is_identify: NDArray[np.bool_]) -> str:

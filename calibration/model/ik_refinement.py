@@ -61,7 +61,7 @@ def refine(
     tol_rad: float,
     max_iterations: int,
 ) -> tuple[FloatArray, BoolArray, NDArray[np.int_]]:
-    """Levenberg-Marquardt on the model's geometric Jacobian, flattened solutions ``(M, 6)``.
+    """Levenberg-Marquardt on the model's geometric Jacobian, flattened solutions ``(M, n)``.
 
     The damping starts negligible (plain Newton, quadratic convergence) and grows only
     where a step fails to reduce the error, which near a singularity keeps the step
@@ -91,7 +91,7 @@ def refine(
         jac = geometric_jacobian(model, q[idx], point="flange", frame="base")
         jtw = np.swapaxes(jac, 1, 2) * weight
         normal = jtw @ jac
-        normal += (mu[idx] * np.trace(normal, axis1=1, axis2=2))[:, None, None] * np.eye(6)
+        normal += (mu[idx] * np.trace(normal, axis1=1, axis2=2))[:, None, None] * np.eye(q.shape[1])
         q_try = q[idx] + np.linalg.solve(normal, (jtw @ e[:, :, None]))[:, :, 0]
         e_try = _stacked_error(model, q_try, rot[idx], pos[idx])
         better = np.sum(weight * e_try**2, axis=1) < np.sum(weight * e**2, axis=1)

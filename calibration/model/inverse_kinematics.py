@@ -66,7 +66,8 @@ BoolArray = NDArray[np.bool_]
 
 # Travel weights of the shortest-travel rule: the main axes move the arm's mass and swing
 # the TCP by the whole reach, the wrist only by the flange distance, so a radian of a main
-# axis costs more than a radian of the wrist.
+# axis costs more than a radian of the wrist (an arm of more joints: 1 for each joint after
+# the sixth).
 DEFAULT_TRAVEL_WEIGHTS: tuple[float, ...] = (3.0, 3.0, 2.0, 1.0, 1.0, 1.0)
 
 
@@ -82,18 +83,19 @@ def select_solution(
     valid: ArrayLike | None = None,
     singular: ArrayLike | None = None,
     limits: JointLimits | None = None,
-    weights: ArrayLike = DEFAULT_TRAVEL_WEIGHTS,
+    weights: ArrayLike | None = None,
     singular_penalty: float = np.inf,
 ) -> Selection:
     """Shortest-travel choice among IK solutions (method section 5).
 
-    ``solutions_rad`` ``(N, B, 6)``; ``q_current_rad`` ``(N, 6)`` or ``(6,)``; ``valid``
+    ``solutions_rad`` ``(N, B, n)``; ``q_current_rad`` ``(N, n)`` or ``(n,)``; ``valid``
     and ``singular`` ``(N, B)`` (default: all valid where finite, none singular).
     Each joint is first moved to its 2π-equivalent within ``limits`` nearest the current
     value; candidates outside the limits or invalid are dropped. The rest are ranked by
-    weighted travel ``Σ w_j·|Δq_j|`` (rad; the default weights make the main axes dearer
-    than the wrist) plus ``singular_penalty`` for a singular one. The default infinite
-    penalty is the method's order: any non-singular candidate beats every singular one,
+    weighted travel ``Σ w_j·|Δq_j|`` (rad; the default weights,
+    :data:`DEFAULT_TRAVEL_WEIGHTS`, make the main axes dearer than the wrist) plus
+    ``singular_penalty`` for a singular one. The default infinite penalty is the method's
+    order: any non-singular candidate beats every singular one,
     singular ones are chosen only when nothing else is left. A finite penalty (rad of
     weighted travel) trades a near-singular wrist against large main-axis moves instead.
     """
@@ -105,6 +107,8 @@ def select_solution(
     if cur.shape not in ((n,), (n_pose, n)):
         raise KinematicsError(f"q_current must have shape ({n},) or ({n_pose}, {n})")
     cur = np.broadcast_to(cur, (n_pose, n))
+    if weights is None:
+        weights = (DEFAULT_TRAVEL_WEIGHTS + (1.0,) * n)[:n]
     w = np.asarray(weights, dtype=float)
     if w.shape != (n,) or np.any(w < 0):
         raise KinematicsError(f"weights must be {n} non-negative numbers, got {w.tolist()}")

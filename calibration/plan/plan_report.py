@@ -8,7 +8,7 @@ import numpy as np
 from calibration.model.cell_geometry import CellGeometry
 from calibration.model.description import RobotDescription
 from calibration.plan.campaign_plan import CampaignPlan, PlanSettings, joint_speeds_rad_s
-from calibration.plan.robot_programs import ProgramSettings
+from calibration.plan.robot_programs import ProgramSettings, programs_refused
 
 
 def _vec(v: np.ndarray) -> str:
@@ -108,9 +108,7 @@ def plan_report(
         f"{travel.random_time_s:.1f} s for a random order (mean of 20): "
         f"{travel.time_s / travel.random_time_s:.2f}×. Nearest neighbour, then 2-opt.",
         f"Moves through Home (the direct move is not clear of the cell): {len(travel.via_home)}.",
-        f"Programs: KRL PTP at {programs.krl_velocity_pct} % axis speed, RAPID MoveAbsJ "
-        f"{programs.rapid_speed}; zone: exact stop (no approximation / fine); dwell "
-        f"{programs.dwell_s:g} s per pose.",
+        _programs_line(description, programs),
         "",
         "## Poses dropped",
         "",
@@ -121,3 +119,14 @@ def plan_report(
         if count:
             lines.append(f"| {why} | {count} |")
     return "\n".join(lines) + "\n"
+
+
+def _programs_line(description: RobotDescription, programs: ProgramSettings) -> str:
+    refused = programs_refused(description)
+    if refused is not None:
+        return f"Programs: none ({refused}); `campaign_joints.csv` holds the joints."
+    return (
+        f"Programs: KRL PTP at {programs.krl_velocity_pct} % axis speed, RAPID MoveAbsJ "
+        f"{programs.rapid_speed}; zone: exact stop (no approximation / fine); dwell "
+        f"{programs.dwell_s:g} s per pose."
+    )

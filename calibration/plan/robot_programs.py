@@ -69,12 +69,22 @@ def format_angle(v: float) -> str:
     return "0." + "0" * DECIMALS if text == "-0." + "0" * DECIMALS else text
 
 
+def programs_refused(description: RobotDescription) -> str | None:
+    """Why no KRL or RAPID program is written for ``description`` (None: they are). Both
+    are for the vendors' 6-axis arms (``E6AXIS`` A1..A6, ``robax`` rax_1..rax_6); an arm
+    of another count is not programmed in either, and its joints are in the CSV files."""
+    if description.n_joints == 6:
+        return None
+    return (
+        f"KRL and RAPID programs are written for 6-axis arms, {description.name!r} has "
+        f"{description.n_joints} joints"
+    )
+
+
 def _check(description: RobotDescription) -> None:
-    if description.n_joints != 6:
-        raise ProgramError(
-            f"robot {description.name!r}: KRL and RAPID programs are written for 6 axes, "
-            f"it has {description.n_joints}"
-        )
+    refused = programs_refused(description)
+    if refused is not None:
+        raise ProgramError(f"robot {description.name!r}: {refused}")
 
 
 def krl_program(
