@@ -71,6 +71,11 @@ BoolArray = NDArray[np.bool_]
 DEFAULT_TRAVEL_WEIGHTS: tuple[float, ...] = (3.0, 3.0, 2.0, 1.0, 1.0, 1.0)
 
 
+def _travel_weights(n: int) -> tuple[float, ...]:
+    """:data:`DEFAULT_TRAVEL_WEIGHTS` for an arm of ``n`` joints (1 past the sixth)."""
+    return (DEFAULT_TRAVEL_WEIGHTS + (1.0,) * n)[:n]
+
+
 # With branches="chosen" the seeds are ranked allowing them this far past a joint limit.
 _SEED_LIMIT_SLACK_RAD = float(np.radians(5.0))
 
@@ -107,9 +112,7 @@ def select_solution(
     if cur.shape not in ((n,), (n_pose, n)):
         raise KinematicsError(f"q_current must have shape ({n},) or ({n_pose}, {n})")
     cur = np.broadcast_to(cur, (n_pose, n))
-    if weights is None:
-        weights = (DEFAULT_TRAVEL_WEIGHTS + (1.0,) * n)[:n]
-    w = np.asarray(weights, dtype=float)
+    w = np.asarray(_travel_weights(n) if weights is None else weights, dtype=float)
     if w.shape != (n,) or np.any(w < 0):
         raise KinematicsError(f"weights must be {n} non-negative numbers, got {w.tolist()}")
     if not singular_penalty >= 0:
