@@ -13,7 +13,8 @@ Two effects of the library are not linear in all their parameters:
   ratios ρ and the compliance-weighted moments w. :func:`fit_physical_gravity` starts from
   the linear form's free deflections ``p_jk`` (a rank-one factorization ``p_jk ≈ ρ_j·w_k``)
   and minimizes the residual over (ρ, w) with the model's span projected out
-  (``scipy.optimize.least_squares``), ρ of the reference joint fixed at 1.
+  (``scipy.optimize.least_squares``), ρ of the reference joint fixed at 1; a fit that fails
+  with a negative ratio (a negative compliance) is made again with the ratios held ≥ 0.
 
 Both work on :class:`~calibration.effects.candidate_scoring.LinearizedModel`: the identification's
 weighted residual and Jacobian at the current solution, so the geometry is refitted
@@ -194,7 +195,24 @@ def fit_physical_gravity(
     deflection moves the TCP most. When ratios run off (the data do not bound a joint's
     ratio: its moments go to 0 while it goes to ∞), the fit is split into the limit form
     (:class:`PhysicalGravityFit`) and refitted, until no group's ratios run off.
+
+    A fit that fails with a negative ratio (a negative compliance: joints' deflections
+    cancelled against each other, ratios of ±10⁶–10¹⁰ on an emulated Barrett WAM's
+    planned poses) is made again with the ratios bounded at 0; a ratio at 0 is a joint
+    whose deflection the data do not show. A fit that succeeds is kept as it is, a small
+    negative ratio within its error included (a counterbalanced joint's, near 0).
     """
+    fit = _fit_physical_gravity(lin, blocks, bounded=False)
+    if fit.success or not np.any(fit.ratios < 0.0):
+        return fit
+    bounded = _fit_physical_gravity(lin, blocks, bounded=True)
+    return bounded if bounded.success else fit
+
+
+def _fit_physical_gravity(
+    lin: LinearizedModel, blocks: dict[int, FloatArray], *, bounded: bool
+) -> PhysicalGravityFit:
+    """:func:`fit_physical_gravity`'s fit, the ratios ``bounded`` at 0 or free."""
     joints = tuple(sorted(blocks))
     y = -lin.fit0
     perp = {j: lin.perp(blocks[j]) for j in joints}
@@ -222,15 +240,38 @@ def fit_physical_gravity(
             y,
         )
         x0 = np.concatenate([rho[form.free], w[form.keep]])
-        sol = least_squares(
-            form.residual, x0, jac=form.jacobian, method="lm", xtol=1e-12, ftol=1e-12
-        )
+        sol = _solve(form, x0, bounded)
         rho, w = form.unpack(sol.x)
         split = _split_runaway(groups, rho, shift)
         if split is None or attempt == len(joints) - 1:
             break
         groups, owner, rho, w = _limit_groups(split, groups, owner, rho, w, loads)
     return _result(lin, form, sol, joints, groups, owner, shift)
+
+
+def _solve(form: _PhysicalForm, x0: FloatArray, bounded: bool) -> OptimizeResult:
+    """``form``'s least squares from ``x0``; ``bounded``: the free ratios held ≥ 0 (started
+    from their magnitudes), a ratio ending at the bound set to 0."""
+    if not bounded:
+        return least_squares(
+            form.residual, x0, jac=form.jacobian, method="lm", xtol=1e-12, ftol=1e-12
+        )
+    n = len(form.free)
+    lower = np.concatenate([np.zeros(n), np.full(len(x0) - n, -np.inf)])
+    start = np.concatenate([np.maximum(np.abs(x0[:n]), _RATIO_START_FLOOR), x0[n:]])
+    sol = least_squares(
+        form.residual, start, jac=form.jacobian, method="trf", bounds=(lower, np.inf),
+        x_scale="jac", xtol=1e-12, ftol=1e-12,
+    )  # fmt: skip
+    at_bound = np.flatnonzero(sol.x[:n] < _RATIO_AT_BOUND)
+    sol.x[at_bound] = 0.0  # the interior method stops a hair inside its bound
+    return sol
+
+
+#: A bounded refit starts every ratio at least this far inside its bound at 0, and a ratio
+#: it ends below the second is at the bound (ratios are relative to the reference's 1).
+_RATIO_START_FLOOR = 1e-6
+_RATIO_AT_BOUND = 1e-12
 
 
 def _result(
@@ -275,14 +316,19 @@ def _group_of(groups: list[list[int]], i: int) -> int:
 
 def _ratio_parts(g: list[int], rho: FloatArray) -> list[list[int]]:
     """Group ``g``'s joints split where their ratios (sorted) jump by more than
-    :data:`LIMIT_RATIO_GAP`."""
-    size = np.log10(np.maximum(np.abs(rho[g]), 1e-300))
+    :data:`LIMIT_RATIO_GAP`; a joint whose ratio a bounded fit left at 0 (its deflection
+    not seen) stays with the group's reference ``g[0]``: 0 is its value, not a run-off."""
+    zero = [i for i in g if rho[i] == 0.0 and i != g[0]]
+    rest = [i for i in g if i not in zero]
+    size = np.log10(np.maximum(np.abs(rho[rest]), 1e-300))
     order = np.argsort(size)
-    parts: list[list[int]] = [[g[order[0]]]]
+    parts: list[list[int]] = [[rest[order[0]]]]
     for a, b in pairwise(order):
         if size[b] - size[a] > np.log10(LIMIT_RATIO_GAP):
             parts.append([])
-        parts[-1].append(g[b])
+        parts[-1].append(rest[b])
+    home = next(part for part in parts if g[0] in part)
+    home.extend(zero)
     return parts
 
 
