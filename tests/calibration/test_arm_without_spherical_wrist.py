@@ -26,7 +26,7 @@ from calibration.model.cell_geometry import (
 from calibration.model.description import RobotDescription, load_robot
 from calibration.model.ik_results import JointLimits
 from calibration.model.kinematics import KinematicModel, flange_poses
-from calibration.model.numeric_ik import jacobian_conditioning, multi_start_ik
+from calibration.model.numeric_ik import NumericIK, jacobian_conditioning, multi_start_ik
 from calibration.model.pieper_closed_form import has_spherical_approximation
 from calibration.twin.compensation import compensate, rotation_xyz
 from sim_devices.pose_campaign import CampaignSettings, measure_campaign
@@ -79,14 +79,21 @@ def test_multi_start_ik_reaches_the_poses_of_a_ur10(ur10: Path) -> None:
     t = flange_poses(model, q_true, world=False)
     limits = JointLimits.from_description(robot)
     ik = multi_start_ik(model, t[:, :3, :3], t[:, :3, 3], limits, rng, n_starts=8)
-    # most poses are reached from one of 8 random starts (rest: starts that ran into a
-    # singularity); every solution reported reproduces the pose
+    assert_poses_reached(model, ik, t, limits)
+
+
+def assert_poses_reached(
+    model: KinematicModel, ik: NumericIK, flange: np.ndarray, limits: JointLimits
+) -> None:
+    """Most poses (``flange`` ``(N, 4, 4)``, base frame) reached from one of the starts
+    (the rest: starts that ran into a singularity); every solution reported reproduces its
+    pose by forward kinematics, inside the limits."""
     assert ik.within_limits.any(axis=1).mean() > 0.9
     q = ik.solutions_rad[ik.within_limits]
     rows = np.nonzero(ik.within_limits)[0]
     back = flange_poses(model, q, world=False)
-    assert np.abs(back[:, :3, 3] - t[rows, :3, 3]).max() < 1e-5
-    assert np.abs(back[:, :3, :3] - t[rows, :3, :3]).max() < 1e-8
+    assert np.abs(back[:, :3, 3] - flange[rows, :3, 3]).max() < 1e-5
+    assert np.abs(back[:, :3, :3] - flange[rows, :3, :3]).max() < 1e-8
     assert np.all((q >= limits.lower_rad) & (q <= limits.upper_rad))
 
 
@@ -150,6 +157,18 @@ def test_the_loop_retries_a_failed_step_from_the_last_stage_on_a_ur10() -> None:
     assert error(fitted.description) < 0.5 * error(geometric.description)
 
 
+def fixed_xyz_deg(rot: np.ndarray) -> np.ndarray:
+    """Fixed-axis X-Y-Z angles ``(N, 3)`` deg of rotations ``(N, 3, 3)``, as
+    `twin compensate`'s ``rx_deg,ry_deg,rz_deg`` state them (R = Rz·Ry·Rx)."""
+    return np.degrees(
+        np.stack(
+            [np.arctan2(rot[:, 2, 1], rot[:, 2, 2]), -np.arcsin(rot[:, 2, 0]),
+             np.arctan2(rot[:, 1, 0], rot[:, 0, 0])],
+            axis=1,
+        )
+    )  # fmt: skip
+
+
 def test_compensate_with_an_orientation_on_a_ur10() -> None:
     """`twin compensate`'s orientation targets need the inverse kinematics as a start; on a
     UR10 it is the numeric one (16 fixed starts, the shortest travel from zero)."""
@@ -161,13 +180,7 @@ def test_compensate_with_an_orientation_on_a_ur10() -> None:
     t = flange_poses(model, q)  # the tracker frame, as targets are given
     rot = t[:, :3, :3]
     tcp = t[:, :3, 3] + rot @ model.tool_mm
-    rpy = np.degrees(
-        np.stack(
-            [np.arctan2(rot[:, 2, 1], rot[:, 2, 2]), -np.arcsin(rot[:, 2, 0]),
-             np.arctan2(rot[:, 1, 0], rot[:, 0, 0])],
-            axis=1,
-        )
-    )  # fmt: skip
+    rpy = fixed_xyz_deg(rot)
     assert np.allclose(rotation_xyz(rpy), rot, atol=1e-12)
     out = compensate(robot, tcp, rpy_deg=rpy)
     assert out.ok.all(), out.reason

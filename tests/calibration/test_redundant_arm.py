@@ -3,7 +3,8 @@ family of joint vectors and no closed form. The numeric inverse kinematics
 (:mod:`calibration.model.numeric_ik`) checked by forward kinematics; `twin compensate` with
 orientations and with lost motion; `twin plan` checked by the emulator's own cell
 geometry, its joint file written and its KRL and RAPID programs said to be for 6-axis
-arms; the closed loop on the emulated arm."""
+arms; the closed loop on the emulated arm, its gravity form's ratios kept ≥ 0 where a
+free fit cancels joints against each other."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchmarks.bench_plan import EFFECTS, PlannedArm, seed_campaigns
 from calibration.effects.calibrate import calibrate
 from calibration.effects.model_effects import predict_tcp
 from calibration.errors import KinematicsError, PlanError
@@ -27,6 +29,7 @@ from sim_devices.effects import UndeclaredEffects
 from sim_devices.pose_campaign import CampaignSettings, measure_campaign
 from sim_devices.tracker_view import cell_geometry, true_collision_codes, true_view_codes
 from sim_devices.truth import TrueCell
+from tests.calibration.test_arm_without_spherical_wrist import assert_poses_reached, fixed_xyz_deg
 from tests.calibration.test_campaign_plan import ROOT, read_joints, twin_plan
 
 WAM = ROOT / "benchmarks" / "wam_cell"
@@ -51,13 +54,7 @@ def test_multi_start_ik_reaches_the_poses_of_a_7_axis_arm() -> None:
     rng = np.random.default_rng(4)
     ik = multi_start_ik(model, t[:, :3, :3], t[:, :3, 3], limits, rng, n_starts=8)
     assert ik.solutions_rad.shape == (len(q_true), 8, 7)
-    assert ik.within_limits.any(axis=1).mean() > 0.9
-    q = ik.solutions_rad[ik.within_limits]
-    rows = np.nonzero(ik.within_limits)[0]
-    back = flange_poses(model, q, world=False)
-    assert np.abs(back[:, :3, 3] - t[rows, :3, 3]).max() < 1e-5
-    assert np.abs(back[:, :3, :3] - t[rows, :3, :3]).max() < 1e-8
-    assert np.all((q >= limits.lower_rad) & (q <= limits.upper_rad))
+    assert_poses_reached(model, ik, t, limits)
     # redundant: the starts settle on different members of a pose's family of joints
     several = ik.within_limits.sum(axis=1) >= 2
     found = np.where(ik.within_limits[..., None], ik.solutions_rad, np.nan)[several]
@@ -85,13 +82,7 @@ def test_compensate_on_a_7_axis_arm_with_orientations_and_lost_motion() -> None:
     t = flange_poses(model, q)
     rot, tcp = t[:, :3, :3], t[:, :3, 3] + t[:, :3, :3] @ model.tool_mm
     programmed = compensate(cal, tcp, q_programmed_deg=np.degrees(q))
-    rpy = np.degrees(
-        np.stack(
-            [np.arctan2(rot[:, 2, 1], rot[:, 2, 2]), -np.arcsin(rot[:, 2, 0]),
-             np.arctan2(rot[:, 1, 0], rot[:, 0, 0])],
-            axis=1,
-        )
-    )  # fmt: skip
+    rpy = fixed_xyz_deg(rot)
     stated = compensate(cal, tcp, rpy_deg=rpy)
     for res in (programmed, stated):
         assert res.ok.all(), res.reason
@@ -156,3 +147,27 @@ def test_the_closed_loop_on_an_emulated_7_axis_arm() -> None:
     print(f"WAM: geometric {error(geometric.description):.4f} mm, twin "
           f"{error(twin.description):.4f} mm, {added}")  # fmt: skip
     assert error(twin.description) < 0.7 * error(geometric.description)
+
+
+def test_gravity_ratios_that_cancel_each_other_are_bounded_at_zero() -> None:
+    """On the emulated WAM's planned 50 poses (seed 2) the physical gravity form's fit ran
+    joints 3-7's compliance ratios off with opposite signs (-4.6·10⁶, 6.1·10⁷, ...: two
+    joints' deflections cancelled against each other), so it did not converge, the form
+    was not offered in any round, and the loop kept the geometry and a cyclic error:
+    held-out 0.0313 mm, 0.8× the geometry alone. A compliance is not negative: such a fit
+    is made again with the ratios bounded at 0, and gravity is added."""
+    arm = PlannedArm.from_files(str(WAM / "robot.toml"), str(WAM / "cell.toml"))
+    sc = seed_campaigns(2, 5000, 50, arm)
+    settings = CampaignSettings(effects=EFFECTS)
+    data = measure_campaign(sc.cell, sc.q_id, sc.q_val, np.random.default_rng([2, 7]), settings)
+    twin = calibrate(sc.nominal, data.campaign, effects=True, learned=False)
+    geometric = calibrate(sc.nominal, data.campaign, effects=False)
+    held = measure_campaign(sc.cell, sc.held[:0], sc.held, np.random.default_rng([2, 8]), settings)
+
+    def error(description) -> float:  # type: ignore[no-untyped-def]
+        p = predict_tcp(description, held.campaign.q_rad, held.campaign.t_s)
+        return float(np.mean(np.linalg.norm(p - held.true_prediction_mm, axis=1)))
+
+    assert twin.loop is not None
+    assert any(s.kind == "gravity_deflection" for s in twin.loop.final.specs)
+    assert error(twin.description) < 0.5 * error(geometric.description)
