@@ -383,9 +383,12 @@ class _Search:
             lin, sw, kin = problem.linearized(res, model, self.settings)
             return lin, problem.columns(linear[0], sw, kin)
 
+        # from the step's own geometry: from the nominal start the UR10's refit stalled as
+        # its steps did (_Search.attempt), and kept ratios fitted beside no cyclic error
         refit = refit_physical_form(
-            problem.ctx, specs, result, linear[0], problem.identify, linearize
-        )
+            problem.ctx, specs, result, linear[0], problem.started_at(result.model).identify,
+            linearize,
+        )  # fmt: skip
         if refit is None:
             return step
         self.tell(f"closed loop: gravity deflection, {refit[2]['gravity_form']['reason']}")

@@ -222,3 +222,22 @@ def test_a_ur10_on_its_table_plans_in_the_default_cell(tmp_path: Path) -> None:
     assert np.allclose(z[:, 0, 0], 127.3)  # joint 2's origin: the mount's, not the pose's
     z[:, 0, 0] = np.inf
     assert np.all(z.min(axis=(1, 2)) >= resolve(CellGeometrySpec(), robot).link_radius_mm + 50.0)
+
+
+def test_the_ratio_refit_starts_from_the_steps_geometry_on_a_ur10() -> None:
+    """On the emulated UR10's planned 50 poses (seed 6) the gravity term's compliance
+    ratios, refitted once joint 1's cyclic error is in, were identified from the nominal
+    start (the base ~66 mm off): the refit stalled, was not significant, and the ratios
+    fitted beside no cyclic error stayed (held-out 0.0170 mm). From the step's own geometry
+    the refit goes through and the twin is 0.0137 mm."""
+    robot, cell = (str(ROOT / "benchmarks/ur10_cell" / f) for f in ("robot.toml", "cell.toml"))
+    sc = seed_campaigns(6, 5000, 50, PlannedArm.from_files(robot, cell))
+    settings = CampaignSettings(effects=EFFECTS)
+    data = measure_campaign(sc.cell, sc.q_id, sc.q_val, np.random.default_rng([6, 7]), settings)
+    said: list[str] = []
+    twin = calibrate(sc.nominal, data.campaign, effects=True, say=said.append)
+    held = measure_campaign(sc.cell, sc.held[:0], sc.held, np.random.default_rng([6, 8]), settings)
+    p = predict_tcp(twin.description, held.campaign.q_rad, held.campaign.t_s)
+    error = float(np.mean(np.linalg.norm(p - held.true_prediction_mm, axis=1)))
+    assert any("ratios refitted beside cyclic error of joint 1" in line for line in said)
+    assert error < 0.015
