@@ -7,8 +7,8 @@ it finds joints whose calibrated prediction is the target, keeping a tool orient
 
 The orientation is the calibrated model's flange orientation at the programmed joints
 (``q_programmed_deg``), or a stated one (``rpy_deg``: fixed-axis X-Y-Z in the tracker
-frame). The solve is a Newton iteration over all targets at once, ``(m, 6, 6)`` batched
-solves: the position error comes from the full predictor
+frame). The solve is a Newton iteration over all targets at once, ``(m, 6, n)`` batched
+least-squares solves (n joints): the position error comes from the full predictor
 (:func:`calibration.effects.model_effects.predict_tcp`: geometry, base, tool and every effect),
 the orientation error and the Jacobian from the calibrated geometry (the effects are
 smooth and small against it: each step cuts the error by orders of magnitude). The start
