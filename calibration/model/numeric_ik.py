@@ -153,40 +153,24 @@ def chosen_solution(
     whose :func:`jacobian_conditioning` is below ``min_conditioning`` counts as singular.
     Deterministic: the same poses give the same joints. ``Selection.index`` is the start
     that found it (not a named branch)."""
+    n = model.n_joints
     lo, hi = _start_box(limits)
-    all_starts = np.random.default_rng(0).uniform(
-        lo, hi, size=(CHOSEN_STARTS + FURTHER_STARTS, model.n_joints)
-    )
-    ref = (
-        np.zeros(model.n_joints)
-        if reference_rad is None
-        else np.asarray(reference_rad, dtype=float)
-    )
-
-    def solved(rows: NDArray[np.intp], starts: FloatArray) -> NumericIK:
-        rng = np.random.default_rng(0)
-        return multi_start_ik(
-            model, rot[rows], pos[rows], limits, rng, starts_rad=starts, reference_rad=ref
-        )
-
-    first = solved(np.arange(len(pos)), all_starts[:CHOSEN_STARTS])
-    k, more = CHOSEN_STARTS + FURTHER_STARTS, FURTHER_STARTS
-    solutions = np.full((len(pos), k, model.n_joints), np.nan)
-    within = np.zeros((len(pos), k), dtype=bool)
-    solutions[:, :CHOSEN_STARTS], within[:, :CHOSEN_STARTS] = (
-        first.solutions_rad,
-        first.within_limits,
-    )
-    unfound = np.flatnonzero(~first.within_limits.any(axis=1))
-    if unfound.size and more:
-        again = solved(unfound, all_starts[CHOSEN_STARTS:])
-        solutions[unfound, CHOSEN_STARTS:] = again.solutions_rad
-        within[unfound, CHOSEN_STARTS:] = again.within_limits
-    ik = NumericIK(solutions, np.isfinite(solutions).all(axis=2), within)
-    singular = np.zeros(ik.within_limits.shape, dtype=bool)
-    if ik.within_limits.any():
-        cond = jacobian_conditioning(model, ik.solutions_rad[ik.within_limits])
-        singular[ik.within_limits] = cond < min_conditioning
-    return select_solution(
-        ik.solutions_rad, ref, valid=ik.within_limits, singular=singular, limits=limits
-    )
+    starts = np.random.default_rng(0).uniform(lo, hi, size=(CHOSEN_STARTS + FURTHER_STARTS, n))
+    ref = np.zeros(n) if reference_rad is None else np.asarray(reference_rad, dtype=float)
+    solutions = np.full((len(pos), len(starts), n), np.nan)
+    within = np.zeros(solutions.shape[:2], dtype=bool)
+    rows = np.arange(len(pos))
+    for part in (slice(0, CHOSEN_STARTS), slice(CHOSEN_STARTS, None)):
+        rows = rows[~within[rows].any(axis=1)]  # the poses no start has solved yet
+        if rows.size == 0:
+            break
+        ik = multi_start_ik(
+            model, rot[rows], pos[rows], limits, np.random.default_rng(0),
+            starts_rad=starts[part], reference_rad=ref,
+        )  # fmt: skip
+        solutions[rows, part] = ik.solutions_rad
+        within[rows, part] = ik.within_limits
+    singular = np.zeros(within.shape, dtype=bool)
+    if within.any():
+        singular[within] = jacobian_conditioning(model, solutions[within]) < min_conditioning
+    return select_solution(solutions, ref, valid=within, singular=singular, limits=limits)

@@ -84,7 +84,7 @@ def programs_refused(description: RobotDescription) -> str | None:
 def _check(description: RobotDescription) -> None:
     refused = programs_refused(description)
     if refused is not None:
-        raise ProgramError(f"robot {description.name!r}: {refused}")
+        raise ProgramError(refused)
 
 
 def krl_program(

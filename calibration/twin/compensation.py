@@ -33,7 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from calibration.effects.model_effects import predict_tcp
+from calibration.effects.effect_kinds import split_values
+from calibration.effects.model_effects import description_effects, predict_tcp
 from calibration.errors import CompensationError, StiffnessError
 from calibration.model.description import RobotDescription
 from calibration.model.ik_results import JointLimits
@@ -314,10 +315,11 @@ def _lost_motion_reasons(
     a joint standing off by ``h`` in its direction of motion cannot end within ``h`` of
     where the move starts (moving up it ends above ``p + h``, down below ``p − h``), so a
     target that close to the one before it on that joint has no direct move."""
+    specs, values = description_effects(description)
     half = {
-        int(e.parameters["joint"]): abs(float(e.parameters["half_width_deg"]))  # type: ignore[arg-type]
-        for e in description.effects
-        if e.kind == "lost_motion"
+        s.joint: abs(float(v[0]))
+        for s, v in zip(specs, split_values(specs, values), strict=True)
+        if s.kind == "lost_motion"
     }
     rows = np.flatnonzero(finite)
     if not half or rows.size == 0:
