@@ -26,12 +26,16 @@ selection time of 50 from 5000 against a plain greedy D-optimal selection in the
     python -m benchmarks.bench_plan --speed          # the selection's time alone (seconds)
     python -m benchmarks.bench_plan --robot benchmarks/ur10_cell/robot.toml \
         --cell benchmarks/ur10_cell/cell.toml        # a UR10: no spherical wrist
+    python -m benchmarks.bench_plan --set cyclic_joint=3 --set cyclic_order=1  # other truths:
+    python -m benchmarks.bench_plan --effects \
+        gravity_deflection,joint_coupling,grating_cyclic,tracker_scale  # (docs/planning.md)
     python -m benchmarks --only plan --quick         # smoke run, numbers mean nothing
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 from collections.abc import Sequence
@@ -264,6 +268,26 @@ def summarize(outcomes: Sequence[SeedOutcome]) -> list[Row]:
     return rows
 
 
+def truth_effects(clean: bool, names: str | None, settings: Sequence[str]) -> UndeclaredEffects:
+    """The emulator's effects: none (``clean``), the ``names`` given (comma-separated) or
+    :data:`EFFECTS`'s, with ``settings`` ``KEY=VALUE`` (a JSON value; a list is a tuple)."""
+    overrides: dict[str, Any] = {}
+    fields = set(UndeclaredEffects().document())
+    for item in settings:
+        key, eq, text = item.partition("=")
+        if not eq or key not in fields:
+            raise ValueError(f"--set {item!r}: not KEY=VALUE with KEY an effect setting")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--set {item!r}: the value is not JSON ({exc.msg})") from None
+        overrides[key] = tuple(value) if isinstance(value, list) else value
+    if clean:
+        return replace(UndeclaredEffects(), **overrides)
+    chosen = EFFECTS.active if names is None else tuple(n for n in names.split(",") if n)
+    return UndeclaredEffects.named(*chosen, **overrides)
+
+
 def run(quick: bool) -> list[Row]:
     if quick:
         return [
@@ -287,12 +311,28 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--robot", default="kr500", help="preset or description file (kr500)")
     parser.add_argument("--cell", help="cell.toml (default: the emulated default cell)")
+    parser.add_argument(
+        "--effects",
+        help="the emulator's effects, comma-separated (sim_devices.effects.EFFECT_NAMES; "
+        "default " + ",".join(EFFECTS.active) + ")",
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an effect setting (sim_devices.effects.UndeclaredEffects field, JSON value: "
+        "cyclic_joint=3, lost_motion_deg=[0,0.003,0.003,0,0,0]); repeatable",
+    )
     parser.add_argument("--quick", action="store_true")
     parser.add_argument(
         "--speed", action="store_true", help="only the selection's time (seeds 1..--seeds)"
     )
     args = parser.parse_args(argv)
-    effects = UndeclaredEffects() if args.clean else EFFECTS
+    try:
+        effects = truth_effects(args.clean, args.effects, args.set)
+    except ValueError as exc:
+        parser.error(str(exc))
     from benchmarks import format_table
 
     if args.quick:

@@ -383,6 +383,9 @@ def _result_lines(
         best = stop["best_remaining"]
         left = f" (best remaining: {best['effect']})" if best else ""
         lines.append(f"stopped: {stop['reason']}{left}")
+        second = doc["closed_loop"].get("second_search")
+        if second:
+            lines.append(f"searched again with gravity first: {second['text']}")
         for c in stop["not_identifiable"]:
             lines.append(f"not identifiable: {c['effect']}")
     for name, s in doc["sets"].items():

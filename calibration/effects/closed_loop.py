@@ -96,6 +96,12 @@ from calibration.effects.loop_problem import LoopProblem, validation_set_name
 from calibration.effects.loop_problem import LoopSettings as LoopSettings
 from calibration.effects.loop_problem import campaign_effect_data as campaign_effect_data
 from calibration.effects.loop_stop import Rejected, ScoredRound, StopReason, stop_reason
+from calibration.effects.second_search import (
+    GRAVITY_FIRST_REASON,
+    SecondSearch,
+    gravity_shown,
+    has_gravity,
+)
 from calibration.errors import IdentificationError
 from calibration.identify.campaign_files import Campaign
 from calibration.identify.identification import (
@@ -203,6 +209,7 @@ class ClosedLoopResult:
     stop: StopReason = field(
         default_factory=lambda: StopReason("no_candidate_left", "no candidate is left to try")
     )
+    second_search: SecondSearch | None = None  # made again with gravity first
 
     @property
     def final(self) -> Stage:
@@ -281,6 +288,9 @@ def run_closed_loop(
     search = _Search(problem, library, penalty, span, settings, tell, *refine)
     last_round, rejected, stop = search.run(stages, result)
     tell(f"closed loop: stopped: {stop.text}")
+    second = _second_search(search, stages, result, last_round)
+    if second is not None and second[0].kept:
+        stages, (last_round, rejected, stop) = second[1], second[2]
     return ClosedLoopResult(
         stages=tuple(stages),
         last_round=tuple(last_round),
@@ -291,7 +301,47 @@ def run_closed_loop(
         kinds=tuple(KINDS) if allowed is None else tuple(allowed),
         rejected=tuple(rejected),
         stop=stop,
+        second_search=None if second is None else second[0],
     )
+
+
+_SearchEnd = tuple[list[CandidateScore], list[Rejected], StopReason]
+
+
+def _second_search(
+    search: _Search,
+    stages: list[Stage],
+    result: IdentificationResult,
+    last_round: list[CandidateScore],
+) -> tuple[SecondSearch, list[Stage], _SearchEnd] | None:
+    """The search made again with the gravity term first
+    (:mod:`~calibration.effects.second_search`), when the first round showed the term, the
+    search by score began with another effect and a validation set can judge the two:
+    what it found, its stages and its end; None when it was not made."""
+    problem, settings, tell = search.problem, search.settings, search.tell
+    first_round = stages[2].round_scores if len(stages) > 2 else tuple(last_round)
+    shown = gravity_shown(first_round, settings.alpha)
+    set_name = validation_set_name(problem.contexts)
+    if (
+        not settings.gravity_first_search
+        or shown is None
+        or set_name != "validate"
+        or (len(stages) > 2 and has_gravity(stages[2].specs))
+    ):
+        return None
+    again = replace(search, tell=lambda t: tell(t.replace("closed loop:", "closed loop, again:")))
+    tell(f"closed loop: {shown.label} was shown in the first round: searching again with it first")
+    alt = stages[:2]
+    end = again.run(alt, result, gravity_first=True)
+    before, after = stages[-1].mean_ap(set_name), alt[-1].mean_ap(set_name)
+    with_gravity = has_gravity(alt[-1].specs)
+    second = SecondSearch(
+        f"{shown.label} (corrected p {shown.p_adjusted:.2g}, CV gain {shown.cv_gain:.1f} σ²)",
+        tuple(s.label for s in stages[-1].specs), tuple(s.label for s in alt[-1].specs),
+        before, after, with_gravity, with_gravity and after < before,
+    )  # fmt: skip
+    tell(f"closed loop: {second.text}")
+    return second, alt, end
 
 
 @dataclass(frozen=True, eq=False)
@@ -395,13 +445,15 @@ class _Search:
         return refit
 
     def run(
-        self, stages: list[Stage], result: IdentificationResult
+        self, stages: list[Stage], result: IdentificationResult, gravity_first: bool = False
     ) -> tuple[list[CandidateScore], list[Rejected], StopReason]:
         """Add effects round by round to ``stages`` (in place) from the geometric
         ``result`` until no candidate is significant, the maximum number of effects is in
         or too many were set aside; the last round's scores, the candidates set aside and
         why it stopped. One loop: its rounds share the model so far and the set aside.
-        The maximum reached, one more round is scored to name the best candidate left."""
+        The maximum reached, one more round is scored to name the best candidate left.
+        ``gravity_first``: the first round adds the gravity term it shows
+        (:func:`gravity_shown`), penalized score or not (the second search)."""
         problem, settings, tell = self.problem, self.settings, self.tell
         specs: tuple[EffectSpec, ...] = ()
         rejected: list[Rejected] = []
@@ -418,7 +470,9 @@ class _Search:
             if len(specs) >= settings.max_effects:
                 stop = self.stop("max_effects", scored, rejected, set_aside)
                 return scores, rejected, stop
-            if not scores[0].significant:
+            forced = gravity_shown(scores, settings.alpha) if gravity_first else None
+            gravity_first = False
+            if forced is None and not scores[0].significant:
                 best = scores[0]
                 tell(
                     f"closed loop: nothing significant left (best: {best.label}, "
@@ -426,7 +480,11 @@ class _Search:
                 )
                 stop = self.stop("none_significant", scored, rejected, set_aside)
                 return scores, rejected, stop
-            chosen, reason = choose(scored.lin, scores, scored.columns)
+            chosen, reason = (
+                (forced, GRAVITY_FIRST_REASON)
+                if forced is not None
+                else choose(scored.lin, scores, scored.columns)
+            )
             step = self.attempt(chosen, result, specs, scored, stages[-1])
             if isinstance(step, str):
                 rejected.append(Rejected(chosen.label, step))

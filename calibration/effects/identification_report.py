@@ -372,6 +372,7 @@ def closed_loop_document(loop: ClosedLoopResult, n_joints: int) -> dict[str, Any
         "added": [s["effect"]["label"] for s in stages if "effect" in s],
         "set_aside": [r.as_dict() for r in loop.rejected],
         "stopped": _stopped(loop),
+        "second_search": None if loop.second_search is None else loop.second_search.as_dict(),
     }
 
 

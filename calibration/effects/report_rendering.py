@@ -153,6 +153,8 @@ def _closed_loop_markdown(loop: Mapping[str, Any]) -> list[str]:
     lines += ["### Stages", ""]
     lines += [f"{i}. {st['sentence']}" for i, st in enumerate(stages, start=1)]
     lines += _stopped_markdown(loop["stopped"])
+    if loop.get("second_search"):
+        lines += ["", f"Searched again with gravity first: {loop['second_search']['text']}."]
     for st in stages:
         if st.get("effect"):
             lines += _effect_markdown(st["label"], st["effect"])

@@ -42,3 +42,21 @@ def test_plan_predicts_less_variance_than_random_poses() -> None:
         plan = plan_campaign(robot, g, PlanSettings(20, 5, n_candidates=400, seed=seed))
         assert plan.selection.i_value_mm2 < 0.7 * plan.random_i_value_mm2  # same prior
         assert np.all(plan.parameter_sigma[:10] <= plan.random_parameter_sigma[:10] * 1.5)
+
+
+def test_the_proofs_truth_is_chosen_on_the_command_line() -> None:
+    """``--effects`` and ``--set`` give the emulator's effects; a key or value that is not
+    one is refused in words (the proof on truths the default cell does not draw)."""
+    truth = bench_plan.truth_effects
+    assert truth(False, None, []) == bench_plan.EFFECTS
+    coupled = truth(False, "gravity_deflection,joint_coupling", ["coupling_coefficient=0.3"])
+    assert coupled.active == ("gravity_deflection", "joint_coupling")
+    assert coupled.coupling_coefficient == 0.3
+    lost = truth(False, "lost_motion", ["lost_motion_deg=[0, 0.01, 0, 0, 0, 0]"])
+    assert lost.lost_motion_deg == (0, 0.01, 0, 0, 0, 0)
+    assert truth(True, None, ["cyclic_joint=3"]).active == ()
+    for bad in (["cyclic_joint"], ["no_such_key=1"], ["cyclic_joint=three"]):
+        with pytest.raises(ValueError, match="--set"):
+            truth(False, None, bad)
+    with pytest.raises(ValueError, match="unknown effect 'gravity'"):
+        truth(False, "gravity", [])
