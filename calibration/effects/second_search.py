@@ -68,19 +68,22 @@ class SecondSearch:
 
     @property
     def text(self) -> str:
-        first = ", ".join(self.first_added) or "no effect"
         second = ", ".join(self.second_added) or "no effect"
         if self.kept:
             verdict = "the second kept"
         elif not self.second_has_gravity:
             verdict = "the first kept: the second ended without gravity"
         else:
-            verdict = "the first kept: its validation mean AP is not higher"
+            verdict = "the first kept: the second's validation mean AP is not lower"
+        first = (
+            f"began with another effect and ended with {', '.join(self.first_added)}"
+            if self.first_added
+            else "added nothing"
+        )
         return (
-            f"the first round showed {self.shown}, but the search by score began with "
-            f"another effect and ended with {first} (validation mean AP "
-            f"{self.first_mean_ap_mm:.4f} mm); searched again with gravity first: {second} "
-            f"({self.second_mean_ap_mm:.4f} mm); {verdict}"
+            f"the first round showed {self.shown}, but the search by score {first} "
+            f"(validation mean AP {self.first_mean_ap_mm:.4f} mm); searched again with "
+            f"gravity first: {second} ({self.second_mean_ap_mm:.4f} mm); {verdict}"
         )
 
     def as_dict(self) -> dict[str, Any]:

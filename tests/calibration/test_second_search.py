@@ -19,7 +19,7 @@ from calibration.effects.closed_loop import LoopSettings
 from calibration.effects.identification_report import build_report
 from calibration.effects.model_effects import predict_tcp
 from calibration.effects.report_rendering import markdown_report
-from calibration.effects.second_search import has_gravity
+from calibration.effects.second_search import SecondSearch, has_gravity
 from calibration.identify.campaign_files import Campaign
 from sim_devices.pose_campaign import CampaignSettings, measure_campaign
 
@@ -100,3 +100,20 @@ def test_a_second_search_no_better_leaves_the_first_model() -> None:
     assert err == err_first
     assert result.loop.added == first.loop.added
     assert "the first kept" in found.text
+
+
+def test_the_second_search_says_what_each_search_found() -> None:
+    """The report's sentence names both searches' effects and errors and which was kept,
+    and why the first was kept when it was."""
+    shown = "gravity deflection (physical form) (corrected p 1e-10, CV gain 80.0 σ²)"
+    kept = SecondSearch(shown, ("harmonic",), ("gravity", "harmonic"), 0.04, 0.02, True, True)
+    assert "began with another effect and ended with harmonic (validation mean AP 0.0400" in (
+        kept.text
+    )
+    assert kept.text.endswith("gravity first: gravity, harmonic (0.0200 mm); the second kept")
+    assert kept.as_dict()["kept"] == "second"
+    lost = SecondSearch(shown, (), ("harmonic",), 0.04, 0.05, False, False)
+    assert "the search by score added nothing" in lost.text
+    assert lost.text.endswith("the first kept: the second ended without gravity")
+    worse = SecondSearch(shown, ("harmonic",), ("gravity",), 0.04, 0.05, True, False)
+    assert worse.text.endswith("the first kept: the second's validation mean AP is not lower")
