@@ -315,18 +315,22 @@ def _second_search(
     last_round: list[CandidateScore],
 ) -> tuple[SecondSearch, list[Stage], _SearchEnd] | None:
     """The search made again with the gravity term first
-    (:mod:`~calibration.effects.second_search`), when the first round showed the term, the
-    search by score began with another effect and a validation set can judge the two:
-    what it found, its stages and its end; None when it was not made."""
+    (:mod:`~calibration.effects.second_search`), when the first round showed the term with
+    a larger cross-validated gain than the effect the search by score began with, and a
+    validation set can judge the two: what it found, its stages and its end; None when
+    it was not made."""
     problem, settings, tell = search.problem, search.settings, search.tell
     first_round = stages[2].round_scores if len(stages) > 2 else tuple(last_round)
     shown = gravity_shown(first_round, settings.alpha)
+    first = stages[2].added if len(stages) > 2 else None
     set_name = validation_set_name(problem.contexts)
     if (
         not settings.gravity_first_search
         or shown is None
         or set_name != "validate"
-        or (len(stages) > 2 and has_gravity(stages[2].specs))
+        or has_gravity(stages[2].specs[:1] if first is not None else ())
+        # the data's own gain ranked it first: only the penalty put it behind
+        or (first is not None and shown.cv_gain <= first.cv_gain)
     ):
         return None
     again = replace(search, tell=lambda t: tell(t.replace("closed loop:", "closed loop, again:")))

@@ -50,13 +50,14 @@ def random_50(seed: int, settings: LoopSettings | None = None) -> tuple[Calibrat
 
 
 def test_a_search_that_ends_without_gravity_is_made_again_with_gravity_first() -> None:
-    """Seed 6: the search by score adds joint 1's cyclic error and look-alikes and ends
-    without the gravity term (physical form, 18 parameters, penalized below them) that
-    the first round's F-test showed; searched again with it first, the loop adds it, and
-    the emulator's truth says the kept model is better by far (0.0153 against 0.0275 mm
-    when written)."""
-    second, err_second = random_50(6)
-    first, err_first = random_50(6, FIRST_SEARCH_ONLY)
+    """Seed 3: the search by score adds a generic structure in q3 and ends without the
+    gravity term (physical form, 18 parameters, penalized below it though its
+    cross-validated gain was larger) that the first round's F-test showed; searched
+    again with it first, the loop adds it and joint 1's cyclic error (the emulator's
+    truth), and the emulator says the kept model is better by far (0.0192 against 0.0642
+    mm when written)."""
+    second, err_second = random_50(3)
+    first, err_first = random_50(3, FIRST_SEARCH_ONLY)
     assert first.loop is not None and second.loop is not None
     assert first.loop.second_search is None
     assert not has_gravity(first.loop.final.specs)
@@ -64,8 +65,8 @@ def test_a_search_that_ends_without_gravity_is_made_again_with_gravity_first() -
     assert found is not None and found.kept and found.second_has_gravity
     assert has_gravity(second.loop.final.specs)
     assert found.second_mean_ap_mm < found.first_mean_ap_mm
-    assert err_second < 0.7 * err_first
-    sc, measured = campaign(6)
+    assert err_second < 0.5 * err_first
+    sc, measured = campaign(3)
     doc, _ = build_report(
         second.result, sc.nominal, measured, robot_source="kr500", closed_loop=second.loop
     )
@@ -88,18 +89,19 @@ def test_a_search_that_began_with_gravity_is_not_made_again() -> None:
 
 
 def test_a_second_search_no_better_leaves_the_first_model() -> None:
-    """Seed 1: the search by score begins with joint 1's cyclic error; the second search
-    (gravity first) ends with a higher validation error and is not kept: the model is the
-    first search's, to the digit, and the report says why."""
-    result, err = random_50(1)
-    first, err_first = random_50(1, FIRST_SEARCH_ONLY)
+    """Seed 29: the search by score begins with a cyclic error and ends on cyclic errors
+    without the gravity term; the second search adds it but its validation error is
+    higher, so it is not kept: the model is the first search's, to the digit, and the
+    report says why."""
+    result, err = random_50(29)
+    first, err_first = random_50(29, FIRST_SEARCH_ONLY)
     assert result.loop is not None and first.loop is not None
     found = result.loop.second_search
     assert found is not None and not found.kept
-    assert not found.second_has_gravity or found.second_mean_ap_mm >= found.first_mean_ap_mm
+    assert found.second_has_gravity and found.second_mean_ap_mm >= found.first_mean_ap_mm
     assert err == err_first
     assert result.loop.added == first.loop.added
-    assert "the first kept" in found.text
+    assert found.text.endswith("the first kept: the second's validation mean AP is not lower")
 
 
 def test_the_second_search_says_what_each_search_found() -> None:
@@ -107,9 +109,8 @@ def test_the_second_search_says_what_each_search_found() -> None:
     and why the first was kept when it was."""
     shown = "gravity deflection (physical form) (corrected p 1e-10, CV gain 80.0 σ²)"
     kept = SecondSearch(shown, ("harmonic",), ("gravity", "harmonic"), 0.04, 0.02, True, True)
-    assert "began with another effect and ended with harmonic (validation mean AP 0.0400" in (
-        kept.text
-    )
+    said = "by score began with harmonic and ended with harmonic (validation mean AP 0.0400"
+    assert said in kept.text
     assert kept.text.endswith("gravity first: gravity, harmonic (0.0200 mm); the second kept")
     assert kept.as_dict()["kept"] == "second"
     lost = SecondSearch(shown, (), ("harmonic",), 0.04, 0.05, False, False)
