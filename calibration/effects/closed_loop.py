@@ -328,9 +328,8 @@ def _second_search(
         not settings.gravity_first_search
         or shown is None
         or set_name != "validate"
-        or has_gravity(stages[2].specs[:1] if first is not None else ())
-        # the data's own gain ranked it first: only the penalty put it behind
-        or (first is not None and shown.cv_gain <= first.cv_gain)
+        # it began with gravity, or the data's own gain did not rank gravity first
+        or (first is not None and (has_gravity((first.spec,)) or first.cv_gain >= shown.cv_gain))
     ):
         return None
     again = replace(search, tell=lambda t: tell(t.replace("closed loop:", "closed loop, again:")))
