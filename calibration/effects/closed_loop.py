@@ -329,7 +329,10 @@ def _second_search(
         or shown is None
         or set_name != "validate"
         # it began with gravity, or the data's own gain did not rank gravity first
-        or (first is not None and (has_gravity((first.spec,)) or first.cv_gain >= shown.cv_gain))
+        or (
+            first is not None
+            and (first.spec.kind == shown.spec.kind or first.cv_gain >= shown.cv_gain)
+        )
     ):
         return None
     again = replace(search, tell=lambda t: tell(t.replace("closed loop:", "closed loop, again:")))
