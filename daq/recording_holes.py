@@ -15,6 +15,12 @@ comes from the two ends:
   published during the hole is lost too, so the hole waits for documents after it
   (``DOCS_AFTER``, at most ``wait_s``) before it is written.
 
+Holes of one key with no document of its publisher between them are one event as far as
+the evidence can tell: the publisher's counters grew over all of them, so they share the
+recorder's evidence too. A router's restart can leave, besides its long hole, a message
+lost as the links come back, after the recorder had its router again; it is
+``router_down`` with the rest, not ``publisher_link`` on the outage's count.
+
 ``reason``: ``router_down`` (both ends lost the router: it was down, or unreachable from
 both), ``publisher_link`` (only the publisher counted unrouted messages: its link or its
 side of the router), ``recorder_link`` (only the recorder lost its router),
@@ -102,6 +108,7 @@ class _Pending:
     t_after: int
     lost_router: bool
     base: tuple[int | None, int | None]  # the publisher's counters before the hole
+    base_ns: int | None  # when that document arrived (None: none had)
     docs_after: int = 0
 
 
@@ -136,12 +143,23 @@ class HoleFinder:
             return
         docs = self._docs.get(self.health_key_of(key))
         base: tuple[int | None, int | None] = (None, None)
+        base_ns = None
         for arrived, unrouted, unsent in docs or ():
             if arrived <= last[1]:
-                base = (unrouted, unsent)
-        self._pending.append(
-            _Pending(key, last[0] + 1, batch_seq - 1, last[1], t_ns, changes != last[2], base)
+                base, base_ns = (unrouted, unsent), arrived
+        hole = _Pending(
+            key, last[0] + 1, batch_seq - 1, last[1], t_ns, changes != last[2], base, base_ns
         )
+        # one event with the key's holes since the same publisher document (module doc)
+        event = [
+            p for p in self._pending if base_ns is not None and (p.key, p.base_ns) == (key, base_ns)
+        ]
+        if any(p.lost_router for p in event):
+            hole.lost_router = True
+        elif hole.lost_router:
+            for p in event:
+                p.lost_router = True
+        self._pending.append(hole)
 
     def on_health(self, key: str, doc: object, t_ns: int) -> None:
         """A health document (parsed JSON) of health key ``key`` arrived at ``t_ns``."""

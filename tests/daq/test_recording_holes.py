@@ -47,6 +47,59 @@ def test_a_router_outage_seen_from_both_ends_is_router_down_with_the_publishers_
     assert f.due(7 * S) == []  # written once
 
 
+@pytest.mark.parametrize("outage_first", [True, False])
+def test_a_message_lost_beside_a_router_outage_is_the_outages_event(outage_first: bool):
+    """A router's restart seen by both ends, and one message lost just after (or before)
+    while the recorder had its router: no publisher document between them, one event."""
+    changes = [0]
+    f = HoleFinder(lambda: changes[0], wait_s=3.0)
+    f.on_health(HEALTH, _doc(4), 1 * S)
+    for i in range(10):
+        f.on_batch(KEY, i, 2 * S + i)
+    if outage_first:
+        changes[0] = 2
+        f.on_batch(KEY, 40, 5 * S)  # 10..39 lost with the router
+        f.on_batch(KEY, 42, 5 * S + 2_000_000)  # 41 lost as the links came back
+    else:
+        f.on_batch(KEY, 11, 2 * S + 20)  # 10 lost as the router went down
+        changes[0] = 2
+        f.on_batch(KEY, 42, 5 * S)  # 12..41 lost with the router
+    f.on_health(HEALTH, _doc(33), 5 * S + 10_000_000)
+    f.on_health(HEALTH, _doc(35), 6 * S)
+    holes = f.due(6 * S)
+    assert sum(h.count for h in holes) == 31 and len(holes) == 2
+    assert {h.reason for h in holes} == {"router_down"}, holes
+    assert all(h.recorder_lost_router and h.publisher_unrouted == 31 for h in holes)
+
+
+def test_holes_with_a_publisher_document_between_them_are_separate_events():
+    changes = [0]
+    f = HoleFinder(lambda: changes[0], wait_s=3.0)
+    f.on_health(HEALTH, _doc(0), 1 * S)
+    f.on_batch(KEY, 0, 2 * S)
+    changes[0] = 2
+    f.on_batch(KEY, 5, 3 * S)  # the router's restart
+    f.on_health(HEALTH, _doc(4), 3 * S + 1)
+    f.on_batch(KEY, 6, 4 * S)
+    f.on_batch(KEY, 8, 4 * S + 1)  # later, the publisher's link alone
+    f.on_health(HEALTH, _doc(5), 4 * S + 2)
+    f.on_health(HEALTH, _doc(5), 5 * S)
+    f.on_health(HEALTH, _doc(5), 6 * S)
+    reasons = [h.reason for h in sorted(f.due(6 * S), key=lambda h: h.first_missing)]
+    assert reasons == ["router_down", "publisher_link"]
+
+
+def test_without_publisher_documents_each_hole_keeps_its_own_evidence():
+    changes = [0]
+    f = HoleFinder(lambda: changes[0], wait_s=3.0)
+    f.on_batch(KEY, 0, 0)
+    changes[0] = 2
+    f.on_batch(KEY, 5, S)
+    f.on_batch(KEY, 7, S + 1)
+    reasons = [h.reason for h in sorted(f.drain(), key=lambda h: h.first_missing)]
+    assert reasons == ["recorder_link", "unknown"]
+
+
 def test_reasons_from_each_end_alone_and_none():
     assert hole_reason(False, 5, 0) == "publisher_link"
     assert hole_reason(True, 0, 0) == "recorder_link"
