@@ -102,6 +102,13 @@ def form_decision(
     rejects = p < PHYSICAL_FORM_ALPHA
     kept = "linear" if rejects and linear_eligible else "physical"
     test = f"F = {f_stat:.2f}, p = {p:.2g}"
+    if sse_lin > sse_phys:  # the linear form contains the physical one: its LM stopped short
+        reason = (
+            f"physical form kept ({k_phys} parameters against {k_lin}): the linear form, "
+            f"which contains it, ended with a larger weighted SSE ({sse_lin:.1f} against "
+            f"{sse_phys:.1f}: its fit did not converge), so nothing shows its extra freedom"
+        )
+        return _form_info(ctx, "physical", reason, phys_spec, fit, float(f_stat), p)
     if kept == "linear":
         reason = (
             f"linear form kept: the joints do not share the same moments ({test} < "
