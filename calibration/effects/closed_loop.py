@@ -288,7 +288,7 @@ def run_closed_loop(
     search = _Search(problem, library, penalty, span, settings, tell, *refine)
     last_round, rejected, stop = search.run(stages, result)
     tell(f"closed loop: stopped: {stop.text}")
-    second = _second_search(search, stages, result, last_round)
+    second = _second_search(search, stages, last_round)
     if second is not None and second[0].kept:
         stages, (last_round, rejected, stop) = second[1], second[2]
     return ClosedLoopResult(
@@ -311,43 +311,61 @@ _SearchEnd = tuple[list[CandidateScore], list[Rejected], StopReason]
 def _second_search(
     search: _Search,
     stages: list[Stage],
-    result: IdentificationResult,
     last_round: list[CandidateScore],
 ) -> tuple[SecondSearch, list[Stage], _SearchEnd] | None:
     """The search made again with the gravity term first
-    (:mod:`~calibration.effects.second_search`), when the first round showed the term with
-    a larger cross-validated gain than the effect the search by score began with, and a
-    validation set can judge the two: what it found, its stages and its end; None when
-    it was not made."""
+    (:mod:`~calibration.effects.second_search`) from the first round that showed the term
+    with a larger cross-validated gain than the effect the search by score added there
+    (:func:`_branch`), when a validation set can judge the two: what it found, its stages
+    and its end; None when it was not made."""
     problem, settings, tell = search.problem, search.settings, search.tell
-    first_round = stages[2].round_scores if len(stages) > 2 else tuple(last_round)
-    shown = gravity_shown(first_round, settings.alpha)
-    first = stages[2].added if len(stages) > 2 else None
     set_name = validation_set_name(problem.contexts)
-    if (
-        not settings.gravity_first_search
-        or shown is None
-        or set_name != "validate"
-        # it began with gravity, or the data's own gain did not rank gravity first
-        or (
-            first is not None
-            and (first.spec.kind == shown.spec.kind or first.cv_gain >= shown.cv_gain)
-        )
-    ):
+    branch = _branch(stages, last_round, settings) if settings.gravity_first_search else None
+    if branch is None or set_name != "validate":
         return None
+    k, shown = branch
     again = replace(search, tell=lambda t: tell(t.replace("closed loop:", "closed loop, again:")))
-    tell(f"closed loop: {shown.label} was shown in the first round: searching again with it first")
-    alt = stages[:2]
-    end = again.run(alt, result, gravity_first=True)
+    at = "the first round" if k == 2 else f"round {k - 1}"
+    tell(f"closed loop: {shown.label} was shown in {at}: searching again from there with it first")
+    alt = stages[:k]
+    start = alt[-1].result
+    assert start is not None  # the geometric stage and each effect's hold their result
+    end = again.run(alt, start, gravity_first=True)
     before, after = stages[-1].mean_ap(set_name), alt[-1].mean_ap(set_name)
     with_gravity = has_gravity(alt[-1].specs)
     second = SecondSearch(
         f"{shown.label} (corrected p {shown.p_adjusted:.2g}, CV gain {shown.cv_gain:.1f} σ²)",
         tuple(s.label for s in stages[-1].specs), tuple(s.label for s in alt[-1].specs),
-        before, after, with_gravity, with_gravity and after < before,
+        before, after, with_gravity, with_gravity and after < before, k - 1,
     )  # fmt: skip
     tell(f"closed loop: {second.text}")
     return second, alt, end
+
+
+def _branch(
+    stages: list[Stage], last_round: list[CandidateScore], settings: LoopSettings
+) -> tuple[int, CandidateScore] | None:
+    """Where the second search starts: the number of ``stages`` it keeps and the gravity
+    term shown there. The first round, before a gravity term is in the model, that showed
+    the term (:func:`gravity_shown`) and added an effect of smaller cross-validated gain,
+    or the round that stopped the search with the term shown; None when there is none (the
+    data's own gain never ranked gravity first, or the search added it)."""
+    for k in range(2, len(stages)):
+        if has_gravity(stages[k - 1].specs):
+            return None
+        shown = gravity_shown(stages[k].round_scores, settings.alpha)
+        added = stages[k].added
+        if (
+            shown is not None
+            and added is not None
+            and added.spec.kind != shown.spec.kind
+            and added.cv_gain < shown.cv_gain
+        ):
+            return k, shown
+    if has_gravity(stages[-1].specs) or len(stages[-1].specs) >= settings.max_effects:
+        return None
+    shown = gravity_shown(last_round, settings.alpha)
+    return None if shown is None else (len(stages), shown)
 
 
 @dataclass(frozen=True, eq=False)
@@ -453,15 +471,15 @@ class _Search:
     def run(
         self, stages: list[Stage], result: IdentificationResult, gravity_first: bool = False
     ) -> tuple[list[CandidateScore], list[Rejected], StopReason]:
-        """Add effects round by round to ``stages`` (in place) from the geometric
-        ``result`` until no candidate is significant, the maximum number of effects is in
-        or too many were set aside; the last round's scores, the candidates set aside and
-        why it stopped. One loop: its rounds share the model so far and the set aside.
-        The maximum reached, one more round is scored to name the best candidate left.
-        ``gravity_first``: the first round adds the gravity term it shows
-        (:func:`gravity_shown`), penalized score or not (the second search)."""
+        """Add effects round by round to ``stages`` (in place) from the last stage's model
+        (its identification: ``result``) until no candidate is significant, the maximum
+        number of effects is in or too many were set aside; the last round's scores, the
+        candidates set aside and why it stopped. One loop: its rounds share the model so
+        far and the set aside. The maximum reached, one more round is scored to name the
+        best candidate left. ``gravity_first``: the first round it scores adds the gravity
+        term it shows (:func:`gravity_shown`), penalized score or not (the second search)."""
         problem, settings, tell = self.problem, self.settings, self.tell
-        specs: tuple[EffectSpec, ...] = ()
+        specs = stages[-1].specs
         rejected: list[Rejected] = []
         set_aside: set[EffectSpec] = set()
         while True:

@@ -1,21 +1,23 @@
-"""The closed loop's second search: made again with the gravity term first, when the
-first round showed the term and only the penalty put it behind the effect the search by
-score began with.
+"""The closed loop's second search: made again with the gravity term first, from the
+first round that showed the term where only the penalty put it behind the effect the
+search by score added.
 
 The loop adds one effect a round, the best penalized cross-validated score first. A
 gravity term has many parameters (18 in the physical form on a 6R arm) and pays the
 penalty on each; a two-parameter look-alike of part of its deflection (a harmonic of a
-loaded joint) can score higher in the first round. Once the look-alike is in, the
-gravity form's compliance ratios may no longer converge (a loaded joint's ratio runs to
-0) and the term is never offered again, nor a term built on it (the shoulder joints'
-coupled compliance, offered only with gravity in): the search ends on look-alikes. Seen
-on the emulated KR500 with truths the default cell does not draw (bench_plan's planned
-50 poses of seed 1; a cyclic error of joint 3 of order 1, or the shoulder joints'
-coupled compliance): held-out 0.033 and 0.046 mm against 0.012 and 0.011 mm with
-gravity first. Every loaded arm deflects under gravity, so when the first round's F-test
-and cross-validation show the term (corrected p below α, CV gain above 0) and its
-cross-validated gain beat that of the effect the search began with (the data ranked it
-first, the penalty did not), the search is made again with it first, and the model
+loaded joint) can score higher. Once the look-alike is in, the gravity form's compliance
+ratios may no longer converge (a loaded joint's ratio runs to 0) and the term is never
+offered again, nor a term built on it (the shoulder joints' coupled compliance, offered
+only with gravity in): the search ends on look-alikes. Seen on the emulated KR500 with
+truths the default cell does not draw (bench_plan's planned 50 poses of seed 1; a cyclic
+error of joint 3 of order 1, or the shoulder joints' coupled compliance): held-out 0.033
+and 0.046 mm against 0.012 and 0.011 mm with gravity first. It happens in a later round
+too: a real first effect larger than a weak gravity term (a joint 4 cyclic error with
+half the deflection), then a look-alike in round 2. Every loaded arm deflects under
+gravity, so when a round before any gravity term is in shows the term (corrected p below
+α, CV gain above 0) and its cross-validated gain beat that of the effect the search added
+there (the data ranked it first, the penalty did not), or the search stopped in a round
+that showed it, the search is made again from that round with it first, and the model
 whose validation mean AP is lower is kept. Without the gain condition the real UR10's
 1000 poses were searched again (five cyclic errors worth 2.6–5.5× the gravity term's
 gain came first) and ``twin identify`` took 17 s instead of 6.5.
@@ -32,8 +34,8 @@ from calibration.effects.effect_base import EffectSpec
 
 #: The reason the second search's first step gives (the report's "why chosen").
 GRAVITY_FIRST_REASON = (
-    "gravity first: the first round's F-test and cross-validation showed it, and the "
-    "search by score began with another effect (second search)"
+    "gravity first: the round's F-test and cross-validation showed it, and the search by "
+    "score had added another effect there (second search)"
 )
 
 
@@ -58,8 +60,9 @@ def has_gravity(specs: Sequence[EffectSpec]) -> bool:
 
 @dataclass(frozen=True)
 class SecondSearch:
-    """What the second search found: the gravity term the first round showed, the effects
-    each search ended with and their validation mean AP (mm), and which model was kept."""
+    """What the second search found: the gravity term a round showed (``round``, 1: the
+    first), the effects each search ended with and their validation mean AP (mm), and which
+    model was kept."""
 
     shown: str  # the gravity candidate, its corrected p and CV gain
     first_added: tuple[str, ...]
@@ -68,6 +71,7 @@ class SecondSearch:
     second_mean_ap_mm: float
     second_has_gravity: bool
     kept: bool  # the second search's model replaced the first's
+    round: int = 1  # the round that showed the term, where the second search began
 
     @property
     def text(self) -> str:
@@ -78,20 +82,24 @@ class SecondSearch:
             verdict = "the first kept: the second ended without gravity"
         else:
             verdict = "the first kept: the second's validation mean AP is not lower"
-        first = (
-            f"began with {self.first_added[0]} and ended with {', '.join(self.first_added)}"
-            if self.first_added
-            else "added nothing"
-        )
+        ended = ", ".join(self.first_added)
+        if len(self.first_added) < self.round:  # the search stopped in that round
+            first = f"stopped there with {ended}" if ended else "added nothing"
+        elif self.round == 1:
+            first = f"began with {self.first_added[0]} and ended with {ended}"
+        else:
+            first = f"added {self.first_added[self.round - 1]} there and ended with {ended}"
+        at = "the first round" if self.round == 1 else f"round {self.round}"
         return (
-            f"the first round showed {self.shown}, but the search by score {first} "
-            f"(validation mean AP {self.first_mean_ap_mm:.4f} mm); searched again with "
-            f"gravity first: {second} ({self.second_mean_ap_mm:.4f} mm); {verdict}"
+            f"{at} showed {self.shown}, but the search by score {first} "
+            f"(validation mean AP {self.first_mean_ap_mm:.4f} mm); searched again from there "
+            f"with gravity first: {second} ({self.second_mean_ap_mm:.4f} mm); {verdict}"
         )
 
     def as_dict(self) -> dict[str, Any]:
         return {
             "gravity_shown": self.shown,
+            "round": self.round,
             "first_search": list(self.first_added),
             "second_search": list(self.second_added),
             "first_validation_mean_ap_mm": self.first_mean_ap_mm,
