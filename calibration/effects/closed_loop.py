@@ -330,13 +330,17 @@ def _second_search(
     alt = stages[:k]
     start = alt[-1].result
     assert start is not None  # the geometric stage and each effect's hold their result
-    end = again.run(alt, start, gravity_first=True)
+    # the linear form, shown but not significant on its count, is the last resort of a
+    # search that ended without gravity; beside a physical term the search found later,
+    # 20 validation poses do not tell the two apart (docs/closed-loop.md)
+    end = again.run(alt, start, gravity_first=True, linear_first=not has_gravity(stages[-1].specs))
     before, after = stages[-1].mean_ap(set_name), alt[-1].mean_ap(set_name)
     with_gravity = has_gravity(alt[-1].specs)
+    undone = next((r.reason for r in end[1] if r.label == shown.label), "")
     second = SecondSearch(
         f"{shown.label} (corrected p {shown.p_adjusted:.2g}, CV gain {shown.cv_gain:.1f} σ²)",
         tuple(s.label for s in stages[-1].specs), tuple(s.label for s in alt[-1].specs),
-        before, after, with_gravity, with_gravity and after < before, k - 1,
+        before, after, with_gravity, with_gravity and after < before, k - 1, undone,
     )  # fmt: skip
     tell(f"closed loop: {second.text}")
     return second, alt, end
@@ -420,14 +424,17 @@ class _Search:
         specs: tuple[EffectSpec, ...],
         scored: ScoredRound,
         previous: Stage,
+        linear_first: bool = False,
     ) -> _Step | str:
         """The step adding ``chosen``, guarded (:func:`_guarded`). A re-identification that
         failed from the nominal start is tried once more from ``previous``'s geometry: on an
         emulated UR10, whose base start was ~66 mm off, the gravity term's fit stalled
-        from the nominal start though the geometric fit had converged from it."""
+        from the nominal start though the geometric fit had converged from it.
+        ``linear_first``: the second search's gravity step may keep the linear form when the
+        physical one cannot be fitted (:func:`_try_step`)."""
 
         def from_start(start: LoopProblem) -> _Step | str:
-            tried = _try_step(start, result, specs, chosen.spec, scored, self.tell)
+            tried = _try_step(start, result, specs, chosen.spec, scored, self.tell, linear_first)
             return _guarded(self.refit(tried), self.problem, previous, self.settings)
 
         step = from_start(self.problem)
@@ -469,7 +476,11 @@ class _Search:
         return refit
 
     def run(
-        self, stages: list[Stage], result: IdentificationResult, gravity_first: bool = False
+        self,
+        stages: list[Stage],
+        result: IdentificationResult,
+        gravity_first: bool = False,
+        linear_first: bool = False,
     ) -> tuple[list[CandidateScore], list[Rejected], StopReason]:
         """Add effects round by round to ``stages`` (in place) from the last stage's model
         (its identification: ``result``) until no candidate is significant, the maximum
@@ -477,7 +488,8 @@ class _Search:
         candidates set aside and why it stopped. One loop: its rounds share the model so
         far and the set aside. The maximum reached, one more round is scored to name the
         best candidate left. ``gravity_first``: the first round it scores adds the gravity
-        term it shows (:func:`gravity_shown`), penalized score or not (the second search)."""
+        term it shows (:func:`gravity_shown`), penalized score or not (the second search);
+        ``linear_first``: in its linear form when the physical one cannot be fitted."""
         problem, settings, tell = self.problem, self.settings, self.tell
         specs = stages[-1].specs
         rejected: list[Rejected] = []
@@ -509,7 +521,8 @@ class _Search:
                 if forced is not None
                 else choose(scored.lin, scores, scored.columns)
             )
-            step = self.attempt(chosen, result, specs, scored, stages[-1])
+            linear = forced is not None and linear_first
+            step = self.attempt(chosen, result, specs, scored, stages[-1], linear)
             if isinstance(step, str):
                 rejected.append(Rejected(chosen.label, step))
                 set_aside.add(chosen.spec)
@@ -733,10 +746,13 @@ def _try_step(
     spec: EffectSpec,
     scored: ScoredRound,
     tell: Callable[[str], None],
+    linear_first: bool = False,
 ) -> _Tried:
     """Re-identify with ``spec`` added (a gravity term in the form the data supports,
     :func:`~calibration.effects.gravity_form.gravity_step`); a string says why the step
-    failed."""
+    failed. The linear gravity form may be kept when it is significant on its own
+    parameter count, or, ``linear_first`` (the second search's gravity step, shown by the
+    round's F-test and cross-validation), when the physical form could not be fitted."""
     if spec.kind == "gravity_deflection":
         forms = [s for s in scored.scores if s.spec.kind == spec.kind]
         linear = [s for s in forms if s.spec.parameter == "linear"]
@@ -746,7 +762,8 @@ def _try_step(
         if linear:
             return gravity_step(
                 problem.ctx, specs, result.effect_values, linear[0].spec,
-                physical[0] if physical else None, linear[0].significant,
+                physical[0] if physical else None,
+                linear[0].significant or (linear_first and not physical),
                 problem.identify, tell,
             )  # fmt: skip
     new_specs = (*specs, spec)

@@ -72,6 +72,7 @@ class SecondSearch:
     second_has_gravity: bool
     kept: bool  # the second search's model replaced the first's
     round: int = 1  # the round that showed the term, where the second search began
+    gravity_undone: str = ""  # why its gravity step was set aside, when it was
 
     @property
     def text(self) -> str:
@@ -80,6 +81,8 @@ class SecondSearch:
             verdict = "the second kept"
         elif not self.second_has_gravity:
             verdict = "the first kept: the second ended without gravity"
+            if self.gravity_undone:
+                verdict += f" (its gravity step was set aside: {self.gravity_undone})"
         else:
             verdict = "the first kept: the second's validation mean AP is not lower"
         ended = ", ".join(self.first_added)
