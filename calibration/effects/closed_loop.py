@@ -99,6 +99,7 @@ from calibration.effects.loop_stop import Rejected, ScoredRound, StopReason, sto
 from calibration.effects.second_search import (
     GRAVITY_FIRST_REASON,
     SecondSearch,
+    branch_point,
     gravity_shown,
     has_gravity,
 )
@@ -316,11 +317,15 @@ def _second_search(
     """The search made again with the gravity term first
     (:mod:`~calibration.effects.second_search`) from the first round that showed the term
     with a larger cross-validated gain than the effect the search by score added there
-    (:func:`_branch`), when a validation set can judge the two: what it found, its stages
+    (:func:`branch_point`), when a validation set can judge the two: what it found, its stages
     and its end; None when it was not made."""
     problem, settings, tell = search.problem, search.settings, search.tell
     set_name = validation_set_name(problem.contexts)
-    branch = _branch(stages, last_round, settings) if settings.gravity_first_search else None
+    branch = (
+        branch_point(stages, last_round, settings.alpha, settings.max_effects)
+        if settings.gravity_first_search
+        else None
+    )
     if branch is None or set_name != "validate":
         return None
     k, shown = branch
@@ -344,32 +349,6 @@ def _second_search(
     )  # fmt: skip
     tell(f"closed loop: {second.text}")
     return second, alt, end
-
-
-def _branch(
-    stages: list[Stage], last_round: list[CandidateScore], settings: LoopSettings
-) -> tuple[int, CandidateScore] | None:
-    """Where the second search starts: the number of ``stages`` it keeps and the gravity
-    term shown there. The first round, before a gravity term is in the model, that showed
-    the term (:func:`gravity_shown`) and added an effect of smaller cross-validated gain,
-    or the round that stopped the search with the term shown; None when there is none (the
-    data's own gain never ranked gravity first, or the search added it)."""
-    for k in range(2, len(stages)):
-        if has_gravity(stages[k - 1].specs):
-            return None
-        shown = gravity_shown(stages[k].round_scores, settings.alpha)
-        added = stages[k].added
-        if (
-            shown is not None
-            and added is not None
-            and added.spec.kind != shown.spec.kind
-            and added.cv_gain < shown.cv_gain
-        ):
-            return k, shown
-    if has_gravity(stages[-1].specs) or len(stages[-1].specs) >= settings.max_effects:
-        return None
-    shown = gravity_shown(last_round, settings.alpha)
-    return None if shown is None else (len(stages), shown)
 
 
 @dataclass(frozen=True, eq=False)
@@ -483,13 +462,11 @@ class _Search:
         linear_first: bool = False,
     ) -> tuple[list[CandidateScore], list[Rejected], StopReason]:
         """Add effects round by round to ``stages`` (in place) from the last stage's model
-        (its identification: ``result``) until no candidate is significant, the maximum
-        number of effects is in or too many were set aside; the last round's scores, the
-        candidates set aside and why it stopped. One loop: its rounds share the model so
-        far and the set aside. The maximum reached, one more round is scored to name the
-        best candidate left. ``gravity_first``: the first round it scores adds the gravity
-        term it shows (:func:`gravity_shown`), penalized score or not (the second search);
-        ``linear_first``: in its linear form when the physical one cannot be fitted."""
+        (``result``) until no candidate is significant, the maximum number of effects is in
+        or too many were set aside: the last round's scores, the candidates set aside and
+        why it stopped. The maximum reached, one more round names the best one left.
+        ``gravity_first``: its first round adds the gravity term it shows, penalized score
+        or not (the second search); ``linear_first``: the linear form if need be."""
         problem, settings, tell = self.problem, self.settings, self.tell
         specs = stages[-1].specs
         rejected: list[Rejected] = []

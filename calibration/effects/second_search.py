@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 from calibration.effects.candidate_scoring import CandidateScore
 from calibration.effects.effect_base import EffectSpec
@@ -56,6 +56,48 @@ def gravity_shown(scores: Sequence[CandidateScore], alpha: float) -> CandidateSc
 
 def has_gravity(specs: Sequence[EffectSpec]) -> bool:
     return any(s.kind == "gravity_deflection" for s in specs)
+
+
+class SearchStage(Protocol):
+    """A stage of the search: its model's effects, and the round that added the last."""
+
+    @property
+    def specs(self) -> tuple[EffectSpec, ...]: ...
+    @property
+    def round_scores(self) -> tuple[CandidateScore, ...]: ...
+    @property
+    def added(self) -> CandidateScore | None: ...
+
+
+def branch_point(
+    stages: Sequence[SearchStage],
+    last_round: Sequence[CandidateScore],
+    alpha: float,
+    max_effects: int,
+) -> tuple[int, CandidateScore] | None:
+    """Where the second search starts: the number of ``stages`` it keeps (nominal and
+    geometric first, then one per round) and the gravity term shown there. The first
+    round, before a gravity term is in the model, that showed the term
+    (:func:`gravity_shown` at ``alpha``) and added an effect of smaller cross-validated
+    gain, or the round that stopped the search (``last_round``) with the term shown and
+    fewer than ``max_effects`` in; None when there is none (the data's own gain never
+    ranked gravity first, or the search added it)."""
+    for k in range(2, len(stages)):
+        if has_gravity(stages[k - 1].specs):
+            return None
+        shown = gravity_shown(stages[k].round_scores, alpha)
+        added = stages[k].added
+        if (
+            shown is not None
+            and added is not None
+            and added.spec.kind != shown.spec.kind
+            and added.cv_gain < shown.cv_gain
+        ):
+            return k, shown
+    if has_gravity(stages[-1].specs) or len(stages[-1].specs) >= max_effects:
+        return None
+    shown = gravity_shown(last_round, alpha)
+    return None if shown is None else (len(stages), shown)
 
 
 @dataclass(frozen=True)
