@@ -10,16 +10,20 @@ truth."""
 from __future__ import annotations
 
 from functools import cache
+from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from benchmarks.bench_plan import EFFECTS, SeedCampaigns, seed_campaigns
 from calibration.effects.calibrate import CalibrationResult, calibrate
+from calibration.effects.candidate_scoring import CandidateScore
 from calibration.effects.closed_loop import LoopSettings
+from calibration.effects.effect_base import EffectSpec
 from calibration.effects.identification_report import build_report
 from calibration.effects.model_effects import predict_tcp
 from calibration.effects.report_rendering import markdown_report
-from calibration.effects.second_search import SecondSearch, has_gravity
+from calibration.effects.second_search import SecondSearch, branch_point, has_gravity
 from calibration.identify.campaign_files import Campaign
 from sim_devices.effects import UndeclaredEffects
 from sim_devices.pose_campaign import CampaignSettings, measure_campaign
@@ -130,6 +134,7 @@ def test_a_later_round_that_showed_gravity_is_where_the_second_search_begins() -
     assert found.as_dict()["round"] == 2
 
 
+@pytest.mark.slow  # a plan from 5000 candidates and two loops: ~10 s of make test's margin
 def test_a_search_without_gravity_takes_its_shown_linear_form_when_the_physical_fails() -> None:
     """A negatively coupled shoulder, planned seed 5: the physical form cannot be fitted in
     any round and the search by score ends on joint 1's cyclic error and a generic q3
@@ -196,3 +201,36 @@ def test_the_second_search_says_what_each_search_found() -> None:
     assert undone.text.endswith("ended without gravity (its gravity step was set aside: it failed)")
     worse = SecondSearch(shown, ("harmonic",), ("gravity",), 0.04, 0.05, True, False)
     assert worse.text.endswith("the first kept: the second's validation mean AP is not lower")
+
+
+def _score(kind: str, cv_gain: float, p: float = 1e-9) -> CandidateScore:
+    spec = EffectSpec(kind, joint=1, parameter="physical" if kind == "gravity_deflection" else "")
+    return CandidateScore(spec, 18, cv_gain, cv_gain - 90.0, 9.0, p, p, cv_gain > 90.0)
+
+
+def _stages(*rounds: tuple[CandidateScore, list[CandidateScore]]) -> list[SimpleNamespace]:
+    """Nominal and geometric, then one stage per round: what it added and its scores."""
+    out = [SimpleNamespace(specs=(), round_scores=(), added=None)] * 2
+    for added, scores in rounds:
+        specs = (*out[-1].specs, added.spec)
+        out.append(SimpleNamespace(specs=specs, round_scores=tuple(scores), added=added))
+    return out
+
+
+def test_where_the_second_search_begins() -> None:
+    """The first round, before gravity is in, that showed it with the larger gain than
+    what it added; or the round that stopped with it shown; never once gravity is in."""
+    gravity, weak = _score("gravity_deflection", 80.0), _score("gravity_deflection", 30.0)
+    h1, h2 = _score("joint_harmonic", 60.0), _score("cyclic_error", 40.0)
+    later = _stages((h1, [h1, weak]), (h2, [h2, gravity]))  # round 1: gravity's gain lower
+    assert branch_point(later, [], 0.01, 6) == (3, gravity)  # round 2: two stages kept + 1
+    first = _stages((h1, [h1, gravity]), (h2, [h2, gravity]))
+    assert branch_point(first, [], 0.01, 6) == (2, gravity)
+    # gravity added in round 1: no round after it is looked at
+    assert branch_point(_stages((gravity, [gravity]), (h1, [h1, gravity])), [], 0.01, 6) is None
+    # stopped with gravity shown but not significant by its penalized score
+    ended = _stages((h1, [h1, weak]))
+    assert branch_point(ended, [weak, h2], 0.01, 6) == (3, weak)
+    assert branch_point(ended, [weak, h2], 0.01, 1) is None  # the maximum is in
+    assert branch_point(ended, [_score("gravity_deflection", 30.0, p=0.5)], 0.01, 6) is None
+    assert branch_point(ended, [_score("gravity_deflection", -1.0)], 0.01, 6) is None
