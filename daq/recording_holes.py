@@ -150,16 +150,14 @@ class HoleFinder:
         hole = _Pending(
             key, last[0] + 1, batch_seq - 1, last[1], t_ns, changes != last[2], base, base_ns
         )
-        # one event with the key's holes since the same publisher document (module doc)
-        event = [
-            p for p in self._pending if base_ns is not None and (p.key, p.base_ns) == (key, base_ns)
-        ]
-        if any(p.lost_router for p in event):
-            hole.lost_router = True
-        elif hole.lost_router:
-            for p in event:
-                p.lost_router = True
         self._pending.append(hole)
+        if base_ns is None:  # no publisher evidence spans it: its own stands
+            return
+        # one event with the key's holes since the same publisher document (module doc)
+        event = [p for p in self._pending if (p.key, p.base_ns) == (key, base_ns)]
+        lost = any(p.lost_router for p in event)
+        for p in event:
+            p.lost_router = lost
 
     def on_health(self, key: str, doc: object, t_ns: int) -> None:
         """A health document (parsed JSON) of health key ``key`` arrived at ``t_ns``."""

@@ -102,6 +102,7 @@ from calibration.effects.second_search import (
     branch_point,
     gravity_shown,
     has_gravity,
+    round_name,
 )
 from calibration.errors import IdentificationError
 from calibration.identify.campaign_files import Campaign
@@ -283,11 +284,11 @@ def run_closed_loop(
     penalty = settings.penalty_per_parameter
     if penalty is None:
         penalty = math.log(3 * problem.m)
-    stages, result = _first_stages(problem, geometric)
+    stages = _first_stages(problem, geometric)
     tell(f"closed loop: {len(library)} candidate effects")
     refine = [allowed is None or k in allowed for k in ("link_bending", "joint_coupling")]
     search = _Search(problem, library, penalty, span, settings, tell, *refine)
-    last_round, rejected, stop = search.run(stages, result)
+    last_round, rejected, stop = search.run(stages)
     tell(f"closed loop: stopped: {stop.text}")
     second = _second_search(search, stages, last_round)
     if second is not None and second[0].kept:
@@ -330,15 +331,13 @@ def _second_search(
         return None
     k, shown = branch
     again = replace(search, tell=lambda t: tell(t.replace("closed loop:", "closed loop, again:")))
-    at = "the first round" if k == 2 else f"round {k - 1}"
+    at = round_name(k - 1)
     tell(f"closed loop: {shown.label} was shown in {at}: searching again from there with it first")
     alt = stages[:k]
-    start = alt[-1].result
-    assert start is not None  # the geometric stage and each effect's hold their result
     # the linear form, shown but not significant on its count, is the last resort of a
     # search that ended without gravity; beside a physical term the search found later,
     # 20 validation poses do not tell the two apart (docs/closed-loop.md)
-    end = again.run(alt, start, gravity_first=True, linear_first=not has_gravity(stages[-1].specs))
+    end = again.run(alt, gravity_first=True, linear_first=not has_gravity(stages[-1].specs))
     before, after = stages[-1].mean_ap(set_name), alt[-1].mean_ap(set_name)
     with_gravity = has_gravity(alt[-1].specs)
     undone = next((r.reason for r in end[1] if r.label == shown.label), "")
@@ -455,20 +454,17 @@ class _Search:
         return refit
 
     def run(
-        self,
-        stages: list[Stage],
-        result: IdentificationResult,
-        gravity_first: bool = False,
-        linear_first: bool = False,
+        self, stages: list[Stage], gravity_first: bool = False, linear_first: bool = False
     ) -> tuple[list[CandidateScore], list[Rejected], StopReason]:
-        """Add effects round by round to ``stages`` (in place) from the last stage's model
-        (``result``) until no candidate is significant, the maximum number of effects is in
-        or too many were set aside: the last round's scores, the candidates set aside and
-        why it stopped. The maximum reached, one more round names the best one left.
+        """Add effects round by round to ``stages`` (in place) from the last stage's
+        identified model until no candidate is significant, the maximum number of effects
+        is in or too many were set aside: the last round's scores, the candidates set aside
+        and why it stopped. The maximum reached, one more round names the best one left.
         ``gravity_first``: its first round adds the gravity term it shows, penalized score
         or not (the second search); ``linear_first``: the linear form if need be."""
         problem, settings, tell = self.problem, self.settings, self.tell
-        specs = stages[-1].specs
+        specs, result = stages[-1].specs, stages[-1].result
+        assert result is not None  # the geometric stage and each effect's hold theirs
         rejected: list[Rejected] = []
         set_aside: set[EffectSpec] = set()
         while True:
@@ -516,11 +512,9 @@ class _Search:
             )
 
 
-def _first_stages(
-    problem: LoopProblem, geometric: IdentificationResult | None
-) -> tuple[list[Stage], IdentificationResult]:
+def _first_stages(problem: LoopProblem, geometric: IdentificationResult | None) -> list[Stage]:
     """The nominal stage (its base registered on the points) and the geometric one (
-    ``geometric``, or identified here), and the geometric identification."""
+    ``geometric``, or identified here)."""
     reference = base_start_from_registration(problem.nominal, problem.ctx.data.q_rad, problem.meas)
     nominal = Stage(
         "nominal", "nominal", reference, errors_mm=problem.errors(reference, (), np.zeros(0))
@@ -535,7 +529,7 @@ def _first_stages(
             result=result,
             errors_mm=problem.errors(result.model, (), np.zeros(0)),
         ),
-    ], result
+    ]
 
 
 @dataclass(frozen=True, eq=False)

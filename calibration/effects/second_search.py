@@ -58,6 +58,11 @@ def has_gravity(specs: Sequence[EffectSpec]) -> bool:
     return any(s.kind == "gravity_deflection" for s in specs)
 
 
+def round_name(n: int) -> str:
+    """Round ``n`` (1: the first) as the loop's lines and reports say it."""
+    return "the first round" if n == 1 else f"round {n}"
+
+
 class SearchStage(Protocol):
     """A stage of the search: its model's effects, and the round that added the last."""
 
@@ -134,9 +139,8 @@ class SecondSearch:
             first = f"began with {self.first_added[0]} and ended with {ended}"
         else:
             first = f"added {self.first_added[self.round - 1]} there and ended with {ended}"
-        at = "the first round" if self.round == 1 else f"round {self.round}"
         return (
-            f"{at} showed {self.shown}, but the search by score {first} "
+            f"{round_name(self.round)} showed {self.shown}, but the search by score {first} "
             f"(validation mean AP {self.first_mean_ap_mm:.4f} mm); searched again from there "
             f"with gravity first: {second} ({self.second_mean_ap_mm:.4f} mm); {verdict}"
         )
