@@ -48,6 +48,7 @@ import math
 import time
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -74,7 +75,7 @@ from calibration.effects.effect_candidates import (
     resolved_candidates,
     scan_key,
 )
-from calibration.effects.effect_coupling import coupling_candidates
+from calibration.effects.effect_coupling import coupling_candidates, coupling_moment_columns
 from calibration.effects.effect_kinds import (
     KINDS,
     regressor_matrix,
@@ -473,8 +474,9 @@ class _Search:
                 return [], rejected, self.stop("no_candidate_left", None, rejected, ())
             physical = not any(_is_physical(s) for s in set_aside)
             scored = _score_round(
-                problem, result, specs, offered, settings, self.penalty, self.span, physical
-            )
+                problem, result, specs, offered, settings, self.penalty, self.span, physical,
+                self.coupling,
+            )  # fmt: skip
             scores = scored.scores
             if len(specs) >= settings.max_effects:
                 stop = self.stop("max_effects", scored, rejected, set_aside)
@@ -632,6 +634,7 @@ def _score_round(
     penalty: float,
     span: tuple[float, ...],
     physical: bool = True,
+    coupled: bool = True,
 ) -> ScoredRound:
     """Score every offered candidate against the model ``result`` with ``specs``; a drift
     is offered as a lag when the data says so; the gravity term's linear form also in its
@@ -656,7 +659,14 @@ def _score_round(
     linear = [s for s in columns if s.kind == "gravity_deflection" and s.parameter == "linear"]
     form = None
     if linear and physical:
-        form = physical_gravity(problem.ctx, problem.m, linear[0], lin, columns[linear[0]])
+        coupling = None
+        if coupled:
+            coupling = partial(
+                coupling_moment_columns, columns_of=partial(problem.columns, sw=sw, kin=kin)
+            )
+        form = physical_gravity(
+            problem.ctx, problem.m, linear[0], lin, columns[linear[0]], coupling
+        )
     if form is not None:
         phys_spec, fits[phys_spec] = form
         columns[phys_spec] = problem.columns(phys_spec, sw, kin)

@@ -39,7 +39,7 @@ modelled.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -210,6 +210,23 @@ def coupling_candidates(
     return []
 
 
+def coupling_moment_columns(
+    names: Sequence[str], columns_of: Callable[[EffectSpec], FloatArray]
+) -> FloatArray:
+    """The shoulder pair's coupling ``(3m, b)`` per unit weighted moment of each of the
+    base moments ``names``: the columns ``D`` with which a physical gravity form is
+    fitted beside its coupling (:func:`~calibration.effects.effect_shapes.fit_physical_gravity`),
+    ``columns_of`` a candidate's weighted regressor ``(3m, 1)``."""
+    return np.hstack(
+        [
+            columns_of(
+                EffectSpec(JointCoupling.kind, joints=COUPLED_JOINTS, names=(n,), shape=(1.0,))
+            )
+            for n in names
+        ]
+    )
+
+
 def coupling_weights(
     spec: EffectSpec, values: FloatArray, joint: int
 ) -> tuple[tuple[str, ...], tuple[float, ...]] | None:
@@ -231,6 +248,12 @@ def coupling_weights(
             if g is not None:
                 continue
             cb = counterbalance_term(name)
+            if cb is not None and ratio.get(cb[0], 1.0) == 0.0:
+                # a bounded fit's joint whose deflection the data do not show: its
+                # torque is not known from it; the pair's is needed, another's is not
+                if cb[0] in COUPLED_JOINTS:
+                    return None
+                continue
             names.append(name)
             weights.append(float(value) if cb is None else float(value) / ratio.get(cb[0], 1.0))
         if not names or not all(np.isfinite(weights)):

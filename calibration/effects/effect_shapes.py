@@ -181,14 +181,22 @@ class PhysicalGravityFit:
     success: bool
     groups: tuple[tuple[int, ...], ...] = ()
     moment_group: tuple[int, ...] = ()
+    #: κ of the shoulder's coupled compliance when fitted beside (None: not), in units of
+    #: the reference joint's compliance
+    coupling_ratio: float | None = None
 
 
 def fit_physical_gravity(
     lin: LinearizedModel,
     blocks: dict[int, FloatArray],
+    coupling: FloatArray | None = None,
 ) -> PhysicalGravityFit:
     """Fit ``Σ_j ρ_j·C_j·w`` to the model's residual, ``C_j`` ``(3m, b)`` the weighted
-    columns of joint j per base moment (zero where a moment does not act on it).
+    columns of joint j per base moment (zero where a moment does not act on it); with
+    ``coupling`` ``(3m, b)`` (the shoulder pair's coupled compliance per base moment,
+    :func:`~calibration.effects.effect_coupling.coupling_moment_columns`), ``+ κ·D·w``
+    with one more ratio κ, fitted and left out of the result (the loop offers the
+    coupling as its own term once gravity is in).
 
     The residual convention is the identification's (model − tracker), so the effect
     explains ``−residual``. The reference joint (ρ = 1) is the one whose linear-form
@@ -202,20 +210,26 @@ def fit_physical_gravity(
     whose deflection the data do not show. A fit that succeeds is kept as it is, a small
     negative ratio within its error included (a counterbalanced joint's, near 0).
     """
-    fit = _fit_physical_gravity(lin, blocks, bounded=False)
+    fit = _fit_physical_gravity(lin, blocks, coupling, bounded=False)
     if fit.success or not np.any(fit.ratios < 0.0):
         return fit
-    bounded = _fit_physical_gravity(lin, blocks, bounded=True)
+    bounded = _fit_physical_gravity(lin, blocks, coupling, bounded=True)
     return bounded if bounded.success else fit
 
 
 def _fit_physical_gravity(
-    lin: LinearizedModel, blocks: dict[int, FloatArray], *, bounded: bool
+    lin: LinearizedModel,
+    blocks: dict[int, FloatArray],
+    coupling: FloatArray | None,
+    *,
+    bounded: bool,
 ) -> PhysicalGravityFit:
     """:func:`fit_physical_gravity`'s fit, the ratios ``bounded`` at 0 or free."""
     joints = tuple(sorted(blocks))
     y = -lin.fit0
     perp = {j: lin.perp(blocks[j]) for j in joints}
+    coupled = None if coupling is None else lin.perp(coupling)
+    kappa = np.zeros(0 if coupling is None else 1)
     p, acting = _linear_form(blocks, perp, y)
     shift = np.array([float(np.linalg.norm(perp[j] @ p[i])) for i, j in enumerate(joints)])
     ref = int(np.argmax(shift))
@@ -238,10 +252,12 @@ def _fit_physical_gravity(
             [i for g in groups for i in g[1:]],
             np.flatnonzero(~undetermined),
             y,
+            coupled,
         )
-        x0 = np.concatenate([rho[form.free], w[form.keep]])
+        x0 = np.concatenate([rho[form.free], kappa, w[form.keep]])
         sol = _solve(form, x0, bounded)
         rho, w = form.unpack(sol.x)
+        kappa = sol.x[len(form.free) : len(form.free) + len(kappa)]
         split = _split_runaway(groups, rho, shift)
         if split is None or attempt == len(joints) - 1:
             break
@@ -307,6 +323,7 @@ def _result(
         bool(sol.success) and not _runs_off(groups, rho),
         tuple(tuple(joints[i] for i in sorted(g)) for g in live) if len(live) > 1 else (),
         tuple(renumber.get(int(o), 0) for o in owner) if len(live) > 1 else (),
+        None if form.coupled is None else float(sol.x[len(form.free)]),
     )
 
 
@@ -414,14 +431,20 @@ def _linear_form(
 
 @dataclass(frozen=True, eq=False)
 class _PhysicalForm:
-    """``Σ_j ρ_j·C_j·w − y`` over the parameters ``x``: the ratios of the ``free`` joints
-    (the reference's is 1), then the moments ``keep`` (the others are held)."""
+    """``Σ_j ρ_j·C_j·w (+ κ·D·w) − y`` over the parameters ``x``: the ratios of the
+    ``free`` joints (the reference's is 1), with ``coupled`` the coupling's κ, then the
+    moments ``keep`` (the others are held)."""
 
     perp: dict[int, FloatArray]  # joint -> (3m, b) columns, the model projected out
     joints: tuple[int, ...]
     free: list[int]  # positions in ``joints`` (the others: group references, ρ = 1)
     keep: NDArray[np.intp]  # the determined moments
     y: FloatArray  # (3m,)
+    coupled: FloatArray | None = None  # (3m, b) the coupling's columns, projected
+
+    @property
+    def n_ratios(self) -> int:
+        return len(self.free) + (self.coupled is not None)
 
     def unpack(self, x: FloatArray, held: float = 1.0) -> tuple[FloatArray, FloatArray]:
         """Ratios ``(J,)`` and moments ``(b,)`` of ``x``: the reference joint's ratio is
@@ -429,25 +452,29 @@ class _PhysicalForm:
         r = np.full(len(self.joints), held)
         r[self.free] = x[: len(self.free)]
         ww = np.zeros(next(iter(self.perp.values())).shape[1])
-        ww[self.keep] = x[len(self.free) :]
+        ww[self.keep] = x[self.n_ratios :]
         return r, ww
 
-    def residual(self, x: FloatArray) -> FloatArray:
+    def _joined(self, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """``Σ_j ρ_j·C_j (+ κ·D)`` ``(3m, b)`` at ``x``, and the moments."""
         r, ww = self.unpack(x)
-        res: FloatArray = (
-            sum(r[i] * (self.perp[j] @ ww) for i, j in enumerate(self.joints)) - self.y
-        )
+        total = sum(r[i] * self.perp[j] for i, j in enumerate(self.joints))
+        if self.coupled is not None:
+            total = total + x[len(self.free)] * self.coupled
+        return total, ww
+
+    def residual(self, x: FloatArray) -> FloatArray:
+        total, ww = self._joined(x)
+        res: FloatArray = total @ ww - self.y
         return res
 
     def jacobian(self, x: FloatArray) -> FloatArray:
-        r, ww = self.unpack(x)
-        d_rho = (
-            np.column_stack([self.perp[self.joints[i]] @ ww for i in self.free])
-            if self.free
-            else np.zeros((len(self.y), 0))
-        )
-        d_w = sum(r[i] * self.perp[j] for i, j in enumerate(self.joints))
-        return np.hstack([d_rho, d_w[:, self.keep]])
+        total, ww = self._joined(x)
+        shapes = [self.perp[self.joints[i]] @ ww for i in self.free]
+        if self.coupled is not None:
+            shapes.append(self.coupled @ ww)
+        d_ratio = np.column_stack(shapes) if shapes else np.zeros((len(self.y), 0))
+        return np.hstack([d_ratio, total[:, self.keep]])
 
 
 def _rank_one(

@@ -15,6 +15,7 @@ from scipy.stats import f as f_distribution
 
 from calibration.effects.candidate_scoring import LinearizedModel
 from calibration.effects.effect_base import EffectContext, EffectSpec
+from calibration.effects.effect_coupling import COUPLED_JOINTS
 from calibration.effects.effect_gravity import (
     counterbalance_term,
     gravity_groups,
@@ -34,14 +35,27 @@ Identify = Callable[[tuple[EffectSpec, ...], FloatArray], IdentificationResult]
 PHYSICAL_FORM_ALPHA = 0.01
 
 
+#: The shoulder pair's coupling per base moment (:func:`coupling_moment_columns` with the
+#: loop's weighted regressor), for a physical form fitted beside it.
+CouplingColumns = Callable[[tuple[str, ...]], FloatArray]
+
+
 def physical_gravity(
     ctx: EffectContext,
     m: int,
     spec: EffectSpec,
     lin: LinearizedModel,
     cols: FloatArray,
+    coupling: CouplingColumns | None = None,
 ) -> tuple[EffectSpec, PhysicalGravityFit] | None:
-    """The physical form's spec and fit from the linear candidate's columns."""
+    """The physical form's spec and fit from the linear candidate's columns.
+
+    When the one-ratio-per-joint form cannot be fitted and ``coupling`` is given (the
+    loop may add the shoulder's coupled compliance), it is fitted again with the
+    coupling's κ beside it: a shoulder whose joints share compliance loads each joint
+    with the other's torque, which no set of ratios holds (docs/closed-loop.md, "A
+    coupled shoulder"). The form offered is still the gravity term alone, its ratios
+    and moments from that fit; the coupling is offered on its own once it is in."""
     base = ctx.base_moments
     names = base.names
     blocks: dict[int, FloatArray] = {}
@@ -61,7 +75,9 @@ def physical_gravity(
             lin.residual, np.hstack([lin.jacobian, cols[:, own]]), m, len(lin.folds), 0
         )
     fit = fit_physical_gravity(lin, blocks)
-    if not fit.success or not np.all(np.isfinite(fit.ratios)):
+    if not _converged(fit) and coupling is not None and _couples(ctx, blocks):
+        fit = fit_physical_gravity(lin, blocks, coupling(names))
+    if not _converged(fit):
         return None
     if fit.groups:  # the limit form: a moment a named group owns loads its joints alone
         names = tuple(
@@ -76,6 +92,16 @@ def physical_gravity(
         shape=tuple(float(r) for r in fit.ratios),
     )
     return phys, fit
+
+
+def _converged(fit: PhysicalGravityFit) -> bool:
+    return fit.success and bool(np.all(np.isfinite(fit.ratios)))
+
+
+def _couples(ctx: EffectContext, blocks: dict[int, FloatArray]) -> bool:
+    """Whether the loop could add the shoulder pair's coupling beside this form
+    (:func:`~calibration.effects.effect_coupling.coupling_candidates`)."""
+    return ctx.data.sweep_reference is None and set(COUPLED_JOINTS) <= set(blocks)
 
 
 def form_decision(
@@ -153,6 +179,11 @@ def _form_info(
             f"groups {'+'.join(str(j) for j in fit.groups[0])} and {apart}, so each group "
             "shares its own moments"
         )
+    if fit.coupling_ratio is not None:
+        reason += (
+            f"; ratios fitted with the shoulder's coupled compliance beside (κ "
+            f"{fit.coupling_ratio:.3g}): one ratio per joint alone did not converge"
+        )
     return {
         "gravity_form": {
             "kept": kept,
@@ -171,6 +202,7 @@ def _form_info(
             "weighted_moment_urad": [float(w) for w in fit.moments],
             "weighted_moment_se_urad": [float(w) for w in fit.moment_se],
             "groups": [list(g) for g in fit.groups] or [list(fit.joints)],
+            "fitted_with_coupling_ratio": fit.coupling_ratio,
         }
     }
 

@@ -130,3 +130,29 @@ def test_the_limit_forms_regressor_counts_and_file_round_trip():
     np.testing.assert_allclose(got, want, atol=1e-12 * np.abs(want).max())
     back, values = kind.from_parameters(kind.to_parameters(spec, w, 6), 6)
     assert back == spec and np.array_equal(values, w)
+
+
+def test_a_coupled_shoulder_is_fitted_with_its_coupling_beside():
+    """Joints 2 and 3 sharing compliance load each other with their torques (``κ·D·w``):
+    no set of ratios holds that, so the plain fit leaves much of it; fitted with the
+    coupling's columns beside, the ratios, the moments and κ come back and the residual
+    is the noise's."""
+    shared = np.array([3.0, 2.0, 1.5, 1.0])
+    ratios = {2: 1.0, 3: 0.5, 4: 2.0, 5: 0.4}
+    p = {j: [r * shared[k] if k in ACTING[j] else 0.0 for k in range(4)] for j, r in ratios.items()}
+    lin, blocks = _problem(p, seed=2)
+    rng = np.random.default_rng(5)
+    coupling = rng.normal(size=(180, 4))
+    kappa = -0.3
+    lin = LinearizedModel.build(lin.residual - kappa * coupling @ shared, lin.jacobian, 60, 5, 0)
+    noise_sse = 180 * 0.01**2
+    plain = fit_physical_gravity(lin, blocks)
+    assert plain.coupling_ratio is None
+    assert not plain.success or plain.sse > 100 * noise_sse
+    fit = fit_physical_gravity(lin, blocks, coupling)
+    assert fit.success and fit.groups == () and fit.sse < 2.0 * noise_sse
+    ref = ratios[fit.reference]
+    truth = np.array([ratios[j] for j in fit.joints]) / ref
+    np.testing.assert_allclose(fit.ratios, truth, rtol=0.02)
+    np.testing.assert_allclose(fit.moments, shared * ref, rtol=0.02)
+    assert fit.coupling_ratio == pytest.approx(kappa / ref, rel=0.02)

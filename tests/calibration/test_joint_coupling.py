@@ -97,6 +97,15 @@ def test_offered_after_a_gravity_term_in_either_form() -> None:
     assert coupling_candidates(ctx, (phys,), (values,), exclude=(offered,)) == []
     swept = EffectContext(desc, replace(ctx.data, sweep_reference=np.zeros(6)))
     assert coupling_candidates(swept, (phys,), (values,)) == []
+    # a ratio a bounded fit left at 0: joint 2's torque is not known from its deflection,
+    # so no coupling; another joint's counterbalance terms are left out of the torques
+    unseen = replace(phys, shape=(0.0, 1.0, 2.0, 2.0, 1.0))
+    assert coupling_candidates(ctx, (unseen,), (values,)) == []
+    wrist = replace(
+        phys, names=names + counterbalance_terms(4)[:1], shape=(0.5, 1.0, 0.0, 2.0, 1.0)
+    )
+    (without,) = coupling_candidates(ctx, (wrist,), (values,))
+    assert without.names == names and without.shape == tuple(values[:-1])
     linear = EffectSpec(
         "gravity_deflection",
         parameter="linear",
