@@ -228,11 +228,14 @@ def measure_campaign(
     q_validate_rad: FloatArray,
     rng: np.random.Generator,
     settings: CampaignSettings = CampaignSettings(),
+    t_s: FloatArray | None = None,
 ) -> CampaignData:
     """Run the campaign of the given joint vectors (``(m_id, n)`` then ``(m_val, n)`` rad,
     the true ring angles, in this order) on ``cell``: the tracker's points, the gratings'
     and encoders' readings, with ``settings``' effects and noise (``settings.n_identify``,
-    ``n_validate`` and ``selection`` are not used: the poses are given)."""
+    ``n_validate`` and ``selection`` are not used: the poses are given). ``t_s`` ``(m,)``:
+    the poses' times from the campaign's start (s) instead of one move-and-settle after
+    another (the same random draws either way)."""
     q_true = np.vstack([q_identify_rad, q_validate_rad])
     n_identify, n_validate = len(q_identify_rad), len(q_validate_rad)
     m = len(q_true)
@@ -242,7 +245,7 @@ def measure_campaign(
     grating = grating_reading_rad(eff, q_true) * (1.0 + 1e-6 * settings.grating_scale_error_ppm)
     grating = grating + np.radians(rng.normal(0.0, settings.grating_noise_deg, q_true.shape))
     dt = rng.uniform(*settings.pose_time_s, size=m)
-    t_s = np.cumsum(dt)
+    t_s = np.cumsum(dt) if t_s is None else np.asarray(t_s, dtype=float)
     direction = approach_direction(q_true)
     expected = None
     if eff.any_active:

@@ -57,3 +57,25 @@ def test_generator_writes_temp_c_and_the_truth(tmp_path):
     assert doc["thermal_expansion"] and doc["expansion_ppm_per_k"] == 11.5
     rc = pose_campaign.main([*args, "--out", str(out)])
     assert rc == 0 and "temp_c" not in out.read_text().splitlines()[0]
+
+
+def test_a_campaign_measured_at_given_times_has_the_same_draws():
+    """``measure_campaign(..., t_s)``: the poses at the times given, every random draw as
+    without them, so the readings are the same; the truth at those times (a drift grown
+    by its rate times the time given)."""
+    nominal = emulated_campaign("kr500", 5, CampaignSettings(**SMALL))
+    cell, q = nominal.cell, nominal.q_true_rad
+    eff = UndeclaredEffects.named("thermal_drift")
+    settings = CampaignSettings(**SMALL, effects=eff)
+    timed = pose_campaign.measure_campaign(cell, q[:0], q, np.random.default_rng(2), settings)
+    t = np.sort(np.random.default_rng(3).uniform(0.0, 600.0, len(q)))
+    given = pose_campaign.measure_campaign(cell, q[:0], q, np.random.default_rng(2), settings, t)
+    np.testing.assert_array_equal(given.campaign.t_s, t)
+    np.testing.assert_array_equal(given.campaign.q_deg, timed.campaign.q_deg)
+    np.testing.assert_array_equal(given.campaign.encoder_deg, timed.campaign.encoder_deg)
+    at_zero = pose_campaign.measure_campaign(
+        cell, q[:0], q, np.random.default_rng(2), settings, np.zeros(len(q))
+    )
+    grown = np.linalg.norm(given.tcp_true_mm - at_zero.tcp_true_mm, axis=1)
+    assert np.all(np.diff(grown[np.argsort(t)]) > -1e-9)  # the drift only grows
+    assert 0.5 * eff.drift_mm_per_h * 600 / 3600 < grown.max() < 2 * eff.drift_mm_per_h * 600 / 3600
