@@ -257,7 +257,7 @@ def _fit_physical_gravity(
         x0 = np.concatenate([rho[form.free], kappa, w[form.keep]])
         sol = _solve(form, x0, bounded)
         rho, w = form.unpack(sol.x)
-        kappa = sol.x[len(form.free) : len(form.free) + len(kappa)]
+        kappa = form.coupling_of(sol.x)
         split = _split_runaway(groups, rho, shift)
         if split is None or attempt == len(joints) - 1:
             break
@@ -323,7 +323,7 @@ def _result(
         bool(sol.success) and not _runs_off(groups, rho),
         tuple(tuple(joints[i] for i in sorted(g)) for g in live) if len(live) > 1 else (),
         tuple(renumber.get(int(o), 0) for o in owner) if len(live) > 1 else (),
-        None if form.coupled is None else float(sol.x[len(form.free)]),
+        None if form.coupled is None else float(form.coupling_of(sol.x)[0]),
     )
 
 
@@ -446,6 +446,10 @@ class _PhysicalForm:
     def n_ratios(self) -> int:
         return len(self.free) + (self.coupled is not None)
 
+    def coupling_of(self, x: FloatArray) -> FloatArray:
+        """The coupling's κ in ``x``: ``(1,)``, or ``(0,)`` without ``coupled``."""
+        return x[len(self.free) : self.n_ratios]
+
     def unpack(self, x: FloatArray, held: float = 1.0) -> tuple[FloatArray, FloatArray]:
         """Ratios ``(J,)`` and moments ``(b,)`` of ``x``: the reference joint's ratio is
         ``held`` (1; 0 when ``x`` holds standard errors), a held moment's 0."""
@@ -460,7 +464,7 @@ class _PhysicalForm:
         r, ww = self.unpack(x)
         total = sum(r[i] * self.perp[j] for i, j in enumerate(self.joints))
         if self.coupled is not None:
-            total = total + x[len(self.free)] * self.coupled
+            total = total + self.coupling_of(x)[0] * self.coupled
         return total, ww
 
     def residual(self, x: FloatArray) -> FloatArray:

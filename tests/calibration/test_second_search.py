@@ -76,6 +76,11 @@ NEGATIVELY_COUPLED = CampaignSettings(
 )  # fmt: skip
 
 
+def _without_the_coupled_fit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The physical form never fitted with the coupling beside (the loop before that fit)."""
+    monkeypatch.setattr(gravity_form, "_couples", lambda ctx, blocks: False)
+
+
 @cache
 def planned_50(seed: int, settings: LoopSettings | None = None) -> tuple[CalibrationResult, float]:
     """bench_plan's planned 50 poses of ``seed`` (from 5000 candidates) and its 20
@@ -146,7 +151,7 @@ def test_a_search_without_gravity_takes_its_shown_linear_form_when_the_physical_
     Searched again from there, the linear form is taken for being shown (the search had
     no gravity term), the validation error falls, and the emulator says the kept model is
     better (0.0179 against 0.0323 mm when written)."""
-    monkeypatch.setattr(gravity_form, "_couples", lambda ctx, blocks: False)
+    _without_the_coupled_fit(monkeypatch)
     second, err_second = planned_50.__wrapped__(5)
     first, err_first = planned_50.__wrapped__(5, FIRST_SEARCH_ONLY)
     assert first.loop is not None and second.loop is not None
@@ -169,7 +174,7 @@ def test_a_coupled_shoulder_gets_its_physical_form_fitted_with_the_coupling_besi
     (0.0165 against 0.0231 mm when written)."""
     coupled, err = planned_50(4)
     with monkeypatch.context() as before:
-        before.setattr(gravity_form, "_couples", lambda ctx, blocks: False)
+        _without_the_coupled_fit(before)
         uncoupled, err_uncoupled = planned_50.__wrapped__(4)
     assert coupled.loop is not None and uncoupled.loop is not None
     assert not any(s.kind == "joint_coupling" for s in uncoupled.loop.final.specs)
