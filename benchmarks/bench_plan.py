@@ -32,6 +32,7 @@ greedy D-optimal selection in the same run.
     python -m benchmarks.bench_plan --set cyclic_joint=3 --set cyclic_order=1  # other truths:
     python -m benchmarks.bench_plan --effects \
         gravity_deflection,joint_coupling,grating_cyclic,tracker_scale  # (docs/planning.md)
+    python -m benchmarks.bench_plan --passes 2       # the plan measured forward then back
     python -m benchmarks --only plan --quick         # smoke run, numbers mean nothing
 """
 
@@ -161,15 +162,22 @@ class SeedCampaigns:
 
 
 def seed_campaigns(
-    seed: int, n_candidates: int = 5000, n_plan: int = 50, arm: PlannedArm | None = None
+    seed: int,
+    n_candidates: int = 5000,
+    n_plan: int = 50,
+    arm: PlannedArm | None = None,
+    passes: int = 1,
 ) -> SeedCampaigns:
     """The planned and random campaigns of one seed (module text), on ``arm`` (the KR500
-    in the default cell when omitted)."""
+    in the default cell when omitted), the plan's order of ``passes`` (``twin plan
+    --passes``)."""
     arm = arm or PlannedArm()
     nominal = load_robot(arm.robot)
     cell = TrueCell.create(nominal, seed)
     geometry = resolve(arm.cell, nominal)
-    settings = PlanSettings(n_identify=n_plan, n_validate=20, n_candidates=n_candidates, seed=seed)
+    settings = PlanSettings(
+        n_identify=n_plan, n_validate=20, n_candidates=n_candidates, seed=seed, passes=passes
+    )
     plan = plan_campaign(nominal, geometry, settings)
     pool = candidate_poses(
         nominal,
@@ -190,9 +198,11 @@ def run_seed(
     effects: UndeclaredEffects = EFFECTS,
     loop: LoopSettings | None = None,
     arm: PlannedArm | None = None,
+    passes: int = 1,
 ) -> SeedOutcome:
-    """One seed of the proof (module text); ``loop``: the closed loop's settings."""
-    sc = seed_campaigns(seed, n_candidates, n_plan, arm)
+    """One seed of the proof (module text); ``loop``: the closed loop's settings;
+    ``passes``: the plan's order (``twin plan --passes``)."""
+    sc = seed_campaigns(seed, n_candidates, n_plan, arm, passes)
     nominal, cell, plan, q_id, q_val = sc.nominal, sc.cell, sc.plan, sc.q_id, sc.q_val
     random150, held = sc.random, sc.held
     truth_geometry = cell_geometry(cell, sc.cell_spec)
@@ -333,6 +343,13 @@ def main(argv: list[str] | None = None) -> int:
         help="an effect setting (sim_devices.effects.UndeclaredEffects field, JSON value: "
         "cyclic_joint=3, lost_motion_deg=[0,0.003,0.003,0,0,0]); repeatable",
     )
+    parser.add_argument(
+        "--passes",
+        type=int,
+        choices=(1, 2),
+        default=1,
+        help="the plan's order: 1 one pass (default), 2 forward then back (twin plan --passes)",
+    )
     parser.add_argument("--quick", action="store_true")
     parser.add_argument(
         "--speed", action="store_true", help="only the selection's time (seeds 1..--seeds)"
@@ -353,7 +370,8 @@ def main(argv: list[str] | None = None) -> int:
         outcomes = []
         arm = PlannedArm.from_files(args.robot, args.cell)
         for s in range(args.first_seed, args.first_seed + args.seeds):
-            o = run_seed(s, effects=effects, loop=ADMITTED if args.admitted else None, arm=arm)
+            loop = ADMITTED if args.admitted else None
+            o = run_seed(s, effects=effects, loop=loop, arm=arm, passes=args.passes)
             print(
                 f"seed {s}: planned {o.planned_mm:.4f} mm, random 50 {o.random50_mm:.4f}, "
                 f"random 150 {o.random150_mm:.4f}, travel {o.travel_ratio:.2f}x, "

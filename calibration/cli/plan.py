@@ -88,6 +88,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="I: mean prediction variance over the region (default); D: the O1 index",
     )
     p.add_argument(
+        "--passes",
+        type=int,
+        choices=(1, 2),
+        default=1,
+        help="1: one pass, the shortest tour (default); 2: forward then back (every other "
+        "pose out, the rest back), so a drift in time is not taken for geometry",
+    )
+    p.add_argument(
         "--no-sweeps",
         action="store_true",
         help="leave the scale-calibration sweeps out (sweeps.csv, twin_sweeps.*)",
@@ -132,6 +140,7 @@ def run_plan(args: argparse.Namespace) -> int:
             n_candidates=args.candidates,
             seed=args.seed,
             criterion=args.criterion,
+            passes=args.passes,
         )
         plan = plan_campaign(robot, geometry, settings)
         prog = ProgramSettings()

@@ -27,9 +27,11 @@
    by rank-3 updates for every candidate at once.
 3. **Validation set** (:func:`spread_validation`): farthest-point sampling of the
    reflector positions among the other candidates, from a seeded start; not optimised.
-4. **Order** (:func:`travel_order`): a closed tour from Home; a leg takes
+4. **Order** (:mod:`calibration.plan.travel_order`): a closed tour from Home; a leg takes
    ``max_j |Δq_j| / v_j`` (synchronous PTP at the joints' top speeds); nearest neighbour,
-   then 2-opt until no move shortens it.
+   then 2-opt until no move shortens it; or (``passes`` 2) forward then back (every
+   other pose of the tour on the way out, the rest on the way back), so a drift in time
+   is not a smooth function of the pose.
 
 Everything here is arrays in, a frozen result out; files are :mod:`calibration.cli.plan`'s.
 """
@@ -73,6 +75,7 @@ from calibration.plan.plan_criterion import (
     criterion_value,
     exchange,
 )
+from calibration.plan.travel_order import TravelOrder, travel_order
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -110,6 +113,9 @@ class PlanSettings:
     min_conditioning: float = 0.01
     tracker_mpe_um: float = 15.0  # the tracker's MPE: ±(a + b·distance), taken as 2 σ
     tracker_mpe_um_per_m: float = 6.0
+    #: 1: one pass, the shortest tour; 2: the tour forward then back, a drift in time
+    #: kept apart from the pose (:mod:`calibration.plan.travel_order`)
+    passes: int = 1
 
 
 @dataclass(frozen=True, eq=False)
@@ -158,16 +164,6 @@ class Selection:
     i_value_mm2: float  # expected mean squared prediction error over the region (mm²)
     exchanges: int
     bias_mm2: float = 0.0  # its part from the left-out effects (plan_criterion)
-
-
-@dataclass(frozen=True, eq=False)
-class TravelOrder:
-    """A closed tour from Home: ``order`` (rows of the poses), leg times and total (s)."""
-
-    order: IntArray
-    time_s: float
-    random_time_s: float  # mean over random orders of the same poses
-    via_home: IntArray  # positions in ``order`` reached through Home (a direct leg collides)
 
 
 def joint_speeds_rad_s(description: RobotDescription) -> FloatArray:
@@ -672,68 +668,6 @@ def spread_validation(
     return out
 
 
-def leg_times_s(q_rad: FloatArray, speeds_rad_s: FloatArray) -> FloatArray:
-    """Synchronous PTP times ``(N, N)`` s between joint vectors ``(N, n)``."""
-    d = np.abs(q_rad[:, None, :] - q_rad[None, :, :]) / speeds_rad_s
-    times: FloatArray = d.max(axis=2)
-    return times
-
-
-def tour_time_s(times: FloatArray, tour: IntArray) -> float:
-    """The time of the closed tour ``tour`` (node 0 = Home first, returning to it)."""
-    path = np.append(tour, tour[0])
-    return float(times[path[:-1], path[1:]].sum())
-
-
-def _two_opt(times: FloatArray, tour: IntArray) -> IntArray:
-    """2-opt on a closed tour (node at position 0 fixed) until no reversal shortens it."""
-    t = tour.copy()
-    n = len(t)
-    improved = True
-    while improved:
-        improved = False
-        for i in range(1, n - 1):
-            a, b = t[i - 1], t[i]
-            c = t[i + 1 :]
-            d = np.append(t[i + 2 :], t[0])
-            delta = times[a, c] + times[b, d] - times[a, b] - times[c, d]
-            j = int(np.argmin(delta))
-            if delta[j] < -1e-9:
-                t[i : i + j + 2] = t[i : i + j + 2][::-1]
-                improved = True
-    return t
-
-
-def travel_order(
-    q_rad: FloatArray,
-    home_rad: FloatArray,
-    speeds_rad_s: FloatArray,
-    rng: np.random.Generator,
-) -> TravelOrder:
-    """A short closed tour from Home through every joint vector ``q_rad`` ``(N, n)``:
-    nearest neighbour then 2-opt; the random baseline is the mean of 20 random orders."""
-    nodes = np.vstack([home_rad, q_rad])
-    times = leg_times_s(nodes, speeds_rad_s)
-    n = len(nodes)
-    tour = [0]
-    left = set(range(1, n))
-    while left:
-        rest = np.array(sorted(left))
-        nxt = int(rest[np.argmin(times[tour[-1], rest])])
-        tour.append(nxt)
-        left.remove(nxt)
-    best = _two_opt(times, np.array(tour, dtype=np.intp))
-    randoms = [
-        tour_time_s(times, np.concatenate([[0], 1 + rng.permutation(n - 1)])) for _ in range(20)
-    ]
-    return TravelOrder(
-        order=best[1:] - 1,
-        time_s=tour_time_s(times, best),
-        random_time_s=float(np.mean(randoms)),
-        via_home=np.empty(0, dtype=np.intp),
-    )
-
-
 @dataclass(frozen=True, eq=False)
 class CampaignPlan:
     """A planned campaign: ``q_rad`` ``(N + M, n)`` in travel order, ``is_identify``
@@ -770,13 +704,14 @@ def plan_campaign(
     rows = np.concatenate([sel.indices, val])
     model = KinematicModel.from_description(description)
     home = np.radians(description.home)
-    travel = travel_order(cands.q_rad[rows], home, joint_speeds_rad_s(description), rng)
+    is_id = np.zeros(len(rows), dtype=bool)
+    is_id[: len(sel.indices)] = True
+    speeds = joint_speeds_rad_s(description)
+    travel = travel_order(cands.q_rad[rows], home, speeds, rng, settings.passes, is_id.astype(int))
     q = cands.q_rad[rows][travel.order]
     ends = np.vstack([home, q, home])
     legs = move_collision_codes(model, with_margins(geometry, settings), ends[:-1], ends[1:])
-    travel = TravelOrder(travel.order, travel.time_s, travel.random_time_s, np.flatnonzero(legs))
-    is_id = np.zeros(len(rows), dtype=bool)
-    is_id[: len(sel.indices)] = True
+    travel = replace(travel, via_home=np.flatnonzero(legs))
     random_rows = rng.choice(len(cands.q_rad), settings.n_identify, replace=False)
     return CampaignPlan(
         q_rad=q,

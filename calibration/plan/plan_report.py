@@ -9,6 +9,7 @@ from calibration.model.cell_geometry import CellGeometry
 from calibration.model.description import RobotDescription
 from calibration.plan.campaign_plan import CampaignPlan, PlanSettings, joint_speeds_rad_s
 from calibration.plan.robot_programs import ProgramSettings, programs_refused
+from calibration.plan.travel_order import TravelOrder
 
 
 def _vec(v: np.ndarray) -> str:
@@ -106,7 +107,8 @@ def plan_report(
         f"Closed tour from Home, synchronous PTP at the joints' top speeds "
         f"({', '.join(f'{v:g}' for v in speeds)} °/s): **{travel.time_s:.1f} s** against "
         f"{travel.random_time_s:.1f} s for a random order (mean of 20): "
-        f"{travel.time_s / travel.random_time_s:.2f}×. Nearest neighbour, then 2-opt.",
+        f"{travel.time_s / travel.random_time_s:.2f}×. Nearest neighbour, then 2-opt. "
+        + _passes_text(travel),
         f"Moves through Home (the direct move is not clear of the cell): {len(travel.via_home)}.",
         _programs_line(description, programs),
         "",
@@ -119,6 +121,21 @@ def plan_report(
         if count:
             lines.append(f"| {why} | {count} |")
     return "\n".join(lines) + "\n"
+
+
+def _passes_text(travel: TravelOrder) -> str:
+    if travel.passes == 1:
+        return (
+            "One pass (`--passes 1`): a pose's time follows where it is on the tour; on an "
+            "arm that drifts while it is measured (not warmed up), `--passes 2` measures "
+            "the tour forward then back, so the drift is not taken for geometry."
+        )
+    return (
+        "Forward then back (`--passes 2`): every other pose of the tour on the way out, "
+        f"the rest on the way back (from pose {travel.back_from + 1}), so neighbouring "
+        "poses are half the campaign apart in time and a drift in time (the arm warming "
+        "up) is not taken for geometry."
+    )
 
 
 def _programs_line(description: RobotDescription, programs: ProgramSettings) -> str:

@@ -14,8 +14,9 @@ import pytest
 
 from calibration.model.cell_geometry import CellGeometrySpec, resolve
 from calibration.model.description import load_robot
-from calibration.plan.campaign_plan import PlanSettings, leg_times_s, tour_time_s, travel_order
+from calibration.plan.campaign_plan import PlanSettings
 from calibration.plan.robot_programs import read_krl, read_rapid
+from calibration.plan.travel_order import leg_times_s, tour_time_s, travel_order
 from sim_devices.config import CellConfig
 from sim_devices.plant import Plant
 from sim_devices.tracker import TrackerInstrument
@@ -109,6 +110,27 @@ def test_same_seed_same_file(planned: Path, tmp_path: Path) -> None:
     assert (tmp_path / "other" / "campaign_joints.csv").read_bytes() != first
 
 
+def test_passes_two_measures_the_same_poses_forward_then_back(
+    planned: Path, tmp_path: Path
+) -> None:
+    """``--passes 2`` writes the one-pass plan's poses, each set whole, in another order
+    (ids 1.. in that order), and the report says where the way back starts."""
+    r = twin_plan(
+        "--robot", "kr500", *SMALL, "--seed", "3", "--passes", "2", "--out", "fb", cwd=tmp_path
+    )
+    assert r.returncode == 0, r.stderr
+    header, rows = read_joints(tmp_path / "fb" / "campaign_joints.csv")
+    _, one = read_joints(planned / "campaign_joints.csv")
+    assert [int(x["pose"]) for x in rows] == list(range(1, len(one) + 1))
+    key = lambda x: (x["set"], *(x[c] for c in header[2:]))  # noqa: E731
+    assert sorted(map(key, rows)) == sorted(map(key, one)) and list(map(key, rows)) != list(
+        map(key, one)
+    )
+    report = (tmp_path / "fb" / "report.md").read_text()
+    assert "Forward then back (`--passes 2`)" in report and "from pose " in report
+    assert "One pass (`--passes 1`)" in (planned / "report.md").read_text()
+
+
 def test_travel_order_beats_random_orders() -> None:
     rng = np.random.default_rng(5)
     q = rng.uniform(-2.0, 2.0, size=(60, 6))
@@ -118,6 +140,50 @@ def test_travel_order_beats_random_orders() -> None:
     times = leg_times_s(np.vstack([np.zeros(6), q]), speeds)
     assert order.time_s == pytest.approx(tour_time_s(times, np.append(0, order.order + 1)))
     assert order.time_s < 0.6 * order.random_time_s
+
+
+def _median_time_gap_to_nearest(q: np.ndarray, order: np.ndarray, speeds: np.ndarray) -> float:
+    """Median over poses of how many poses apart in time a pose and its nearest one (by
+    leg time) are measured."""
+    rank = np.empty(len(q), dtype=int)
+    rank[order] = np.arange(len(q))
+    legs = leg_times_s(q, speeds)
+    np.fill_diagonal(legs, np.inf)
+    return float(np.median(np.abs(rank - rank[legs.argmin(axis=1)])))
+
+
+def test_forward_then_back_measures_neighbours_half_a_campaign_apart(planned: Path) -> None:
+    """One pass measures a pose's nearest neighbour next to it in time, so a drift in time
+    follows the pose; forward then back measures it about half the campaign later, on
+    both a planned KR500 campaign's poses and random joint vectors, at a travel time
+    still well under a random order's."""
+    rng = np.random.default_rng(5)
+    kr500 = load_robot("kr500")
+    speeds_kr = np.radians([j.max_speed_deg_s for j in kr500.joints])
+    _, rows = read_joints(planned / "campaign_joints.csv")
+    plan_q = np.radians([[float(r[f"q{j}_deg"]) for j in range(1, 7)] for r in rows])
+    for q, speeds, most in (
+        (rng.uniform(-2.0, 2.0, size=(60, 6)), np.full(6, 1.5), 0.8),
+        (plan_q, speeds_kr, 0.8),
+    ):
+        one = travel_order(q, np.zeros(6), speeds, np.random.default_rng(1), passes=1)
+        two = travel_order(q, np.zeros(6), speeds, np.random.default_rng(1), passes=2)
+        assert sorted(two.order.tolist()) == list(range(len(q)))
+        times = leg_times_s(np.vstack([np.zeros(6), q]), speeds)
+        assert two.time_s == pytest.approx(tour_time_s(times, np.append(0, two.order + 1)))
+        assert _median_time_gap_to_nearest(q, one.order, speeds) <= 2
+        assert _median_time_gap_to_nearest(q, two.order, speeds) >= len(q) / 4
+        assert one.time_s < two.time_s < most * two.random_time_s
+        # the identification poses among them, forward then back on their own
+        ident = np.random.default_rng(2).random(len(q)) < 0.7
+        by_set = travel_order(q, np.zeros(6), speeds, np.random.default_rng(1), 2, ident)
+        in_id = by_set.order[ident[by_set.order]]  # the identification poses in time order
+        gap = _median_time_gap_to_nearest(q[in_id], np.arange(len(in_id)), speeds)
+        assert gap >= len(in_id) / 4
+        way_out = by_set.order[: by_set.back_from]
+        assert ident[way_out].sum() == (ident.sum() + 1) // 2  # half of each set either way
+        assert (~ident[way_out]).sum() == ((~ident).sum() + 1) // 2
+        assert one.back_from == -1 and 0 < two.back_from < len(q)
 
 
 def test_emulated_tracker_breaks_the_beam_out_of_view() -> None:
