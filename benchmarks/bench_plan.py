@@ -17,7 +17,8 @@ tracker noise, grating noise, the effects) and calibrated as a user would
 (:func:`calibration.effects.calibrate.calibrate` with effects: the closed loop; the twin gets the
 preset, never the truth). The **held-out error** is the mean distance between the
 calibrated twin's prediction (:func:`calibration.effects.model_effects.predict_tcp` at the
-gratings' readings) and the noise-free tracker reading of the truth, over 300 other random
+gratings' readings, and at the arm's measured temperature where the truth has one) and the
+noise-free tracker reading of the truth, over 300 other random
 poses in view, measured at times spread over that campaign's own span (the same errors
 for a truth that does not change with time; a thermal drift is judged where the campaign
 saw it, not extrapolated the further the shorter the campaign). Also: the planned order's
@@ -126,7 +127,9 @@ def held_out_error_mm(
     held = measure_campaign(
         cell, q_held[:0], q_held, np.random.default_rng([seed, 8]), settings, t_held
     )
-    predicted = predict_tcp(result.description, held.campaign.q_rad, held.campaign.t_s)
+    predicted = predict_tcp(
+        result.description, held.campaign.q_rad, held.campaign.t_s, temp_c=held.campaign.temp_c
+    )
     return float(np.mean(np.linalg.norm(predicted - held.true_prediction_mm, axis=1)))
 
 

@@ -76,7 +76,9 @@ def run_seed(
     for t in (t_one, t_two):
         data = measure_campaign(sc.cell, q_id, q_val, np.random.default_rng([seed, 7]), campaign, t)
         result = calibrate(sc.nominal, data.campaign, effects=True)
-        predicted = predict_tcp(result.description, held.campaign.q_rad, held.campaign.t_s)
+        predicted = predict_tcp(
+            result.description, held.campaign.q_rad, held.campaign.t_s, temp_c=held.campaign.temp_c
+        )
         errors.append(float(np.mean(np.linalg.norm(predicted - held.true_prediction_mm, axis=1))))
     return {
         "seed": seed,

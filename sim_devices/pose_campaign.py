@@ -350,7 +350,8 @@ def generate_checks(
 ) -> ChecksData:
     """Production checks after ``data``'s campaign on the same cell and clock: the check
     poses in turn, each measured by the tracker of the drifting cell, read by the gratings
-    (their noise), with the campaign's undeclared effects."""
+    (their noise), with the campaign's undeclared effects; with the arm's thermal
+    expansion on, its temperature read as the campaign's is (``temp_c``)."""
     cell, eff = data.cell, data.effects
     poses = sample_reachable_poses(cell.nominal, program.n_poses, rng)
     start = float(data.campaign.t_s[-1]) + program.gap_s
@@ -367,6 +368,9 @@ def generate_checks(
     grating = grating_reading_rad(eff, q_true) + np.radians(
         rng.normal(0.0, settings.grating_noise_deg, q_true.shape)
     )
+    temp_c = None
+    if eff.thermal_expansion:  # drawn last: every other draw as without the effect
+        temp_c = arm_temperature_c(eff, t_s) + rng.normal(0.0, eff.temp_sensor_noise_k, m)
     checks = Campaign(
         source="<emulated checks>",
         pose=tuple(f"c{i + 1}" for i in range(m)),
@@ -374,6 +378,7 @@ def generate_checks(
         t_s=t_s,
         q_deg=np.degrees(grating),
         xyz_mm=measured,
+        temp_c=temp_c,
     )
     return ChecksData(checks=checks, true_mm=true_read, draws=draws, program=program)
 

@@ -15,7 +15,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from calibration.effects.model_effects import TcpPrediction, load_checked_robot, predict_tcp_sd
+from calibration.effects.model_effects import (
+    TcpPrediction,
+    load_checked_robot,
+    missing_temperature_warning,
+    predict_tcp_sd,
+)
 from calibration.errors import DataFileError, OutputFileError
 from calibration.identify.campaign_files import joint_columns, read_targets
 from calibration.model.kinematics import KinematicModel
@@ -39,7 +44,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--targets",
         required=True,
         help="targets.csv: target,x_mm,y_mm,z_mm and q1_deg..qN_deg or rx_deg,ry_deg,rz_deg; "
-        "optional fx_n,fy_n,fz_n (a process force on the tool, N)",
+        "optional t_s, temp_c (the arm's temperature, °C) and fx_n,fy_n,fz_n (a process "
+        "force on the tool, N)",
     )
     p.add_argument("--out", required=True, help="joints.csv to write")
     p.add_argument(
@@ -84,6 +90,7 @@ def run_compensate(args: argparse.Namespace) -> int:
             rpy_deg=targets.rpy_deg,
             t_s=targets.t_s,
             force_n=force,
+            temp_c=targets.temp_c,
             skip_unreached=args.skip_bad,
         )
         bad = np.flatnonzero(~res.ok)
@@ -96,7 +103,7 @@ def run_compensate(args: argparse.Namespace) -> int:
             )
         q_ok = np.where(res.ok[:, None], res.q_deg, 0.0)  # failed rows: a finite stand-in
         times = None if targets.t_s is None else np.asarray(targets.t_s, dtype=float)
-        pred = predict_tcp_sd(desc, np.radians(q_ok), times)
+        pred = predict_tcp_sd(desc, np.radians(q_ok), times, temp_c=targets.temp_c)
         _write_joints(out_path, desc.n_joints, targets.target, res, pred)
     for k in bad:
         print(
@@ -104,6 +111,9 @@ def run_compensate(args: argparse.Namespace) -> int:
             f"{targets.lines[k]}): {res.reason[k]}",
             file=sys.stderr,
         )
+    no_temperature = missing_temperature_warning(desc, targets.temp_c)
+    if no_temperature:
+        print(f"twin compensate: warning: {no_temperature}", file=sys.stderr)
     travel = res.travel_deg[res.ok]
     extra = f"; largest joint change {np.max(travel):.4f}°" if np.isfinite(travel).any() else ""
     if res.force_deflection_mm is not None and res.ok.any():

@@ -147,7 +147,9 @@ def _register_predict(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
         "calibrated model (geometry, base, tool and every modelled effect).",
     )
     q.add_argument("--model", required=True, help="calibrated robot description (.toml)")
-    q.add_argument("--data", required=True, help="joints.csv: pose,t_s,q1_deg..qN_deg")
+    q.add_argument(
+        "--data", required=True, help="joints.csv: pose,t_s,q1_deg..qN_deg (temp_c optional)"
+    )
     q.add_argument("--out", required=True, help="points.csv to write")
     q.add_argument("--skip-bad", action="store_true", help="skip bad rows (counted on stderr)")
     q.add_argument(
@@ -419,7 +421,11 @@ def _require_converged(result: IdentificationResult, which: str) -> None:
 
 
 def run_predict(args: argparse.Namespace) -> int:
-    from calibration.effects.model_effects import predict_tcp_sd, times_outside_span
+    from calibration.effects.model_effects import (
+        missing_temperature_warning,
+        predict_tcp_sd,
+        times_outside_span,
+    )
 
     with OutputSet([args.data, args.model], error=OutputFileError) as outputs:
         out_path = outputs.file(args.out, "--out")
@@ -429,7 +435,8 @@ def run_predict(args: argparse.Namespace) -> int:
         )
         if not args.no_unit_check:
             check_joint_angle_units(str(args.data), readings.q_deg, _limits(desc))
-        pred = predict_tcp_sd(desc, np.radians(readings.q_deg), readings.t_s)
+        q = np.radians(readings.q_deg)
+        pred = predict_tcp_sd(desc, q, readings.t_s, temp_c=readings.temp_c)
         write_points(out_path, readings.pose, pred.points_mm, pred.sd_mm, pred.beyond_reach)
     outside, span = times_outside_span(desc, readings.t_s)
     if outside and span is not None:
@@ -439,6 +446,9 @@ def run_predict(args: argparse.Namespace) -> int:
             "the nearer end (a polynomial in time is never extrapolated)",
             file=sys.stderr,
         )
+    no_temperature = missing_temperature_warning(desc, readings.temp_c)
+    if no_temperature:
+        print(f"twin predict: warning: {no_temperature}", file=sys.stderr)
     far = int(np.count_nonzero(pred.beyond_reach))
     if far:
         print(

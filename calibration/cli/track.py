@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import argparse
 import csv
+import sys
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.effects.model_effects import load_checked_robot
+from calibration.effects.model_effects import load_checked_robot, missing_temperature_warning
 from calibration.errors import OptionError, OutputFileError, TrackingError
 from calibration.identify.campaign_files import Checks, read_checks
 from calibration.model.description import RobotDescription
@@ -146,7 +147,7 @@ def run_track(args: argparse.Namespace) -> int:
                 str(args.data), checks.q_deg, checks.xyz_mm, setup.template, limits
             )
         q = np.radians(checks.q_deg)
-        offsets = effect_offsets(desc, q, checks.t_s)
+        offsets = effect_offsets(desc, q, checks.t_s, checks.temp_c)
         run = track_checks(setup, q, checks.xyz_mm, offsets)
         static = static_errors_mm(setup, q, checks.xyz_mm, offsets)
         write_tracked(out, checks, run, setup.names)
@@ -154,6 +155,9 @@ def run_track(args: argparse.Namespace) -> int:
             out_model.write_text(_model_after(desc, setup, run), encoding="utf-8")
         if report is not None:
             _report(report, args, setup, checks, run, static, q, offsets)
+    no_temperature = missing_temperature_warning(desc, checks.temp_c)
+    if no_temperature:
+        print(f"twin track: warning: {no_temperature}", file=sys.stderr)
     for line in _summary(run, static, checks):
         print(line)
     print(f"wrote {args.out}: {len(checks)} checks")

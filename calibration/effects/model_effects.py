@@ -10,9 +10,11 @@ what the loop fitted. An unknown kind or a bad parameter fails with an error nam
 description with the same function (:func:`description_effects`).
 
 Effects may use the joint readings, the times ``t_s`` (drift terms: on the campaign's
-clock; a polynomial in time is held at the campaign's span, see :func:`times_outside_span`)
-and the approach direction of each joint, taken from the pose sequence in time order
-starting at Home (lost motion).
+clock; a polynomial in time is held at the campaign's span, see :func:`times_outside_span`),
+the temperature ``temp_c`` (°C: thermal expansion and the tracker's scale with the air;
+without one those terms are 0, the prediction at their ``t_ref_c``, see
+:func:`temperature_terms`) and the approach direction of each joint, taken from the pose
+sequence in time order starting at Home (lost motion).
 """
 
 from __future__ import annotations
@@ -71,12 +73,17 @@ def load_checked_robot(name_or_path: str | Path) -> RobotDescription:
 
 
 def predict_tcp(
-    description: RobotDescription, q_rad: ArrayLike, t_s: ArrayLike | None = None
+    description: RobotDescription,
+    q_rad: ArrayLike,
+    t_s: ArrayLike | None = None,
+    *,
+    temp_c: ArrayLike | None = None,
 ) -> FloatArray:
-    """TCP points ``(N, 3)`` mm in the tracker frame with every modelled effect applied,
+    """TCP points ``(N, 3)`` mm in the tracker frame with every modelled effect applied
+    (at the times ``t_s`` ``(N,)`` s and temperatures ``temp_c`` ``(N,)`` °C where given),
     and the learned residual stage's correction where the description has one (within
     the data's reach: :func:`predict_tcp_sd`)."""
-    points = traced_tcp(description, q_rad, t_s)
+    points = traced_tcp(description, q_rad, t_s, temp_c=temp_c)
     learned = _learned(description)
     if learned is None:
         return points
@@ -95,12 +102,16 @@ class TcpPrediction:
 
 
 def predict_tcp_sd(
-    description: RobotDescription, q_rad: ArrayLike, t_s: ArrayLike | None = None
+    description: RobotDescription,
+    q_rad: ArrayLike,
+    t_s: ArrayLike | None = None,
+    *,
+    temp_c: ArrayLike | None = None,
 ) -> TcpPrediction:
     """:func:`predict_tcp` with each point's predictive standard deviation: the learned
     stage's where it applies, else the traced model's (``[residual] traced_sd_mm``)."""
     q = np.atleast_2d(np.asarray(q_rad, dtype=float))
-    points = traced_tcp(description, q, t_s)
+    points = traced_tcp(description, q, t_s, temp_c=temp_c)
     residual = description.residual
     learned = _learned(description)
     if learned is not None:
@@ -120,19 +131,45 @@ def _learned(description: RobotDescription) -> LearnedResidual | None:
 
 
 def traced_tcp(
-    description: RobotDescription, q_rad: ArrayLike, t_s: ArrayLike | None = None
+    description: RobotDescription,
+    q_rad: ArrayLike,
+    t_s: ArrayLike | None = None,
+    *,
+    temp_c: ArrayLike | None = None,
 ) -> FloatArray:
     """TCP points ``(N, 3)`` mm of the traced model: geometry and the named effects."""
     specs, values = description_effects(description)
     q = np.atleast_2d(np.asarray(q_rad, dtype=float))
     t = None if t_s is None else np.asarray(t_s, dtype=float)
-    data = EffectData.from_sequence(q, t, np.radians(description.home))
+    temp = None if temp_c is None else np.asarray(temp_c, dtype=float).reshape(len(q))
+    data = EffectData.from_sequence(q, t, np.radians(description.home), temp_c=temp)
     ctx = EffectContext(description, data)
     model = KinematicModel.from_description(description)
     try:
         return predict_points(model, specs, values, ctx)
     except EffectLibraryError as exc:
         raise ModelEffectError(f"[[effect]]: {exc}") from exc
+
+
+def temperature_terms(description: RobotDescription) -> tuple[float, ...]:
+    """The reference temperatures ``t_ref_c`` (°C) of the description's terms driven by a
+    measured temperature, one per term (empty: the model has none, a temperature changes
+    nothing); without a temperature such a term predicts at its ``t_ref_c``."""
+    specs, _ = description_effects(description)
+    return tuple(float(s.t_ref_c or 0.0) for s in specs if KINDS[s.kind].needs_temperature)
+
+
+def missing_temperature_warning(description: RobotDescription, temp_c: object) -> str | None:
+    """The warning a command prints when the model has temperature-driven terms and its
+    input gave no temperature (``temp_c`` None): they predict at their ``t_ref_c``."""
+    refs = temperature_terms(description)
+    if temp_c is not None or not refs:
+        return None
+    at = ", ".join(f"{t:g}" for t in sorted(set(refs)))
+    return (
+        f"the model has {len(refs)} term(s) driven by a measured temperature and the input "
+        f"has no temp_c column: predicted at their reference temperature ({at} °C)"
+    )
 
 
 def times_outside_span(

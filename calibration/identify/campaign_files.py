@@ -99,13 +99,15 @@ class Campaign:
 
 @dataclass(frozen=True)
 class JointReadings:
-    """The rows of a joints.csv: pose ids, times (s) and joint angles ``(m, n)`` degrees."""
+    """The rows of a joints.csv: pose ids, times (s) and joint angles ``(m, n)`` degrees;
+    the temperature ``(m,)`` °C when the file has a ``temp_c`` column."""
 
     source: str
     pose: tuple[str, ...]
     t_s: FloatArray
     q_deg: FloatArray
     skipped: tuple[SkippedRow, ...] = ()
+    temp_c: FloatArray | None = None
 
     def __len__(self) -> int:
         return len(self.pose)
@@ -317,13 +319,16 @@ def read_joint_readings(
     limits_deg: JointLimits | None = None,
     skip_bad: bool = False,
 ) -> JointReadings:
-    """Read a joints.csv (``pose,t_s,q1_deg..qN_deg``; other columns ignored)."""
+    """Read a joints.csv (``pose,t_s,q1_deg..qN_deg``, ``temp_c`` optional as in
+    campaign.csv; other columns ignored)."""
     source, header, rows = _read_table(path)
     qcols = joint_columns(n_joints)
     _check_columns(source, header, ["pose", "t_s", *qcols], n_joints)
+    has_temp = TEMPERATURE_COLUMN in header
 
     def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
-        return _number(f, "t_s"), _joint_angles(f, qcols, limits_deg)
+        temp = _temperature(f) if has_temp else math.nan
+        return _number(f, "t_s"), _joint_angles(f, qcols, limits_deg), temp
 
     poses, values, skipped = _parse_rows(source, header, rows, parse, skip_bad)
     return JointReadings(
@@ -332,6 +337,7 @@ def read_joint_readings(
         t_s=np.array([v[0] for v in values], dtype=float),
         q_deg=np.array([v[1] for v in values], dtype=float).reshape(len(poses), n_joints),
         skipped=tuple(skipped),
+        temp_c=np.array([v[2] for v in values], dtype=float) if has_temp else None,
     )
 
 
@@ -476,6 +482,7 @@ class Targets:
     t_s: FloatArray | None
     lines: tuple[int, ...]
     force_n: FloatArray | None = None  # (m, 3) N: a process force on the tool
+    temp_c: FloatArray | None = None  # (m,) °C: the arm's temperature (``temp_c``)
 
 
 #: A process force on the tool, N in the tracker frame (targets.csv, loads.csv).
@@ -509,8 +516,8 @@ def read_targets(
     path: str | Path, n_joints: int, *, limits_deg: JointLimits | None = None
 ) -> Targets:
     """Read a targets.csv: ``target,x_mm,y_mm,z_mm`` and ``q1_deg..qN_deg`` or
-    ``rx_deg,ry_deg,rz_deg`` (``t_s`` and ``fx_n,fy_n,fz_n`` optional; other columns
-    ignored)."""
+    ``rx_deg,ry_deg,rz_deg`` (``t_s``, ``temp_c`` and ``fx_n,fy_n,fz_n`` optional; other
+    columns ignored)."""
     source, header, rows = _read_table(path)
     xyz = ["x_mm", "y_mm", "z_mm"]
     qcols, rcols = joint_columns(n_joints), ORIENTATION_COLUMNS
@@ -525,13 +532,15 @@ def read_targets(
             + (f" (missing {', '.join(missing)})" if missing else f" ({what} given)")
         )
     has_t = "t_s" in header
+    has_temp = TEMPERATURE_COLUMN in header
     has_f = _force_columns(source, header)
 
     def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
         p = [_number(f, c) for c in xyz]
         o = _joint_angles(f, qcols, limits_deg) if has_q else [_number(f, c) for c in rcols]
         force = [_number(f, c) for c in FORCE_COLUMNS] if has_f else []
-        return p, o, (_number(f, "t_s") if has_t else math.nan), force
+        temp = _temperature(f) if has_temp else math.nan
+        return p, o, (_number(f, "t_s") if has_t else math.nan), force, temp
 
     ids, values, _ = _parse_rows(source, header, rows, parse, False, id_column="target")
     m = len(ids)
@@ -545,6 +554,7 @@ def read_targets(
         t_s=np.array([v[2] for v in values], dtype=float) if has_t else None,
         lines=tuple(line for line, _ in rows),
         force_n=np.array([v[3] for v in values], dtype=float).reshape(m, 3) if has_f else None,
+        temp_c=np.array([v[4] for v in values], dtype=float) if has_temp else None,
     )
 
 
@@ -697,6 +707,7 @@ class Checks:
     t_s: FloatArray  # (m,) strictly increasing
     q_deg: FloatArray  # (m, n)
     xyz_mm: FloatArray  # (m, 3)
+    temp_c: FloatArray | None = None  # (m,) °C, the optional temp_c column
 
     def __len__(self) -> int:
         return len(self.pose)
@@ -711,10 +722,12 @@ def read_checks(
     source, header, rows = _read_table(path)
     qcols = joint_columns(n_joints)
     _check_columns(source, header, ["pose", "t_s", *qcols, "x_mm", "y_mm", "z_mm"], n_joints)
+    has_temp = TEMPERATURE_COLUMN in header
 
     def parse(f: dict[str, str]) -> tuple[float | str | list[float], ...]:
         xyz = [_number(f, c) for c in ("x_mm", "y_mm", "z_mm")]
-        return _number(f, "t_s"), _joint_angles(f, qcols, limits_deg), xyz
+        temp = _temperature(f) if has_temp else math.nan
+        return _number(f, "t_s"), _joint_angles(f, qcols, limits_deg), xyz, temp
 
     poses, values, _ = _parse_rows(source, header, rows, parse, skip_bad=False)
     t_s = np.array([v[0] for v in values], dtype=float)
@@ -732,4 +745,5 @@ def read_checks(
         t_s=t_s,
         q_deg=np.array([v[1] for v in values], dtype=float).reshape(len(poses), n_joints),
         xyz_mm=np.array([v[2] for v in values], dtype=float).reshape(len(poses), 3),
+        temp_c=np.array([v[3] for v in values], dtype=float) if has_temp else None,
     )

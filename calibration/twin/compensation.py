@@ -109,6 +109,7 @@ def compensate(
     rpy_deg: ArrayLike | None = None,
     t_s: ArrayLike | None = None,
     force_n: ArrayLike | None = None,
+    temp_c: ArrayLike | None = None,
     tol_mm: float = TOLERANCE_MM,
     max_iterations: int = MAX_ITERATIONS,
     skip_unreached: bool = False,
@@ -116,7 +117,9 @@ def compensate(
     """Joints that put the calibrated ``description``'s TCP on ``target_mm`` ``(m, 3)``
     (tracker frame, mm), keeping the orientation of ``q_programmed_deg`` ``(m, n)`` or
     the stated ``rpy_deg`` ``(m, 3)``. ``t_s`` ``(m,)``: times for drift terms;
-    ``force_n`` ``(m, 3)``: a process force on the tool (N, tracker frame).
+    ``force_n`` ``(m, 3)``: a process force on the tool (N, tracker frame); ``temp_c``
+    ``(m,)``: the arm's temperature (°C) for temperature-driven terms (without: at their
+    reference temperature).
 
     The targets are a program, in time order (``t_s``, else row order): a direction-
     dependent effect (lost motion) approaches each from the one before it. With
@@ -141,7 +144,10 @@ def compensate(
     if not np.all(np.isfinite(q)) and q_prog is not None:
         raise CompensationError("programmed joints must be finite")
     times = None if t_s is None else np.asarray(t_s, dtype=float).reshape(m)
-    predict = _Prediction(description, times, force)
+    temp = None if temp_c is None else np.asarray(temp_c, dtype=float).reshape(m)
+    if temp is not None and not np.all(np.isfinite(temp)):
+        raise CompensationError("temperatures must be finite")
+    predict = _Prediction(description, times, force, temp)
     iterations = _newton(model, predict, q, target, r_target, tol_mm, max_iterations)
     q_deg, residual, ok, reasons = _checked(description, predict, q, target, times, tol_mm)
     left_out = ~ok & np.all(np.isfinite(q), axis=1)
@@ -224,10 +230,12 @@ class _Prediction:
     description: RobotDescription
     times: FloatArray | None  # (m,) s
     force: FloatArray | None  # (m, 3) N
+    temp: FloatArray | None = None  # (m,) °C
 
     def __call__(self, rows: NDArray[np.intp], q_rad: FloatArray) -> FloatArray:
         times = None if self.times is None else self.times[rows]
-        p = predict_tcp(self.description, q_rad, times)
+        temp = None if self.temp is None else self.temp[rows]
+        p = predict_tcp(self.description, q_rad, times, temp_c=temp)
         if self.force is not None:
             p = p + force_deflection_mm(self.description, q_rad, self.force[rows])
         return p

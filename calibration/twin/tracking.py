@@ -494,11 +494,17 @@ def window_refit_errors(
     return out
 
 
-def effect_offsets(description: RobotDescription, q_rad: ArrayLike, t_s: ArrayLike) -> FloatArray:
+def effect_offsets(
+    description: RobotDescription,
+    q_rad: ArrayLike,
+    t_s: ArrayLike,
+    temp_c: ArrayLike | None = None,
+) -> FloatArray:
     """The calibrated description's effect terms ``(m, 3)`` mm at checks in time order
     (its prediction minus its geometry's, the learned residual stage included, as
-    ``twin predict`` has it): held fixed while the geometry is tracked. Row
-    k's uses rows up to k only (a lost-motion term's approach direction from row k − 1)."""
+    ``twin predict`` has it; at the checks' temperatures ``temp_c`` ``(m,)`` °C where
+    given): held fixed while the geometry is tracked. Row k's uses rows up to k only (a
+    lost-motion term's approach direction from row k − 1)."""
     from calibration.effects.model_effects import predict_tcp
     from calibration.model.kinematics import tcp_positions
 
@@ -506,5 +512,6 @@ def effect_offsets(description: RobotDescription, q_rad: ArrayLike, t_s: ArrayLi
     if not description.effects and not learned:  # the geometry alone: nothing held
         return np.zeros((len(np.atleast_2d(q_rad)), 3))
     model = KinematicModel.from_description(description)
-    out: FloatArray = predict_tcp(description, q_rad, t_s) - tcp_positions(model, q_rad)
+    predicted = predict_tcp(description, q_rad, t_s, temp_c=temp_c)
+    out: FloatArray = predicted - tcp_positions(model, q_rad)
     return out

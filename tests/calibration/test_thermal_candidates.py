@@ -174,3 +174,160 @@ def test_regressors_match_grown_models_and_the_prediction_uses_temp_c():
     unmeasured = EffectContext(desc, replace(data, temp_c=None))
     for c in (at_ref, unmeasured):
         assert not KINDS["instrument_scale_temperature"].regressor(spec, c, every, kin).any()
+
+
+@pytest.fixture(scope="module")
+def warm_model(tmp_path_factory):
+    """A calibrated.toml with the loop's thermal expansion (kr500, seed 2) and its
+    campaign: what a user has after ``twin identify`` on a warming arm."""
+    from calibration.effects.calibrate import calibrate
+
+    desc = load_robot("kr500")
+    data = emulated_campaign("kr500", 2, THERMAL)
+    loop = LoopSettings(max_effects=1)
+    result = calibrate(desc, data.campaign, loop_settings=loop, learned=False)
+    assert [e.kind for e in result.description.effects] == ["thermal_expansion"]
+    path = tmp_path_factory.mktemp("warm") / "calibrated.toml"
+    result.description.save(path)
+    return path, data
+
+
+def test_prediction_at_the_measured_temperature_follows_the_truth(warm_model):
+    """``predict_tcp`` given each validation pose's ``temp_c`` is the loop's own
+    prediction, and nearer the emulator's truth than the prediction at T_ref (the
+    temperature left out) over a 3 K warm-up."""
+    path, data = warm_model
+    model = load_robot(str(path))
+    camp = data.campaign
+    val = camp.mask("validate")
+    assert np.ptp(camp.temp_c[val]) > 1.0  # the validation poses span the warm-up
+    truth = data.true_prediction_mm[val]
+    warm = predict_tcp(model, camp.q_rad[val], camp.t_s[val], temp_c=camp.temp_c[val])
+    at_ref = predict_tcp(model, camp.q_rad[val], camp.t_s[val])
+    err_warm = np.mean(np.linalg.norm(warm - truth, axis=1))
+    err_ref = np.mean(np.linalg.norm(at_ref - truth, axis=1))
+    assert err_warm < 0.5 * err_ref, (err_warm, err_ref)
+    with pytest.raises(ValueError):
+        predict_tcp(model, camp.q_rad[val], temp_c=camp.temp_c[:2])  # one per pose
+
+
+def _joints_csv(path, camp, rows, temperature):
+    head = "pose,t_s," + ",".join(f"q{j}_deg" for j in range(1, 7))
+    lines = [head + (",temp_c" if temperature else "")]
+    for i in rows:
+        fields = [camp.pose[i], f"{camp.t_s[i]:.3f}", *(f"{v:.6f}" for v in camp.q_deg[i])]
+        lines.append(",".join(fields + ([f"{camp.temp_c[i]:.3f}"] if temperature else [])))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_twin_predict_and_compensate_take_temp_c(warm_model, tmp_path, capsys):
+    """``twin predict`` reads an optional ``temp_c`` column and predicts there; without
+    it, one warning line says the terms are at their reference temperature. ``twin
+    compensate`` solves joints whose prediction at the target's temperature is the target."""
+    path, data = warm_model
+    model = load_robot(str(path))
+    camp = data.campaign
+    rows = np.flatnonzero(camp.mask("validate"))[:8]
+    for temperature in (True, False):
+        joints, out = tmp_path / f"j{temperature}.csv", tmp_path / f"p{temperature}.csv"
+        _joints_csv(joints, camp, rows, temperature)
+        args = ["predict", "--model", str(path), "--data", str(joints), "--out", str(out)]
+        assert main(args) == 0
+        err = capsys.readouterr().err
+        assert ("reference temperature" in err) is not temperature, err
+        got = np.loadtxt(out, delimiter=",", skiprows=1, usecols=(1, 2, 3))
+        temp = camp.temp_c[rows] if temperature else None
+        want = predict_tcp(model, camp.q_rad[rows], camp.t_s[rows], temp_c=temp)
+        np.testing.assert_allclose(got, want, atol=2e-4)
+    targets = tmp_path / "targets.csv"
+    goal = data.true_prediction_mm[rows]
+    lines = ["target,x_mm,y_mm,z_mm," + ",".join(f"q{j}_deg" for j in range(1, 7)) + ",temp_c"]
+    for k, i in enumerate(rows):
+        fields = [f"T{k}", *(f"{v:.6f}" for v in goal[k]), *(f"{v:.6f}" for v in camp.q_deg[i])]
+        lines.append(",".join([*fields, f"{camp.temp_c[i]:.3f}"]))
+    targets.write_text("\n".join(lines) + "\n")
+    solved = tmp_path / "solved.csv"
+    assert (
+        main(["compensate", "--model", str(path), "--targets", str(targets), "--out", str(solved)])
+        == 0
+    )
+    assert "reference temperature" not in capsys.readouterr().err
+    q = np.loadtxt(solved, delimiter=",", skiprows=1, usecols=range(1, 7))
+    temp = np.round(camp.temp_c[rows], 3)
+    reached = predict_tcp(model, np.radians(q), temp_c=temp)
+    assert np.max(np.linalg.norm(reached - goal, axis=1)) < 1e-3
+
+
+def test_tracked_checks_hold_the_expansion_at_their_temperature(warm_model, tmp_path):
+    """``twin track``'s effect terms are the model's prediction at each check's
+    temperature minus its geometry's (``temp_c`` of checks.csv), and the column is read."""
+    from calibration.identify.campaign_files import read_checks
+    from calibration.twin.tracking import effect_offsets
+
+    path, data = warm_model
+    model = load_robot(str(path))
+    camp = data.campaign
+    rows = np.flatnonzero(camp.mask("validate"))[:6]
+    checks_csv = tmp_path / "checks.csv"
+    write_campaign(checks_csv, camp.subset(np.isin(np.arange(len(camp)), rows)))
+    checks = read_checks(checks_csv, 6)
+    np.testing.assert_allclose(checks.temp_c, camp.temp_c[rows], atol=1e-4)
+    q = np.radians(checks.q_deg)
+    held = effect_offsets(model, q, checks.t_s, checks.temp_c)
+    geometry = tcp_positions(KinematicModel.from_description(model), q)
+    want = predict_tcp(model, q, checks.t_s, temp_c=checks.temp_c) - geometry
+    np.testing.assert_allclose(held, want, atol=1e-12)
+    assert np.max(np.abs(held - effect_offsets(model, q, checks.t_s))) > 1e-3  # not at T_ref
+
+
+def test_twin_track_on_the_emulated_production_run_uses_its_temperature(
+    warm_model, tmp_path, capsys
+):
+    """The emulator's production checks after a warming campaign carry the arm's
+    temperature; ``twin track`` on them predicts nearer the checks with the column than
+    with it dropped (its static one-step error, from stdout), and says so when dropped."""
+    from sim_devices.pose_campaign import CheckProgram, emulated_checks
+
+    path, data = warm_model
+    run = emulated_checks(data, 2, CheckProgram(hours=2.0), THERMAL)
+    assert run.checks.temp_c is not None and np.ptp(run.checks.temp_c) > 0.5
+    static = {}
+    for temperature in (True, False):
+        checks = run.checks if temperature else replace(run.checks, temp_c=None)
+        csv_path = tmp_path / f"checks{temperature}.csv"
+        write_campaign(csv_path, checks)
+        out = tmp_path / f"tracked{temperature}.csv"
+        assert (
+            main(["track", "--model", str(path), "--data", str(csv_path), "--out", str(out)]) == 0
+        )
+        captured = capsys.readouterr()
+        line = next(x for x in captured.out.splitlines() if x.startswith("one-step-ahead"))
+        static[temperature] = float(line.split("static ")[1].split(" mm")[0])
+        assert ("reference temperature" in captured.err) is not temperature
+    assert static[True] < 0.8 * static[False], static
+
+
+def test_bad_temp_c_in_joints_and_targets_is_one_line(warm_model, tmp_path, capsys):
+    """A kelvin value in joints.csv's or targets.csv's ``temp_c``: one line naming the
+    file, the line and the column; exit 2, nothing written."""
+    path, data = warm_model
+    camp = data.campaign
+    joints = tmp_path / "joints.csv"
+    _joints_csv(joints, camp, [0, 1, 2], True)
+    lines = joints.read_text().splitlines()
+    lines[2] = ",".join([*lines[2].split(",")[:-1], "296.2"])
+    joints.write_text("\n".join(lines) + "\n")
+    targets = tmp_path / "targets.csv"
+    head = "target,x_mm,y_mm,z_mm," + ",".join(f"q{j}_deg" for j in range(1, 7)) + ",temp_c"
+    row = ",".join(["T1", "1000", "0", "1500", *(f"{v:.4f}" for v in camp.q_deg[0]), "296.2"])
+    targets.write_text(f"{head}\n{row}\n")
+    for command, option, bad, line in (
+        ("predict", "--data", joints, "line 3"),
+        ("compensate", "--targets", targets, "line 2"),
+    ):
+        out = tmp_path / f"{command}.csv"
+        assert main([command, "--model", str(path), option, str(bad), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and str(bad) in err[0] and line in err[0], err
+        assert "column 'temp_c'" in err[0] and "kelvin" in err[0]
+        assert not out.exists()
