@@ -28,6 +28,10 @@ from calibration.model.unit_plausibility import OVERRIDE, check_measurement_unit
 from edges.outputs import OutputSet
 
 if TYPE_CHECKING:  # the solver loads when the command runs, not for --help
+    from numpy.typing import NDArray
+
+    from calibration.identify.campaign_files import Targets
+    from calibration.model.description import RobotDescription
     from calibration.twin.compensation import CompensationResult
 
 
@@ -105,15 +109,7 @@ def run_compensate(args: argparse.Namespace) -> int:
         times = None if targets.t_s is None else np.asarray(targets.t_s, dtype=float)
         pred = predict_tcp_sd(desc, np.radians(q_ok), times, temp_c=targets.temp_c)
         _write_joints(out_path, desc.n_joints, targets.target, res, pred)
-    for k in bad:
-        print(
-            f"twin compensate: skipped target {targets.target[k]!r} (line "
-            f"{targets.lines[k]}): {res.reason[k]}",
-            file=sys.stderr,
-        )
-    no_temperature = missing_temperature_warning(desc, targets.temp_c)
-    if no_temperature:
-        print(f"twin compensate: warning: {no_temperature}", file=sys.stderr)
+    _say_skipped_and_warnings(desc, targets, res, bad)
     travel = res.travel_deg[res.ok]
     extra = f"; largest joint change {np.max(travel):.4f}°" if np.isfinite(travel).any() else ""
     if res.force_deflection_mm is not None and res.ok.any():
@@ -124,6 +120,22 @@ def run_compensate(args: argparse.Namespace) -> int:
         f"{np.nanmax(res.residual_mm[res.ok]) if res.ok.any() else 0:.1e} mm{extra}"
     )
     return 0
+
+
+def _say_skipped_and_warnings(
+    desc: RobotDescription, targets: Targets, res: CompensationResult, bad: NDArray[np.intp]
+) -> None:
+    """On stderr: each target left out and why, and a model's temperature terms solved
+    without a temperature."""
+    for k in bad:
+        print(
+            f"twin compensate: skipped target {targets.target[k]!r} (line "
+            f"{targets.lines[k]}): {res.reason[k]}",
+            file=sys.stderr,
+        )
+    no_temperature = missing_temperature_warning(desc, targets.temp_c)
+    if no_temperature:
+        print(f"twin compensate: warning: {no_temperature}", file=sys.stderr)
 
 
 def _write_joints(

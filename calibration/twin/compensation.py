@@ -116,10 +116,9 @@ def compensate(
 ) -> CompensationResult:
     """Joints that put the calibrated ``description``'s TCP on ``target_mm`` ``(m, 3)``
     (tracker frame, mm), keeping the orientation of ``q_programmed_deg`` ``(m, n)`` or
-    the stated ``rpy_deg`` ``(m, 3)``. ``t_s`` ``(m,)``: times for drift terms;
-    ``force_n`` ``(m, 3)``: a process force on the tool (N, tracker frame); ``temp_c``
-    ``(m,)``: the arm's temperature (°C) for temperature-driven terms (without: at their
-    reference temperature).
+    the stated ``rpy_deg`` ``(m, 3)``. ``t_s`` ``(m,)`` s and ``temp_c`` ``(m,)`` °C: for
+    drift and temperature terms; ``force_n`` ``(m, 3)``: a process force on the tool (N,
+    tracker frame).
 
     The targets are a program, in time order (``t_s``, else row order): a direction-
     dependent effect (lost motion) approaches each from the one before it. With
@@ -144,10 +143,7 @@ def compensate(
     if not np.all(np.isfinite(q)) and q_prog is not None:
         raise CompensationError("programmed joints must be finite")
     times = None if t_s is None else np.asarray(t_s, dtype=float).reshape(m)
-    temp = None if temp_c is None else np.asarray(temp_c, dtype=float).reshape(m)
-    if temp is not None and not np.all(np.isfinite(temp)):
-        raise CompensationError("temperatures must be finite")
-    predict = _Prediction(description, times, force, temp)
+    predict = _Prediction(description, times, force, _checked_temperature(temp_c, m))
     iterations = _newton(model, predict, q, target, r_target, tol_mm, max_iterations)
     q_deg, residual, ok, reasons = _checked(description, predict, q, target, times, tol_mm)
     left_out = ~ok & np.all(np.isfinite(q), axis=1)
@@ -187,6 +183,14 @@ def _checked(
     reasons, ok = _verdicts(q_deg, residual, finite, _limits(description), tol_mm)
     reasons = _lost_motion_reasons(description, q_deg, finite, times, ok, reasons)
     return q_deg, residual, ok, reasons
+
+
+def _checked_temperature(temp_c: ArrayLike | None, m: int) -> FloatArray | None:
+    """The temperatures ``(m,)`` °C (None without), finite."""
+    temp = None if temp_c is None else np.asarray(temp_c, dtype=float).reshape(m)
+    if temp is not None and not np.all(np.isfinite(temp)):
+        raise CompensationError("temperatures must be finite")
+    return temp
 
 
 def _checked_force(
