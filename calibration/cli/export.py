@@ -47,15 +47,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    from calibration.cli.run_files import write_campaign_files
     from calibration.errors import OutputFileError
     from calibration.model.description import load_robot
-    from calibration.twin.campaign_measurement import ENCODER_COUNTS_PER_REV
-    from calibration.twin.run_documents import export_campaign
     from calibration.twin.streams import read_recording_streams
 
     say = progress("twin export", args.quiet)
-    cpr = args.encoder_counts_per_rev or ENCODER_COUNTS_PER_REV
     robot_file = args.robot if Path(args.robot).exists() else None
     with OutputSet([args.replay, robot_file], error=OutputFileError) as outputs:
         staged = outputs.directory(args.out, "--out")
@@ -64,6 +60,12 @@ def run_export(args: argparse.Namespace) -> int:
         streams = read_recording_streams(args.replay, allow_partial=args.allow_partial)
         if streams.note:  # said whatever --quiet says: the data is not the whole recording
             print(f"twin export: warning: {args.replay}: {streams.note}", file=sys.stderr)
+        # the measurement's modules (scipy among them) load once the input is read
+        from calibration.cli.run_files import write_campaign_files
+        from calibration.twin.campaign_measurement import ENCODER_COUNTS_PER_REV
+        from calibration.twin.run_documents import export_campaign
+
+        cpr = args.encoder_counts_per_rev or ENCODER_COUNTS_PER_REV
         export = export_campaign(streams, robot, encoder_counts_per_rev=cpr, say=say)
         files = write_campaign_files(staged, export)
         csvs = ", ".join(files[k].name for k in ("home", "sweep", "scale", "campaign"))

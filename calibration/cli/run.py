@@ -193,9 +193,6 @@ def run_run(args: argparse.Namespace) -> int:
     _check_live_options(args)
     if args.from_dir:
         return _publish_earlier(args, say)
-    from calibration.cli.run_files import write_twin_run
-    from calibration.twin.twin_run import run_twin
-
     live = None
     robot_file = args.robot if Path(args.robot).exists() else None
     outputs = OutputSet([args.replay, robot_file], error=OutputFileError)
@@ -213,7 +210,11 @@ def run_run(args: argparse.Namespace) -> int:
 
             live = LiveTwin(LiveSettings.from_options(args), say)
             streams = live.collect()
+        # the twin's modules (scipy among them) load once the input is read: a file that is
+        # not a recording is refused in a fraction of a second
+        from calibration.cli.run_files import write_twin_run
         from calibration.twin.phase_detection import PhaseOptions
+        from calibration.twin.twin_run import run_twin
 
         phases = PhaseOptions(identify_count=args.identify_poses)
         result = run_twin(

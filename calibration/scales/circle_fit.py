@@ -27,13 +27,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import cast
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import OptimizeResult, least_squares
 
 from calibration.errors import CircleFitError
+
+if TYPE_CHECKING:  # scipy loads when a circle is fitted, not for a command that only reads
+    from scipy.optimize import OptimizeResult
 
 FloatArray = NDArray[np.float64]
 
@@ -330,6 +332,8 @@ def _fit_core(points: FloatArray, sigma: FloatArray) -> _Core:
     weight = 1.0 / sigma
     x0 = np.concatenate([c0, [0.0, 0.0, rho0]])
     args = (points, weight, n0, u0, v0)
+    from scipy.optimize import least_squares
+
     result = least_squares(
         circle_residuals,
         x0,
