@@ -2,8 +2,8 @@
 
 Per seed (the cell, plan and held-out poses of :mod:`benchmarks.bench_plan`), the planned
 50 identification poses are measured **once**, with the same random draws, and given the
-times either order would give them: one pass (``--passes 1``, the default, the shortest
-tour: a pose's time follows where it is) or forward then back (``--passes 2``,
+times either order would give them: one pass (``--passes 1``, the shortest tour: a pose's
+time follows where it is) or forward then back (``--passes 2``, the default,
 :mod:`calibration.plan.travel_order`). The rows stay in the one-pass order, so the closed
 loop's folds and every draw are the same; only ``t_s`` differs (the times of the
 benchmark's campaign: one move-and-settle after another, identification poses first). So
@@ -56,7 +56,7 @@ def run_seed(
     from calibration.model.cell_geometry import resolve
     from calibration.plan.campaign_plan import PlanSettings, plan_campaign
 
-    sc = seed_campaigns(seed, n_candidates, n_plan)  # the default plan: one pass
+    sc = seed_campaigns(seed, n_candidates, n_plan, passes=1)
     geometry = resolve(sc.cell_spec, sc.nominal)
     settings = PlanSettings(n_plan, 20, n_candidates, seed, passes=2)
     two = plan_campaign(sc.nominal, geometry, settings)  # the same poses, another order

@@ -91,9 +91,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--passes",
         type=int,
         choices=(1, 2),
-        default=1,
-        help="1: one pass, the shortest tour (default); 2: forward then back (every other "
-        "pose out, the rest back), so a drift in time is not taken for geometry",
+        default=2,
+        help="2: forward then back (every other pose out, the rest back), so a drift in "
+        "time is not taken for geometry (default); 1: one pass, the shortest tour",
     )
     p.add_argument(
         "--no-sweeps",

@@ -29,9 +29,9 @@
    reflector positions among the other candidates, from a seeded start; not optimised.
 4. **Order** (:mod:`calibration.plan.travel_order`): a closed tour from Home; a leg takes
    ``max_j |Δq_j| / v_j`` (synchronous PTP at the joints' top speeds); nearest neighbour,
-   then 2-opt until no move shortens it; or (``passes`` 2) forward then back (every
-   other pose of the tour on the way out, the rest on the way back), so a drift in time
-   is not a smooth function of the pose.
+   then 2-opt until no move shortens it; measured forward then back (``passes`` 2, the
+   default: every other pose of the tour on the way out, the rest on the way back), so a
+   drift in time is not a smooth function of the pose.
 
 Everything here is arrays in, a frozen result out; files are :mod:`calibration.cli.plan`'s.
 """
@@ -113,9 +113,9 @@ class PlanSettings:
     min_conditioning: float = 0.01
     tracker_mpe_um: float = 15.0  # the tracker's MPE: ±(a + b·distance), taken as 2 σ
     tracker_mpe_um_per_m: float = 6.0
-    #: 1: one pass, the shortest tour; 2: the tour forward then back, a drift in time
-    #: kept apart from the pose (:mod:`calibration.plan.travel_order`)
-    passes: int = 1
+    #: 2: the tour forward then back, a drift in time kept apart from the pose; 1: one
+    #: pass, the shortest tour (:mod:`calibration.plan.travel_order`)
+    passes: int = 2
 
 
 @dataclass(frozen=True, eq=False)

@@ -4,13 +4,14 @@ A leg takes ``max_j |Δq_j| / v_j`` (synchronous PTP at the joints' top speeds).
 shortest closed tour from Home (nearest neighbour, then 2-opt) sweeps the region once, so a
 pose's time is a smooth function of where it is: a drift in time (the arm warming up, the
 tracker's air) is then a smooth function of the pose as well, and the fit takes it into the
-geometry. **Forward then back** (``passes=2``, ``twin plan --passes 2``) measures every other
+geometry. **Forward then back** (``passes=2``, ``twin plan``'s default) measures every other
 pose of that tour on the way out and the rest on the way back, so neighbouring poses are
 half a campaign apart in time and the mean time along the path is the same everywhere: a
 drift linear in time is orthogonal to any smooth function of the pose (the reversal a
 metrologist uses against drift, as the scale sweeps' forward and backward passes do).
-It costs travel, about 1.4× the one-pass tour, and is worth it on a drifting arm, not on a
-steady one (docs/planning.md, "The order against a drift").
+It costs travel, about 1.35× the one-pass tour; on a steady arm it changes nothing but the
+noise draw each pose gets, on a drifting one it lowers the error (docs/planning.md, "The
+order against a drift in time").
 """
 
 from __future__ import annotations

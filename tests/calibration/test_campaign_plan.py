@@ -110,25 +110,21 @@ def test_same_seed_same_file(planned: Path, tmp_path: Path) -> None:
     assert (tmp_path / "other" / "campaign_joints.csv").read_bytes() != first
 
 
-def test_passes_two_measures_the_same_poses_forward_then_back(
-    planned: Path, tmp_path: Path
-) -> None:
-    """``--passes 2`` writes the one-pass plan's poses, each set whole, in another order
-    (ids 1.. in that order), and the report says where the way back starts."""
-    r = twin_plan(
-        "--robot", "kr500", *SMALL, "--seed", "3", "--passes", "2", "--out", "fb", cwd=tmp_path
-    )
+def test_passes_one_measures_the_same_poses_in_one_pass(planned: Path, tmp_path: Path) -> None:
+    """The default plan (forward then back) and ``--passes 1`` hold the same poses, each set
+    whole, in other orders (ids 1.. in each order), and each report says its order."""
+    args = ("--robot", "kr500", *SMALL, "--seed", "3", "--passes", "1", "--out", "one")
+    r = twin_plan(*args, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    header, rows = read_joints(tmp_path / "fb" / "campaign_joints.csv")
-    _, one = read_joints(planned / "campaign_joints.csv")
-    assert [int(x["pose"]) for x in rows] == list(range(1, len(one) + 1))
+    header, rows = read_joints(tmp_path / "one" / "campaign_joints.csv")
+    _, default = read_joints(planned / "campaign_joints.csv")
+    assert [int(x["pose"]) for x in rows] == list(range(1, len(default) + 1))
     key = lambda x: (x["set"], *(x[c] for c in header[2:]))  # noqa: E731
-    assert sorted(map(key, rows)) == sorted(map(key, one)) and list(map(key, rows)) != list(
-        map(key, one)
-    )
-    report = (tmp_path / "fb" / "report.md").read_text()
+    assert sorted(map(key, rows)) == sorted(map(key, default))
+    assert list(map(key, rows)) != list(map(key, default))
+    assert "One pass (`--passes 1`)" in (tmp_path / "one" / "report.md").read_text()
+    report = (planned / "report.md").read_text()
     assert "Forward then back (`--passes 2`)" in report and "from pose " in report
-    assert "One pass (`--passes 1`)" in (planned / "report.md").read_text()
 
 
 def test_travel_order_beats_random_orders() -> None:
