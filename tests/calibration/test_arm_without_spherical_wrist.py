@@ -135,7 +135,7 @@ def test_the_loop_retries_a_failed_step_from_the_last_stage_on_a_ur10() -> None:
     validation guard (``ADMITTED``), must not keep such a step (it kept a twin 59 mm off),
     and identified again from the last stage's geometry the term is worth adding."""
     robot, cell = (str(ROOT / "benchmarks/ur10_cell" / f) for f in ("robot.toml", "cell.toml"))
-    sc = seed_campaigns(1, 400, 50, PlannedArm.from_files(robot, cell))
+    sc = seed_campaigns(1, 400, 50, PlannedArm.from_files(robot, cell), passes=1)
     settings = CampaignSettings(effects=EFFECTS)
     data = measure_campaign(sc.cell, sc.random, sc.q_val, np.random.default_rng([1, 7]), settings)
     said: list[str] = []
@@ -231,7 +231,7 @@ def test_the_ratio_refit_starts_from_the_steps_geometry_on_a_ur10() -> None:
     fitted beside no cyclic error stayed (held-out 0.0170 mm). From the step's own geometry
     the refit goes through and the twin is 0.0137 mm."""
     robot, cell = (str(ROOT / "benchmarks/ur10_cell" / f) for f in ("robot.toml", "cell.toml"))
-    sc = seed_campaigns(6, 5000, 50, PlannedArm.from_files(robot, cell))
+    sc = seed_campaigns(6, 5000, 50, PlannedArm.from_files(robot, cell), passes=1)
     settings = CampaignSettings(effects=EFFECTS)
     data = measure_campaign(sc.cell, sc.q_id, sc.q_val, np.random.default_rng([6, 7]), settings)
     said: list[str] = []

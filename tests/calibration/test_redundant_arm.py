@@ -157,7 +157,7 @@ def test_gravity_ratios_that_cancel_each_other_are_bounded_at_zero() -> None:
     held-out 0.0313 mm, 0.8× the geometry alone. A compliance is not negative: such a fit
     is made again with the ratios bounded at 0, and gravity is added."""
     arm = PlannedArm.from_files(str(WAM / "robot.toml"), str(WAM / "cell.toml"))
-    sc = seed_campaigns(2, 5000, 50, arm)
+    sc = seed_campaigns(2, 5000, 50, arm, passes=1)  # the one-pass plan's draws
     settings = CampaignSettings(effects=EFFECTS)
     data = measure_campaign(sc.cell, sc.q_id, sc.q_val, np.random.default_rng([2, 7]), settings)
     twin = calibrate(sc.nominal, data.campaign, effects=True, learned=False)
