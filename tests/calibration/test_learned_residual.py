@@ -348,12 +348,13 @@ def test_twenty_seeds_effects_all_in_the_library_every_candidate():
     assert len(kept) <= 1, kept
 
 
+@pytest.mark.slow
 def test_the_gain_tests_spread_is_that_of_white_residuals():
     """White residuals (Gaussian and Student-t with 5 degrees of freedom), hyperparameters
     held: the gain's standardised score has mean 0 and sd 1, and the test (centred on a
     zero gain, above the white residuals' mean) rejects about its level at 5 %. (The
     per-pose paired t-test it replaces spread its scores by √2: it rejected 12.5 % at 5 %
-    here, docs/closed-loop.md.)"""
+    here, docs/closed-loop.md.) 300 draws, ~15 s: `pytest -m slow -k gain_tests_spread`."""
     rng = np.random.default_rng(29)
     hyper = Hyperparameters((0.5,) * 6, 0.006, 0.02)
     z, p = [], []
