@@ -123,37 +123,21 @@ def held_out_error_mm(
     saw it, so a longer campaign is not judged on less extrapolation. ``draws`` > 1: the
     mean over that many measurements of the same campaign (the first is the one-draw
     benchmark's), so the error is the design's more than one noise draw's."""
-    errors = [
-        _one_draw_error_mm(twin, cell, q_id, q_val, q_held, seed, d, effects, loop)
-        for d in range(draws)
-    ]
-    return float(np.mean(errors))
-
-
-def _one_draw_error_mm(
-    twin: RobotDescription,
-    cell: TrueCell,
-    q_id: FloatArray,
-    q_val: FloatArray,
-    q_held: FloatArray,
-    seed: int,
-    draw: int,
-    effects: UndeclaredEffects,
-    loop: LoopSettings | None,
-) -> float:
     settings = CampaignSettings(effects=effects)
-    rng = np.random.default_rng([seed, 7] if draw == 0 else [seed, 7, draw])
-    data = measure_campaign(cell, q_id, q_val, rng, settings)
-    result = calibrate(twin, data.campaign, effects=True, loop_settings=loop)
-    span_s = float(data.campaign.t_s[-1])
-    t_held = np.sort(np.random.default_rng([seed, 9]).uniform(0.0, span_s, len(q_held)))
-    held = measure_campaign(
-        cell, q_held[:0], q_held, np.random.default_rng([seed, 8]), settings, t_held
-    )
-    predicted = predict_tcp(
-        result.description, held.campaign.q_rad, held.campaign.t_s, temp_c=held.campaign.temp_c
-    )
-    return float(np.mean(np.linalg.norm(predicted - held.true_prediction_mm, axis=1)))
+    errors = []
+    for draw in range(draws):
+        rng = np.random.default_rng([seed, 7] if draw == 0 else [seed, 7, draw])
+        data = measure_campaign(cell, q_id, q_val, rng, settings)
+        result = calibrate(twin, data.campaign, effects=True, loop_settings=loop)
+        span_s = float(data.campaign.t_s[-1])
+        t_held = np.sort(np.random.default_rng([seed, 9]).uniform(0.0, span_s, len(q_held)))
+        held = measure_campaign(
+            cell, q_held[:0], q_held, np.random.default_rng([seed, 8]), settings, t_held
+        )
+        c = held.campaign
+        predicted = predict_tcp(result.description, c.q_rad, c.t_s, temp_c=c.temp_c)
+        errors.append(np.mean(np.linalg.norm(predicted - held.true_prediction_mm, axis=1)))
+    return float(np.mean(errors))
 
 
 @dataclass(frozen=True)
