@@ -126,9 +126,9 @@ def plan_report(
 def _passes_text(travel: TravelOrder) -> str:
     if travel.passes == 1:
         return (
-            "One pass (`--passes 1`): a pose's time follows where it is on the tour, so a "
-            "drift in time while the arm is measured (not warmed up) is taken for geometry; "
-            "the default, `--passes 2`, measures the tour forward then back."
+            "One pass: a pose's time follows where it is on the tour, so a drift in time "
+            "while the arm is measured (not warmed up) is taken for geometry; the default, "
+            "`--passes 2`, measures the tour forward then back (from four poses on)."
         )
     return (
         "Forward then back (`--passes 2`): every other pose of the tour on the way out, "

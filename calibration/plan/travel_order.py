@@ -147,6 +147,6 @@ def travel_order(
         time_s=tour_time_s(times, best),
         random_time_s=float(np.mean(randoms)),
         via_home=np.empty(0, dtype=np.intp),
-        passes=passes,
+        passes=2 if back_from >= 0 else 1,  # three poses or fewer: one pass
         back_from=back_from,
     )

@@ -122,7 +122,7 @@ def test_passes_one_measures_the_same_poses_in_one_pass(planned: Path, tmp_path:
     key = lambda x: (x["set"], *(x[c] for c in header[2:]))  # noqa: E731
     assert sorted(map(key, rows)) == sorted(map(key, default))
     assert list(map(key, rows)) != list(map(key, default))
-    assert "One pass (`--passes 1`)" in (tmp_path / "one" / "report.md").read_text()
+    assert "One pass: " in (tmp_path / "one" / "report.md").read_text()
     report = (planned / "report.md").read_text()
     assert "Forward then back (`--passes 2`)" in report and "from pose " in report
 
