@@ -190,7 +190,7 @@ def _check_options(args: argparse.Namespace) -> None:
 
 
 def _loop_settings(args: argparse.Namespace) -> LoopSettings:
-    from calibration.effects.closed_loop import LoopSettings
+    from calibration.effects.loop_settings import LoopSettings
 
     kinds = None
     if args.effect_kinds:
