@@ -39,8 +39,12 @@ class TravelOrder:
     time_s: float
     random_time_s: float  # mean over random orders of the same poses
     via_home: IntArray  # positions in ``order`` reached through Home (a direct leg collides)
-    passes: int = 1  # 1: the shortest tour; 2: forward then back (module text)
     back_from: int = -1  # the position in ``order`` where the way back starts (-1: one pass)
+
+    @property
+    def passes(self) -> int:
+        """1: the shortest tour; 2: forward then back (module text)."""
+        return 1 if self.back_from < 0 else 2
 
 
 def leg_times_s(q_rad: FloatArray, speeds_rad_s: FloatArray) -> FloatArray:
@@ -147,6 +151,5 @@ def travel_order(
         time_s=tour_time_s(times, best),
         random_time_s=float(np.mean(randoms)),
         via_home=np.empty(0, dtype=np.intp),
-        passes=2 if back_from >= 0 else 1,  # three poses or fewer: one pass
-        back_from=back_from,
+        back_from=back_from,  # three poses or fewer: one pass even when two were asked
     )
