@@ -73,9 +73,10 @@ from calibration.model.pieper_closed_form import has_spherical_approximation
 from calibration.plan.plan_criterion import (
     DesignProblem,
     criterion_value,
+    drift_bias,
     exchange,
 )
-from calibration.plan.travel_order import TravelOrder, travel_order
+from calibration.plan.travel_order import DriftCost, TravelOrder, travel_order
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -686,6 +687,20 @@ class CampaignPlan:
     unseen: tuple[str, ...] = ()  # effect parameters no candidate observes (not designed for)
 
 
+def order_drift(problem: DesignProblem, identify: IntArray, n: int) -> DriftCost:
+    """The drift's bias (:func:`drift_bias`) of an order of the plan's ``n`` poses (rows:
+    the identification poses ``identify`` first, then the validation poses), a pose's time
+    its place in the order (the dwell, not the move, takes most of a pose's time)."""
+    bias = drift_bias(problem, identify)
+
+    def cost(order: IntArray) -> float:
+        t = np.empty(n)
+        t[order] = np.arange(n) / max(n - 1, 1)
+        return bias(t[: len(identify)])
+
+    return cost
+
+
 def plan_campaign(
     description: RobotDescription, geometry: CellGeometry, settings: PlanSettings
 ) -> CampaignPlan:
@@ -707,7 +722,10 @@ def plan_campaign(
     is_id = np.zeros(len(rows), dtype=bool)
     is_id[: len(sel.indices)] = True
     speeds = joint_speeds_rad_s(description)
-    travel = travel_order(cands.q_rad[rows], home, speeds, rng, settings.passes, is_id.astype(int))
+    travel = travel_order(
+        cands.q_rad[rows], home, speeds, rng, settings.passes, is_id.astype(int),
+        order_drift(design_problem(obs), sel.indices, len(rows)),
+    )  # fmt: skip
     q = cands.q_rad[rows][travel.order]
     ends = np.vstack([home, q, home])
     legs = move_collision_codes(model, with_margins(geometry, settings), ends[:-1], ends[1:])

@@ -27,6 +27,7 @@ cut ``h·A·hᵀ`` from ~1e7 to ~1 and the updates would lose every digit).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,6 +80,31 @@ def criterion_value(problem: DesignProblem, rows: IntArray) -> CriterionValue:
     d = a @ np.einsum("nip,niq->pq", h, g)
     bias = float(np.sum(d * (problem.w @ d)) - 2.0 * np.sum(d * problem.x) + problem.z)
     return CriterionValue(float(np.sum(problem.w * a)), bias)
+
+
+def drift_bias(problem: DesignProblem, rows: IntArray) -> Callable[[FloatArray], float]:
+    """How much a drift in time would bias the twin fitted from the poses ``rows``, as a
+    function of when they are measured: ``t`` ``(m,)`` (the fraction of the campaign,
+    0..1, in the order of ``rows``) → the mean squared prediction error over the region
+    (mm²) when every fitted parameter drifts linearly in time, by a 1 mm TCP effect in each
+    direction the candidates observe (its scaled unit) over the whole campaign.
+
+    The fit takes ``b = A·S·δ`` of a drift ``δ·(tᵢ − t̄)`` into its parameters, with
+    ``S = Σ (tᵢ − t̄)·hᵢᵀhᵢ``; averaged over ``δ`` ~ N(0, I) the region's error is
+    ``trace(Sᵀ·A·W·A·S)``. An order whose time is orthogonal to every pose's information
+    (a trend-free run order, as in the design of experiments) makes it 0."""
+    h = problem.h[rows]
+    info = np.einsum("nip,niq->npq", h, h)  # (m, r, r)
+    a = np.linalg.inv(problem.prior + info.sum(axis=0))
+    ev, vec = np.linalg.eigh(a @ problem.w @ a)
+    ct = np.sqrt(np.clip(ev, 0.0, None))[:, None] * vec.T  # A·W·A = CᵀC
+
+    def bias_mm2(t: FloatArray) -> float:
+        tc = np.asarray(t, dtype=float) - float(np.mean(t))
+        s = np.tensordot(tc, info, axes=1)
+        return float(np.sum((ct @ s) ** 2))
+
+    return bias_mm2
 
 
 def _rows_times(u: FloatArray, a: FloatArray) -> FloatArray:
