@@ -86,13 +86,16 @@ def drift_bias(problem: DesignProblem, rows: IntArray) -> Callable[[FloatArray],
     """How much a drift in time would bias the twin fitted from the poses ``rows``, as a
     function of when they are measured: ``t`` ``(m,)`` (the fraction of the campaign,
     0..1, in the order of ``rows``) → the mean squared prediction error over the region
-    (mm²) when every fitted parameter drifts linearly in time, by a 1 mm TCP effect in each
-    direction the candidates observe (its scaled unit) over the whole campaign.
+    (mm²) of a drift of the fitted parameters linear in time that moves the TCP by 1 mm
+    (rms over the candidates) from the campaign's start to its end, averaged over the
+    directions the candidates observe: how much of the drift the fit takes for geometry
+    (its square; the error at mid-campaign, where the fit should be).
 
     The fit takes ``b = A·S·δ`` of a drift ``δ·(tᵢ − t̄)`` into its parameters, with
-    ``S = Σ (tᵢ − t̄)·hᵢᵀhᵢ``; averaged over ``δ`` ~ N(0, I) the region's error is
-    ``trace(Sᵀ·A·W·A·S)``. An order whose time is orthogonal to every pose's information
-    (a trend-free run order, as in the design of experiments) makes it 0."""
+    ``S = Σ (tᵢ − t̄)·hᵢᵀhᵢ``; averaged over ``δ`` ~ N(0, I/r) (the scaled columns: 1 mm
+    rms each) the region's error is ``trace(Sᵀ·A·W·A·S)/r``. An order whose time is
+    orthogonal to every pose's information (a trend-free run order, as in the design of
+    experiments) makes it 0."""
     h = problem.h[rows]
     info = np.einsum("nip,niq->npq", h, h)  # (m, r, r)
     a = np.linalg.inv(problem.prior + info.sum(axis=0))
@@ -102,7 +105,7 @@ def drift_bias(problem: DesignProblem, rows: IntArray) -> Callable[[FloatArray],
     def bias_mm2(t: FloatArray) -> float:
         tc = np.asarray(t, dtype=float) - float(np.mean(t))
         s = np.tensordot(tc, info, axes=1)
-        return float(np.sum((ct @ s) ** 2))
+        return float(np.sum((ct @ s) ** 2)) / len(ct)
 
     return bias_mm2
 

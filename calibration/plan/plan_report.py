@@ -125,17 +125,27 @@ def plan_report(
 
 def _passes_text(travel: TravelOrder) -> str:
     if travel.passes == 1:
-        return (
+        text = (
             "One pass: a pose's time follows where it is on the tour, so a drift in time "
             "while the arm is measured (not warmed up) is taken for geometry; the default, "
             "`--passes 2`, measures the tour forward then back (from four poses on)."
         )
-    return (
-        "Forward then back (`--passes 2`): every other pose of the tour on the way out, "
-        f"the rest on the way back (from pose {travel.back_from + 1}), so neighbouring "
-        "poses are half the campaign apart in time and a drift in time (the arm warming "
-        "up) is not taken for geometry."
-    )
+    else:
+        text = (
+            "Forward then back (`--passes 2`): of every two poses next to each other on "
+            "the tour one on the way out, the other on the way back (from pose "
+            f"{travel.back_from + 1}), so neighbouring poses are half the campaign apart "
+            "in time and a drift in time (the arm warming up) is not taken for geometry."
+        )
+    order, one, random = np.sqrt(travel.drift_bias)
+    if np.isfinite(order):
+        one_pass = "" if travel.passes == 1 else f"one pass: {one:.2f} mm, "
+        text += (
+            " A drift of the arm that moves the TCP 1 mm over the campaign would leave "
+            f"{order:.2f} mm rms over the region in the twin, in this order ({one_pass}"
+            f"random orders: {random:.2f} mm; `plan_criterion.drift_bias`)."
+        )
+    return text
 
 
 def _programs_line(description: RobotDescription, programs: ProgramSettings) -> str:

@@ -49,6 +49,9 @@ class TravelOrder:
     random_time_s: float  # mean over random orders of the same poses
     via_home: IntArray  # positions in ``order`` reached through Home (a direct leg collides)
     back_from: int = -1  # the position in ``order`` where the way back starts (-1: one pass)
+    #: the drift's bias (:data:`DriftCost`) of this order, of the one-pass tour and the mean
+    #: of the random orders' (NaN when no drift criterion was given)
+    drift_bias: tuple[float, float, float] = (np.nan, np.nan, np.nan)
 
     @property
     def passes(self) -> int:
@@ -242,24 +245,30 @@ def travel_order(
     nearest neighbour then 2-opt, as one pass or forward then back (``passes`` 2, module
     text; each ``group`` ``(N,)`` of poses, such as the identification set, split between
     the passes on its own, alternately or by ``drift``: :func:`forward_then_back`); the
-    random baseline is the mean of 20 random orders."""
+    random baseline is the mean of 20 random orders, also of the drift's bias."""
     if passes not in PASSES:
         raise ValueError(f"passes must be one of {PASSES}, got {passes}")
     nodes = np.vstack([home_rad, q_rad])
     times = leg_times_s(nodes, speeds_rad_s)
     n = len(nodes)
-    best = _shortest_tour(times)
+    one = best = _shortest_tour(times)
     back_from = -1
     if passes == 2 and n > 4:
         groups = None if group is None else np.append(-1, group)
         best, back_from = forward_then_back(times, best, groups, drift)
-    randoms = [
-        tour_time_s(times, np.concatenate([[0], 1 + rng.permutation(n - 1)])) for _ in range(20)
-    ]
+    randoms = [np.concatenate([[0], 1 + rng.permutation(n - 1)]) for _ in range(20)]
+    bias = (np.nan, np.nan, np.nan)
+    if drift is not None:
+        bias = (
+            drift(best[1:] - 1),
+            drift(one[1:] - 1),
+            float(np.mean([drift(t[1:] - 1) for t in randoms])),
+        )
     return TravelOrder(
         order=best[1:] - 1,
         time_s=tour_time_s(times, best),
-        random_time_s=float(np.mean(randoms)),
+        random_time_s=float(np.mean([tour_time_s(times, t) for t in randoms])),
         via_home=np.empty(0, dtype=np.intp),
         back_from=back_from,  # three poses or fewer: one pass even when two were asked
+        drift_bias=bias,
     )

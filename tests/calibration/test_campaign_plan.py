@@ -133,6 +133,7 @@ def test_passes_one_measures_the_same_poses_in_one_pass(planned: Path, tmp_path:
     assert "One pass: " in (tmp_path / "one" / "report.md").read_text()
     report = (planned / "report.md").read_text()
     assert "Forward then back (`--passes 2`)" in report and "from pose " in report
+    assert "1 mm over the campaign would leave " in report and "(one pass: " in report
 
 
 def test_travel_order_beats_random_orders() -> None:
@@ -213,6 +214,7 @@ def test_drift_aware_split_travels_less_and_leaves_no_more_drift_bias() -> None:
             for p, d in ((1, None), (2, None), (2, drift))
         ]
         one, alternate, aware = (drift(o.order) for o in orders)
+        assert orders[2].drift_bias[:2] == (aware, one)
         rng = np.random.default_rng(seed)
         random = np.mean([drift(rng.permutation(len(rows))) for _ in range(30)])
         assert alternate < random < one
