@@ -39,6 +39,13 @@ GRAVITY_FIRST_REASON = (
 )
 
 
+#: When the search by score stopped without any gravity term and short of the maximum
+#: number of effects, a round that showed the term with at least this fraction of the
+#: added effect's cross-validated gain is where the second search begins (otherwise only
+#: a larger gain: a search that added gravity later, or filled the model with others).
+ENDED_WITHOUT_GAIN_FRACTION = 0.5
+
+
 def gravity_shown(scores: Sequence[CandidateScore], alpha: float) -> CandidateScore | None:
     """The best-scoring gravity term of a round the data show (corrected p below
     ``alpha``, cross-validated gain above 0, identifiable), penalized score or not; None
@@ -84,9 +91,16 @@ def branch_point(
     geometric first, then one per round) and the gravity term shown there. The first
     round, before a gravity term is in the model, that showed the term
     (:func:`gravity_shown` at ``alpha``) and added an effect of smaller cross-validated
-    gain, or the round that stopped the search (``last_round``) with the term shown and
-    fewer than ``max_effects`` in; None when there is none (the data's own gain never
-    ranked gravity first, or the search added it)."""
+    gain (or of less than twice its gain, when the search stopped without gravity and
+    short of ``max_effects``: :data:`ENDED_WITHOUT_GAIN_FRACTION`), or the round that
+    stopped the search (``last_round``) with the term shown and fewer than ``max_effects``
+    in; None when there is none (the data's own gain never ranked gravity first, or the
+    search added it)."""
+    # a search that stopped short of the maximum without any gravity term: a round whose
+    # gravity gain was at least half the added effect's is enough (one campaign's folds
+    # do not rank two gains that close; a loaded arm deflects)
+    short = not has_gravity(stages[-1].specs) and len(stages[-1].specs) < max_effects
+    fraction = ENDED_WITHOUT_GAIN_FRACTION if short else 1.0
     for k in range(2, len(stages)):
         if has_gravity(stages[k - 1].specs):
             return None
@@ -96,7 +110,7 @@ def branch_point(
             shown is not None
             and added is not None
             and added.spec.kind != shown.spec.kind
-            and added.cv_gain < shown.cv_gain
+            and added.cv_gain < shown.cv_gain / fraction
         ):
             return k, shown
     if has_gravity(stages[-1].specs) or len(stages[-1].specs) >= max_effects:
