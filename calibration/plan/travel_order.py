@@ -6,8 +6,8 @@ pose's time is a smooth function of where it is: a drift in time (the arm warmin
 tracker's air) is then a smooth function of the pose as well, and the fit takes it into the
 geometry. **Forward then back** (``passes=2``, ``twin plan``'s default) measures one of
 every two neighbouring poses of that tour on the way out and the other on the way back
-(which one goes which way chosen for the shorter travel), so neighbouring poses are half a
-campaign apart in time and the mean time along the path is the same everywhere: a drift
+(which one goes which way chosen by the planner's drift criterion, then for the shorter
+travel), so neighbouring poses are half a campaign apart in time and the mean time along the path is the same everywhere: a drift
 linear in time is orthogonal to any smooth function of the pose (the reversal a
 metrologist uses against drift, as the scale sweeps' forward and backward passes do).
 It costs travel, 1.2–1.3× the one-pass tour; on a steady arm it changes nothing but the
@@ -26,8 +26,9 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 #: The bias a drift in time would leave in the twin fitted from a campaign measured in
-#: this order (rows of the poses, first measured first) (mm²; lower is better:
-#: :func:`calibration.plan.plan_criterion.drift_bias` of the identification poses).
+#: this order (rows of the poses, first measured first): mm² over the region per mm² of
+#: drift, lower is better (:func:`calibration.plan.plan_criterion.drift_bias` of the
+#: identification poses).
 DriftCost = Callable[[IntArray], float]
 
 #: The orders a plan may take: one pass (the shortest tour), or forward then back.
