@@ -20,7 +20,10 @@ there (the data ranked it first, the penalty did not), or the search stopped in 
 that showed it, the search is made again from that round with it first, and the model
 whose validation mean AP is lower is kept. Without the gain condition the real UR10's
 1000 poses were searched again (five cyclic errors worth 2.6–5.5× the gravity term's
-gain came first) and ``twin identify`` took 17 s instead of 6.5.
+gain came first) and ``twin identify`` took 17 s instead of 6.5. A search that stopped
+without any gravity term, short of the maximum number of effects, asks only half the
+added effect's gain (two gains 4 % apart ended a coupled shoulder's search on one
+harmonic: docs/closed-loop.md, "Half the gain").
 """
 
 from __future__ import annotations
