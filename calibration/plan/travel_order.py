@@ -7,9 +7,10 @@ tracker's air) is then a smooth function of the pose as well, and the fit takes 
 geometry. **Forward then back** (``passes=2``, ``twin plan``'s default) measures one of
 every two neighbouring poses of that tour on the way out and the other on the way back
 (which one goes which way chosen by the planner's drift criterion, then for the shorter
-travel), so neighbouring poses are half a campaign apart in time and the mean time along the path is the same everywhere: a drift
-linear in time is orthogonal to any smooth function of the pose (the reversal a
-metrologist uses against drift, as the scale sweeps' forward and backward passes do).
+travel), so neighbouring poses are half a campaign apart in time and the mean time along
+the path is the same everywhere: a drift linear in time is orthogonal to any smooth
+function of the pose (the reversal a metrologist uses against drift, as the scale sweeps'
+forward and backward passes do).
 It costs travel, 1.2–1.3× the one-pass tour; on a steady arm it changes nothing but the
 noise draw each pose gets, on a drifting one it lowers the error (docs/planning.md, "The
 order against a drift in time").
