@@ -152,6 +152,22 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     sizes = tuple(int(v) for v in args.sizes.split(",")) if args.sizes else None
     robots = tuple(r.strip() for r in args.robots.split(",") if r.strip())
+    unknown = [r for r in robots if r not in READERS]
+    if unknown:
+        print(
+            f"bench_real_data: --robots {unknown[0]}: not one of {', '.join(READERS)}",
+            file=sys.stderr,
+        )
+        return 2
+    for robot in robots if sizes and not args.quick else ():
+        m = len(READERS[robot]())
+        if max(sizes) + N_VALIDATE >= m:  # one line, not a traceback after the other sizes
+            print(
+                f"bench_real_data: --sizes {max(sizes)}: {robot} has {m} poses, and "
+                f"{N_VALIDATE} validate: none would be held out (--robots chooses)",
+                file=sys.stderr,
+            )
+            return 2
     details: list[Row] = []
     rows = run(args.quick, splits=args.splits, robots=robots, sizes=sizes, details=details)
     print(format_table(rows))

@@ -198,3 +198,14 @@ def test_host_probe_windows_and_the_latency_beside_them():
     steal = res["windows_by_steal_cores"]  # 0.1 and 0.5 cores
     assert [steal[k]["windows"] for k in steal] == [0, 0, 1, 1]
     assert steal["0.05-0.2"]["latency_p99_ms_max"] == 4.0
+
+
+def test_real_data_benchmark_refuses_sizes_and_robots_it_cannot_run(capsys):
+    """A size that leaves no pose held out, or a robot it has no data of: one line, exit 2,
+    before any split runs."""
+    bench = importlib.import_module("benchmarks.bench_real_data")
+    assert bench.main(["--sizes", "100,1000", "--robots", "ur5", "--splits", "1"]) == 2
+    assert "--sizes 1000: ur5 has 1000 poses" in capsys.readouterr().err
+    assert bench.main(["--robots", "ur7"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--robots ur7: not one of ur10, ur5" in err
