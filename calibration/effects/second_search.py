@@ -116,7 +116,7 @@ def branch_point(
             and added.cv_gain < shown.cv_gain / fraction
         ):
             return k, shown
-    if has_gravity(stages[-1].specs) or len(stages[-1].specs) >= max_effects:
+    if not short:
         return None
     shown = gravity_shown(last_round, alpha)
     return None if shown is None else (len(stages), shown)

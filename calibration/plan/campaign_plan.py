@@ -722,9 +722,10 @@ def plan_campaign(
     is_id = np.zeros(len(rows), dtype=bool)
     is_id[: len(sel.indices)] = True
     speeds = joint_speeds_rad_s(description)
+    problem = design_problem(obs)
     travel = travel_order(
         cands.q_rad[rows], home, speeds, rng, settings.passes, is_id.astype(int),
-        order_drift(design_problem(obs), sel.indices, len(rows)),
+        order_drift(problem, sel.indices, len(rows)),
     )  # fmt: skip
     q = cands.q_rad[rows][travel.order]
     ends = np.vstack([home, q, home])
@@ -740,7 +741,7 @@ def plan_campaign(
         parameter_names=obs.names,
         parameter_sigma=parameter_sigmas(obs, sel.indices),
         random_parameter_sigma=parameter_sigmas(obs, random_rows),
-        random_i_value_mm2=criterion_value(design_problem(obs), random_rows).total_mm2,
+        random_i_value_mm2=criterion_value(problem, random_rows).total_mm2,
         left_out=obs.left_out,
         unseen=obs.unseen,
     )

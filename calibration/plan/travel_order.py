@@ -138,9 +138,13 @@ def _pair_partners(g: NDArray[np.int_], offset: int) -> NDArray[np.intp]:
 
 
 def _swap_pairs(
-    back: NDArray[np.bool_], partner: NDArray[np.intp], cost: Callable[[NDArray[np.bool_]], float]
+    back: NDArray[np.bool_],
+    partner: NDArray[np.intp],
+    cost: Callable[[NDArray[np.bool_]], float],
+    allowed: Callable[[NDArray[np.bool_]], bool] = lambda b: True,
 ) -> NDArray[np.bool_]:
-    """``back`` with a pair's two swapped between the passes while a swap lowers ``cost``."""
+    """``back`` with a pair's two swapped between the passes while a swap lowers ``cost``
+    (and the split stays ``allowed``, asked only of a swap that lowers it)."""
     back = back.copy()
     best = cost(back)
     for _ in range(_MAX_SWAP_SWEEPS):
@@ -149,7 +153,7 @@ def _swap_pairs(
             pair = [a, partner[a]]
             back[pair] = back[pair[::-1]]
             c = cost(back)
-            if c < best - 1e-12 * abs(best):
+            if c < best - 1e-12 * abs(best) and allowed(back):
                 best, improved = c, True
             else:
                 back[pair] = back[pair[::-1]]
@@ -173,12 +177,12 @@ def _split_pairs(
     back = (_ranks(g) + offset) % 2 == 1
     partner = _pair_partners(g, offset)
     back = _swap_pairs(back, partner, bias)
-
-    def travel(b: NDArray[np.bool_]) -> float:
-        t = tour_time_s(times, _two_passes(path, b))
-        return t if bias(b) <= bound else np.inf
-
-    return _swap_pairs(back, partner, travel)
+    return _swap_pairs(
+        back,
+        partner,
+        lambda b: tour_time_s(times, _two_passes(path, b)),
+        lambda b: bias(b) <= bound,
+    )
 
 
 def _local_two_opt(times: FloatArray, t: IntArray, split: int) -> IntArray:
@@ -210,12 +214,13 @@ def forward_then_back(
     path = tour[1:]
     g = np.zeros(len(path), dtype=int) if group is None else np.asarray(group)[path]
 
-    def passes(back: NDArray[np.bool_]) -> tuple[IntArray, IntArray, int]:
+    def orders(back: NDArray[np.bool_]) -> tuple[IntArray, IntArray, int]:
+        """The split's order, the same after 2-opt inside the passes, the way back's start."""
         t = _two_passes(path, back)
         split = 1 + int(np.count_nonzero(~back))
         return t, _local_two_opt(times, t, split), split - 1
 
-    _, best, back_from = passes(_ranks(g) % 2 == 1)
+    _, best, back_from = orders(_ranks(g) % 2 == 1)
     if drift is None:
         return best, back_from
     bound = drift(best[1:] - 1)
@@ -225,12 +230,11 @@ def forward_then_back(
         return drift(_two_passes(path, back)[1:] - 1)
 
     for offset in (0, 1):
-        plain, local, split = passes(_split_pairs(times, path, g, offset, bias, bound))
-        for t in (local, plain):  # 2-opt's order unless it raised the bias
-            if drift(t[1:] - 1) <= bound:
-                if tour_time_s(times, t) < best_time:
-                    best, best_time, back_from = t, tour_time_s(times, t), split
-                break
+        plain, local, split = orders(_split_pairs(times, path, g, offset, bias, bound))
+        # 2-opt's order unless it raised the bias above the bound, then the split's own
+        t = next((t for t in (local, plain) if drift(t[1:] - 1) <= bound), None)
+        if t is not None and tour_time_s(times, t) < best_time:
+            best, best_time, back_from = t, tour_time_s(times, t), split
     return best, back_from
 
 
