@@ -253,9 +253,10 @@ def run_view(args: argparse.Namespace) -> int:
         up = {"view": url, "port": int(url.rsplit(":", 1)[1].strip("/")), "mode": mode}
         if isinstance(source, LiveSource):
             up["cell"] = source.cell  # the cell it follows (None: every cell)
+        # before the line a supervisor waits for: a SIGTERM right after it is a clean stop
+        on_stop_signals(view.stop)  # not in the handler: edges/stop_signals.py
         print(json.dumps(up), flush=True)
         say(f"serving {url} ({model.source})")
-        on_stop_signals(view.stop)  # not in the handler: edges/stop_signals.py
         started = time.monotonic()
         stats = view.run(args.duration)
         elapsed = max(time.monotonic() - started, 1e-9)

@@ -365,13 +365,15 @@ class LiveTwin:
                 f"tracking {', '.join(setup.names)} from the production dwells "
                 f"(on {out.keys['tracking']})"
             )
+        stop = threading.Event()
+        # SIGTERM (systemd) as SIGINT: the summary, a clean close; installed before the
+        # line a supervisor waits for, so a signal right after it is not a kill
+        on_stop_signals(stop.set)
         print(json.dumps({"twin": "live", "keys": out.keys}), flush=True)
         # the receiving thread waits for the interpreter at most this long while this
         # one computes (Python's default is 5 ms; the daemon uses the same)
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
         started = time.monotonic()
-        stop = threading.Event()
-        on_stop_signals(stop.set)  # SIGTERM (systemd) as SIGINT: the summary, a clean close
         while not stop.is_set() and not (
             args.publish_s and time.monotonic() - started >= args.publish_s
         ):

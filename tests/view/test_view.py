@@ -474,6 +474,29 @@ def test_the_page_draws_the_robot_and_reads_the_replay_time(tmp_path):
         _kill_group(view)
 
 
+def test_a_sigterm_right_after_the_url_line_is_a_clean_stop(monkeypatch, capsys):
+    """The stop handler is in place before the line a supervisor waits for: a SIGTERM sent
+    on reading it stops the view cleanly (exit 0), never kills it (CI saw -15 once when the
+    handler came after the line)."""
+    import view.cli
+    from calibration.cli import main
+
+    order: list[str] = []
+    real_write = sys.stdout.write
+
+    def write(text: str) -> int:
+        if text.startswith('{"view"'):
+            order.append("url line")
+        return real_write(text)
+
+    monkeypatch.setattr(view.cli, "on_stop_signals", lambda action: order.append("handler"))
+    monkeypatch.setattr(sys.stdout, "write", write)
+    argv = ["view", "--replay", str(DATA), "--port", "0", "--duration", "0.05", "--quiet"]
+    assert main(argv) == 0
+    assert order == ["handler", "url line"], order
+    assert json.loads(capsys.readouterr().out.splitlines()[0])["mode"] == "replay"
+
+
 # -- where the package sits in the import graph -------------------------------------------
 def test_view_is_loaded_only_by_the_command_line_and_never_sees_the_emulator():
     """The layering itself is tests/test_import_graph.py's (view may import calibration,
