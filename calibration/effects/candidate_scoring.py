@@ -155,6 +155,9 @@ class LinearizedModel:
     fold_rhs: tuple[FloatArray, ...]  # per fold, its rows' Jᵀr
     #: leave one pose out (exact, by the hat matrix) instead of the folds
     leave_one_out: bool = False
+    #: with ``leave_one_out``: each left-out pose scored by its predictive deviance
+    #: (:func:`pose_deviance`) instead of its squared error (:func:`pose_press`)
+    deviance: bool = False
 
     @classmethod
     def build(
@@ -166,10 +169,12 @@ class LinearizedModel:
         seed: int,
         *,
         leave_one_out: bool = False,
+        deviance: bool = False,
     ) -> LinearizedModel:
         """The model at its solution; ``leave_one_out``: cross-validated by leaving one
-        pose out at a time (:func:`pose_press`), else by ``n_folds`` folds of poses drawn
-        with ``seed``."""
+        pose out at a time (:func:`pose_press`; ``deviance``:
+        :func:`pose_deviance`), else by ``n_folds`` folds of poses drawn with
+        ``seed``."""
         j = scaled(jacobian)
         basis, _ = np.linalg.qr(j)
         fit0 = residual - basis @ (basis.T @ residual)
@@ -181,7 +186,7 @@ class LinearizedModel:
         fold_gram = tuple(j[f].T @ j[f] for f in folds)
         fold_rhs = tuple(j[f].T @ residual[f] for f in folds)
         if leave_one_out:
-            cv0 = pose_press(basis, fit0)
+            cv0 = pose_deviance(basis, fit0, sigma2) if deviance else pose_press(basis, fit0)
         else:
             cv0 = 0.0
             for f, fg, fr in zip(folds, fold_gram, fold_rhs, strict=True):
@@ -190,7 +195,7 @@ class LinearizedModel:
                 cv0 += float(e @ e)
         return cls(
             residual, j, basis, fit0, sigma2, folds, cv0, gram, rhs, fold_gram, fold_rhs,
-            leave_one_out,
+            leave_one_out, deviance,
         )  # fmt: skip
 
     def cv_sse_with(self, cols: FloatArray) -> float:
@@ -202,7 +207,10 @@ class LinearizedModel:
         are new; a ``(q, q)`` least-squares solve keeps nearly dependent columns harmless."""
         if self.leave_one_out:
             qc = _orthonormal(self.perp(cols))
-            return pose_press(np.hstack([self.basis, qc]), self.fit0 - qc @ (qc.T @ self.fit0))
+            basis, fit = np.hstack([self.basis, qc]), self.fit0 - qc @ (qc.T @ self.fit0)
+            if self.deviance:
+                return pose_deviance(basis, fit, self.sigma2)
+            return pose_press(basis, fit)
         j, r = self.jacobian, self.residual
         jc, cc, cr = j.T @ cols, cols.T @ cols, cols.T @ r
         gram = np.block([[self.gram, jc], [jc.T, cc]])
@@ -238,6 +246,18 @@ class LinearizedModel:
 LEVERAGE_FLOOR = 1e-9
 
 
+def _pose_directions(basis: FloatArray, fit: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Per pose, ``1 − λ`` of its hat-matrix block's eigenvalues and its residual along
+    their eigenvectors (each ``(m, 3)``; ``1 − λ`` is NaN where the pose alone determines
+    the direction, ``1 − λ`` below :data:`LEVERAGE_FLOOR`)."""
+    q = basis.reshape(-1, 3, basis.shape[1])
+    e = fit.reshape(-1, 3)
+    lam, vec = np.linalg.eigh(np.einsum("iak,ibk->iab", q, q))  # H_ii = V·diag(λ)·Vᵀ
+    free = 1.0 - lam
+    along = np.einsum("iab,ia->ib", vec, e)  # e_i in the eigenvectors
+    return np.where(free > LEVERAGE_FLOOR, free, np.nan), along
+
+
 def pose_press(basis: FloatArray, fit: FloatArray) -> float:
     """The exact leave-one-pose-out prediction error (PRESS, Allen 1974) of a linear model:
     ``Σ_i ‖(I − H_ii)⁻¹·e_i‖²`` over the poses i (rows ``3i .. 3i + 2``), ``H_ii`` the
@@ -247,13 +267,25 @@ def pose_press(basis: FloatArray, fit: FloatArray) -> float:
     cost of one fit: ``O(m·q)``. A direction a pose alone determines (``1 − λ`` below
     :data:`LEVERAGE_FLOOR`) cannot be predicted without it and carries no residual: it
     counts 0."""
-    q = basis.reshape(-1, 3, basis.shape[1])
-    e = fit.reshape(-1, 3)
-    lam, vec = np.linalg.eigh(np.einsum("iak,ibk->iab", q, q))  # H_ii = V·diag(λ)·Vᵀ
-    keep = 1.0 - lam > LEVERAGE_FLOOR
-    along = np.einsum("iab,ia->ib", vec, e)  # e_i in the eigenvectors
-    scaled_e = np.where(keep, along / np.where(keep, 1.0 - lam, 1.0), 0.0)
-    return float(np.sum(scaled_e * scaled_e))
+    free, along = _pose_directions(basis, fit)
+    return float(np.nansum((along / free) ** 2))
+
+
+def pose_deviance(basis: FloatArray, fit: FloatArray, sigma2: float) -> float:
+    """The leave-one-pose-out predictive deviance of a linear model, in the units of
+    :func:`pose_press` (mm² as weighted): ``Σ_i [e_iᵀ(I − H_ii)⁻¹e_i − σ²·ln det(I − H_ii)]``,
+    σ² times −2 ln of the density the model refitted without pose i gives the pose's point
+    (its prediction error ``(I − H_ii)⁻¹e_i``, its covariance ``σ²(I − H_ii)⁻¹``), up to a
+    constant. To first order in the leverage it equals the PRESS (both ``SSE + 2kσ²``);
+    where a pose nearly alone determines a direction (λ → 1) the PRESS multiplies that
+    direction's residual by ``1/(1 − λ)²``, so one pose at the design's edge can decide
+    between two candidates by its noise, while the deviance weighs the miss against the
+    prediction's own uncertainty and charges that uncertainty as ``−ln(1 − λ)``. (A
+    planned KR500 campaign with a pose at λ = 0.992 put a drift on the wrong link by the
+    PRESS: docs/closed-loop.md, "Predictive deviance".) Directions a pose alone
+    determines count 0, as in :func:`pose_press`."""
+    free, along = _pose_directions(basis, fit)
+    return float(np.nansum(along * along / free - sigma2 * np.log(free)))
 
 
 def _orthonormal(a: FloatArray) -> FloatArray:

@@ -6,10 +6,12 @@ library, then the generic search) is scored on the identification poses
 (:mod:`calibration.effects.candidate_scoring`):
 
 * **cross-validation**: each pose is left out in turn, the current model plus the
-  candidate refitted without it predicts it (exact, by the hat matrix: the PRESS; K folds
-  with ``LoopSettings(leave_one_out=False)``). The score is the drop of the held-out sum
-  of squared errors, in units of the noise variance σ̂², minus a penalty of ``ln(3m)`` per
-  added parameter (BIC-like, m poses);
+  candidate refitted without it predicts it (exact, by the hat matrix; K folds with
+  ``LoopSettings(leave_one_out=False)``). The score is the drop of the held-out poses'
+  predictive deviance (each miss weighed against the refitted model's uncertainty there,
+  :func:`~calibration.effects.candidate_scoring.pose_deviance`; the PRESS, the squared
+  misses, with ``loo_deviance=False``), in units of the noise variance σ̂², minus a penalty
+  of ``ln(3m)`` per added parameter (BIC-like, m poses);
 * **significance**: the partial F-test of the candidate's parameters on all identification
   poses, Bonferroni-corrected over the candidates of the round (``p·N < α``, α = 1e-3).
   A harmonic's orders are scanned (1..K, K from the joint's coverage and the number of

@@ -364,6 +364,10 @@ def closed_loop_document(loop: ClosedLoopResult, n_joints: int) -> dict[str, Any
         "cross_validation": "leave one pose out"
         if loop.settings.leave_one_out
         else f"{loop.settings.folds} folds",
+        # what a held-out pose is scored by (candidate_scoring.pose_deviance / pose_press)
+        "cross_validation_score": "predictive deviance"
+        if loop.settings.leave_one_out and loop.settings.loo_deviance
+        else "squared error",
         "penalty_per_parameter_sigma2": loop.penalty_per_parameter,
         "n_candidates": loop.n_candidates,
         "candidate_kinds": list(loop.kinds),

@@ -143,6 +143,7 @@ class LoopProblem:
             settings.folds,
             settings.fold_seed,
             leave_one_out=settings.leave_one_out,
+            deviance=settings.loo_deviance,
         )
         return lin, sw, kin
 

@@ -15,6 +15,9 @@ class LoopSettings:
 
     folds: int = 5  # K-fold cross-validation's folds (``leave_one_out`` False)
     leave_one_out: bool = True  # cross-validate by leaving one pose out (exact PRESS)
+    #: with ``leave_one_out``: score a left-out pose by its predictive deviance, not its
+    #: squared error (candidate_scoring.pose_deviance; False: the PRESS, until 2026-11-28)
+    loo_deviance: bool = True
     alpha: float = 1e-3  # family-wise false-positive probability per round
     penalty_per_parameter: float | None = None  # σ² per parameter; None: ln(3m)
     max_effects: int = 6

@@ -29,7 +29,11 @@ from calibration.identify.campaign_files import Campaign
 from sim_devices.effects import UndeclaredEffects
 from sim_devices.pose_campaign import CampaignSettings, measure_campaign
 
-FIRST_SEARCH_ONLY = LoopSettings(gravity_first_search=False)
+#: The cases below were found when the loop cross-validated by the PRESS (before
+#: 2026-11-28); scored by the predictive deviance the search takes other paths on these
+#: campaigns (the deviance's own tests: test_candidate_cv.py). The mechanism is tested here.
+PRESS = LoopSettings(loo_deviance=False)
+FIRST_SEARCH_ONLY = LoopSettings(gravity_first_search=False, loo_deviance=False)
 MEASURED = CampaignSettings(effects=EFFECTS)
 
 
@@ -45,7 +49,7 @@ def campaign(seed: int) -> tuple[SeedCampaigns, Campaign]:
 
 
 @cache
-def random_50(seed: int, settings: LoopSettings | None = None) -> tuple[CalibrationResult, float]:
+def random_50(seed: int, settings: LoopSettings = PRESS) -> tuple[CalibrationResult, float]:
     """The loop on :func:`campaign`: the result and its held-out mean error (mm)."""
     sc, measured = campaign(seed)
     return _calibrated(sc, measured, seed, MEASURED, settings)
@@ -83,7 +87,7 @@ def _without_the_coupled_fit(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 @cache
-def planned_50(seed: int, settings: LoopSettings | None = None) -> tuple[CalibrationResult, float]:
+def planned_50(seed: int, settings: LoopSettings = PRESS) -> tuple[CalibrationResult, float]:
     """bench_plan's planned 50 poses of ``seed`` (from 5000 candidates) and its 20
     validation poses, measured on :data:`NEGATIVELY_COUPLED`: the loop's result and its
     held-out mean error (mm); the one-pass plan's order, in which these cases were found."""
