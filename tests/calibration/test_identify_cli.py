@@ -289,7 +289,12 @@ def test_loop_names_the_effect_and_predict_applies_it(tmp_path):
     assert [e.kind for e in cal.effects] == ["gravity_deflection"]
     assert 'form = "physical"' in out.read_text() and "compliance_ratio" in out.read_text()
     doc = json.loads((rep / "report.json").read_text())
-    stages = doc["closed_loop"]["stages"]
+    loop = doc["closed_loop"]
+    assert (loop["cross_validation"], loop["cross_validation_score"]) == (
+        "leave one pose out",
+        "predictive deviance",
+    )
+    stages = loop["stages"]
     assert [s["stage"] for s in stages] == ["nominal", "geometric", "effect"]
     for st in stages:
         for comp in COMPONENTS:
