@@ -282,7 +282,7 @@ def pose_deviance(basis: FloatArray, fit: FloatArray, sigma2: float) -> float:
     between two candidates by its noise, while the deviance weighs the miss against the
     prediction's own uncertainty and charges that uncertainty as ``−ln(1 − λ)``. (A
     planned KR500 campaign with a pose at λ = 0.992 put a drift on the wrong link by the
-    PRESS: docs/closed-loop.md, "Predictive deviance".) Directions a pose alone
+    PRESS: docs/closed-loop.md, "Predictive deviance, not the PRESS".) Directions a pose alone
     determines count 0, as in :func:`pose_press`."""
     free, along = _pose_directions(basis, fit)
     return float(np.nansum(along * along / free - sigma2 * np.log(free)))
