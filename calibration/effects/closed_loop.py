@@ -126,8 +126,7 @@ _Tried = tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | s
 
 CRITERION = (
     "a candidate is added when its cross-validated error reduction on the "
-    "identification poses (each pose left out in turn, exactly, its miss scored as in "
-    "cross_validation_score), in units of the "
+    "identification poses (each pose left out in turn, exactly), in units of the "
     "noise variance, exceeds ln(3m) per parameter, "
     "and the partial F-test of its parameters, Bonferroni-corrected over the candidates of "
     "the round (a harmonic's best order Šidák-corrected for the orders scanned first), is "

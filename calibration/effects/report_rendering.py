@@ -140,11 +140,13 @@ def _set_markdown(set_name: str, s: Mapping[str, Any]) -> list[str]:
 
 def _closed_loop_markdown(loop: Mapping[str, Any]) -> list[str]:
     stages = loop["stages"]
+    scored = loop.get("cross_validation_score")  # absent from reports before 2026-11-28
     lines = [
         "## Closed loop: what the geometric model lacked",
         "",
         f"Criterion: {loop['criterion']} (α = {loop['alpha']:g}, "
-        f"{loop.get('cross_validation', str(loop['folds']) + ' folds')}, "
+        f"{loop.get('cross_validation', str(loop['folds']) + ' folds')}"
+        f"{', each scored by its ' + scored if scored else ''}, "
         f"penalty {loop['penalty_per_parameter_sigma2']:.1f} σ² per parameter, "
         f"{loop['n_candidates']} candidates, {loop['elapsed_s']:.2f} s).",
         "",

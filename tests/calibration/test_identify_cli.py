@@ -294,6 +294,10 @@ def test_loop_names_the_effect_and_predict_applies_it(tmp_path):
         "leave one pose out",
         "predictive deviance",
     )
+    assert (
+        "leave one pose out, each scored by its predictive deviance"
+        in (rep / "report.md").read_text()
+    )
     stages = loop["stages"]
     assert [s["stage"] for s in stages] == ["nominal", "geometric", "effect"]
     for st in stages:
