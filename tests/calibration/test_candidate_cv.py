@@ -33,13 +33,20 @@ def _refit_without_each_pose(x: np.ndarray, r: np.ndarray) -> float:
     return float(e @ e)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_leave_one_pose_out_is_the_refit_without_each_pose(seed):
+def _model_and_candidate(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """A model's columns ``(3m, 7)`` of mixed scales, a candidate's ``(3m, 3)`` and a
+    residual with both in it and unit noise; ``m`` = 25 poses."""
     rng = np.random.default_rng(seed)
     m = 25
     jac = rng.normal(size=(3 * m, 7)) * rng.uniform(0.1, 10.0, size=7)
     cand = rng.normal(size=(3 * m, 3))
     r = jac @ rng.normal(size=7) + cand @ rng.normal(size=3) + rng.normal(size=3 * m)
+    return jac, cand, r, m
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_leave_one_pose_out_is_the_refit_without_each_pose(seed):
+    jac, cand, r, m = _model_and_candidate(seed)
     lin = LinearizedModel.build(r, jac, m, 5, 0, leave_one_out=True)
     assert lin.cv0 == pytest.approx(_refit_without_each_pose(scaled(jac), r), rel=1e-10)
     both = np.hstack([scaled(jac), scaled(cand)])
@@ -83,11 +90,7 @@ def _deviance_without_each_pose(x: np.ndarray, r: np.ndarray, sigma2: float) -> 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_predictive_deviance_is_the_refit_without_each_pose(seed):
-    rng = np.random.default_rng(seed)
-    m = 25
-    jac = rng.normal(size=(3 * m, 7)) * rng.uniform(0.1, 10.0, size=7)
-    cand = rng.normal(size=(3 * m, 3))
-    r = jac @ rng.normal(size=7) + cand @ rng.normal(size=3) + rng.normal(size=3 * m)
+    jac, cand, r, m = _model_and_candidate(seed)
     lin = LinearizedModel.build(r, jac, m, 5, 0, leave_one_out=True, deviance=True)
     want = _deviance_without_each_pose(scaled(jac), r, lin.sigma2)
     assert lin.cv0 == pytest.approx(want, rel=1e-9)
