@@ -14,7 +14,7 @@ class LoopSettings:
     """How the loop searches (see the module docstring for the criterion)."""
 
     folds: int = 5  # K-fold cross-validation's folds (``leave_one_out`` False)
-    leave_one_out: bool = True  # cross-validate by leaving one pose out (exact PRESS)
+    leave_one_out: bool = True  # cross-validate by leaving one pose out (exact, hat matrix)
     #: with ``leave_one_out``: score a left-out pose by its predictive deviance, not its
     #: squared error (candidate_scoring.pose_deviance; False: the PRESS, until 2026-11-28)
     loo_deviance: bool = True
