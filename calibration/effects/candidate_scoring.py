@@ -186,7 +186,7 @@ class LinearizedModel:
         fold_gram = tuple(j[f].T @ j[f] for f in folds)
         fold_rhs = tuple(j[f].T @ residual[f] for f in folds)
         if leave_one_out:
-            cv0 = pose_deviance(basis, fit0, sigma2) if deviance else pose_press(basis, fit0)
+            cv0 = _left_out_score(basis, fit0, sigma2, deviance)
         else:
             cv0 = 0.0
             for f, fg, fr in zip(folds, fold_gram, fold_rhs, strict=True):
@@ -199,18 +199,18 @@ class LinearizedModel:
         )  # fmt: skip
 
     def cv_sse_with(self, cols: FloatArray) -> float:
-        """Held-out sum of squared errors of the model plus ``cols`` ``(3m, k)``: each pose
-        predicted by the model refitted without it (``leave_one_out``, :func:`pose_press`),
-        else each fold refitted without its test rows. The training normal equations are the
-        full ones minus the test rows', so a fold costs ``O(N_test·q²)`` whatever the number
-        of poses; the model's own blocks are computed once, only the candidate's cross blocks
-        are new; a ``(q, q)`` least-squares solve keeps nearly dependent columns harmless."""
+        """Held-out error of the model plus ``cols`` ``(3m, k)``: each pose predicted by the
+        model refitted without it (``leave_one_out``: its predictive deviance with
+        ``deviance``, :func:`pose_deviance`, else its squared miss, :func:`pose_press`),
+        else the squared misses of each fold refitted without its test rows. The training
+        normal equations are the full ones minus the test rows', so a fold costs
+        ``O(N_test·q²)`` whatever the number of poses; the model's own blocks are computed
+        once, only the candidate's cross blocks are new; a ``(q, q)`` least-squares solve
+        keeps nearly dependent columns harmless."""
         if self.leave_one_out:
             qc = _orthonormal(self.perp(cols))
             basis, fit = np.hstack([self.basis, qc]), self.fit0 - qc @ (qc.T @ self.fit0)
-            if self.deviance:
-                return pose_deviance(basis, fit, self.sigma2)
-            return pose_press(basis, fit)
+            return _left_out_score(basis, fit, self.sigma2, self.deviance)
         j, r = self.jacobian, self.residual
         jc, cc, cr = j.T @ cols, cols.T @ cols, cols.T @ r
         gram = np.block([[self.gram, jc], [jc.T, cc]])
@@ -286,6 +286,12 @@ def pose_deviance(basis: FloatArray, fit: FloatArray, sigma2: float) -> float:
     determines count 0, as in :func:`pose_press`."""
     free, along = _pose_directions(basis, fit)
     return float(np.nansum(along * along / free - sigma2 * np.log(free)))
+
+
+def _left_out_score(basis: FloatArray, fit: FloatArray, sigma2: float, deviance: bool) -> float:
+    """The leave-one-pose-out score the model is built with: :func:`pose_deviance` or
+    :func:`pose_press`."""
+    return pose_deviance(basis, fit, sigma2) if deviance else pose_press(basis, fit)
 
 
 def _orthonormal(a: FloatArray) -> FloatArray:
