@@ -90,6 +90,7 @@ from calibration.effects.effect_shapes import (
     profile_time_constant,
 )
 from calibration.effects.gravity_form import (
+    CouplingColumns,
     gravity_step,
     physical_gravity,
     physical_parameter_count,
@@ -426,24 +427,30 @@ class _Search:
 
     def refit(self, step: _Tried) -> _Tried:
         """``step`` with its physical gravity term's ratios refitted beside an effect added
-        after it (:func:`refit_physical_form`), when that lowers the SSE significantly.
-        Not beside a term built on the gravity term's values (the shoulder's coupling, a
-        link's bending: their shape is its torques or moments at the time, and would no
-        longer mean what it says)."""
+        after it (:func:`refit_physical_form`), when that lowers the SSE significantly;
+        beside the shoulder's coupling too (``refit_beside_coupling``). Not beside a link's
+        bending (its shape is the term's moments at the time, and would no longer mean
+        what it says)."""
         linear = [s for s in self.library if s.kind == "gravity_deflection"]
         if isinstance(step, str) or not linear or not self.settings.refit_gravity_form:
             return step
         specs, result, _form = step
-        on_gravity = any(KINDS[s.kind].built_on_gravity for s in specs)
+        on_gravity = any(
+            KINDS[s.kind].built_on_gravity
+            and (s.kind != "joint_coupling" or not self.settings.refit_beside_coupling)
+            for s in specs
+        )
         if specs[-1].kind == "gravity_deflection" or on_gravity:
             return step
         problem = self.problem
 
         def linearize(
             res: IdentificationResult, model: tuple[EffectSpec, ...]
-        ) -> tuple[LinearizedModel, FloatArray]:
+        ) -> tuple[LinearizedModel, FloatArray, CouplingColumns]:
             lin, sw, kin = problem.linearized(res, model, self.settings)
-            return lin, problem.columns(linear[0], sw, kin)
+            columns_of = partial(problem.columns, sw=sw, kin=kin)
+            coupling = partial(coupling_moment_columns, columns_of=columns_of)
+            return lin, columns_of(linear[0]), coupling
 
         # from the step's own geometry: from the nominal start the UR10's refit stalled as
         # its steps did (_Search.attempt), and kept ratios fitted beside no cyclic error

@@ -15,7 +15,7 @@ from scipy.stats import f as f_distribution
 
 from calibration.effects.candidate_scoring import LinearizedModel
 from calibration.effects.effect_base import EffectContext, EffectSpec
-from calibration.effects.effect_coupling import COUPLED_JOINTS
+from calibration.effects.effect_coupling import COUPLED_JOINTS, JointCoupling
 from calibration.effects.effect_gravity import (
     counterbalance_term,
     gravity_groups,
@@ -47,8 +47,11 @@ def physical_gravity(
     lin: LinearizedModel,
     cols: FloatArray,
     coupling: CouplingColumns | None = None,
+    beside_coupling: bool = False,
 ) -> tuple[EffectSpec, PhysicalGravityFit] | None:
     """The physical form's spec and fit from the linear candidate's columns.
+    ``beside_coupling``: fitted with the coupling's κ beside from the start (the model
+    holds the coupling already; :func:`refit_physical_form`).
 
     When the one-ratio-per-joint form cannot be fitted and ``coupling`` is given (the
     loop may add the shoulder's coupled compliance), it is fitted again with the
@@ -74,7 +77,10 @@ def physical_gravity(
         lin = LinearizedModel.build(  # (folds unused by the profile)
             lin.residual, np.hstack([lin.jacobian, cols[:, own]]), m, len(lin.folds), 0
         )
-    fit = fit_physical_gravity(lin, blocks)
+    if beside_coupling and coupling is not None:
+        fit = fit_physical_gravity(lin, blocks, coupling(names))
+    else:
+        fit = fit_physical_gravity(lin, blocks)
     if not _converged(fit) and coupling is not None and _couples(ctx, blocks):
         fit = fit_physical_gravity(lin, blocks, coupling(names))
     if not _converged(fit):
@@ -269,10 +275,12 @@ def weighted_sse(result: IdentificationResult) -> float:
     return float(r @ r)
 
 
-#: The model's weighted linearisation at a result of ``specs`` and the linear gravity
-#: candidate's weighted columns ``(3m, k)`` there (the closed loop's).
+#: The model's weighted linearisation at a result of ``specs``, the linear gravity
+#: candidate's weighted columns ``(3m, k)`` there and the coupling's per base moment
+#: (the closed loop's).
 Linearize = Callable[
-    [IdentificationResult, tuple[EffectSpec, ...]], tuple[LinearizedModel, FloatArray]
+    [IdentificationResult, tuple[EffectSpec, ...]],
+    tuple[LinearizedModel, FloatArray, CouplingColumns],
 ]
 
 
@@ -296,38 +304,43 @@ def refit_physical_form(
     the model re-identified from there, kept when the SSE drop is significant on the
     ratios' count (F-test at :data:`PHYSICAL_FORM_ALPHA`). The parameter count may not
     grow (a limit form that splits more groups is the loop's own choice to score, not a
-    refit's)."""
+    refit's). Beside the shoulder's coupling the ratios are profiled with its κ beside, on
+    the residual of the model without both, and the model re-identified with the coupling
+    as it was added (its moments frozen then; its κ fitted again)."""
     at = [i for i, s in enumerate(specs) if s.kind == "gravity_deflection"]
     if len(at) != 1 or specs[at[0]].parameter != "physical":
         return None
     i = at[0]
+    coupled = [k for k, s in enumerate(specs) if s.kind == JointCoupling.kind]
     parts = split_values(specs, result.effect_values)
-    others = specs[:i] + specs[i + 1 :]
-    rest = parts[:i] + parts[i + 1 :]
+    keep = [k for k in range(len(specs)) if k != i and k not in coupled]
+    others, rest = tuple(specs[k] for k in keep), [parts[k] for k in keep]
     try:
         without = identify(others, np.concatenate(rest) if rest else np.zeros(0))
     except IdentificationError:
         return None
-    lin, cols = linearize(without, others)
-    form = physical_gravity(ctx, len(ctx.data), linear_spec, lin, cols)
+    lin, cols, coupling = linearize(without, others)
+    form = physical_gravity(
+        ctx, len(ctx.data), linear_spec, lin, cols, coupling, beside_coupling=bool(coupled)
+    )
     if form is None:
         return None
     phys_spec, fit = form
     if len(phys_spec.parameter_names()) > len(specs[i].parameter_names()):
         return None
-    own = np.zeros(len(phys_spec.names) - len(fit.moments))
-    new_specs = (*specs[:i], phys_spec, *specs[i + 1 :])
-    start = np.concatenate([*parts[:i], fit.moments, own, *parts[i + 1 :]])
+    parts[i] = np.concatenate([fit.moments, np.zeros(len(phys_spec.names) - len(fit.moments))])
+    new_specs = tuple(phys_spec if k == i else s for k, s in enumerate(specs))
     try:
-        refit = identify(new_specs, start)
+        refit = identify(new_specs, np.concatenate(parts))
     except IdentificationError:
         return None
     f_stat, p = _ratio_test(len(ctx.data), result, refit, phys_spec)
     if not p < PHYSICAL_FORM_ALPHA:
         return None
     reason = (
-        f"physical form, its compliance ratios refitted beside {specs[-1].label} "
-        f"(F = {f_stat:.2f}, p = {p:.2g})"
+        f"physical form, its compliance ratios refitted beside {specs[-1].label}"
+        + (", profiled with the coupling's κ" if coupled else "")
+        + f" (F = {f_stat:.2f}, p = {p:.2g})"
     )
     return new_specs, refit, _form_info(ctx, "physical", reason, phys_spec, fit, None, None)
 

@@ -27,6 +27,8 @@ class LoopSettings:
     validation_guard: bool = True  # undo a step that makes the validation error worse
     max_rejected: int = 4  # candidates set aside by the validation guard before stopping
     refit_gravity_form: bool = True  # refit the physical form's ratios after a later effect
+    #: and beside the shoulder's coupling, the coupling built again on the refitted moments
+    refit_beside_coupling: bool = True
     gravity_first_search: bool = True  # search again with gravity first (second_search)
 
     def __post_init__(self) -> None:
