@@ -27,7 +27,7 @@ class LoopSettings:
     validation_guard: bool = True  # undo a step that makes the validation error worse
     max_rejected: int = 4  # candidates set aside by the validation guard before stopping
     refit_gravity_form: bool = True  # refit the physical form's ratios after a later effect
-    #: and beside the shoulder's coupling, the coupling built again on the refitted moments
+    #: and beside the shoulder's coupling (its frozen moments kept, its κ fitted again)
     refit_beside_coupling: bool = True
     gravity_first_search: bool = True  # search again with gravity first (second_search)
 
