@@ -77,7 +77,11 @@ from calibration.effects.effect_candidates import (
     resolved_candidates,
     scan_key,
 )
-from calibration.effects.effect_coupling import coupling_candidates, coupling_moment_columns
+from calibration.effects.effect_coupling import (
+    JointCoupling,
+    coupling_candidates,
+    coupling_moment_columns,
+)
 from calibration.effects.effect_kinds import (
     KINDS,
     regressor_matrix,
@@ -437,7 +441,7 @@ class _Search:
         specs, result, _form = step
         on_gravity = any(
             KINDS[s.kind].built_on_gravity
-            and (s.kind != "joint_coupling" or not self.settings.refit_beside_coupling)
+            and (s.kind != JointCoupling.kind or not self.settings.refit_beside_coupling)
             for s in specs
         )
         if specs[-1].kind == "gravity_deflection" or on_gravity:

@@ -77,11 +77,10 @@ def physical_gravity(
         lin = LinearizedModel.build(  # (folds unused by the profile)
             lin.residual, np.hstack([lin.jacobian, cols[:, own]]), m, len(lin.folds), 0
         )
-    if beside_coupling and coupling is not None:
-        fit = fit_physical_gravity(lin, blocks, coupling(names))
-    else:
-        fit = fit_physical_gravity(lin, blocks)
-    if not _converged(fit) and coupling is not None and _couples(ctx, blocks):
+    beside = coupling(names) if beside_coupling and coupling is not None else None
+    fit = fit_physical_gravity(lin, blocks, beside)
+    # the fit with the coupling beside is made once: not again when it did not converge
+    if beside is None and not _converged(fit) and coupling is not None and _couples(ctx, blocks):
         fit = fit_physical_gravity(lin, blocks, coupling(names))
     if not _converged(fit):
         return None
