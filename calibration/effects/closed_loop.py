@@ -60,10 +60,8 @@ from calibration.effects.candidate_scoring import (
     CandidateScore,
     Competitor,
     LinearizedModel,
-    best_of_scan,
     choose,
     competitors,
-    score_candidate,
 )
 from calibration.effects.effect_base import (
     EffectContext,
@@ -75,7 +73,6 @@ from calibration.effects.effect_bending import bending_candidates
 from calibration.effects.effect_candidates import (
     candidate_effects,
     resolved_candidates,
-    scan_key,
 )
 from calibration.effects.effect_coupling import (
     JointCoupling,
@@ -88,22 +85,16 @@ from calibration.effects.effect_kinds import (
     split_values,
     to_descriptions,
 )
-from calibration.effects.effect_shapes import (
-    PhysicalGravityFit,
-    TimeConstantProfile,
-    profile_time_constant,
-)
 from calibration.effects.gravity_form import (
     CouplingColumns,
     gravity_step,
-    physical_gravity,
-    physical_parameter_count,
     refit_physical_form,
 )
 from calibration.effects.loop_problem import LoopProblem, validation_set_name
 from calibration.effects.loop_problem import LoopSettings as LoopSettings
 from calibration.effects.loop_problem import campaign_effect_data as campaign_effect_data
 from calibration.effects.loop_stop import Rejected, ScoredRound, StopReason, stop_reason
+from calibration.effects.round_scoring import score_round
 from calibration.effects.second_search import (
     GRAVITY_FIRST_REASON,
     SecondSearch,
@@ -486,7 +477,7 @@ class _Search:
             if not offered:
                 return [], rejected, self.stop("no_candidate_left", None, rejected, ())
             physical = not any(_is_physical(s) for s in set_aside)
-            scored = _score_round(
+            scored = score_round(
                 problem, result, specs, offered, settings, self.penalty, self.span, physical,
                 self.coupling,
             )  # fmt: skip
@@ -636,101 +627,6 @@ def _same_slot(spec: EffectSpec, specs: tuple[EffectSpec, ...]) -> bool:
     physical form of a gravity term)."""
     slot = KINDS[spec.kind].slot(spec)
     return any(KINDS[s.kind].slot(s) == slot for s in specs)
-
-
-def _score_round(
-    problem: LoopProblem,
-    result: IdentificationResult,
-    specs: tuple[EffectSpec, ...],
-    offered: list[EffectSpec],
-    settings: LoopSettings,
-    penalty: float,
-    span: tuple[float, ...],
-    physical: bool = True,
-    coupled: bool = True,
-) -> ScoredRound:
-    """Score every offered candidate against the model ``result`` with ``specs``; a drift
-    is offered as a lag when the data says so; the gravity term's linear form also in its
-    physical form (``physical``: unless that was set aside), scored on its own parameters
-    (the compliance ratios but the reference joint's charged like a lag's τ)."""
-    lin, sw, kin = problem.linearized(result, specs, settings)
-    columns: dict[EffectSpec, FloatArray] = {}
-    profiles: dict[EffectSpec, TimeConstantProfile] = {}
-    extra: dict[EffectSpec, int] = {}
-    for spec in offered:
-        if spec.kind == "length_drift" and len(span) == 2 and span[1] > span[0]:
-            profile = _profile_lag(problem, spec, sw, kin, lin, span)
-            if profile.tau_s is not None:
-                lag = replace(spec, shape=(profile.tau_s,), span_s=())
-                profiles[lag] = profile
-                extra[lag] = 1
-                spec = lag
-            else:
-                profiles[spec] = profile
-        columns[spec] = problem.columns(spec, sw, kin)
-    fits: dict[EffectSpec, PhysicalGravityFit] = {}
-    linear = [s for s in columns if s.kind == "gravity_deflection" and s.parameter == "linear"]
-    form = None
-    if linear and physical:
-        coupling = None
-        if coupled:
-            coupling = partial(
-                coupling_moment_columns, columns_of=partial(problem.columns, sw=sw, kin=kin)
-            )
-        form = physical_gravity(
-            problem.ctx, problem.m, linear[0], lin, columns[linear[0]], coupling
-        )
-    if form is not None:
-        phys_spec, fits[phys_spec] = form
-        columns[phys_spec] = problem.columns(phys_spec, sw, kin)
-        extra[phys_spec] = physical_parameter_count(phys_spec) - len(phys_spec.names)
-    scanned = _scan_orders(lin, columns)
-    n = len(columns)
-    scores = [
-        score_candidate(
-            lin, spec, cols, n_candidates=n, alpha=settings.alpha, penalty=penalty,
-            rtol=settings.rtol, extra_parameters=extra.get(spec, 0),
-            scanned=scanned.get(spec, 1),
-        )
-        for spec, cols in columns.items()
-    ]  # fmt: skip
-    scores.sort(key=lambda c: (not c.significant, c.n_parameters == 0, -c.score))
-    return ScoredRound(lin, scores, columns, profiles, fits)
-
-
-def _scan_orders(
-    lin: LinearizedModel, columns: dict[EffectSpec, FloatArray]
-) -> dict[EffectSpec, int]:
-    """Keep the best order of each harmonic scan in ``columns`` (in place, the others
-    dropped: one candidate per scan in the round); how many orders each winner beat."""
-    scans: dict[tuple[str, int], list[EffectSpec]] = {}
-    for spec in columns:
-        key = scan_key(spec)
-        if key is not None:
-            scans.setdefault(key, []).append(spec)
-    scanned: dict[EffectSpec, int] = {}
-    for specs in scans.values():
-        best = specs[best_of_scan(lin, [columns[s] for s in specs])]
-        for s in specs:
-            if s != best:
-                del columns[s]
-        scanned[best] = len(specs)
-    return scanned
-
-
-def _profile_lag(
-    problem: LoopProblem,
-    spec: EffectSpec,
-    sw: FloatArray,
-    kin: ModelAtPoses,
-    lin: LinearizedModel,
-    span: tuple[float, ...],
-) -> TimeConstantProfile:
-    def column_at(tau: float | None) -> FloatArray:
-        s = replace(spec, shape=() if tau is None else (tau,), span_s=())
-        return problem.columns(s, sw, kin)[:, 0]
-
-    return profile_time_constant(lin, column_at, span[1] - span[0])
 
 
 def _try_step(
