@@ -451,7 +451,7 @@ class _Search:
         # its steps did (_Search.attempt), and kept ratios fitted beside no cyclic error
         refit = refit_physical_form(
             problem.ctx, specs, result, linear[0], problem.started_at(result.model).identify,
-            linearize,
+            linearize, self.settings.coupling_on_profile,
         )  # fmt: skip
         if refit is None:
             return step

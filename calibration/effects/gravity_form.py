@@ -290,22 +290,24 @@ def refit_physical_form(
     linear_spec: EffectSpec,
     identify: Identify,
     linearize: Linearize,
+    coupling_on_profile: bool = True,
 ) -> tuple[tuple[EffectSpec, ...], IdentificationResult, dict[str, Any]] | None:
     """The model ``specs`` (fitted: ``result``) with its physical gravity term's compliance
     ratios fitted again beside the model's other effects, and the form's record for the
     report; None when it holds no physical term or the refit's SSE drop is not
     significant.
 
-    The ratios are a shape the LM holds: fitted once, when the term is added, on the
-    residual of the model then. An effect added later (a cyclic error) was part of that
-    residual and pulled the ratios; with it in the model they are profiled again
-    (:func:`physical_gravity` on the residual of the model without the gravity term), and
-    the model re-identified from there, kept when the SSE drop is significant on the
-    ratios' count (F-test at :data:`PHYSICAL_FORM_ALPHA`). The parameter count may not
-    grow (a limit form that splits more groups is the loop's own choice to score, not a
-    refit's). Beside the shoulder's coupling the ratios are profiled with its κ beside, on
-    the residual of the model without both, and the model re-identified with the coupling
-    as it was added (its moments frozen then; its κ fitted again)."""
+    The ratios are a shape the LM holds, profiled when the term is added on the residual
+    of the model then, which a later effect (a cyclic error) was part of. With it in the
+    model they are profiled again (:func:`physical_gravity` on the residual of the model
+    without the term), the model re-identified from there and kept when the SSE drop is
+    significant on the ratios' count (F-test at :data:`PHYSICAL_FORM_ALPHA`); the
+    parameter count may not grow (a limit form splitting more groups is the loop's choice
+    to score). Beside the shoulder's coupling the ratios are profiled with its κ beside on
+    the residual of the model without both (its torques from the profile's own moments:
+    the joint model), and re-identified from two starts, the coupling as it was added (its
+    moments frozen then) and rebuilt on the profile (``coupling_on_profile``,
+    :func:`_coupling_on_profile`): the lower SSE is the refit."""
     at = [i for i, s in enumerate(specs) if s.kind == "gravity_deflection"]
     if len(at) != 1 or specs[at[0]].parameter != "physical":
         return None
@@ -328,20 +330,60 @@ def refit_physical_form(
     if len(phys_spec.parameter_names()) > len(specs[i].parameter_names()):
         return None
     parts[i] = np.concatenate([fit.moments, np.zeros(len(phys_spec.names) - len(fit.moments))])
-    new_specs = tuple(phys_spec if k == i else s for k, s in enumerate(specs))
-    try:
-        refit = identify(new_specs, np.concatenate(parts))
-    except IdentificationError:
+    start = (tuple(phys_spec if k == i else s for k, s in enumerate(specs)), parts)
+    more = _coupling_on_profile(start, coupled[0], fit) if coupled and coupling_on_profile else []
+    best = _lowest_sse([start, *more], identify)
+    if best is None:
         return None
+    new_specs, refit = best
     f_stat, p = _ratio_test(len(ctx.data), result, refit, phys_spec)
     if not p < PHYSICAL_FORM_ALPHA:
         return None
-    reason = (
-        f"physical form, its compliance ratios refitted beside {specs[-1].label}"
+    reason = _refit_reason(specs[-1].label, bool(coupled), new_specs is not start[0], f_stat, p)
+    return new_specs, refit, _form_info(ctx, "physical", reason, phys_spec, fit, None, None)
+
+
+def _refit_reason(beside: str, coupled: bool, rebuilt: bool, f_stat: float, p: float) -> str:
+    """The report's words for a refit kept beside the effect labelled ``beside``."""
+    return (
+        f"physical form, its compliance ratios refitted beside {beside}"
         + (", profiled with the coupling's κ" if coupled else "")
+        + (", the coupling rebuilt on the profile's moments" if rebuilt else "")
         + f" (F = {f_stat:.2f}, p = {p:.2g})"
     )
-    return new_specs, refit, _form_info(ctx, "physical", reason, phys_spec, fit, None, None)
+
+
+def _lowest_sse(
+    starts: list[tuple[tuple[EffectSpec, ...], list[FloatArray]]], identify: Identify
+) -> tuple[tuple[EffectSpec, ...], IdentificationResult] | None:
+    """The model identified from each start (its effects, their values per effect) of the
+    lowest weighted SSE; None when no identification succeeded."""
+    fits = []
+    for specs, values in starts:
+        try:
+            fits.append((specs, identify(specs, np.concatenate(values))))
+        except IdentificationError:
+            continue
+    return min(fits, key=lambda f: weighted_sse(f[1])) if fits else None
+
+
+def _coupling_on_profile(
+    start: tuple[tuple[EffectSpec, ...], list[FloatArray]], k: int, fit: PhysicalGravityFit
+) -> list[tuple[tuple[EffectSpec, ...], list[FloatArray]]]:
+    """The refit's start ``start`` with its coupling (``specs[k]``) rebuilt on the profile's
+    moments and κ: the joint model the profile fitted, the coupling's torques from the
+    term's own moments (the base moments; the counterbalance terms are fitted beside both,
+    as in the profile); none when the profile held no κ or split the limit form."""
+    if fit.coupling_ratio is None or fit.groups:
+        return []
+    specs, parts = start
+    base = specs[[s.kind for s in specs].index("gravity_deflection")].names[: len(fit.moments)]
+    rebuilt = EffectSpec(
+        JointCoupling.kind, joints=COUPLED_JOINTS, names=base,
+        shape=tuple(float(w) for w in fit.moments),
+    )  # fmt: skip
+    values = [np.array([fit.coupling_ratio]) if n == k else v for n, v in enumerate(parts)]
+    return [(tuple(rebuilt if n == k else s for n, s in enumerate(specs)), values)]
 
 
 def _ratio_test(

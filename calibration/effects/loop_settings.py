@@ -29,6 +29,9 @@ class LoopSettings:
     refit_gravity_form: bool = True  # refit the physical form's ratios after a later effect
     #: and beside the shoulder's coupling (its frozen moments kept, its κ fitted again)
     refit_beside_coupling: bool = True
+    #: and refitted from a second start too, the coupling rebuilt on that profile's moments
+    #: and κ (the joint model's fit): the lower SSE kept
+    coupling_on_profile: bool = True
     gravity_first_search: bool = True  # search again with gravity first (second_search)
 
     def __post_init__(self) -> None:
