@@ -50,7 +50,6 @@ import math
 import time
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field, replace
-from functools import partial
 from typing import Any
 
 import numpy as np
@@ -77,7 +76,6 @@ from calibration.effects.effect_candidates import (
 from calibration.effects.effect_coupling import (
     JointCoupling,
     coupling_candidates,
-    coupling_moment_columns,
 )
 from calibration.effects.effect_kinds import (
     KINDS,
@@ -443,9 +441,7 @@ class _Search:
             res: IdentificationResult, model: tuple[EffectSpec, ...]
         ) -> tuple[LinearizedModel, FloatArray, CouplingColumns]:
             lin, sw, kin = problem.linearized(res, model, self.settings)
-            columns_of = partial(problem.columns, sw=sw, kin=kin)
-            coupling = partial(coupling_moment_columns, columns_of=columns_of)
-            return lin, columns_of(linear[0]), coupling
+            return lin, problem.columns(linear[0], sw, kin), problem.coupling_columns(sw, kin)
 
         # from the step's own geometry: from the nominal start the UR10's refit stalled as
         # its steps did (_Search.attempt), and kept ratios fitted beside no cyclic error

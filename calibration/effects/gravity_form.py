@@ -331,7 +331,9 @@ def refit_physical_form(
         return None
     parts[i] = np.concatenate([fit.moments, np.zeros(len(phys_spec.names) - len(fit.moments))])
     start = (tuple(phys_spec if k == i else s for k, s in enumerate(specs)), parts)
-    more = _coupling_on_profile(start, coupled[0], fit) if coupled and coupling_on_profile else []
+    more = (
+        _coupling_on_profile(start, i, coupled[0], fit) if coupled and coupling_on_profile else []
+    )
     best = _lowest_sse([start, *more], identify)
     if best is None:
         return None
@@ -368,16 +370,20 @@ def _lowest_sse(
 
 
 def _coupling_on_profile(
-    start: tuple[tuple[EffectSpec, ...], list[FloatArray]], k: int, fit: PhysicalGravityFit
+    start: tuple[tuple[EffectSpec, ...], list[FloatArray]],
+    i: int,
+    k: int,
+    fit: PhysicalGravityFit,
 ) -> list[tuple[tuple[EffectSpec, ...], list[FloatArray]]]:
-    """The refit's start ``start`` with its coupling (``specs[k]``) rebuilt on the profile's
-    moments and κ: the joint model the profile fitted, the coupling's torques from the
-    term's own moments (the base moments; the counterbalance terms are fitted beside both,
-    as in the profile); none when the profile held no κ or split the limit form."""
+    """The refit's start ``start`` (its gravity term ``specs[i]``, profiled: ``fit``) with
+    its coupling (``specs[k]``) rebuilt on the profile's moments and κ: the joint model
+    the profile fitted, the coupling's torques from the term's own moments (the base
+    moments; the counterbalance terms are fitted beside both, as in the profile); none
+    when the profile held no κ or split the limit form."""
     if fit.coupling_ratio is None or fit.groups:
         return []
     specs, parts = start
-    base = specs[[s.kind for s in specs].index("gravity_deflection")].names[: len(fit.moments)]
+    base = specs[i].names[: len(fit.moments)]
     rebuilt = EffectSpec(
         JointCoupling.kind, joints=COUPLED_JOINTS, names=base,
         shape=tuple(float(w) for w in fit.moments),

@@ -4,7 +4,9 @@ weighted, the validation sets, and the model's linearisation at a fit
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -12,6 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration.effects.candidate_scoring import LinearizedModel
 from calibration.effects.effect_base import EffectContext, EffectData, EffectSpec, ModelAtPoses
+from calibration.effects.effect_coupling import coupling_moment_columns
 from calibration.effects.effect_kinds import (
     KINDS,
     effect_terms,
@@ -152,6 +155,13 @@ class LoopProblem:
         sel = slice(0, self.m)
         r = KINDS[spec.kind].regressor(spec, self.ctx, sel, kin) * sw[:, None, None]
         return r.reshape(3 * self.m, -1)
+
+    def coupling_columns(
+        self, sw: FloatArray, kin: ModelAtPoses
+    ) -> Callable[[tuple[str, ...]], FloatArray]:
+        """The shoulder pair's coupling ``(3m, b)`` per unit of each of the base moments
+        named (:func:`coupling_moment_columns`), weighted as :meth:`columns`."""
+        return partial(coupling_moment_columns, columns_of=partial(self.columns, sw=sw, kin=kin))
 
 
 def validation_set_name(contexts: dict[str, EffectContext]) -> str:

@@ -7,12 +7,10 @@ candidate's cross-validated score and partial F-test
 from __future__ import annotations
 
 from dataclasses import replace
-from functools import partial
 
 from calibration.effects.candidate_scoring import LinearizedModel, best_of_scan, score_candidate
 from calibration.effects.effect_base import EffectSpec, FloatArray, ModelAtPoses
 from calibration.effects.effect_candidates import scan_key
-from calibration.effects.effect_coupling import coupling_moment_columns
 from calibration.effects.effect_shapes import (
     PhysicalGravityFit,
     TimeConstantProfile,
@@ -45,7 +43,7 @@ def score_round(
     extra: dict[EffectSpec, int] = {}
     for spec in offered:
         if spec.kind == "length_drift" and len(span) == 2 and span[1] > span[0]:
-            profile = profile_lag(problem, spec, sw, kin, lin, span)
+            profile = _profile_lag(problem, spec, sw, kin, lin, span)
             if profile.tau_s is not None:
                 lag = replace(spec, shape=(profile.tau_s,), span_s=())
                 profiles[lag] = profile
@@ -58,11 +56,7 @@ def score_round(
     linear = [s for s in columns if s.kind == "gravity_deflection" and s.parameter == "linear"]
     form = None
     if linear and physical:
-        coupling = None
-        if coupled:
-            coupling = partial(
-                coupling_moment_columns, columns_of=partial(problem.columns, sw=sw, kin=kin)
-            )
+        coupling = problem.coupling_columns(sw, kin) if coupled else None
         form = physical_gravity(
             problem.ctx, problem.m, linear[0], lin, columns[linear[0]], coupling
         )
@@ -70,7 +64,7 @@ def score_round(
         phys_spec, fits[phys_spec] = form
         columns[phys_spec] = problem.columns(phys_spec, sw, kin)
         extra[phys_spec] = physical_parameter_count(phys_spec) - len(phys_spec.names)
-    scanned = scan_orders(lin, columns)
+    scanned = _scan_orders(lin, columns)
     n = len(columns)
     scores = [
         score_candidate(
@@ -84,7 +78,7 @@ def score_round(
     return ScoredRound(lin, scores, columns, profiles, fits)
 
 
-def scan_orders(
+def _scan_orders(
     lin: LinearizedModel, columns: dict[EffectSpec, FloatArray]
 ) -> dict[EffectSpec, int]:
     """Keep the best order of each harmonic scan in ``columns`` (in place, the others
@@ -104,7 +98,7 @@ def scan_orders(
     return scanned
 
 
-def profile_lag(
+def _profile_lag(
     problem: LoopProblem,
     spec: EffectSpec,
     sw: FloatArray,
@@ -112,6 +106,8 @@ def profile_lag(
     lin: LinearizedModel,
     span: tuple[float, ...],
 ) -> TimeConstantProfile:
+    """A drift's time constant profiled over the campaign's ``span`` (s)."""
+
     def column_at(tau: float | None) -> FloatArray:
         s = replace(spec, shape=() if tau is None else (tau,), span_s=())
         return problem.columns(s, sw, kin)[:, 0]
