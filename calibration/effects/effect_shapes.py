@@ -184,6 +184,9 @@ class PhysicalGravityFit:
     #: κ of the shoulder's coupled compliance when fitted beside (None: not), in units of
     #: the reference joint's compliance
     coupling_ratio: float | None = None
+    #: beside κ, the counterbalance terms' torques as the coupling carries them ``(c,)``
+    #: (µrad, the coupling's weights; :func:`~calibration.effects.gravity_form.physical_gravity`)
+    coupled_counterbalance: FloatArray | None = None
 
 
 def fit_physical_gravity(

@@ -7,6 +7,7 @@ the form the data supports (:func:`gravity_step`)."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -73,15 +74,12 @@ def physical_gravity(
         block[:, names.index(moment)] = cols[:, c]
     if len(blocks) < 1:
         return None
-    if own:  # fitted freely beside the shared moments: part of the model for the profile
-        lin = LinearizedModel.build(  # (folds unused by the profile)
-            lin.residual, np.hstack([lin.jacobian, cols[:, own]]), m, len(lin.folds), 0
-        )
-    beside = coupling(names) if beside_coupling and coupling is not None else None
-    fit = fit_physical_gravity(lin, blocks, beside)
+    own_names = tuple(spec.names[c] for c in own)
+    profile = _Profile(lin, blocks, m, cols[:, own], coupling, names, own_names)
+    fit = profile.fit(beside_coupling and coupling is not None)
     # the fit with the coupling beside is made once: not again when it did not converge
-    if beside is None and not _converged(fit) and coupling is not None and _couples(ctx, blocks):
-        fit = fit_physical_gravity(lin, blocks, coupling(names))
+    if not (beside_coupling or _converged(fit)) and coupling is not None and _couples(ctx, blocks):
+        fit = profile.fit(True)
     if not _converged(fit):
         return None
     if fit.groups:  # the limit form: a moment a named group owns loads its joints alone
@@ -93,10 +91,74 @@ def physical_gravity(
         "gravity_deflection",
         parameter="physical",
         joints=fit.joints,
-        names=names + tuple(spec.names[c] for c in own),
+        names=names + own_names,
         shape=tuple(float(r) for r in fit.ratios),
     )
     return phys, fit
+
+
+@dataclass(frozen=True)
+class _Profile:
+    """The physical form's profile on the linearized model ``lin``: the joints' ``blocks``
+    per base moment (``names``), the counterbalance terms' columns ``own`` ``(3m, c)``
+    (``own_names``) fitted freely beside, and the shoulder's ``coupling`` columns."""
+
+    lin: LinearizedModel
+    blocks: dict[int, FloatArray]
+    m: int
+    own: FloatArray
+    coupling: CouplingColumns | None
+    names: tuple[str, ...]
+    own_names: tuple[str, ...]
+
+    def fit(self, beside_coupling: bool) -> PhysicalGravityFit:
+        """The profile, with the coupling's κ beside (``beside_coupling``) or not.
+
+        Beside it, the counterbalance's torque on the pair is coupled as gravity's is
+        where the data show it: each term's coupled column joins its own, free (κ times
+        its torque, a product the linear fit leaves apart), kept when the SSE drop is
+        significant on their count (F-test at :data:`PHYSICAL_FORM_ALPHA`), and the
+        torque the coupling carries is read back from it (``coupled_counterbalance``)."""
+        if not beside_coupling or self.coupling is None:
+            return fit_physical_gravity(self._beside(self.own), self.blocks)
+        d = self.coupling(self.names)
+        fit = fit_physical_gravity(self._beside(self.own), self.blocks, d)
+        pair = [c for c, n in enumerate(self.own_names) if _term_joint(n) in COUPLED_JOINTS]
+        if not pair or fit.groups:
+            return fit
+        extra = np.hstack([self.own, self.coupling(tuple(self.own_names[c] for c in pair))])
+        both = fit_physical_gravity(self._beside(extra), self.blocks, d)
+        kappa = both.coupling_ratio
+        if kappa is None or kappa == 0.0 or both.groups or not both.success:
+            return fit
+        dof = len(self.lin.residual) - extra.shape[1] - self.lin.jacobian.shape[1]
+        dof -= len(both.ratios) + len(both.moments)  # the ratios but the reference's, and κ
+        f_stat = ((fit.sse - both.sse) / len(pair)) / max(both.sse / max(dof, 1), 1e-300)
+        if not f_distribution.sf(max(f_stat, 0.0), len(pair), max(dof, 1)) < PHYSICAL_FORM_ALPHA:
+            return fit
+        # the free columns' coefficients at the profile's solution (Frisch–Waugh: the
+        # same as fitting them jointly with the form), over κ: the coupled torque
+        w = both.moments
+        form = sum(both.ratios[n] * self.blocks[j] @ w for n, j in enumerate(both.joints))
+        y = -self.lin.residual - form - kappa * (d @ w)
+        coef = np.linalg.lstsq(np.hstack([self.lin.jacobian, extra]), y, rcond=None)[0]
+        torque = np.zeros(len(self.own_names))
+        torque[pair] = coef[-len(pair) :] / kappa
+        return replace(both, coupled_counterbalance=torque)
+
+    def _beside(self, extra: FloatArray) -> LinearizedModel:
+        """``lin`` with the columns ``extra`` fitted freely as part of the model."""
+        if extra.shape[1] == 0:
+            return self.lin
+        return LinearizedModel.build(  # (folds unused by the profile)
+            self.lin.residual, np.hstack([self.lin.jacobian, extra]), self.m, len(self.lin.folds), 0
+        )
+
+
+def _term_joint(name: str) -> int | None:
+    """The joint a counterbalance term acts on (None: not such a term)."""
+    cb = counterbalance_term(name)
+    return None if cb is None else cb[0]
 
 
 def _converged(fit: PhysicalGravityFit) -> bool:
@@ -331,9 +393,7 @@ def refit_physical_form(
         return None
     parts[i] = np.concatenate([fit.moments, np.zeros(len(phys_spec.names) - len(fit.moments))])
     start = (tuple(phys_spec if k == i else s for k, s in enumerate(specs)), parts)
-    more = (
-        _coupling_on_profile(start, i, coupled[0], fit) if coupled and coupling_on_profile else []
-    )
+    more = _coupling_on_profile(start, i, coupled, fit) if coupling_on_profile else []
     best = _lowest_sse([start, *more], identify)
     if best is None:
         return None
@@ -341,16 +401,25 @@ def refit_physical_form(
     f_stat, p = _ratio_test(len(ctx.data), result, refit, phys_spec)
     if not p < PHYSICAL_FORM_ALPHA:
         return None
-    reason = _refit_reason(specs[-1].label, bool(coupled), new_specs is not start[0], f_stat, p)
+    rebuilt = fit if new_specs is not start[0] else None
+    reason = _refit_reason(specs[-1].label, bool(coupled), rebuilt, f_stat, p)
     return new_specs, refit, _form_info(ctx, "physical", reason, phys_spec, fit, None, None)
 
 
-def _refit_reason(beside: str, coupled: bool, rebuilt: bool, f_stat: float, p: float) -> str:
-    """The report's words for a refit kept beside the effect labelled ``beside``."""
+def _refit_reason(
+    beside: str, coupled: bool, rebuilt: PhysicalGravityFit | None, f_stat: float, p: float
+) -> str:
+    """The report's words for a refit kept beside the effect labelled ``beside``;
+    ``rebuilt``: the profile the coupling was rebuilt on, when that start won."""
     return (
         f"physical form, its compliance ratios refitted beside {beside}"
         + (", profiled with the coupling's κ" if coupled else "")
-        + (", the coupling rebuilt on the profile's moments" if rebuilt else "")
+        + (", the coupling rebuilt on the profile's moments" if rebuilt is not None else "")
+        + (
+            " and the counterbalance's torque"
+            if rebuilt is not None and rebuilt.coupled_counterbalance is not None
+            else ""
+        )
         + f" (F = {f_stat:.2f}, p = {p:.2g})"
     )
 
@@ -372,22 +441,23 @@ def _lowest_sse(
 def _coupling_on_profile(
     start: tuple[tuple[EffectSpec, ...], list[FloatArray]],
     i: int,
-    k: int,
+    coupled: list[int],
     fit: PhysicalGravityFit,
 ) -> list[tuple[tuple[EffectSpec, ...], list[FloatArray]]]:
     """The refit's start ``start`` (its gravity term ``specs[i]``, profiled: ``fit``) with
-    its coupling (``specs[k]``) rebuilt on the profile's moments and κ: the joint model
-    the profile fitted, the coupling's torques from the term's own moments (the base
-    moments; the counterbalance terms are fitted beside both, as in the profile); none
-    when the profile held no κ or split the limit form."""
-    if fit.coupling_ratio is None or fit.groups:
+    its coupling (``specs[k]``, ``coupled`` ``[k]``) rebuilt on the profile's moments and
+    κ: the joint model the profile fitted, the coupling's torques from the term's own
+    moments and the counterbalance's torque the profile read (``fit.coupled_counterbalance``);
+    none when the model holds no coupling, the profile no κ, or it split the limit form."""
+    if not coupled or fit.coupling_ratio is None or fit.groups:
         return []
+    k = coupled[0]
     specs, parts = start
-    base = specs[i].names[: len(fit.moments)]
-    rebuilt = EffectSpec(
-        JointCoupling.kind, joints=COUPLED_JOINTS, names=base,
-        shape=tuple(float(w) for w in fit.moments),
-    )  # fmt: skip
+    names, shape = specs[i].names[: len(fit.moments)], tuple(float(w) for w in fit.moments)
+    if fit.coupled_counterbalance is not None:
+        names += specs[i].names[len(fit.moments) :]
+        shape += tuple(float(w) for w in fit.coupled_counterbalance)
+    rebuilt = EffectSpec(JointCoupling.kind, joints=COUPLED_JOINTS, names=names, shape=shape)
     values = [np.array([fit.coupling_ratio]) if n == k else v for n, v in enumerate(parts)]
     return [(tuple(rebuilt if n == k else s for n, s in enumerate(specs)), values)]
 
