@@ -187,6 +187,8 @@ class PhysicalGravityFit:
     #: beside κ, the counterbalance terms' torques as the coupling carries them ``(c,)``
     #: (µrad, the coupling's weights; :func:`~calibration.effects.gravity_form.physical_gravity`)
     coupled_counterbalance: FloatArray | None = None
+    #: why κ was fitted beside (the report's words; empty when it was not)
+    beside_why: str = ""
 
 
 def fit_physical_gravity(

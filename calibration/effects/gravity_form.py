@@ -76,10 +76,13 @@ def physical_gravity(
         return None
     own_names = tuple(spec.names[c] for c in own)
     profile = _Profile(lin, blocks, m, cols[:, own], coupling, names, own_names)
-    fit = profile.fit(beside_coupling and coupling is not None)
+    if beside_coupling and coupling is not None:
+        fit = replace(profile.fit(True), beside_why="the coupling is in the model")
+    else:
+        fit = profile.fit(False)
     # the fit with the coupling beside is made once: not again when it did not converge
     if not (beside_coupling or _converged(fit)) and coupling is not None and _couples(ctx, blocks):
-        fit = profile.fit(True)
+        fit = replace(profile.fit(True), beside_why="one ratio per joint alone did not converge")
     if not _converged(fit):
         return None
     if fit.groups:  # the limit form: a moment a named group owns loads its joints alone
@@ -249,7 +252,7 @@ def _form_info(
     if fit.coupling_ratio is not None:
         reason += (
             f"; ratios fitted with the shoulder's coupled compliance beside (κ "
-            f"{fit.coupling_ratio:.3g}): one ratio per joint alone did not converge"
+            f"{fit.coupling_ratio:.3g}): {fit.beside_why}"
         )
     return {
         "gravity_form": {

@@ -101,6 +101,7 @@ def test_the_ratios_are_refitted_beside_the_coupling() -> None:
     assert [s.kind for s in res.added] == ["gravity_deflection", "joint_coupling"]
     reason = res.final.shape["gravity_form"]["reason"]
     assert "refitted beside coupled compliance" in reason and "coupling's κ" in reason, reason
+    assert reason.endswith("): the coupling is in the model"), reason
     assert "gravity_form" not in held.final.shape
     assert errors[-1] < 0.85 * held_errors[-1], (errors, held_errors)
 
