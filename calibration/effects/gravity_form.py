@@ -136,8 +136,7 @@ class _Profile:
             return fit
         dof = len(self.lin.residual) - extra.shape[1] - self.lin.jacobian.shape[1]
         dof -= len(both.ratios) + len(both.moments)  # the ratios but the reference's, and κ
-        f_stat = ((fit.sse - both.sse) / len(pair)) / max(both.sse / max(dof, 1), 1e-300)
-        if not f_distribution.sf(max(f_stat, 0.0), len(pair), max(dof, 1)) < PHYSICAL_FORM_ALPHA:
+        if not _sse_drop_test(fit.sse, both.sse, len(pair), dof)[1] < PHYSICAL_FORM_ALPHA:
             return fit
         # the free columns' coefficients at the profile's solution (Frisch–Waugh: the
         # same as fitting them jointly with the form), over κ: the coupled torque
@@ -192,9 +191,7 @@ def form_decision(
     k_lin = len(spec.names)
     k_phys = physical_parameter_count(phys_spec)
     dof = 3 * m - int(np.count_nonzero(linear.free))
-    d1 = max(k_lin - k_phys, 1)
-    f_stat = ((sse_phys - sse_lin) / d1) / max(sse_lin / max(dof, 1), 1e-300)
-    p = float(f_distribution.sf(max(f_stat, 0.0), d1, max(dof, 1)))
+    f_stat, p = _sse_drop_test(sse_phys, sse_lin, max(k_lin - k_phys, 1), dof)
     rejects = p < PHYSICAL_FORM_ALPHA
     kept = "linear" if rejects and linear_eligible else "physical"
     test = f"F = {f_stat:.2f}, p = {p:.2g}"
@@ -331,6 +328,15 @@ def gravity_step(
         return (*specs, phys_spec), phys, info
     assert linear is not None
     return (*specs, linear_spec), linear, info
+
+
+def _sse_drop_test(sse_reduced: float, sse_full: float, d1: int, dof: int) -> tuple[float, float]:
+    """F statistic and p-value of a nested model's weighted SSE drop ``sse_reduced →
+    sse_full`` on ``d1`` more parameters, ``dof`` the full model's residual degrees of
+    freedom (at least 1). F is negative when the full model's fit stopped short."""
+    dof = max(dof, 1)
+    f_stat = ((sse_reduced - sse_full) / d1) / max(sse_full / dof, 1e-300)
+    return float(f_stat), float(f_distribution.sf(max(f_stat, 0.0), d1, dof))
 
 
 def weighted_sse(result: IdentificationResult) -> float:
@@ -473,6 +479,4 @@ def _ratio_test(
     part of the deflection itself, would otherwise pull them to itself."""
     sse_held, sse_refit = weighted_sse(held), weighted_sse(refit)
     d1 = max(physical_parameter_count(phys_spec) - len(phys_spec.names), 1)
-    dof = max(3 * m - int(np.count_nonzero(refit.free)) - d1, 1)
-    f_stat = ((sse_held - sse_refit) / d1) / max(sse_refit / dof, 1e-300)
-    return float(f_stat), float(f_distribution.sf(max(f_stat, 0.0), d1, dof))
+    return _sse_drop_test(sse_held, sse_refit, d1, 3 * m - int(np.count_nonzero(refit.free)) - d1)
