@@ -139,7 +139,8 @@ class Observability:
     ``plain`` ``(N, 3, r)``: the same unweighted (mm per unit reduced parameter);
     ``to_scaled`` ``(p, r)``: reduced -> scaled parameters; ``scale`` ``(p,)``: the
     scaled parameters' units; ``names`` ``(p,)``; ``prior`` ``(r, r)``: what is known
-    before measuring (:func:`prior_sd`), in the information's units."""
+    before measuring (:func:`prior_sd`), in the information's units; ``prior_sd``
+    ``(p,)``: the same per scaled parameter (1 σ)."""
 
     weighted: FloatArray
     plain: FloatArray
@@ -153,6 +154,7 @@ class Observability:
     left_out_plain: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 0)))
     left_out: tuple[str, ...] = ()  # the left-out effects' labels
     unseen: tuple[str, ...] = ()  # effect parameters that move the reflector at no candidate
+    prior_sd: FloatArray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -454,7 +456,7 @@ def observability(
     out_plain = out / out_rms * out_sd
     return Observability(
         plain / sigma, plain, basis, scale, tuple(names), prior,
-        out_plain / sigma, out_plain, tuple(sp.label for sp in left), unseen,
+        out_plain / sigma, out_plain, tuple(sp.label for sp in left), unseen, sd,
     )  # fmt: skip
 
 
@@ -637,11 +639,16 @@ def select_identification(obs: Observability, k: int, settings: PlanSettings) ->
 
 def parameter_sigmas(obs: Observability, indices: IntArray) -> FloatArray:
     """Predicted 1 σ ``(p,)`` of each parameter (its own units: mm, rad, or a gravity
-    term's) from the chosen poses' information and the prior (the posterior's)."""
+    term's): the posterior's, every parameter's prior (``obs.prior_sd``) beside the chosen
+    poses' information along the directions they observe. Where the poses see only a sum
+    of parameters (joint 2's cyclic error of order 1 and the gravity term's link-2
+    moments both turn joint 2 as cos/sin q2), the data pin the sum and each part's prior
+    the split; the design's prior on the observed directions alone (``obs.prior``) held
+    the loosely known part as fixed as the tight one and printed its σ."""
     h = obs.weighted[indices]
-    info = np.einsum("nip,niq->pq", h, h)
-    cov_reduced = np.linalg.inv(info + obs.prior)
-    cov_scaled = obs.to_scaled @ cov_reduced @ obs.to_scaled.T
+    info = obs.to_scaled @ np.einsum("nip,niq->pq", h, h) @ obs.to_scaled.T
+    ev, vec = np.linalg.eigh(info + np.diag(1.0 / obs.prior_sd**2))
+    cov_scaled = (vec / np.maximum(ev, 1e-15 * ev[-1])) @ vec.T  # a free, unseen one: huge
     sig: FloatArray = np.sqrt(np.clip(np.diag(cov_scaled), 0, None)) / obs.scale
     return sig
 

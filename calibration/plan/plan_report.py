@@ -83,7 +83,10 @@ def plan_report(
         "## Predicted parameter uncertainties (1 σ)",
         "",
         "The tracker's noise ±(15 µm + 6 µm/m) as 2 σ; geometry in µm and arc seconds, "
-        "gravity terms in their own units (mm per unit regressor).",
+        "gravity terms in their own units (mm per unit regressor). Each is the posterior "
+        "of every parameter below fitted together, beside what is known before measuring "
+        "(docs/planning.md): a σ at that prior (a gravity moment's or counterbalance "
+        "term's 0.1 µrad, the tracker scale's 0.06 ppm) is the prior's, not these poses'.",
         "",
         "| parameter | planned | random |",
         "|---|---|---|",

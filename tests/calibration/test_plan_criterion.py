@@ -16,9 +16,11 @@ from calibration.model.cell_geometry import CellGeometrySpec, resolve
 from calibration.model.description import RobotDescription, load_robot
 from calibration.model.kinematics import KinematicModel, identification_jacobian
 from calibration.plan.campaign_plan import (
+    Observability,
     PlanSettings,
     loop_can_add,
     observability,
+    parameter_sigmas,
     physical_form_columns,
 )
 from calibration.plan.plan_criterion import (
@@ -145,3 +147,38 @@ def test_plan_fits_gravity_in_the_physical_form_from_50_poses() -> None:
     obs20 = observability(robot, geometry, q, PlanSettings(n_identify=20))
     assert obs20.left_out and "linear form" in obs20.left_out[0]  # its bias, not fitted
     assert not any("gravity" in n for n in obs20.names)
+
+
+def _observability(blocks: FloatArray, sd: FloatArray, sigma: float) -> Observability:
+    """A toy :class:`Observability` of scaled columns ``blocks`` ``(N, 3, p)`` with prior
+    1 σ ``sd`` ``(p,)``, reduced as :func:`observability` reduces (the design's prior on
+    the observed directions alone)."""
+    ev, vec = np.linalg.eigh(np.einsum("nip,niq->pq", blocks, blocks))
+    basis = vec[:, ev > 1e-8 * ev[-1]]
+    plain = blocks @ basis
+    prior = basis.T @ (basis / sd[:, None] ** 2)
+    names = tuple(f"p{i}" for i in range(len(sd)))
+    return Observability(plain / sigma, plain, basis, np.ones(len(sd)), names, prior, prior_sd=sd)
+
+
+def test_parameter_sigmas_are_the_posterior_of_every_parameter() -> None:
+    rng = np.random.default_rng(4)
+    n, sigma = 40, 0.01
+    own = rng.normal(size=(n, 3, 2))
+    sd = np.array([0.03, 1e-5, 0.5])
+    # apart: the posterior of the reduced parameters, as before
+    obs = _observability(np.concatenate([own, rng.normal(size=(n, 3, 1))], axis=2), sd, sigma)
+    rows = np.arange(n)
+    full = np.einsum("nip,niq->pq", obs.weighted, obs.weighted) + obs.prior
+    before = np.sqrt(np.diag(obs.to_scaled @ np.linalg.inv(full) @ obs.to_scaled.T))
+    np.testing.assert_allclose(parameter_sigmas(obs, rows), before, rtol=1e-6)
+    # the first two seen only as a sum (a cyclic error and a gravity moment turning the
+    # same joint alike): the data pin the sum and the tight prior the second, so the
+    # first is known as well as the sum, not as well as the tight one
+    blocks = np.concatenate([own[:, :, :1], own[:, :, :1], own[:, :, 1:]], axis=2)
+    obs = _observability(blocks, sd, sigma)
+    s = parameter_sigmas(obs, rows)
+    alone = _observability(blocks[:, :, [0, 2]], sd[[0, 2]], sigma)
+    assert s[1] == pytest.approx(sd[1], rel=1e-3)
+    assert s[0] == pytest.approx(parameter_sigmas(alone, rows)[0], rel=1e-2)
+    assert s[0] > 10 * sd[1]
