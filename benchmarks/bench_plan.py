@@ -7,7 +7,7 @@ counterbalance), a cyclic grating error and a tracker scale error, in the defaul
 ±30° cone, the fixture table, the floor):
 
 * **planned**: ``twin plan``'s 50 identification poses (:func:`plan_campaign`, I-optimal
-  from 5000 candidates in view) and its 20 validation poses;
+  from 20 000 candidates in view, the default) and its 20 validation poses;
 * **random 50** / **random 150**: that many random poses in view and clear (the same
   candidate generator, another seed: uniform in the region, random tilt in the cone),
   with the same 20 validation poses.
@@ -173,7 +173,7 @@ class SeedCampaigns:
 
 def seed_campaigns(
     seed: int,
-    n_candidates: int = 5000,
+    n_candidates: int = PlanSettings().n_candidates,
     n_plan: int = 50,
     arm: PlannedArm | None = None,
     passes: int = 2,
@@ -203,7 +203,7 @@ def seed_campaigns(
 
 def run_seed(
     seed: int,
-    n_candidates: int = 5000,
+    n_candidates: int = PlanSettings().n_candidates,
     n_plan: int = 50,
     effects: UndeclaredEffects = EFFECTS,
     loop: LoopSettings | None = None,

@@ -78,8 +78,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--candidates",
         type=integer(10, 100_000),
-        default=5000,
-        help="candidate poses in view to choose from (5000)",
+        default=20000,  # PlanSettings().n_candidates, not imported before the arguments pass
+        help="candidate poses in view to choose from (20000)",
     )
     p.add_argument(
         "--criterion",
