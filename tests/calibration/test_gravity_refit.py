@@ -118,7 +118,7 @@ def planned_coupled_loop(
     effects = UndeclaredEffects.named(
         "gravity_deflection", "joint_coupling", "grating_cyclic", coupling_coefficient=-0.5
     )
-    sc = seed_campaigns(seed)
+    sc = seed_campaigns(seed, 5000)  # the plan the numbers below were read on
     cell = sc.cell if counterbalance else TrueCell.create(sc.nominal, seed, counterbalance=False)
     settings = CampaignSettings(effects=effects)
     data = measure_campaign(cell, sc.q_id, sc.q_val, np.random.default_rng([seed, 7]), settings)
