@@ -40,6 +40,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -140,23 +141,30 @@ class Observability:
     ``weighted`` ``(N, 3, r)``: reduced, σ-weighted blocks (information ``Σ HᵢᵀHᵢ``);
     ``plain`` ``(N, 3, r)``: the same unweighted (mm per unit reduced parameter);
     ``to_scaled`` ``(p, r)``: reduced -> scaled parameters; ``scale`` ``(p,)``: the
-    scaled parameters' units; ``names`` ``(p,)``; ``prior`` ``(r, r)``: what is known
-    before measuring (:func:`prior_sd`), in the information's units; ``prior_sd``
-    ``(p,)``: the same per scaled parameter (1 σ)."""
+    scaled parameters' units; ``names`` ``(p,)``; ``prior_sd`` ``(p,)``: what is known
+    before measuring (:func:`prior_sd`), 1 σ per scaled parameter."""
 
     weighted: FloatArray
     plain: FloatArray
     to_scaled: FloatArray
     scale: FloatArray
     names: tuple[str, ...]
-    prior: FloatArray  # (r, r) prior information of the reduced parameters
+    prior_sd: FloatArray
     #: ``(N, 3, q)`` the effects the loop cannot add from ``n_identify`` poses
     #: (:func:`loop_can_add`), each column scaled to its prior 1 σ; σ-weighted and plain
     left_out_weighted: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 0)))
     left_out_plain: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 0)))
     left_out: tuple[str, ...] = ()  # the left-out effects' labels
     unseen: tuple[str, ...] = ()  # effect parameters that move the reflector at no candidate
-    prior_sd: FloatArray = field(default_factory=lambda: np.zeros(0))
+
+    @cached_property
+    def prior(self) -> FloatArray:
+        """``(r, r)`` the prior information of the reduced parameters, restricted to the
+        directions the candidates observe (the design's; :func:`parameter_sigmas` takes
+        each parameter's own)."""
+        basis = self.to_scaled
+        out: FloatArray = basis.T @ (basis / self.prior_sd[:, None] ** 2)
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -445,7 +453,6 @@ def observability(
     # measured in docs/planning.md are made so; the priors read as TCP mm measured worse
     # there (docs/planning.md, "What is left")
     sd = prior_sd(names, len(geo[0, 0]), kinds) * scale
-    prior = basis.T @ (basis / sd[:, None] ** 2)
     out = regressor_matrix(left, ctx, slice(0, len(q_rad)), kin)
     # a left-out effect as large as its prior says at the TCP, spread over its columns
     out_sd = np.concatenate(
@@ -457,8 +464,8 @@ def observability(
     out_sd = np.where(out_rms > _DEAD_COLUMN * float(np.max(scale)), out_sd, 0.0)
     out_plain = out / out_rms * out_sd
     return Observability(
-        plain / sigma, plain, basis, scale, tuple(names), prior,
-        out_plain / sigma, out_plain, tuple(sp.label for sp in left), unseen, sd,
+        plain / sigma, plain, basis, scale, tuple(names), sd,
+        out_plain / sigma, out_plain, tuple(sp.label for sp in left), unseen,
     )  # fmt: skip
 
 

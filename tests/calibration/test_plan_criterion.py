@@ -156,9 +156,8 @@ def _observability(blocks: FloatArray, sd: FloatArray, sigma: float) -> Observab
     ev, vec = np.linalg.eigh(np.einsum("nip,niq->pq", blocks, blocks))
     basis = vec[:, ev > 1e-8 * ev[-1]]
     plain = blocks @ basis
-    prior = basis.T @ (basis / sd[:, None] ** 2)
     names = tuple(f"p{i}" for i in range(len(sd)))
-    return Observability(plain / sigma, plain, basis, np.ones(len(sd)), names, prior, prior_sd=sd)
+    return Observability(plain / sigma, plain, basis, np.ones(len(sd)), names, sd)
 
 
 def test_parameter_sigmas_are_the_posterior_of_every_parameter() -> None:
