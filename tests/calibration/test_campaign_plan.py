@@ -282,3 +282,16 @@ def test_bad_input_one_line_exit_2_nothing_written(case: str, tmp_path: Path) ->
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_the_commands_candidate_count_is_the_planners_default() -> None:
+    # the command states it as a literal (it parses before the planner is imported)
+    import argparse
+
+    from calibration.cli.plan import register
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["plan", "--robot", "kr500", "--poses", "5", "--validate", "0",
+                              "--out", "x"])  # fmt: skip
+    assert args.candidates == PlanSettings().n_candidates
