@@ -403,10 +403,10 @@ class _Search:
         guard: bool = True,
     ) -> _Step | str:
         """The step adding ``chosen``, guarded (:func:`_guarded`; ``guard``: by the
-        validation set too). A re-identification that
-        failed from the nominal start is tried once more from ``previous``'s geometry: on an
-        emulated UR10, whose base start was ~66 mm off, the gravity term's fit stalled
-        from the nominal start though the geometric fit had converged from it.
+        validation set too). A re-identification that failed from the nominal start is
+        tried once more from ``previous``'s geometry: on an emulated UR10, whose base start
+        was ~66 mm off, the gravity term's fit stalled from the nominal start though the
+        geometric fit had converged from it.
         ``linear_first``: the second search's gravity step may keep the linear form when the
         physical one cannot be fitted (:func:`_try_step`)."""
 
