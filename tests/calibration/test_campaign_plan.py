@@ -3,6 +3,7 @@ emulator's own view of the plan, the emulated tracker's line of sight, bad input
 
 from __future__ import annotations
 
+import argparse
 import csv
 import os
 import subprocess
@@ -12,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from calibration.cli.plan import register
 from calibration.model.cell_geometry import CellGeometrySpec, resolve
 from calibration.model.description import load_robot
 from calibration.plan.campaign_plan import (
@@ -286,10 +288,6 @@ def test_bad_input_one_line_exit_2_nothing_written(case: str, tmp_path: Path) ->
 
 def test_the_commands_candidate_count_is_the_planners_default() -> None:
     # the command states it as a literal (it parses before the planner is imported)
-    import argparse
-
-    from calibration.cli.plan import register
-
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers())
     args = parser.parse_args(["plan", "--robot", "kr500", "--poses", "5", "--validate", "0",

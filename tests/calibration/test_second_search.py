@@ -34,7 +34,8 @@ from sim_devices.pose_campaign import CampaignSettings, measure_campaign
 #: campaigns (the deviance's own tests: test_candidate_cv.py). The mechanism is tested here.
 PRESS = LoopSettings(loo_deviance=False)
 FIRST_SEARCH_ONLY = LoopSettings(gravity_first_search=False, loo_deviance=False)
-_FIRST_ONLY = LoopSettings(gravity_first_search=False)  # the loop's default scoring
+#: the first search alone, scored as the loop scores by default (the predictive deviance)
+FIRST_SEARCH_BY_DEVIANCE = LoopSettings(gravity_first_search=False)
 MEASURED = CampaignSettings(effects=EFFECTS)
 
 
@@ -219,7 +220,7 @@ def test_the_second_searchs_gravity_step_is_judged_by_the_search_s_end() -> None
     rng = np.random.default_rng([2, 7])
     measured = measure_campaign(sc.cell, sc.q_id, sc.q_val, rng, WITH_LOST_MOTION).campaign
     second, err_second = _calibrated(sc, measured, 2, WITH_LOST_MOTION, None)
-    first, err_first = _calibrated(sc, measured, 2, WITH_LOST_MOTION, _FIRST_ONLY)
+    first, err_first = _calibrated(sc, measured, 2, WITH_LOST_MOTION, FIRST_SEARCH_BY_DEVIANCE)
     assert second.loop is not None and first.loop is not None
     found = second.loop.second_search
     assert found is not None and found.kept and not found.gravity_undone
